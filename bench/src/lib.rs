@@ -1,0 +1,1 @@
+//! blapose-bench (under construction).

@@ -1,0 +1,1 @@
+//! blapose-client (under construction).

@@ -1,0 +1,1 @@
+//! blapose-data (under construction).

@@ -1,0 +1,1 @@
+//! blapose-model (under construction).

@@ -1,0 +1,1 @@
+//! blapose-proto (under construction).

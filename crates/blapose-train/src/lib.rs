@@ -1,0 +1,1 @@
+//! blapose-train (under construction).

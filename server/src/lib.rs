@@ -1,0 +1,1 @@
+//! blapose-server (under construction).

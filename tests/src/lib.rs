@@ -1,0 +1,1 @@
+//! blapose-tests (under construction).
