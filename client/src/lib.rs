@@ -1,1 +1,47 @@
-//! blapose-client (under construction).
+//! blapose-client: a typed async client for the blapose service.
+//!
+//! The server keeps each person's bone-length estimate in a *session*: a
+//! client opens one, streams frames (2D keypoints plus a lifter's 3D pose)
+//! and gets every pose back rebuilt with the estimated bone lengths. This
+//! crate hides the protobuf messages behind types from [`blapose_core`]:
+//!
+//! ```no_run
+//! # async fn demo() -> Result<(), blapose_client::ClientError> {
+//! use blapose_client::{Client, ClientConfig, InputFormat, KeypointLayout, Sequence};
+//! let client = Client::connect(ClientConfig::new("http://127.0.0.1:50051")).await?;
+//! let seq = Sequence::load("examples/cmu_02_02_walk.npz", None)?;
+//! let mut session = client
+//!     .open_session(InputFormat::pixels(KeypointLayout::H36m17, 1000, 1000), Some("cam0"))
+//!     .await?;
+//! let answer = session.adjust(&seq.frame(0)).await?;
+//! println!("{:?}", answer.bone_lengths);
+//! let summary = session.close().await?;
+//! # let _ = summary; Ok(()) }
+//! ```
+//!
+//! Modules: [`client`] (connection, unary calls), [`session`] (the
+//! bidirectional stream), [`types`] (typed messages), [`sequence`] (replay
+//! files), [`replay`] (whole-sequence drivers), [`report`] (before/after
+//! metrics) and [`example`] (the licence-clean example generator).
+
+pub mod client;
+pub mod error;
+pub mod example;
+pub mod replay;
+pub mod report;
+pub mod sequence;
+pub mod session;
+pub mod types;
+
+pub use client::{
+    Client, ClientConfig, OfflineAdjustment, SequenceInput, TlsOptions, DEFAULT_SERVER,
+};
+pub use error::ClientError;
+pub use replay::{adjust_offline, replay, Adjusted, ReplayOptions};
+pub use report::{evaluate, Evaluation, PoseMetrics};
+pub use sequence::{Sequence, SequenceError};
+pub use session::{EventReceiver, FrameRejection, FrameSender, Session, SessionEvent};
+pub use types::{
+    AdjustedFrame, Coordinates, FrameInput, InputFormat, KeypointLayout, ModelChoice,
+    ModelDescription, ModelInfo, SessionInfo, SessionSummary,
+};

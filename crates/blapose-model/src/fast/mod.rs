@@ -1,0 +1,1 @@
+//! Fast CPU inference (under construction).

@@ -1,0 +1,130 @@
+//! A GRU layer in plain candle ops, two directions at a time.
+//!
+//! Both models run exactly two GRU directions over one embedded sequence
+//! (the online model's two GRUs see the same frames; the Bi-GRU's backward
+//! direction sees them reversed). Running the pair in lockstep lets every
+//! time step be *one* batched matmul of shape `(2, B, 512) x (2, 512, 1536)`
+//! and one set of element-wise ops on `(2, B, ...)` instead of two, which
+//! halves the number of autograd nodes. The input projection does not
+//! depend on the state, so it is one big matmul over all frames before the
+//! time loop. The cell follows PyTorch exactly (gate order r, z, n):
+//!
+//! ```text
+//! r = σ(W_ir x + b_ir + W_hr h + b_hr)
+//! z = σ(W_iz x + b_iz + W_hz h + b_hz)
+//! n = tanh(W_in x + b_in + r ⊙ (W_hn h + b_hn))
+//! h' = (1 - z) ⊙ n + z ⊙ h
+//! ```
+
+use candle_core::{Result, Tensor, D};
+use candle_nn::VarBuilder;
+
+use crate::init::init_for;
+use crate::names::GruNames;
+use crate::{EMBED_DIM, GATES, HIDDEN};
+
+/// The four tensors of one GRU direction, PyTorch layout.
+#[derive(Debug, Clone)]
+pub struct GruParams {
+    /// `[1536, 256]`, rows r | z | n.
+    pub weight_ih: Tensor,
+    /// `[1536, 512]`, rows r | z | n.
+    pub weight_hh: Tensor,
+    /// `[1536]`.
+    pub bias_ih: Tensor,
+    /// `[1536]`.
+    pub bias_hh: Tensor,
+}
+
+impl GruParams {
+    /// Fetch (or create, for a training `VarMap`) the tensors named `names`.
+    pub fn new(vb: &VarBuilder, names: &GruNames) -> Result<Self> {
+        let get = |shape: &[usize], name: &str| {
+            vb.get_with_hints(shape.to_vec(), name, init_for(name))
+        };
+        Ok(Self {
+            weight_ih: get(&[GATES, EMBED_DIM], &names.weight_ih)?,
+            weight_hh: get(&[GATES, HIDDEN], &names.weight_hh)?,
+            bias_ih: get(&[GATES], &names.bias_ih)?,
+            bias_hh: get(&[GATES], &names.bias_hh)?,
+        })
+    }
+}
+
+/// Result of running a GRU pair over a sequence.
+pub(crate) struct PairRun {
+    /// States after the last step, `(2, B, 512)`: `[a, b]`.
+    pub last: Tensor,
+    /// Every step's states `(T, 2, B, 512)` when requested. For a reversed
+    /// `b`, index `t` holds `b`'s state after it consumed frame `T-1-t`.
+    pub all: Option<Tensor>,
+}
+
+/// Input pre-activations for both directions, `(T, 2, B, 1536)`, with `b`'s
+/// time axis reversed when `reverse_b`.
+pub(crate) fn input_projection(
+    a: &GruParams,
+    b: &GruParams,
+    e: &Tensor,
+    reverse_b: bool,
+) -> Result<Tensor> {
+    let (batch, steps, width) = e.dims3()?;
+    let w = Tensor::cat(&[&a.weight_ih, &b.weight_ih], 0)?; // (3072, 256)
+    let bias = Tensor::cat(&[&a.bias_ih, &b.bias_ih], 0)?;
+    let gi = e
+        .reshape((batch * steps, width))?
+        .matmul(&w.t()?)?
+        .broadcast_add(&bias)?
+        .reshape((batch, steps, 2, GATES))?
+        .permute((1, 2, 0, 3))?
+        .contiguous()?; // (T, 2, B, 1536)
+    if !reverse_b {
+        return Ok(gi);
+    }
+    let rev: Vec<u32> = (0..steps as u32).rev().collect();
+    let rev = Tensor::new(rev.as_slice(), e.device())?;
+    let fwd = gi.narrow(1, 0, 1)?;
+    let bwd = gi.narrow(1, 1, 1)?.index_select(&rev, 0)?;
+    Tensor::cat(&[&fwd, &bwd], 1)
+}
+
+/// Run GRUs `a` and `b` from zero state over the embedded sequence `e`
+/// (`(B, T, 256)`); `b` reads it backwards when `reverse_b`.
+pub(crate) fn run_pair(
+    a: &GruParams,
+    b: &GruParams,
+    e: &Tensor,
+    reverse_b: bool,
+    keep_all: bool,
+) -> Result<PairRun> {
+    let (batch, steps, _) = e.dims3()?;
+    let gi = input_projection(a, b, e, reverse_b)?;
+    let w_hh_t = Tensor::stack(&[&a.weight_hh, &b.weight_hh], 0)?
+        .transpose(1, 2)?
+        .contiguous()?; // (2, 512, 1536)
+    let b_hh = Tensor::stack(&[&a.bias_hh, &b.bias_hh], 0)?.unsqueeze(1)?; // (2, 1, 1536)
+    let mut h = Tensor::zeros((2, batch, HIDDEN), e.dtype(), e.device())?;
+    let mut all = Vec::with_capacity(if keep_all { steps } else { 0 });
+    for t in 0..steps {
+        let gi_t = gi.get(t)?; // (2, B, 1536)
+        let gh = h.matmul(&w_hh_t)?.broadcast_add(&b_hh)?;
+        let rz = candle_nn::ops::sigmoid(
+            &(gi_t.narrow(D::Minus1, 0, 2 * HIDDEN)? + gh.narrow(D::Minus1, 0, 2 * HIDDEN)?)?,
+        )?;
+        let r = rz.narrow(D::Minus1, 0, HIDDEN)?;
+        let z = rz.narrow(D::Minus1, HIDDEN, HIDDEN)?;
+        let n = (gi_t.narrow(D::Minus1, 2 * HIDDEN, HIDDEN)?
+            + r.mul(&gh.narrow(D::Minus1, 2 * HIDDEN, HIDDEN)?)?)?
+        .tanh()?;
+        h = (&n + z.mul(&(&h - &n)?)?)?;
+        if keep_all {
+            all.push(h.clone());
+        }
+    }
+    let all = if keep_all {
+        Some(Tensor::stack(&all, 0)?)
+    } else {
+        None
+    };
+    Ok(PairRun { last: h, all })
+}

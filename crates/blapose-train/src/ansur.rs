@@ -1,0 +1,275 @@
+//! A licence-clean synthetic body-shape population: ANSUR II people mapped
+//! to Human3.6M-convention bone lengths.
+//!
+//! The paper samples bone lengths from SMPL bodies; SMPL is licence
+//! restricted, ANSUR II (US Army 2012, 6,068 people) is public domain. ANSUR
+//! measures *surface landmarks* (heights of bony points above the floor,
+//! breadths, segment lengths), not joint centres, so each bone gets a raw
+//! estimate from the landmarks that bracket it ([`BONE_MAPPING`]) and then one
+//! scale factor per bone that makes the population mean equal to the training
+//! subjects' mean ([`AnsurPopulation::calibrate`]). A per-bone *scale* (not an
+//! offset) keeps every person's proportions and the correlations between
+//! bones (tall people have long thighs *and* long forearms) exactly as
+//! measured; only the units are matched to Human3.6M's joint definitions.
+//!
+//! Symmetry is by construction: ANSUR measures one side, and the left and
+//! right bone of each pair get the same raw value and the same factor.
+//!
+//! Bones whose length is identical for every training subject (Human3.6M's
+//! head bone, 0.115 m) are held at that value: the dataset's skeleton fixes
+//! them, so a person-to-person variation would only be label noise.
+//!
+//! **Only training subjects calibrate.** [`AnsurPopulation::calibrate`] takes
+//! the [`TrainingLengthStats`] built from the training subjects' lengths and
+//! nothing else; a test (`tests/ansur_calibration.rs`) checks that changing a
+//! training subject's lengths changes the population and that test subjects
+//! cannot reach it.
+
+use blapose_core::skeleton::NUM_BONES;
+use blapose_core::BoneLengths;
+
+use crate::error::TrainError;
+use crate::lengths::TrainingLengthStats;
+
+/// How a bone's raw length is computed from ANSUR columns (millimetres).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Landmarks {
+    /// `a - b` (a vertical distance between two landmark heights).
+    Difference(&'static str, &'static str),
+    /// `a - b - c`.
+    Difference3(&'static str, &'static str, &'static str),
+    /// `a * k` (a breadth halved, or a segment length taken as is).
+    Scaled(&'static str, f64),
+}
+
+/// The documented per-bone mapping, indexed like
+/// [`blapose_core::skeleton::BONE_NAMES`]. Left and right bones use the same
+/// landmarks. Raw means (mixed male + female survey) against the training
+/// subjects' means give the calibration factors printed by
+/// `blapose ansur-report` (all within 0.6-1.6).
+pub const BONE_MAPPING: [Landmarks; NUM_BONES] = [
+    // r_hip: pelvis centre to hip joint ~ half the iliac-crest breadth.
+    Landmarks::Scaled("bicristalbreadth", 0.5),
+    // r_thigh: hip joint (greater trochanter level) to knee (femoral epicondyle).
+    Landmarks::Difference("trochanterionheight", "lateralfemoralepicondyleheight"),
+    // r_calf: knee to ankle (lateral malleolus).
+    Landmarks::Difference("lateralfemoralepicondyleheight", "lateralmalleolusheight"),
+    Landmarks::Scaled("bicristalbreadth", 0.5),
+    Landmarks::Difference("trochanterionheight", "lateralfemoralepicondyleheight"),
+    Landmarks::Difference("lateralfemoralepicondyleheight", "lateralmalleolusheight"),
+    // spine: pelvis (hip-joint level) to mid-spine (tenth rib level).
+    Landmarks::Difference("tenthribheight", "trochanterionheight"),
+    // thorax: mid-spine to the top of the sternum.
+    Landmarks::Difference("suprasternaleheight", "tenthribheight"),
+    // neck: sternum top to nose level (ear canal: stature - tragion-to-top).
+    Landmarks::Difference3("stature", "tragiontopofhead", "suprasternaleheight"),
+    // head: nose level to the top of the head (fixed in Human3.6M).
+    Landmarks::Scaled("tragiontopofhead", 1.0),
+    // l_shoulder: thorax to shoulder joint ~ half the biacromial breadth.
+    Landmarks::Scaled("biacromialbreadth", 0.5),
+    // l_upper_arm: acromion to radiale (elbow).
+    Landmarks::Scaled("acromionradialelength", 1.0),
+    // l_forearm: radiale to stylion (wrist).
+    Landmarks::Scaled("radialestylionlength", 1.0),
+    Landmarks::Scaled("biacromialbreadth", 0.5),
+    Landmarks::Scaled("acromionradialelength", 1.0),
+    Landmarks::Scaled("radialestylionlength", 1.0),
+];
+
+/// Every ANSUR column the mapping reads.
+pub fn required_columns() -> Vec<&'static str> {
+    let mut cols: Vec<&'static str> = Vec::new();
+    for m in BONE_MAPPING {
+        let names: &[&'static str] = match &m {
+            Landmarks::Difference(a, b) => &[a, b],
+            Landmarks::Difference3(a, b, c) => &[a, b, c],
+            Landmarks::Scaled(a, _) => &[a],
+        };
+        for n in names {
+            if !cols.contains(n) {
+                cols.push(n);
+            }
+        }
+    }
+    cols
+}
+
+/// Raw (uncalibrated) bone lengths in metres of one person, reading columns
+/// through `get` (millimetres). Errors name the missing column or the bone
+/// whose landmarks give a non-positive length.
+pub fn raw_lengths(get: impl Fn(&str) -> Option<f64>) -> Result<BoneLengths, TrainError> {
+    let col = |name: &str| get(name).ok_or_else(|| TrainError::Ansur(format!("missing or non-numeric column {name:?}")));
+    let mut out = [0.0f32; NUM_BONES];
+    for (b, m) in BONE_MAPPING.iter().enumerate() {
+        let mm = match *m {
+            Landmarks::Difference(a, c) => col(a)? - col(c)?,
+            Landmarks::Difference3(a, c, d) => col(a)? - col(c)? - col(d)?,
+            Landmarks::Scaled(a, k) => col(a)? * k,
+        };
+        if !mm.is_finite() || mm <= 0.0 {
+            return Err(TrainError::Ansur(format!(
+                "bone {} has non-positive raw length {mm} mm",
+                blapose_core::skeleton::BONE_NAMES[b]
+            )));
+        }
+        out[b] = (mm / 1000.0) as f32;
+    }
+    Ok(out)
+}
+
+/// The calibrated population: one row of 16 lengths (metres) per person.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AnsurPopulation {
+    people: Vec<BoneLengths>,
+    /// Per-bone factor applied to the raw lengths.
+    pub scale: BoneLengths,
+}
+
+impl AnsurPopulation {
+    /// Calibrate raw people ([`raw_lengths`]) to the training subjects:
+    /// `scale[b] = train_mean[b] / raw_mean[b]`; bones fixed across the
+    /// training subjects are set to their training value.
+    pub fn calibrate(raw: &[BoneLengths], training: &TrainingLengthStats) -> Result<Self, TrainError> {
+        if raw.is_empty() {
+            return Err(TrainError::Ansur("no ANSUR people".into()));
+        }
+        let n = raw.len() as f64;
+        let mut scale = [0.0f32; NUM_BONES];
+        for b in 0..NUM_BONES {
+            let raw_mean = raw.iter().map(|p| f64::from(p[b])).sum::<f64>() / n;
+            scale[b] = (f64::from(training.mean[b]) / raw_mean) as f32;
+        }
+        let people = raw
+            .iter()
+            .map(|p| {
+                std::array::from_fn(|b| if training.is_fixed(b) { training.mean[b] } else { p[b] * scale[b] })
+            })
+            .collect();
+        Ok(Self { people, scale })
+    }
+
+    /// Number of people.
+    pub fn len(&self) -> usize {
+        self.people.len()
+    }
+
+    /// True when there is nobody.
+    pub fn is_empty(&self) -> bool {
+        self.people.is_empty()
+    }
+
+    /// Person `i`'s calibrated lengths.
+    pub fn person(&self, i: usize) -> BoneLengths {
+        self.people[i % self.people.len().max(1)]
+    }
+
+    /// All people.
+    pub fn people(&self) -> &[BoneLengths] {
+        &self.people
+    }
+
+    /// Per-bone mean and standard deviation of the calibrated population.
+    pub fn moments(&self) -> (BoneLengths, BoneLengths) {
+        let n = self.people.len().max(1) as f64;
+        let mut mean = [0.0f32; NUM_BONES];
+        let mut std = [0.0f32; NUM_BONES];
+        for b in 0..NUM_BONES {
+            let m = self.people.iter().map(|p| f64::from(p[b])).sum::<f64>() / n;
+            let v = self.people.iter().map(|p| (f64::from(p[b]) - m).powi(2)).sum::<f64>() / n;
+            mean[b] = m as f32;
+            std[b] = v.sqrt() as f32;
+        }
+        (mean, std)
+    }
+}
+
+/// Raw lengths of every person of a loaded ANSUR table; people whose
+/// landmarks give a non-positive bone are skipped (returned count).
+pub fn raw_population(table: &blapose_data::ansur::AnsurTable) -> Result<(Vec<BoneLengths>, usize), TrainError> {
+    for c in required_columns() {
+        if table.column_index(c).is_none() {
+            return Err(TrainError::Ansur(format!("the survey has no column {c:?}")));
+        }
+    }
+    let mut out = Vec::with_capacity(table.records.len());
+    let mut skipped = 0;
+    for r in &table.records {
+        match raw_lengths(|c| table.value(r, c).map(f64::from)) {
+            Ok(l) => out.push(l),
+            Err(_) => skipped += 1,
+        }
+    }
+    Ok((out, skipped))
+}
+
+/// Load both ANSUR II CSVs under `root` and calibrate them to the training
+/// subjects' statistics.
+pub fn load_population(root: &std::path::Path, training: &TrainingLengthStats) -> Result<AnsurPopulation, TrainError> {
+    let table = blapose_data::ansur::load_ansur(root)?;
+    let (raw, _) = raw_population(&table)?;
+    AnsurPopulation::calibrate(&raw, training)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use blapose_core::skeleton::SYMMETRIC_BONE_PAIRS;
+    use std::collections::HashMap;
+
+    fn person(scale: f64) -> HashMap<&'static str, f64> {
+        let base = [
+            ("bicristalbreadth", 275.0),
+            ("trochanterionheight", 880.0),
+            ("lateralfemoralepicondyleheight", 480.0),
+            ("lateralmalleolusheight", 70.0),
+            ("tenthribheight", 1100.0),
+            ("suprasternaleheight", 1400.0),
+            ("stature", 1710.0),
+            ("tragiontopofhead", 130.0),
+            ("biacromialbreadth", 400.0),
+            ("acromionradialelength", 327.0),
+            ("radialestylionlength", 259.0),
+        ];
+        base.into_iter().map(|(k, v)| (k, v * scale)).collect()
+    }
+
+    fn training(mean: f32) -> TrainingLengthStats {
+        let a = [mean; NUM_BONES];
+        let mut b = [mean * 1.1; NUM_BONES];
+        b[9] = mean; // a fixed bone, as Human3.6M's head
+        TrainingLengthStats::from_training(&[a, b]).unwrap()
+    }
+
+    #[test]
+    fn mapping_reads_every_column_and_is_symmetric() {
+        assert_eq!(required_columns().len(), 11);
+        let p = person(1.0);
+        let raw = raw_lengths(|c| p.get(c).copied()).unwrap();
+        assert!((raw[1] - 0.400).abs() < 1e-6);
+        assert!((raw[8] - (1.710 - 0.130 - 1.400)).abs() < 1e-6);
+        for &(r, l) in &SYMMETRIC_BONE_PAIRS {
+            assert_eq!(raw[r], raw[l]);
+        }
+        let missing = raw_lengths(|c| if c == "stature" { None } else { p.get(c).copied() });
+        assert!(matches!(missing, Err(TrainError::Ansur(m)) if m.contains("stature")));
+    }
+
+    #[test]
+    fn calibration_matches_training_mean_and_keeps_ratios() {
+        let raw: Vec<BoneLengths> =
+            [0.9, 1.0, 1.1].iter().map(|&s| raw_lengths(|c| person(s).get(c).copied()).unwrap()).collect();
+        let t = training(0.2);
+        let pop = AnsurPopulation::calibrate(&raw, &t).unwrap();
+        let (mean, _) = pop.moments();
+        for b in 0..NUM_BONES {
+            assert!((mean[b] - t.mean[b]).abs() < 1e-5, "bone {b}");
+        }
+        // Proportions between people survive the per-bone scale.
+        assert!((pop.person(2)[1] / pop.person(0)[1] - 1.1 / 0.9).abs() < 1e-4);
+        // The fixed bone is held.
+        assert!(pop.people().iter().all(|p| p[9] == 0.2));
+        // Changing the training statistics changes the population.
+        let other = AnsurPopulation::calibrate(&raw, &training(0.25)).unwrap();
+        assert_ne!(other, pop);
+    }
+}

@@ -1,0 +1,262 @@
+//! Human3.6M as the trainer and the evaluator need it.
+//!
+//! Training sees the **training subjects only**: [`TrainingSet::load`] has
+//! no subject argument, it reads [`TRAIN_SUBJECTS`] (S1 S5 S6 S7 S8), so no
+//! test statistic can reach a length sampler, the ANSUR calibration or the
+//! residual bank by accident. Evaluation inputs ([`EvalSequence`]) are built
+//! for any subject list: the real Stacked Hourglass detections converted to
+//! the 17 Human3.6M joints ([`KeypointLayout::Sh16`]) or the ground truth
+//! projected with the real camera, both in normalized screen coordinates.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::sync::Arc;
+
+use blapose_core::bones::{decompose, mean_bone_lengths};
+use blapose_core::camera::{normalize_keypoints, Camera};
+use blapose_core::layouts::KeypointLayout;
+use blapose_core::{BoneLengths, Keypoints2d, Pose};
+use blapose_data::h36m::{H36m, Parts, ShKeypoints};
+pub use blapose_data::h36m::{TEST_SUBJECTS, TRAIN_SUBJECTS};
+use rayon::prelude::*;
+
+use crate::error::TrainError;
+use crate::noise::{metric_residual, MetricResidual, ResidualBank};
+use crate::synth::MotionSequence;
+
+/// Which 2D input an evaluation feeds the model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum InputKind {
+    /// Real Stacked Hourglass detections mapped to 17 joints.
+    Sh,
+    /// Ground-truth 3D projected with the real camera (with distortion).
+    Gt,
+}
+
+impl InputKind {
+    /// Flag spelling.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Sh => "sh",
+            Self::Gt => "gt",
+        }
+    }
+}
+
+impl std::str::FromStr for InputKind {
+    type Err = TrainError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "sh" => Ok(Self::Sh),
+            "gt" => Ok(Self::Gt),
+            _ => Err(TrainError::InvalidArgument(format!("unknown input {s:?} (sh|gt)"))),
+        }
+    }
+}
+
+/// One sequence seen by one camera, ready to feed a model.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EvalSequence {
+    /// Subject, e.g. `"S9"`.
+    pub subject: String,
+    /// Sequence name, e.g. `"Walking 1"`.
+    pub sequence: String,
+    /// Camera id.
+    pub camera: String,
+    /// `frames * 34` normalized screen coordinates, H36M-17 order.
+    pub input: Vec<f32>,
+    /// The subject's true lengths (metres).
+    pub gt: BoneLengths,
+}
+
+impl EvalSequence {
+    /// Number of frames.
+    pub fn frames(&self) -> usize {
+        self.input.len() / crate::synth::FRAME_DIM
+    }
+}
+
+/// Each subject's bone lengths: the mean over all its frames (Human3.6M
+/// lengths are constant per subject to well under a millimetre).
+pub fn subject_lengths(h36m: &H36m) -> BTreeMap<String, BoneLengths> {
+    h36m.poses
+        .iter()
+        .filter_map(|(s, acts)| {
+            let all: Vec<Pose> = acts.values().flatten().copied().collect();
+            mean_bone_lengths(&all).map(|l| (s.clone(), l))
+        })
+        .collect()
+}
+
+/// SH16 pixel detections to H36M-17 normalized screen coordinates.
+pub fn sh_to_normalized(frames: &[ShKeypoints], camera: &Camera) -> Result<Vec<Keypoints2d>, TrainError> {
+    frames
+        .iter()
+        .map(|f| {
+            let kp = KeypointLayout::Sh16.to_h36m17(f)?;
+            Ok(normalize_keypoints(&kp, camera.width, camera.height))
+        })
+        .collect()
+}
+
+/// Everything training needs, from the training subjects only.
+#[derive(Debug, Clone)]
+pub struct TrainingSet {
+    /// Pre-decomposed 3D sequences.
+    pub sequences: Vec<MotionSequence>,
+    /// The training subjects' lengths.
+    pub subject_lengths: BTreeMap<String, BoneLengths>,
+    /// Real detection residuals, `track(seq, cam)` aligned with `sequences`.
+    pub residuals: ResidualBank,
+    /// The training subjects' real SH input with their true lengths (for
+    /// validation on real detector input).
+    pub real_sh: Vec<EvalSequence>,
+}
+
+impl TrainingSet {
+    /// Load S1 S5 S6 S7 S8 from the data root.
+    pub fn load(root: &Path) -> Result<Self, TrainError> {
+        let h36m = H36m::load(root, &TRAIN_SUBJECTS, Parts::ALL)?;
+        Self::from_h36m(&h36m)
+    }
+
+    /// Build from already loaded data; every subject not in
+    /// [`TRAIN_SUBJECTS`] is ignored.
+    pub fn from_h36m(h36m: &H36m) -> Result<Self, TrainError> {
+        let lengths: BTreeMap<String, BoneLengths> =
+            subject_lengths(h36m).into_iter().filter(|(s, _)| TRAIN_SUBJECTS.contains(&s.as_str())).collect();
+        let keys: Vec<(&str, &str, &[Pose])> =
+            h36m.sequences().filter(|(s, _, p)| TRAIN_SUBJECTS.contains(s) && p.len() >= 2).collect();
+        if keys.is_empty() {
+            return Err(TrainError::Data("no training sequences found".into()));
+        }
+        let mut cams_by_subject: BTreeMap<&str, Arc<Vec<Camera>>> = BTreeMap::new();
+        for (s, _, _) in &keys {
+            if !cams_by_subject.contains_key(s) {
+                let cams = h36m.cameras.subject(s).ok_or_else(|| TrainError::Data(format!("no cameras for {s}")))?;
+                cams_by_subject.insert(s, Arc::new(cams.to_vec()));
+            }
+        }
+        type Built = (MotionSequence, Vec<Option<Vec<MetricResidual>>>, Vec<EvalSequence>);
+        let built: Vec<Built> = keys
+            .par_iter()
+            .map(|&(s, a, poses)| -> Result<Built, TrainError> {
+                let cameras = cams_by_subject[s].clone();
+                let subject_len = lengths.get(s).copied().ok_or_else(|| TrainError::Data(format!("no lengths for {s}")))?;
+                let motion = decompose_sequence(s, a, poses, subject_len, cameras.clone())?;
+                let mut tracks = Vec::with_capacity(cameras.len());
+                let mut real = Vec::new();
+                for cam in cameras.iter() {
+                    let Some(det) = h36m.detections(s, a, &cam.id) else {
+                        tracks.push(None);
+                        continue;
+                    };
+                    let sh = sh_to_normalized(det, cam)?;
+                    tracks.push(Some(residual_track(&sh, poses, cam)));
+                    real.push(EvalSequence {
+                        subject: s.to_string(),
+                        sequence: a.to_string(),
+                        camera: cam.id.clone(),
+                        input: sh.iter().flatten().flatten().copied().collect(),
+                        gt: subject_len,
+                    });
+                }
+                Ok((motion, tracks, real))
+            })
+            .collect::<Result<_, _>>()?;
+        let mut sequences = Vec::with_capacity(built.len());
+        let mut tracks = Vec::with_capacity(built.len());
+        let mut real_sh = Vec::new();
+        for (m, t, r) in built {
+            sequences.push(m);
+            tracks.push(t);
+            real_sh.extend(r);
+        }
+        Ok(Self { sequences, subject_lengths: lengths, residuals: ResidualBank::new(tracks), real_sh })
+    }
+
+    /// The training subjects' lengths as a list (for the statistics).
+    pub fn lengths_list(&self) -> Vec<BoneLengths> {
+        self.subject_lengths.values().copied().collect()
+    }
+}
+
+/// Roots and unit directions of every frame. A frame that cannot be
+/// decomposed (a collapsed bone) reuses the previous frame's directions.
+pub fn decompose_sequence(
+    subject: &str,
+    action: &str,
+    poses: &[Pose],
+    lengths: BoneLengths,
+    cameras: Arc<Vec<Camera>>,
+) -> Result<MotionSequence, TrainError> {
+    let mut roots = Vec::with_capacity(poses.len());
+    let mut dirs = Vec::with_capacity(poses.len());
+    for (t, p) in poses.iter().enumerate() {
+        roots.push(p[0]);
+        match decompose(p) {
+            Ok((_, d)) => dirs.push(d),
+            Err(e) => match dirs.last() {
+                Some(&prev) => dirs.push(prev),
+                None => return Err(TrainError::Data(format!("{subject}/{action} frame {t}: {e}"))),
+            },
+        }
+    }
+    Ok(MotionSequence { subject: subject.into(), action: action.into(), roots, dirs, lengths, cameras })
+}
+
+/// Metric residuals of one sequence and camera (see [`crate::noise`]); the
+/// shorter of the two streams bounds the track, frames that give no finite
+/// residual repeat the previous one (or zero).
+pub fn residual_track(sh: &[Keypoints2d], poses: &[Pose], cam: &Camera) -> Vec<MetricResidual> {
+    let k = cam.normalized_intrinsics();
+    let n = sh.len().min(poses.len());
+    let mut out: Vec<MetricResidual> = Vec::with_capacity(n);
+    for t in 0..n {
+        let cp = cam.world_to_camera_pose(&poses[t]);
+        let gt = k.project_pose(&cp);
+        let r = metric_residual(&sh[t], &gt, cp[0][2], k.focal)
+            .or_else(|| out.last().copied())
+            .unwrap_or([[0.0; 2]; blapose_core::NUM_JOINTS]);
+        out.push(r);
+    }
+    out
+}
+
+/// Evaluation inputs for `subjects`: every sequence, every camera.
+/// `lengths` must hold each subject's true lengths.
+pub fn eval_sequences(
+    h36m: &H36m,
+    subjects: &[&str],
+    input: InputKind,
+    lengths: &BTreeMap<String, BoneLengths>,
+) -> Result<Vec<EvalSequence>, TrainError> {
+    let mut out = Vec::new();
+    for (s, a, poses) in h36m.sequences() {
+        if !subjects.contains(&s) {
+            continue;
+        }
+        let gt = *lengths.get(s).ok_or_else(|| TrainError::Data(format!("no lengths for {s}")))?;
+        let cams = h36m.cameras.subject(s).ok_or_else(|| TrainError::Data(format!("no cameras for {s}")))?;
+        for cam in cams {
+            let kp: Vec<Keypoints2d> = match input {
+                InputKind::Gt => poses.iter().map(|p| cam.project_world_pose_normalized(p)).collect(),
+                InputKind::Sh => match h36m.detections(s, a, &cam.id) {
+                    Some(det) => sh_to_normalized(det, cam)?,
+                    None => continue,
+                },
+            };
+            if kp.is_empty() {
+                continue;
+            }
+            out.push(EvalSequence {
+                subject: s.into(),
+                sequence: a.into(),
+                camera: cam.id.clone(),
+                input: kp.iter().flatten().flatten().copied().collect(),
+                gt,
+            });
+        }
+    }
+    Ok(out)
+}

@@ -1,0 +1,378 @@
+//! The augmentation pipeline: synthetic 2D sequences with known bone
+//! lengths, built from real Human3.6M motion.
+//!
+//! One sample (the paper's trick, plus a playback-rate augmentation):
+//!
+//! 1. pick a training sequence (probability proportional to its length);
+//! 2. pick a playback stride `r ~ U(stride_min, stride_max)` source frames
+//!    per output frame (Human3.6M is 50 Hz; `r in [50/60, 2]` covers 25-60
+//!    fps streams) and a random window of `T` output frames; frames between
+//!    mocap samples are linearly interpolated (root position and bone
+//!    directions, re-normalized);
+//! 3. draw bone lengths ([`crate::lengths::LengthSampler`]) and rebuild every
+//!    frame with the sequence's directions, the drawn lengths and the
+//!    original root trajectory;
+//! 4. pick one of the subject's 4 real cameras, move the whole window by one
+//!    random camera-space shift `s ~ N(0, shift_std)` (re-drawn, at most
+//!    [`MAX_SHIFT_TRIES`] times, while the root comes closer than `min_depth`
+//!    or leaves the image; no shift if every draw fails);
+//! 5. project with the camera's real intrinsics *and* distortion straight to
+//!    normalized screen coordinates;
+//! 6. add detector noise ([`crate::noise`]), rescaled to the new depth;
+//! 7. flip horizontally with probability `flip_prob` (`x -> -x`, left/right
+//!    joints swapped — the noise is flipped with the sample). Lengths are
+//!    symmetric, so the target is unchanged.
+//!
+//! Every random choice comes from an RNG seeded by `(seed, step, index)`
+//! ([`sample_rng`]), so a batch is the same whatever the thread count and a
+//! resumed run sees exactly the batches it would have seen.
+
+use std::sync::Arc;
+
+use blapose_core::bones::rebuild;
+use blapose_core::camera::{Camera, NormalizedIntrinsics};
+use blapose_core::pose::flip_keypoints_normalized;
+use blapose_core::skeleton::{NUM_BONES, NUM_JOINTS};
+use blapose_core::{BoneDirections, BoneLengths, Keypoints2d};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use rayon::prelude::*;
+
+use crate::error::TrainError;
+use crate::lengths::{normal_f32, LengthSampler};
+use crate::noise::{apply_residual, residual_at, NoiseKind, ResidualBank};
+
+/// Values per input frame.
+pub const FRAME_DIM: usize = NUM_JOINTS * 2;
+/// How often the 3D shift is re-drawn before giving up on it.
+pub const MAX_SHIFT_TRIES: usize = 16;
+
+/// One training sequence of a training subject, pre-decomposed.
+#[derive(Debug, Clone)]
+pub struct MotionSequence {
+    /// Subject, e.g. `"S1"`.
+    pub subject: String,
+    /// Sequence name, e.g. `"Walking 1"`.
+    pub action: String,
+    /// World-space root (pelvis) position per frame, metres.
+    pub roots: Vec<[f32; 3]>,
+    /// Unit bone directions per frame (world space).
+    pub dirs: Vec<BoneDirections>,
+    /// The subject's bone lengths (mean over the sequence).
+    pub lengths: BoneLengths,
+    /// The subject's cameras.
+    pub cameras: Arc<Vec<Camera>>,
+}
+
+impl MotionSequence {
+    /// Number of frames.
+    pub fn len(&self) -> usize {
+        self.roots.len()
+    }
+
+    /// True when there are no frames.
+    pub fn is_empty(&self) -> bool {
+        self.roots.is_empty()
+    }
+
+    /// Root position and directions at fractional frame `u`.
+    pub fn at(&self, u: f32) -> ([f32; 3], BoneDirections) {
+        let last = self.len() - 1;
+        let u = u.clamp(0.0, last as f32);
+        let i = (u.floor() as usize).min(last);
+        let k = (i + 1).min(last);
+        let a = u - i as f32;
+        let lerp3 = |p: [f32; 3], q: [f32; 3]| std::array::from_fn(|c| p[c] * (1.0 - a) + q[c] * a);
+        let root = lerp3(self.roots[i], self.roots[k]);
+        let dirs = std::array::from_fn(|b| {
+            let d: [f32; 3] = lerp3(self.dirs[i][b], self.dirs[k][b]);
+            let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            // Opposite directions in consecutive frames (never seen in
+            // mocap) would interpolate through zero: keep frame i's.
+            if n > 1e-6 {
+                d.map(|v| v / n)
+            } else {
+                self.dirs[i][b]
+            }
+        });
+        (root, dirs)
+    }
+}
+
+/// Knobs of the augmentation (see the module docs).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SynthConfig {
+    /// Output frames per sample (`T`).
+    pub seq_len: usize,
+    /// Smallest playback stride (source frames per output frame).
+    pub stride_min: f32,
+    /// Largest playback stride.
+    pub stride_max: f32,
+    /// Standard deviation of each component of the 3D shift, metres.
+    pub shift_std: f32,
+    /// The root must stay at least this deep in front of the camera, metres.
+    pub min_depth: f32,
+    /// Probability of a horizontal flip.
+    pub flip_prob: f32,
+    /// Detector-noise model.
+    pub noise: NoiseKind,
+}
+
+impl Default for SynthConfig {
+    fn default() -> Self {
+        Self {
+            seq_len: 64,
+            stride_min: 50.0 / 60.0,
+            stride_max: 2.0,
+            shift_std: 0.5,
+            min_depth: 1.5,
+            flip_prob: 0.5,
+            noise: NoiseKind::Residual,
+        }
+    }
+}
+
+impl SynthConfig {
+    /// Check the knobs.
+    pub fn validate(&self) -> Result<(), TrainError> {
+        let bad = |m: &str| Err(TrainError::InvalidArgument(m.to_string()));
+        if self.seq_len == 0 {
+            return bad("seq_len must be positive");
+        }
+        if !(self.stride_min > 0.0 && self.stride_max >= self.stride_min && self.stride_max.is_finite()) {
+            return bad("need 0 < stride_min <= stride_max");
+        }
+        if !(self.shift_std >= 0.0 && self.shift_std.is_finite()) {
+            return bad("shift_std must be finite and >= 0");
+        }
+        if !(self.min_depth > 0.0) {
+            return bad("min_depth must be positive");
+        }
+        if !(0.0..=1.0).contains(&self.flip_prob) {
+            return bad("flip_prob must be in [0, 1]");
+        }
+        Ok(())
+    }
+}
+
+/// Where the synthetic samples come from: the training sequences, the
+/// residual bank and the length sampler.
+#[derive(Debug, Clone)]
+pub struct SynthSource {
+    sequences: Vec<MotionSequence>,
+    /// Cumulative frame counts for length-weighted sequence choice.
+    cumulative: Vec<u64>,
+    residuals: ResidualBank,
+    sampler: LengthSampler,
+}
+
+/// One synthetic sample.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Sample {
+    /// `T * 34` normalized screen coordinates (H36M-17 order, x then y).
+    pub input: Vec<f32>,
+    /// The lengths the sample was rebuilt with (metres).
+    pub target: BoneLengths,
+    /// Which sequence it came from.
+    pub sequence: usize,
+    /// Which camera.
+    pub camera: usize,
+    /// Playback stride.
+    pub stride: f32,
+    /// Whether it was flipped.
+    pub flipped: bool,
+}
+
+/// A batch: `batch * T * 34` inputs and `batch * 16` targets, row-major.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Batch {
+    /// Samples in the batch.
+    pub batch: usize,
+    /// Frames per sample.
+    pub seq_len: usize,
+    /// Inputs.
+    pub inputs: Vec<f32>,
+    /// Targets.
+    pub targets: Vec<f32>,
+}
+
+/// Mix `(seed, step, index)` into one RNG seed (splitmix64 finalizer over a
+/// simple combination; distinct triples give well-spread seeds).
+pub fn mix_seed(seed: u64, step: u64, index: u64) -> u64 {
+    let mut z = seed
+        .wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        .wrapping_add(step.wrapping_mul(0xD1B5_4A32_D192_ED03))
+        .wrapping_add(index.wrapping_mul(0x8CB9_2BA7_2F3D_8DD7))
+        .wrapping_add(0x632B_E59B_D9B4_E019);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// The RNG of sample `index` of step `step`.
+pub fn sample_rng(seed: u64, step: u64, index: u64) -> StdRng {
+    StdRng::seed_from_u64(mix_seed(seed, step, index))
+}
+
+impl SynthSource {
+    /// A source over `sequences` (training subjects only), with a residual
+    /// bank aligned to them (`bank.track(seq, cam)`) and a length sampler.
+    pub fn new(sequences: Vec<MotionSequence>, residuals: ResidualBank, sampler: LengthSampler) -> Result<Self, TrainError> {
+        if sequences.iter().all(|s| s.len() < 2) {
+            return Err(TrainError::Data("no training sequence with at least 2 frames".into()));
+        }
+        if let Some(s) = sequences.iter().find(|s| s.cameras.is_empty()) {
+            return Err(TrainError::Data(format!("{}/{} has no camera", s.subject, s.action)));
+        }
+        let mut acc = 0u64;
+        let cumulative = sequences
+            .iter()
+            .map(|s| {
+                acc += if s.len() >= 2 { s.len() as u64 } else { 0 };
+                acc
+            })
+            .collect();
+        Ok(Self { sequences, cumulative, residuals, sampler })
+    }
+
+    /// The sequences.
+    pub fn sequences(&self) -> &[MotionSequence] {
+        &self.sequences
+    }
+
+    /// The residual bank.
+    pub fn residuals(&self) -> &ResidualBank {
+        &self.residuals
+    }
+
+    /// The length sampler.
+    pub fn sampler(&self) -> &LengthSampler {
+        &self.sampler
+    }
+
+    fn pick_sequence<R: Rng + ?Sized>(&self, rng: &mut R) -> usize {
+        let total = *self.cumulative.last().unwrap_or(&0);
+        let x = rng.random_range(0..total.max(1));
+        self.cumulative.partition_point(|&c| c <= x).min(self.sequences.len() - 1)
+    }
+
+    /// Synthesize one sample with `rng`.
+    pub fn sample<R: Rng + ?Sized>(&self, cfg: &SynthConfig, rng: &mut R) -> Sample {
+        let t_len = cfg.seq_len;
+        let seq_idx = self.pick_sequence(rng);
+        let seq = &self.sequences[seq_idx];
+        let n = seq.len();
+
+        // Playback stride and window.
+        let mut stride = if cfg.stride_max > cfg.stride_min {
+            rng.random_range(cfg.stride_min..cfg.stride_max)
+        } else {
+            cfg.stride_min
+        };
+        let span_needed = (t_len.saturating_sub(1)) as f32 * stride;
+        let span_avail = (n - 1) as f32;
+        if span_needed > span_avail {
+            stride = span_avail / (t_len.saturating_sub(1)).max(1) as f32;
+        }
+        let span = (t_len.saturating_sub(1)) as f32 * stride;
+        let start = if span_avail > span { rng.random_range(0.0..(span_avail - span)) } else { 0.0 };
+
+        let lengths = self.sampler.sample(&seq.lengths, rng);
+        let cam_idx = rng.random_range(0..seq.cameras.len());
+        let cam = &seq.cameras[cam_idx];
+        let k: NormalizedIntrinsics = cam.normalized_intrinsics();
+        let half_h = cam.height as f32 / cam.width as f32;
+
+        // Rebuilt camera-space poses (unshifted).
+        let mut cam_poses = Vec::with_capacity(t_len);
+        for t in 0..t_len {
+            let u = start + t as f32 * stride;
+            let (root, dirs) = seq.at(u);
+            let world = rebuild(root, &dirs, &lengths);
+            cam_poses.push(cam.world_to_camera_pose(&world));
+        }
+
+        // One 3D shift for the whole window.
+        let mut shift = [0.0f32; 3];
+        if cfg.shift_std > 0.0 {
+            for _ in 0..MAX_SHIFT_TRIES {
+                let s = [normal_f32(rng, cfg.shift_std), normal_f32(rng, cfg.shift_std), normal_f32(rng, cfg.shift_std)];
+                let ok = cam_poses.iter().all(|p| {
+                    let r = [p[0][0] + s[0], p[0][1] + s[1], p[0][2] + s[2]];
+                    if r[2] < cfg.min_depth {
+                        return false;
+                    }
+                    let q = k.project(r);
+                    q[0].abs() <= 1.0 && q[1].abs() <= half_h
+                });
+                if ok {
+                    shift = s;
+                    break;
+                }
+            }
+        }
+
+        let track = match cfg.noise {
+            NoiseKind::Residual => {
+                self.residuals.track(seq_idx, cam_idx).filter(|t| !t.is_empty()).or_else(|| self.residuals.random_track(rng))
+            }
+            _ => None,
+        };
+        let flipped = cfg.flip_prob > 0.0 && rng.random::<f32>() < cfg.flip_prob;
+
+        let mut input = Vec::with_capacity(t_len * FRAME_DIM);
+        for (t, p) in cam_poses.iter().enumerate() {
+            let shifted = p.map(|j| [j[0] + shift[0], j[1] + shift[1], j[2] + shift[2]]);
+            let mut kp: Keypoints2d = k.project_pose(&shifted);
+            let depth = shifted[0][2];
+            match cfg.noise {
+                NoiseKind::None => {}
+                NoiseKind::Gaussian => {
+                    let r = self.residuals.gaussian(rng);
+                    apply_residual(&mut kp, &r, depth, k.focal);
+                }
+                NoiseKind::Residual => {
+                    if let Some(tr) = track {
+                        // Aligned with the pose when it is the sample's own
+                        // track (same frames, same stride).
+                        let u = start + t as f32 * stride;
+                        let r = residual_at(tr, u.min((tr.len() - 1) as f32));
+                        apply_residual(&mut kp, &r, depth, k.focal);
+                    }
+                }
+            }
+            if flipped {
+                kp = flip_keypoints_normalized(&kp);
+            }
+            input.extend(kp.iter().flatten());
+        }
+        Sample { input, target: lengths, sequence: seq_idx, camera: cam_idx, stride, flipped }
+    }
+
+    /// Synthesize batch `step` (samples `0..batch`, each with
+    /// [`sample_rng`]`(seed, step, i)`), in parallel.
+    pub fn batch(&self, cfg: &SynthConfig, seed: u64, step: u64, batch: usize) -> Batch {
+        let samples: Vec<Sample> = (0..batch)
+            .into_par_iter()
+            .map(|i| self.sample(cfg, &mut sample_rng(seed, step, i as u64)))
+            .collect();
+        let mut inputs = Vec::with_capacity(batch * cfg.seq_len * FRAME_DIM);
+        let mut targets = Vec::with_capacity(batch * NUM_BONES);
+        for s in &samples {
+            inputs.extend_from_slice(&s.input);
+            targets.extend_from_slice(&s.target);
+        }
+        Batch { batch, seq_len: cfg.seq_len, inputs, targets }
+    }
+}
+
+/// Mirror a flat `T * 34` input sequence horizontally (the flip the
+/// augmentation applies); applying it twice is the identity.
+pub fn flip_input(input: &[f32]) -> Vec<f32> {
+    let mut out = Vec::with_capacity(input.len());
+    for frame in input.chunks_exact(FRAME_DIM) {
+        let kp: Keypoints2d = std::array::from_fn(|j| [frame[2 * j], frame[2 * j + 1]]);
+        out.extend(flip_keypoints_normalized(&kp).iter().flatten());
+    }
+    out
+}

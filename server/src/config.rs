@@ -1,0 +1,321 @@
+//! Server configuration: the command line (clap, with a `BLAPOSE_*`
+//! environment fallback for every flag) and the plain [`ServerConfig`] the
+//! library runs on.
+//!
+//! The two are separate on purpose: the CLI is about parsing and `--help`,
+//! while [`ServerConfig`] is what tests and embedders build directly (with
+//! sub-second TTLs, no metrics port, a weights file of their choice) without
+//! going through argument strings. [`Cli::into_config`] is the only bridge.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use clap::{Parser, ValueEnum};
+
+/// Where a model's weights come from.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub enum WeightsSource {
+    /// The safetensors file embedded in the binary at build time
+    /// (`models/*.safetensors`).
+    #[default]
+    Embedded,
+    /// A safetensors file on disk.
+    File(PathBuf),
+}
+
+/// Log output format.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, ValueEnum)]
+pub enum LogFormat {
+    /// Human-readable lines.
+    #[default]
+    Text,
+    /// One JSON object per line (for log collectors).
+    Json,
+}
+
+/// TLS certificate chain and private key, both PEM files.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TlsFiles {
+    /// Certificate chain (PEM).
+    pub cert: PathBuf,
+    /// Private key (PEM).
+    pub key: PathBuf,
+}
+
+/// Everything the server needs to run; [`Default`] matches the CLI defaults
+/// except that no metrics endpoint is started (the Prometheus recorder is
+/// process-global, so in-process test servers leave it off).
+#[derive(Debug, Clone)]
+pub struct ServerConfig {
+    /// Prometheus `/metrics` listen address; `None` disables the exporter.
+    pub metrics_addr: Option<SocketAddr>,
+    /// Online GRU weights.
+    pub weights: WeightsSource,
+    /// Offline Bi-GRU weights.
+    pub bigru_weights: WeightsSource,
+    /// Maximum number of sessions held (attached or detached).
+    pub max_sessions: usize,
+    /// How long a detached session survives before it is evicted.
+    pub session_ttl: Duration,
+    /// Maximum frames per batched GRU step.
+    pub max_batch: usize,
+    /// Longest time the batcher waits for more sessions' frames before it
+    /// runs a partial batch.
+    pub max_queue_delay: Duration,
+    /// Frames that may wait in the batcher queue (all sessions together);
+    /// beyond it frames are refused with RESOURCE_EXHAUSTED.
+    pub queue_capacity: usize,
+    /// Frames one stream may have in flight before the server stops reading
+    /// from it (HTTP/2 flow control then pushes back on the client).
+    pub max_inflight_per_stream: usize,
+    /// Threads the model backend may use for one batched step and for
+    /// offline requests.
+    pub compute_threads: usize,
+    /// Optional TLS.
+    pub tls: Option<TlsFiles>,
+    /// Optional bearer token required on blapose.v1 calls.
+    pub auth_token: Option<String>,
+    /// Largest request message accepted, in bytes.
+    pub max_message_bytes: usize,
+    /// How long shutdown waits for in-flight work before giving up.
+    pub shutdown_grace: Duration,
+}
+
+impl Default for ServerConfig {
+    fn default() -> Self {
+        Self {
+            metrics_addr: None,
+            weights: WeightsSource::Embedded,
+            bigru_weights: WeightsSource::Embedded,
+            max_sessions: DEFAULT_MAX_SESSIONS,
+            session_ttl: Duration::from_secs(DEFAULT_SESSION_TTL_S),
+            max_batch: DEFAULT_MAX_BATCH,
+            max_queue_delay: Duration::from_micros(DEFAULT_MAX_QUEUE_DELAY_US),
+            queue_capacity: DEFAULT_QUEUE_CAPACITY,
+            max_inflight_per_stream: DEFAULT_MAX_INFLIGHT,
+            compute_threads: DEFAULT_COMPUTE_THREADS,
+            tls: None,
+            auth_token: None,
+            max_message_bytes: DEFAULT_MAX_MESSAGE_BYTES,
+            shutdown_grace: Duration::from_secs(DEFAULT_SHUTDOWN_GRACE_S),
+        }
+    }
+}
+
+const DEFAULT_MAX_SESSIONS: usize = 4096;
+const DEFAULT_SESSION_TTL_S: u64 = 60;
+const DEFAULT_MAX_BATCH: usize = 64;
+const DEFAULT_MAX_QUEUE_DELAY_US: u64 = 1000;
+const DEFAULT_QUEUE_CAPACITY: usize = 8192;
+const DEFAULT_MAX_INFLIGHT: usize = 64;
+const DEFAULT_COMPUTE_THREADS: usize = 1;
+const DEFAULT_MAX_MESSAGE_BYTES: usize = 4 * 1024 * 1024;
+const DEFAULT_SHUTDOWN_GRACE_S: u64 = 10;
+
+/// blapose-server: streaming BLAPose bone-length adjustment over gRPC.
+///
+/// Clients open a session, stream 2D keypoints and lifted 3D poses frame by
+/// frame, and get back poses rebuilt with the bone lengths a GRU predicts
+/// from the keypoint stream. Every flag can also be set through the
+/// environment variable shown with it.
+#[derive(Debug, Clone, Parser)]
+#[command(name = "blapose-server", version, about, long_about)]
+pub struct Cli {
+    /// gRPC listen address (use 0.0.0.0:50051 inside a container).
+    #[arg(long, env = "BLAPOSE_ADDR", default_value = "127.0.0.1:50051")]
+    pub addr: SocketAddr,
+
+    /// Prometheus metrics listen address; metrics are served at /metrics.
+    #[arg(long, env = "BLAPOSE_METRICS_ADDR", default_value = "127.0.0.1:9090")]
+    pub metrics_addr: SocketAddr,
+
+    /// Do not start the Prometheus metrics endpoint.
+    #[arg(long, env = "BLAPOSE_NO_METRICS")]
+    pub no_metrics: bool,
+
+    /// Online GRU weights (safetensors); default: the weights embedded in this binary.
+    #[arg(long, env = "BLAPOSE_WEIGHTS", value_name = "FILE")]
+    pub weights: Option<PathBuf>,
+
+    /// Offline Bi-GRU weights (safetensors); default: the weights embedded in this binary.
+    #[arg(long, env = "BLAPOSE_BIGRU_WEIGHTS", value_name = "FILE")]
+    pub bigru_weights: Option<PathBuf>,
+
+    /// Maximum sessions held at once (attached or detached); more -> RESOURCE_EXHAUSTED.
+    #[arg(long, env = "BLAPOSE_MAX_SESSIONS", default_value_t = DEFAULT_MAX_SESSIONS,
+          value_parser = clap::value_parser!(u32).range(1..).map(|v| v as usize))]
+    pub max_sessions: usize,
+
+    /// How long a session without a stream is kept for resumption (e.g. 60s, 500ms, 5m).
+    #[arg(long, env = "BLAPOSE_SESSION_TTL", default_value = "60s", value_parser = parse_duration)]
+    pub session_ttl: Duration,
+
+    /// Maximum frames (one per session) per batched GRU step.
+    #[arg(long, env = "BLAPOSE_MAX_BATCH", default_value_t = DEFAULT_MAX_BATCH,
+          value_parser = clap::value_parser!(u32).range(1..=4096).map(|v| v as usize))]
+    pub max_batch: usize,
+
+    /// Longest wait for more sessions' frames before running a partial batch (e.g. 1ms, 500us, 0).
+    #[arg(long, env = "BLAPOSE_MAX_QUEUE_DELAY", default_value = "1ms", value_parser = parse_duration)]
+    pub max_queue_delay: Duration,
+
+    /// Frames that may wait for the model, all sessions together; beyond it -> RESOURCE_EXHAUSTED.
+    #[arg(long, env = "BLAPOSE_QUEUE_CAPACITY", default_value_t = DEFAULT_QUEUE_CAPACITY,
+          value_parser = clap::value_parser!(u32).range(1..).map(|v| v as usize))]
+    pub queue_capacity: usize,
+
+    /// Frames one stream may have in flight before the server stops reading it (flow control).
+    #[arg(long, env = "BLAPOSE_MAX_INFLIGHT_PER_STREAM", default_value_t = DEFAULT_MAX_INFLIGHT,
+          value_parser = clap::value_parser!(u32).range(1..).map(|v| v as usize))]
+    pub max_inflight_per_stream: usize,
+
+    /// Threads for model computation (batched steps and offline requests).
+    #[arg(long, env = "BLAPOSE_COMPUTE_THREADS", default_value_t = DEFAULT_COMPUTE_THREADS,
+          value_parser = clap::value_parser!(u32).range(1..=256).map(|v| v as usize))]
+    pub compute_threads: usize,
+
+    /// Log format.
+    #[arg(long, env = "BLAPOSE_LOG_FORMAT", value_enum, default_value_t = LogFormat::Text)]
+    pub log_format: LogFormat,
+
+    /// TLS certificate chain (PEM); requires --tls-key. Without both, plaintext HTTP/2.
+    #[arg(long, env = "BLAPOSE_TLS_CERT", value_name = "PEM", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+
+    /// TLS private key (PEM); requires --tls-cert.
+    #[arg(long, env = "BLAPOSE_TLS_KEY", value_name = "PEM", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+
+    /// Require `authorization: Bearer <TOKEN>` on blapose.v1 calls (health and reflection stay open).
+    #[arg(long, env = "BLAPOSE_AUTH_TOKEN", value_name = "TOKEN", hide_env_values = true)]
+    pub auth_token: Option<String>,
+
+    /// Largest request message accepted, in bytes; larger -> OUT_OF_RANGE.
+    #[arg(long, env = "BLAPOSE_MAX_MESSAGE_BYTES", default_value_t = DEFAULT_MAX_MESSAGE_BYTES,
+          value_parser = clap::value_parser!(u32).range(1024..).map(|v| v as usize))]
+    pub max_message_bytes: usize,
+
+    /// On SIGTERM/Ctrl-C, how long to wait for in-flight frames before exiting anyway.
+    #[arg(long, env = "BLAPOSE_SHUTDOWN_GRACE", default_value = "10s", value_parser = parse_duration)]
+    pub shutdown_grace: Duration,
+
+    /// Act as a health-check client instead: query grpc.health.v1 at --addr, exit 0 if SERVING, else 1.
+    #[arg(long)]
+    pub health_check: bool,
+}
+
+impl Cli {
+    /// The library configuration these flags describe.
+    pub fn into_config(self) -> ServerConfig {
+        let tls = match (self.tls_cert, self.tls_key) {
+            (Some(cert), Some(key)) => Some(TlsFiles { cert, key }),
+            _ => None,
+        };
+        ServerConfig {
+            metrics_addr: (!self.no_metrics).then_some(self.metrics_addr),
+            weights: self.weights.map_or(WeightsSource::Embedded, WeightsSource::File),
+            bigru_weights: self.bigru_weights.map_or(WeightsSource::Embedded, WeightsSource::File),
+            max_sessions: self.max_sessions,
+            session_ttl: self.session_ttl,
+            max_batch: self.max_batch,
+            max_queue_delay: self.max_queue_delay,
+            queue_capacity: self.queue_capacity,
+            max_inflight_per_stream: self.max_inflight_per_stream,
+            compute_threads: self.compute_threads,
+            tls,
+            auth_token: self.auth_token.filter(|t| !t.is_empty()),
+            max_message_bytes: self.max_message_bytes,
+            shutdown_grace: self.shutdown_grace,
+        }
+    }
+}
+
+/// Parse a duration such as `60s`, `500ms`, `250us`, `5m`, `1h` or a bare
+/// `0`. Fractions are allowed (`1.5s`).
+pub fn parse_duration(text: &str) -> Result<Duration, String> {
+    let t = text.trim();
+    if t == "0" {
+        return Ok(Duration::ZERO);
+    }
+    let split = t
+        .find(|c: char| !(c.is_ascii_digit() || c == '.'))
+        .ok_or_else(|| format!("{text:?}: missing unit (use us, ms, s, m or h)"))?;
+    let (num, unit) = t.split_at(split);
+    let value: f64 = num
+        .parse()
+        .map_err(|_| format!("{text:?}: {num:?} is not a number"))?;
+    let scale = match unit.trim() {
+        "us" | "µs" => 1e-6,
+        "ms" => 1e-3,
+        "s" => 1.0,
+        "m" | "min" => 60.0,
+        "h" => 3600.0,
+        other => return Err(format!("{text:?}: unknown unit {other:?} (use us, ms, s, m or h)")),
+    };
+    Duration::try_from_secs_f64(value * scale).map_err(|e| format!("{text:?}: {e}"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::CommandFactory;
+
+    #[test]
+    fn durations_parse_with_units() {
+        assert_eq!(parse_duration("60s"), Ok(Duration::from_secs(60)));
+        assert_eq!(parse_duration("500ms"), Ok(Duration::from_millis(500)));
+        assert_eq!(parse_duration("250us"), Ok(Duration::from_micros(250)));
+        assert_eq!(parse_duration("1.5s"), Ok(Duration::from_millis(1500)));
+        assert_eq!(parse_duration("5m"), Ok(Duration::from_secs(300)));
+        assert_eq!(parse_duration("0"), Ok(Duration::ZERO));
+        assert!(parse_duration("10").is_err());
+        assert!(parse_duration("ten s").is_err());
+        assert!(parse_duration("1 fortnight").is_err());
+        assert!(parse_duration("-1s").is_err());
+    }
+
+    #[test]
+    fn cli_defaults_match_config_defaults() {
+        let cli = Cli::try_parse_from(["blapose-server"]).expect("no arguments needed");
+        assert_eq!(cli.addr, "127.0.0.1:50051".parse().unwrap());
+        let cfg = cli.into_config();
+        let def = ServerConfig::default();
+        assert_eq!(cfg.metrics_addr, Some("127.0.0.1:9090".parse().unwrap()));
+        assert_eq!(cfg.max_sessions, def.max_sessions);
+        assert_eq!(cfg.session_ttl, def.session_ttl);
+        assert_eq!(cfg.max_batch, def.max_batch);
+        assert_eq!(cfg.max_queue_delay, def.max_queue_delay);
+        assert_eq!(cfg.queue_capacity, def.queue_capacity);
+        assert_eq!(cfg.max_inflight_per_stream, def.max_inflight_per_stream);
+        assert_eq!(cfg.max_message_bytes, def.max_message_bytes);
+        assert_eq!(cfg.shutdown_grace, def.shutdown_grace);
+        assert_eq!(cfg.weights, WeightsSource::Embedded);
+    }
+
+    #[test]
+    fn tls_needs_both_files_and_zero_batch_is_refused() {
+        assert!(Cli::try_parse_from(["blapose-server", "--tls-cert", "c.pem"]).is_err());
+        assert!(Cli::try_parse_from(["blapose-server", "--max-batch", "0"]).is_err());
+        let cli = Cli::try_parse_from([
+            "blapose-server",
+            "--tls-cert",
+            "c.pem",
+            "--tls-key",
+            "k.pem",
+            "--no-metrics",
+            "--auth-token",
+            "",
+        ])
+        .unwrap();
+        let cfg = cli.into_config();
+        assert!(cfg.tls.is_some());
+        assert_eq!(cfg.metrics_addr, None);
+        assert_eq!(cfg.auth_token, None, "an empty token means no auth");
+    }
+
+    #[test]
+    fn help_is_consistent() {
+        Cli::command().debug_assert();
+    }
+}

@@ -1,0 +1,193 @@
+//! Which weights the server runs and how model backends are made from them.
+//!
+//! The default weights are compiled into the binary (`include_bytes!` of
+//! `models/bone_length_{gru,bigru}.safetensors`, located by `build.rs`), so
+//! `blapose-server` serves with no arguments; `--weights` and
+//! `--bigru-weights` override them. [`ModelProvider`] is the seam between the
+//! service and model execution: the real [`WeightsProvider`] builds
+//! blapose-model's fast engines, tests plug in fakes.
+
+use std::collections::HashMap;
+
+use blapose_model::weights::{self, LoadedWeights};
+use blapose_model::{ModelError, ModelKind};
+use blapose_proto::v1 as pb;
+use sha2::{Digest, Sha256};
+
+use crate::backend::{Backend, BackendError, SequenceBackend};
+use crate::config::WeightsSource;
+use crate::engine;
+
+/// The embedded online GRU weights, if the build found them.
+pub fn embedded_gru() -> Option<&'static [u8]> {
+    #[cfg(blapose_embedded_gru)]
+    {
+        Some(include_bytes!(env!("BLAPOSE_EMBEDDED_GRU")))
+    }
+    #[cfg(not(blapose_embedded_gru))]
+    {
+        None
+    }
+}
+
+/// The embedded offline Bi-GRU weights, if the build found them.
+pub fn embedded_bigru() -> Option<&'static [u8]> {
+    #[cfg(blapose_embedded_bigru)]
+    {
+        Some(include_bytes!(env!("BLAPOSE_EMBEDDED_BIGRU")))
+    }
+    #[cfg(not(blapose_embedded_bigru))]
+    {
+        None
+    }
+}
+
+/// Why weights could not be loaded.
+#[derive(Debug, thiserror::Error)]
+pub enum WeightsError {
+    /// The binary was built without default weights.
+    #[error("this binary has no embedded {kind} weights (models/ was empty at build time); pass them with {flag}")]
+    NotEmbedded {
+        /// Which model.
+        kind: ModelKind,
+        /// The flag to use.
+        flag: &'static str,
+    },
+    /// The file could not be read.
+    #[error("cannot read {kind} weights {path}: {source}")]
+    Io {
+        /// Which model.
+        kind: ModelKind,
+        /// The path.
+        path: String,
+        /// The cause.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The file is not valid weights of the right kind.
+    #[error("invalid {kind} weights from {origin}: {source}")]
+    Invalid {
+        /// Which model.
+        kind: ModelKind,
+        /// Where they came from.
+        origin: String,
+        /// The cause.
+        #[source]
+        source: ModelError,
+    },
+}
+
+/// Weights of one model plus where they came from.
+#[derive(Debug, Clone)]
+pub struct LoadedModel {
+    /// The validated tensors and metadata.
+    pub weights: LoadedWeights,
+    /// "embedded" or the file path.
+    pub origin: String,
+    /// Lowercase hex SHA-256 of the file bytes.
+    pub sha256: String,
+}
+
+impl LoadedModel {
+    /// Read and validate weights of `kind` from `source`.
+    pub fn load(source: &WeightsSource, kind: ModelKind) -> Result<Self, WeightsError> {
+        let (bytes, origin): (std::borrow::Cow<'static, [u8]>, String) = match source {
+            WeightsSource::Embedded => {
+                let (embedded, flag) = match kind {
+                    ModelKind::Gru => (embedded_gru(), "--weights"),
+                    ModelKind::BiGru => (embedded_bigru(), "--bigru-weights"),
+                };
+                let bytes = embedded.ok_or(WeightsError::NotEmbedded { kind, flag })?;
+                (bytes.into(), "embedded".to_string())
+            }
+            WeightsSource::File(path) => {
+                let bytes = std::fs::read(path).map_err(|source| WeightsError::Io {
+                    kind,
+                    path: path.display().to_string(),
+                    source,
+                })?;
+                (bytes.into(), path.display().to_string())
+            }
+        };
+        let weights = weights::load_bytes(&bytes, kind).map_err(|source| WeightsError::Invalid {
+            kind,
+            origin: origin.clone(),
+            source,
+        })?;
+        let sha256 = Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect();
+        Ok(Self { weights, origin, sha256 })
+    }
+
+    /// The `ModelInfo` entry for this model.
+    pub fn describe(&self) -> pb::ModelDescription {
+        let kind = self.weights.kind();
+        let (model, name) = match kind {
+            ModelKind::Gru => (pb::Model::OnlineGru, "bone_length_gru"),
+            ModelKind::BiGru => (pb::Model::OfflineBigru, "bone_length_bigru"),
+        };
+        let parameter_count = blapose_model::reference::count_parameters(self.weights.tensors().values()) as u64;
+        let metadata: HashMap<String, String> = self.weights.meta.to_header().into_iter().collect();
+        pb::ModelDescription {
+            model: model as i32,
+            name: name.to_string(),
+            parameter_count,
+            hidden_size: blapose_model::HIDDEN as u32,
+            weights_source: self.origin.clone(),
+            weights_sha256: self.sha256.clone(),
+            metadata,
+        }
+    }
+}
+
+/// Model execution as the service needs it.
+pub trait ModelProvider: Send + Sync + 'static {
+    /// A new online-step backend (one per batcher or offline worker).
+    fn online(&self) -> Result<Box<dyn Backend>, BackendError>;
+    /// A new whole-sequence backend.
+    fn offline(&self) -> Result<Box<dyn SequenceBackend>, BackendError>;
+    /// `ModelInfo` entries.
+    fn describe(&self) -> Vec<pb::ModelDescription>;
+}
+
+/// The real provider: blapose-model's fast engines on loaded weights.
+#[derive(Debug, Clone)]
+pub struct WeightsProvider {
+    gru: LoadedModel,
+    bigru: LoadedModel,
+    threads: usize,
+}
+
+impl WeightsProvider {
+    /// Load both models.
+    pub fn load(gru: &WeightsSource, bigru: &WeightsSource, threads: usize) -> Result<Self, WeightsError> {
+        Ok(Self {
+            gru: LoadedModel::load(gru, ModelKind::Gru)?,
+            bigru: LoadedModel::load(bigru, ModelKind::BiGru)?,
+            threads: threads.max(1),
+        })
+    }
+
+    /// The online model's weights.
+    pub fn gru(&self) -> &LoadedModel {
+        &self.gru
+    }
+
+    /// The offline model's weights.
+    pub fn bigru(&self) -> &LoadedModel {
+        &self.bigru
+    }
+}
+
+impl ModelProvider for WeightsProvider {
+    fn online(&self) -> Result<Box<dyn Backend>, BackendError> {
+        Ok(Box::new(engine::GruBackend::new(&self.gru.weights, self.threads)?))
+    }
+
+    fn offline(&self) -> Result<Box<dyn SequenceBackend>, BackendError> {
+        Ok(Box::new(engine::BiGruBackend::new(&self.bigru.weights)?))
+    }
+
+    fn describe(&self) -> Vec<pb::ModelDescription> {
+        vec![self.gru.describe(), self.bigru.describe()]
+    }
+}

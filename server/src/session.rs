@@ -1,0 +1,692 @@
+//! Sessions: the per-stream state the online model carries between frames,
+//! and the store that owns them.
+//!
+//! A session is the GRU's hidden state (2 x 512 floats), the running sum of
+//! the per-frame length predictions, the number of frames seen and the input
+//! format fixed at open. It outlives its stream on purpose: when a connection
+//! drops, the session is *detached* and kept for the TTL so the client can
+//! resume it by id with its state intact. Expiry follows mini-redis's `Db`:
+//! detached sessions sit in an ordered set of deadlines, and one purge task
+//! sleeps until the earliest deadline (woken early when an earlier one
+//! appears) instead of scanning the whole store on a timer.
+//!
+//! Ownership of a session by a stream is an *epoch*: every open or resume
+//! bumps it, and work stamped with an older epoch (frames of a stream that
+//! was taken over) is refused. The epoch lives in the same mutex as the
+//! hidden state, so "resume" and "a batch finishing" can never interleave
+//! halfway. A `watch` channel tells the attached stream when its epoch is no
+//! longer current.
+//!
+//! Ids are 128 random bits from the operating system's CSPRNG, rendered as
+//! 32 lowercase hex characters: knowing an id is the only credential needed
+//! to resume a session, so it must be unguessable.
+
+use std::collections::{BTreeSet, HashMap};
+use std::fmt;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
+use std::time::Duration;
+
+use blapose_core::layouts::KeypointLayout;
+use blapose_core::{BoneLengths, NUM_BONES};
+use rand::TryRngCore;
+use tokio::sync::{watch, Notify};
+use tokio::time::Instant;
+
+use crate::metrics;
+
+/// Floats of recurrent state per session (two GRUs x 512).
+pub const STATE_DIM: usize = blapose_model::STATE_DIM;
+
+/// An unguessable session id (128 random bits).
+#[derive(Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct SessionId([u8; 16]);
+
+impl SessionId {
+    /// A fresh id from the operating system's CSPRNG.
+    pub fn random() -> Result<Self, SessionError> {
+        let mut bytes = [0u8; 16];
+        rand::rngs::OsRng
+            .try_fill_bytes(&mut bytes)
+            .map_err(|e| SessionError::Rng(e.to_string()))?;
+        Ok(Self(bytes))
+    }
+
+    /// Parse the 32-hex-character form; anything else is `None`.
+    pub fn parse(text: &str) -> Option<Self> {
+        let t = text.as_bytes();
+        if t.len() != 32 {
+            return None;
+        }
+        let mut out = [0u8; 16];
+        for (i, pair) in t.chunks_exact(2).enumerate() {
+            let hi = hex_value(pair[0])?;
+            let lo = hex_value(pair[1])?;
+            out[i] = (hi << 4) | lo;
+        }
+        Some(Self(out))
+    }
+
+    /// The raw bytes.
+    pub fn as_bytes(&self) -> &[u8; 16] {
+        &self.0
+    }
+}
+
+fn hex_value(c: u8) -> Option<u8> {
+    match c {
+        b'0'..=b'9' => Some(c - b'0'),
+        b'a'..=b'f' => Some(c - b'a' + 10),
+        b'A'..=b'F' => Some(c - b'A' + 10),
+        _ => None,
+    }
+}
+
+impl fmt::Display for SessionId {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        for b in self.0 {
+            write!(f, "{b:02x}")?;
+        }
+        Ok(())
+    }
+}
+
+impl fmt::Debug for SessionId {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "SessionId({self})")
+    }
+}
+
+/// How a session's 2D keypoints are expressed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Coordinates {
+    /// Pixels of an image of this size (both > 0).
+    Pixels {
+        /// Width in pixels.
+        width: u32,
+        /// Height in pixels.
+        height: u32,
+    },
+    /// Already normalized screen coordinates.
+    Normalized,
+}
+
+/// What a session was opened with; fixed for its life.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct InputSpec {
+    /// Joint order of the keypoints.
+    pub layout: KeypointLayout,
+    /// Units of the keypoints.
+    pub coordinates: Coordinates,
+}
+
+/// Immutable description of a session.
+#[derive(Debug, Clone)]
+pub struct SessionConfig {
+    /// Input format of every frame.
+    pub input: InputSpec,
+    /// Free-form client label for logs (truncated).
+    pub label: String,
+}
+
+/// Longest client label kept, in bytes.
+pub const MAX_LABEL_BYTES: usize = 128;
+
+/// The online estimate: the mean of every per-frame length prediction so
+/// far (the BLAPose reference's online rule). Sums in f64 so that long
+/// streams stay exact.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct RunningLengths {
+    sum: [f64; NUM_BONES],
+    count: u64,
+}
+
+impl RunningLengths {
+    /// Add one frame's prediction.
+    pub fn add(&mut self, prediction: &BoneLengths) {
+        for (s, &p) in self.sum.iter_mut().zip(prediction) {
+            *s += f64::from(p);
+        }
+        self.count += 1;
+    }
+
+    /// Predictions added so far (frames seen).
+    pub fn count(&self) -> u64 {
+        self.count
+    }
+
+    /// The mean; `None` before the first prediction.
+    pub fn mean(&self) -> Option<BoneLengths> {
+        (self.count > 0).then(|| {
+            let n = self.count as f64;
+            self.sum.map(|s| (s / n) as f32)
+        })
+    }
+}
+
+/// Mutable per-session model state; only the batcher writes `hidden` and
+/// `lengths`.
+#[derive(Debug)]
+pub struct SessionState {
+    /// Current owner; work stamped with another epoch is refused.
+    pub epoch: u64,
+    /// Set once the session is closed or evicted.
+    pub closed: bool,
+    /// GRU hidden states, `STATE_DIM` floats.
+    pub hidden: Box<[f32]>,
+    /// Running-mean length estimate and frames seen.
+    pub lengths: RunningLengths,
+}
+
+impl SessionState {
+    /// Frames processed.
+    pub fn frames_seen(&self) -> u64 {
+        self.lengths.count()
+    }
+
+    /// The running-mean length estimate; `None` before the first frame.
+    pub fn estimate(&self) -> Option<BoneLengths> {
+        self.lengths.mean()
+    }
+
+    /// Whether work stamped with `epoch` may still change this session.
+    pub fn accepts(&self, epoch: u64) -> bool {
+        !self.closed && self.epoch == epoch
+    }
+}
+
+/// Who owns a session now, as the attached stream watches it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Ownership {
+    /// Current epoch.
+    pub epoch: u64,
+    /// Closed (by CloseSession or eviction).
+    pub closed: bool,
+}
+
+/// One session. Shared (`Arc`) between the store, its stream and queued
+/// frames.
+#[derive(Debug)]
+pub struct Session {
+    id: SessionId,
+    key: u64,
+    config: SessionConfig,
+    state: Mutex<SessionState>,
+    owner: watch::Sender<Ownership>,
+}
+
+impl Session {
+    fn new(id: SessionId, key: u64, config: SessionConfig) -> Self {
+        let state = SessionState {
+            epoch: 1,
+            closed: false,
+            hidden: vec![0.0; STATE_DIM].into_boxed_slice(),
+            lengths: RunningLengths::default(),
+        };
+        let (owner, _) = watch::channel(Ownership { epoch: 1, closed: false });
+        Self { id, key, config, state: Mutex::new(state), owner }
+    }
+
+    /// Public id.
+    pub fn id(&self) -> SessionId {
+        self.id
+    }
+
+    /// Small process-unique key (cheap to hash; used by the batcher).
+    pub fn key(&self) -> u64 {
+        self.key
+    }
+
+    /// The session's fixed configuration.
+    pub fn config(&self) -> &SessionConfig {
+        &self.config
+    }
+
+    /// Lock the model state. A poisoned lock (a panic elsewhere while
+    /// holding it) still yields the state: every writer leaves it consistent
+    /// between statements, so there is nothing to recover.
+    pub fn lock(&self) -> MutexGuard<'_, SessionState> {
+        self.state.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// Watch ownership changes (takeover, close).
+    pub fn watch(&self) -> watch::Receiver<Ownership> {
+        self.owner.subscribe()
+    }
+
+    fn publish(&self, st: &SessionState) {
+        self.owner.send_replace(Ownership { epoch: st.epoch, closed: st.closed });
+    }
+}
+
+/// A snapshot of a session at attach or close time.
+#[derive(Debug, Clone)]
+pub struct SessionSnapshot {
+    /// Frames processed.
+    pub frames_seen: u64,
+    /// Running-mean estimate (`None` before the first frame).
+    pub bone_lengths: Option<BoneLengths>,
+}
+
+/// A stream's claim on a session.
+#[derive(Debug, Clone)]
+pub struct Attachment {
+    /// The session.
+    pub session: Arc<Session>,
+    /// The epoch this stream owns.
+    pub epoch: u64,
+    /// State at attach time.
+    pub snapshot: SessionSnapshot,
+}
+
+/// Why a store operation failed.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum SessionError {
+    /// The store is full.
+    #[error("the server already holds its maximum of {max} sessions; close unused sessions or retry later")]
+    TooManySessions {
+        /// The limit.
+        max: usize,
+    },
+    /// No such session (never existed, expired, closed, or malformed id).
+    #[error("no session {id:?} (unknown, expired or closed)")]
+    NotFound {
+        /// The id as given.
+        id: String,
+    },
+    /// The OS random source failed.
+    #[error("cannot draw a random session id: {0}")]
+    Rng(String),
+}
+
+#[derive(Debug)]
+struct Entry {
+    session: Arc<Session>,
+    /// `Some(deadline)` while detached.
+    expires_at: Option<Instant>,
+}
+
+#[derive(Debug, Default)]
+struct Inner {
+    sessions: HashMap<SessionId, Entry>,
+    expirations: BTreeSet<(Instant, SessionId)>,
+    shutdown: bool,
+}
+
+#[derive(Debug)]
+struct Shared {
+    inner: Mutex<Inner>,
+    purge: Notify,
+    ttl: Duration,
+    max_sessions: usize,
+    next_key: AtomicU64,
+}
+
+impl Shared {
+    fn lock(&self) -> MutexGuard<'_, Inner> {
+        self.inner.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// Evict every session whose deadline has passed; return the next
+    /// deadline, if any.
+    fn purge_expired(&self) -> Option<Instant> {
+        let mut inner = self.lock();
+        if inner.shutdown {
+            return None;
+        }
+        let now = Instant::now();
+        while let Some(&(when, id)) = inner.expirations.iter().next() {
+            if when > now {
+                return Some(when);
+            }
+            inner.expirations.remove(&(when, id));
+            if let Some(entry) = inner.sessions.remove(&id) {
+                mark_closed(&entry.session);
+                metrics::session_evicted(inner.sessions.len());
+                tracing::info!(session = %id, "session evicted after its TTL");
+            }
+        }
+        None
+    }
+}
+
+fn mark_closed(session: &Session) -> SessionSnapshot {
+    let mut st = session.lock();
+    st.closed = true;
+    session.publish(&st);
+    SessionSnapshot { frames_seen: st.frames_seen(), bone_lengths: st.estimate() }
+}
+
+/// The session store: bounded, with TTL eviction of detached sessions.
+///
+/// Cloning is cheap (shared handle). Dropping the last [`PurgeGuard`] stops
+/// the purge task.
+#[derive(Debug, Clone)]
+pub struct SessionStore {
+    shared: Arc<Shared>,
+}
+
+/// Stops the store's purge task when dropped.
+#[derive(Debug)]
+pub struct PurgeGuard {
+    store: SessionStore,
+}
+
+impl Drop for PurgeGuard {
+    fn drop(&mut self) {
+        self.store.shared.lock().shutdown = true;
+        self.store.shared.purge.notify_one();
+    }
+}
+
+impl SessionStore {
+    /// A store with the given limits, and its purge task spawned on the
+    /// current tokio runtime. Keep the guard alive as long as the store.
+    pub fn new(max_sessions: usize, ttl: Duration) -> (Self, PurgeGuard) {
+        let shared = Arc::new(Shared {
+            inner: Mutex::new(Inner::default()),
+            purge: Notify::new(),
+            ttl,
+            max_sessions,
+            next_key: AtomicU64::new(1),
+        });
+        tokio::spawn(purge_task(shared.clone()));
+        let store = Self { shared };
+        (store.clone(), PurgeGuard { store })
+    }
+
+    /// TTL of detached sessions.
+    pub fn ttl(&self) -> Duration {
+        self.shared.ttl
+    }
+
+    /// Maximum sessions held.
+    pub fn max_sessions(&self) -> usize {
+        self.shared.max_sessions
+    }
+
+    /// Sessions currently held (attached or detached).
+    pub fn len(&self) -> usize {
+        self.shared.lock().sessions.len()
+    }
+
+    /// Whether the store holds no session.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Create a session, attached to the caller.
+    pub fn open(&self, config: SessionConfig) -> Result<Attachment, SessionError> {
+        let id = SessionId::random()?;
+        let key = self.shared.next_key.fetch_add(1, Ordering::Relaxed);
+        let session = Arc::new(Session::new(id, key, config));
+        let mut inner = self.shared.lock();
+        if inner.sessions.len() >= self.shared.max_sessions {
+            return Err(SessionError::TooManySessions { max: self.shared.max_sessions });
+        }
+        // 128 random bits: a collision is astronomically unlikely, but an id
+        // must never silently replace another session.
+        if inner.sessions.contains_key(&id) {
+            return Err(SessionError::Rng("duplicate session id drawn".into()));
+        }
+        inner.sessions.insert(id, Entry { session: session.clone(), expires_at: None });
+        metrics::session_opened(inner.sessions.len());
+        drop(inner);
+        Ok(Attachment {
+            session,
+            epoch: 1,
+            snapshot: SessionSnapshot { frames_seen: 0, bone_lengths: None },
+        })
+    }
+
+    /// Re-attach to a session by id, taking it over from any stream still
+    /// attached (whose frames are refused from now on).
+    pub fn resume(&self, id_text: &str) -> Result<Attachment, SessionError> {
+        let not_found = || SessionError::NotFound { id: truncate(id_text, 64) };
+        let id = SessionId::parse(id_text).ok_or_else(not_found)?;
+        let mut inner = self.shared.lock();
+        let entry = inner.sessions.get_mut(&id).ok_or_else(not_found)?;
+        let previous_deadline = entry.expires_at.take();
+        let session = entry.session.clone();
+        if let Some(when) = previous_deadline {
+            inner.expirations.remove(&(when, id));
+        }
+        let mut st = session.lock();
+        st.epoch += 1;
+        session.publish(&st);
+        let attachment = Attachment {
+            session: session.clone(),
+            epoch: st.epoch,
+            snapshot: SessionSnapshot { frames_seen: st.frames_seen(), bone_lengths: st.estimate() },
+        };
+        drop(st);
+        drop(inner);
+        metrics::session_resumed();
+        Ok(attachment)
+    }
+
+    /// The stream owning `epoch` is gone: start the session's TTL. No-op if
+    /// another stream took the session over or it was closed.
+    pub fn detach(&self, session: &Session, epoch: u64) {
+        let mut inner = self.shared.lock();
+        if !session.lock().accepts(epoch) {
+            return;
+        }
+        let id = session.id();
+        let when = Instant::now() + self.shared.ttl;
+        let Some(entry) = inner.sessions.get_mut(&id) else {
+            return;
+        };
+        if let Some(old) = entry.expires_at.replace(when) {
+            inner.expirations.remove(&(old, id));
+        }
+        let earliest = inner.expirations.iter().next().map(|e| e.0);
+        inner.expirations.insert((when, id));
+        drop(inner);
+        if earliest.is_none_or(|e| when < e) {
+            self.shared.purge.notify_one();
+        }
+    }
+
+    /// Close a session for good and return its final state.
+    pub fn close(&self, id_text: &str) -> Result<SessionSnapshot, SessionError> {
+        let not_found = || SessionError::NotFound { id: truncate(id_text, 64) };
+        let id = SessionId::parse(id_text).ok_or_else(not_found)?;
+        let mut inner = self.shared.lock();
+        let entry = inner.sessions.remove(&id).ok_or_else(not_found)?;
+        if let Some(when) = entry.expires_at {
+            inner.expirations.remove(&(when, id));
+        }
+        let remaining = inner.sessions.len();
+        drop(inner);
+        metrics::session_closed(remaining);
+        Ok(mark_closed(&entry.session))
+    }
+
+    /// Whether a session with this id is held.
+    pub fn contains(&self, id_text: &str) -> bool {
+        SessionId::parse(id_text).is_some_and(|id| self.shared.lock().sessions.contains_key(&id))
+    }
+}
+
+fn truncate(s: &str, max: usize) -> String {
+    let mut end = s.len().min(max);
+    while !s.is_char_boundary(end) {
+        end -= 1;
+    }
+    s[..end].to_string()
+}
+
+async fn purge_task(shared: Arc<Shared>) {
+    loop {
+        if shared.lock().shutdown {
+            return;
+        }
+        match shared.purge_expired() {
+            Some(when) => {
+                tokio::select! {
+                    _ = tokio::time::sleep_until(when) => {}
+                    _ = shared.purge.notified() => {}
+                }
+            }
+            None => shared.purge.notified().await,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn config() -> SessionConfig {
+        SessionConfig {
+            input: InputSpec { layout: KeypointLayout::H36m17, coordinates: Coordinates::Normalized },
+            label: String::new(),
+        }
+    }
+
+    #[test]
+    fn ids_are_32_hex_chars_and_round_trip() {
+        let id = SessionId::random().unwrap();
+        let s = id.to_string();
+        assert_eq!(s.len(), 32);
+        assert!(s.bytes().all(|c| c.is_ascii_hexdigit() && !c.is_ascii_uppercase()));
+        assert_eq!(SessionId::parse(&s), Some(id));
+        assert_eq!(SessionId::parse(&s.to_uppercase()), Some(id));
+        assert_eq!(SessionId::parse(&s[..31]), None);
+        assert_eq!(SessionId::parse(&format!("{}g", &s[..31])), None);
+        assert_eq!(SessionId::parse(""), None);
+        assert_eq!(SessionId::parse("ééééééééééééééééé"), None);
+    }
+
+    #[test]
+    fn ids_look_uniformly_random() {
+        // 2000 ids: all distinct, and every one of the 128 bit positions is
+        // set in roughly half of them (a constant or counter-like generator,
+        // or one with fewer random bits, fails this).
+        let ids: Vec<SessionId> = (0..2000).map(|_| SessionId::random().unwrap()).collect();
+        let distinct: std::collections::HashSet<_> = ids.iter().collect();
+        assert_eq!(distinct.len(), ids.len());
+        for bit in 0..128 {
+            let ones = ids.iter().filter(|id| id.as_bytes()[bit / 8] >> (bit % 8) & 1 == 1).count();
+            // Binomial(2000, 0.5): mean 1000, sd ~22; 6 sd either side.
+            assert!((866..=1134).contains(&ones), "bit {bit} set in {ones}/2000 ids");
+        }
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn capacity_is_enforced_and_freed_by_close() {
+        let (store, _guard) = SessionStore::new(2, Duration::from_secs(10));
+        let a = store.open(config()).unwrap();
+        let _b = store.open(config()).unwrap();
+        assert_eq!(store.open(config()).unwrap_err(), SessionError::TooManySessions { max: 2 });
+        // Detached sessions still count.
+        store.detach(&a.session, a.epoch);
+        assert!(matches!(store.open(config()), Err(SessionError::TooManySessions { .. })));
+        store.close(&a.session.id().to_string()).unwrap();
+        assert!(store.open(config()).is_ok());
+        assert_eq!(store.len(), 2);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn detached_sessions_expire_after_ttl_and_attached_ones_never() {
+        let ttl = Duration::from_secs(30);
+        let (store, _guard) = SessionStore::new(10, ttl);
+        let detached = store.open(config()).unwrap();
+        let attached = store.open(config()).unwrap();
+        let id = detached.session.id().to_string();
+        store.detach(&detached.session, detached.epoch);
+        let mut watch = detached.session.watch();
+
+        tokio::time::sleep(ttl - Duration::from_millis(10)).await;
+        assert!(store.contains(&id), "evicted before its TTL");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        assert!(!store.contains(&id), "not evicted after its TTL");
+        assert!(watch.borrow_and_update().closed, "eviction is published");
+        assert_eq!(store.resume(&id).unwrap_err(), SessionError::NotFound { id: id.clone() });
+
+        tokio::time::sleep(ttl * 10).await;
+        assert!(store.contains(&attached.session.id().to_string()));
+        assert_eq!(store.len(), 1);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn resume_within_ttl_keeps_state_and_cancels_expiry() {
+        let ttl = Duration::from_secs(5);
+        let (store, _guard) = SessionStore::new(10, ttl);
+        let a = store.open(config()).unwrap();
+        {
+            let mut st = a.session.lock();
+            st.hidden[7] = 0.25;
+            for v in [0.2, 0.3, 0.4] {
+                st.lengths.add(&[v; NUM_BONES]);
+            }
+        }
+        store.detach(&a.session, a.epoch);
+        tokio::time::sleep(ttl / 2).await;
+        let id = a.session.id().to_string();
+        let b = store.resume(&id).unwrap();
+        assert!(Arc::ptr_eq(&a.session, &b.session));
+        assert_eq!(b.snapshot.frames_seen, 3);
+        assert!((b.snapshot.bone_lengths.unwrap()[3] - 0.3).abs() < 1e-6);
+        assert_eq!(b.session.lock().hidden[7], 0.25);
+        // The old epoch no longer owns it.
+        assert!(!b.session.lock().accepts(a.epoch));
+        assert!(b.session.lock().accepts(b.epoch));
+        // Its old deadline is gone: it survives well past the original TTL.
+        tokio::time::sleep(ttl * 3).await;
+        assert!(store.contains(&id));
+        // A stale detach (from the taken-over stream) does not start a TTL.
+        store.detach(&a.session, a.epoch);
+        tokio::time::sleep(ttl * 3).await;
+        assert!(store.contains(&id));
+        // The owner detaching does.
+        store.detach(&b.session, b.epoch);
+        tokio::time::sleep(ttl + Duration::from_millis(1)).await;
+        assert!(!store.contains(&id));
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn sessions_expire_in_deadline_order() {
+        let (store, _guard) = SessionStore::new(10, Duration::from_secs(100));
+        let long = store.open(config()).unwrap();
+        store.detach(&long.session, long.epoch);
+        tokio::time::sleep(Duration::from_secs(50)).await;
+        let short = store.open(config()).unwrap();
+        store.detach(&short.session, short.epoch);
+        tokio::time::sleep(Duration::from_secs(51)).await;
+        assert!(!store.contains(&long.session.id().to_string()));
+        assert!(store.contains(&short.session.id().to_string()));
+        tokio::time::sleep(Duration::from_secs(50)).await;
+        assert!(store.is_empty());
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn unknown_malformed_and_closed_ids_are_not_found() {
+        let (store, _guard) = SessionStore::new(10, Duration::from_secs(5));
+        let guess = SessionId::random().unwrap().to_string();
+        assert!(matches!(store.resume(&guess), Err(SessionError::NotFound { .. })));
+        assert!(matches!(store.resume("not-an-id"), Err(SessionError::NotFound { .. })));
+        assert!(matches!(store.close(&guess), Err(SessionError::NotFound { .. })));
+        let a = store.open(config()).unwrap();
+        let id = a.session.id().to_string();
+        let snap = store.close(&id).unwrap();
+        assert_eq!(snap.frames_seen, 0);
+        assert!(a.session.lock().closed);
+        assert!(!a.session.lock().accepts(a.epoch));
+        assert!(matches!(store.resume(&id), Err(SessionError::NotFound { .. })));
+        assert!(matches!(store.close(&id), Err(SessionError::NotFound { .. })));
+    }
+
+    #[test]
+    fn estimate_is_the_running_mean() {
+        let s = Session::new(SessionId([1; 16]), 1, config());
+        let mut g = s.lock();
+        assert!(g.estimate().is_none());
+        for v in [0.5, 1.0, 0.25, 1.25] {
+            g.lengths.add(&[v; NUM_BONES]);
+        }
+        assert_eq!(g.frames_seen(), 4);
+        assert_eq!(g.estimate(), Some([0.75; NUM_BONES]));
+    }
+}

@@ -1,0 +1,400 @@
+//! One online stream: open or resume a session, then answer every frame
+//! exactly once and in order.
+//!
+//! Each stream runs as its own task that reads requests, validates frames,
+//! submits them to the batcher and keeps a FIFO of pending answers. Answers
+//! are written strictly from the front of that FIFO, so a frame refused at
+//! validation (answered at once) never overtakes an earlier frame still in
+//! the model. The FIFO is bounded (`max_inflight_per_stream`): when it is
+//! full the task stops reading, and HTTP/2 flow control pushes back on the
+//! client instead of the server buffering without limit.
+//!
+//! Ending: a `close` request, the client ending its side, a protocol error,
+//! a takeover by another stream, or server shutdown all stop the reading
+//! side first; the task then still answers every pending frame before it
+//! sends the final message or status. A stream that ends without `close`
+//! leaves its session detached (resumable for the TTL).
+
+use std::collections::VecDeque;
+use std::sync::Arc;
+use std::time::Instant;
+
+use blapose_core::bones;
+use blapose_core::Pose;
+use blapose_proto::v1 as pb;
+use pb::stream_request::Kind as Req;
+use pb::stream_response::Kind as Resp;
+use tokio::sync::{mpsc, oneshot, watch};
+use tonic::{Status, Streaming};
+use tracing::Instrument;
+
+use crate::batcher::{FrameJob, StepResult};
+use crate::metrics;
+use crate::service::AppState;
+use crate::session::{Attachment, Ownership, SessionConfig, SessionError, SessionSnapshot, MAX_LABEL_BYTES};
+use crate::validate;
+
+/// What the response channel carries.
+pub type Outbound = Result<pb::StreamResponse, Status>;
+
+/// An answer waiting for its turn.
+enum Pending {
+    /// Already known (a refused frame).
+    Ready(pb::StreamResponse),
+    /// In the batcher.
+    Step {
+        frame_index: u64,
+        pose: Pose,
+        received: Instant,
+        rx: oneshot::Receiver<StepResult>,
+    },
+}
+
+/// How the frame phase ended.
+enum End {
+    /// The client ended its side: detach.
+    Detach,
+    /// `close` request: delete the session and say so.
+    Close,
+    /// End with this status, detaching the session.
+    Fail(Status),
+    /// The session is no longer ours (takeover or close elsewhere).
+    Lost(Status),
+    /// The response channel is gone (client disconnected).
+    Gone,
+}
+
+/// Drive one stream to completion. Runs as its own task.
+pub async fn run(state: Arc<AppState>, mut inbound: Streaming<pb::StreamRequest>, tx: mpsc::Sender<Outbound>) {
+    let attachment = tokio::select! {
+        first = inbound.message() => match open_or_resume(&state, first) {
+            Ok(a) => a,
+            Err(status) => {
+                metrics::error(status.code(), "Stream");
+                let _ = tx.send(Err(status)).await;
+                return;
+            }
+        },
+        _ = state.draining.cancelled() => {
+            let _ = tx.send(Err(shutting_down())).await;
+            return;
+        }
+    };
+    let session = attachment.session.clone();
+    let span = tracing::info_span!(
+        "stream",
+        session = %session.id(),
+        label = %session.config().label,
+    );
+    async move {
+        let opened = opened_response(&state, &attachment);
+        if tx.send(Ok(opened)).await.is_err() {
+            state.store.detach(&session, attachment.epoch);
+            return;
+        }
+        tracing::info!(resumed = attachment.epoch > 1, "stream attached");
+        metrics::stream_attached(1);
+        let end = {
+            let _guard = state.batcher.stream_guard();
+            frames(&state, &attachment, &mut inbound, &tx).await
+        };
+        metrics::stream_attached(-1);
+        finish(&state, &attachment, end, &tx).await;
+    }
+    .instrument(span)
+    .await;
+}
+
+fn shutting_down() -> Status {
+    Status::unavailable("the server is shutting down; resume or reopen the session on another server")
+}
+
+fn open_or_resume(
+    state: &AppState,
+    first: Result<Option<pb::StreamRequest>, Status>,
+) -> Result<Attachment, Status> {
+    let request = match first {
+        Ok(Some(r)) => r,
+        Ok(None) => return Err(Status::failed_precondition("the stream ended before an open or resume request")),
+        Err(status) => return Err(status),
+    };
+    match request.kind {
+        Some(Req::Open(open)) => {
+            let input = validate::input_spec(open.input_format.as_ref()).map_err(|e| e.to_status())?;
+            validate::stream_model(open.model).map_err(|e| e.to_status())?;
+            let label = truncate_label(&open.client_label);
+            let attachment = state
+                .store
+                .open(SessionConfig { input, label })
+                .map_err(session_status)?;
+            tracing::info!(
+                session = %attachment.session.id(),
+                label = %attachment.session.config().label,
+                layout = %input.layout,
+                "session opened"
+            );
+            Ok(attachment)
+        }
+        Some(Req::Resume(resume)) => {
+            let attachment = state.store.resume(&resume.session_id).map_err(session_status)?;
+            tracing::info!(session = %attachment.session.id(), frames_seen = attachment.snapshot.frames_seen, "session resumed");
+            Ok(attachment)
+        }
+        Some(Req::Frame(_)) => Err(Status::failed_precondition(
+            "a frame arrived before the session was opened: send open or resume first",
+        )),
+        Some(Req::Close(_)) => Err(Status::failed_precondition(
+            "close arrived before the session was opened: send open or resume first",
+        )),
+        None => Err(Status::invalid_argument("empty StreamRequest: set open, resume, frame or close")),
+    }
+}
+
+/// The gRPC status for a store error.
+pub fn session_status(e: SessionError) -> Status {
+    match e {
+        SessionError::TooManySessions { .. } => Status::resource_exhausted(e.to_string()),
+        SessionError::NotFound { .. } => Status::not_found(e.to_string()),
+        SessionError::Rng(_) => Status::internal(e.to_string()),
+    }
+}
+
+fn truncate_label(label: &str) -> String {
+    let mut end = label.len().min(MAX_LABEL_BYTES);
+    while !label.is_char_boundary(end) {
+        end -= 1;
+    }
+    // Labels go into logs: keep them on one line.
+    label[..end].chars().map(|c| if c.is_control() { ' ' } else { c }).collect()
+}
+
+fn opened_response(state: &AppState, a: &Attachment) -> pb::StreamResponse {
+    pb::StreamResponse {
+        kind: Some(Resp::Opened(pb::SessionOpened {
+            session_id: a.session.id().to_string(),
+            resumed: a.epoch > 1,
+            frames_seen: a.snapshot.frames_seen,
+            bone_lengths: lengths_vec(&a.snapshot),
+            input_format: Some(validate::input_spec_to_proto(&a.session.config().input)),
+            model: pb::Model::OnlineGru as i32,
+            session_ttl_ms: u64::try_from(state.store.ttl().as_millis()).unwrap_or(u64::MAX),
+        })),
+    }
+}
+
+fn lengths_vec(s: &SessionSnapshot) -> Vec<f32> {
+    s.bone_lengths.map(|l| l.to_vec()).unwrap_or_default()
+}
+
+fn frame_error(frame_index: u64, code: tonic::Code, message: String) -> pb::StreamResponse {
+    metrics::frame_error(code);
+    pb::StreamResponse {
+        kind: Some(Resp::Error(pb::FrameError { frame_index, code: code as i32, message })),
+    }
+}
+
+/// Validate and submit one frame; the returned entry answers it.
+fn submit(state: &AppState, a: &Attachment, frame: pb::Frame) -> Pending {
+    let received = Instant::now();
+    let index = frame.frame_index;
+    let valid = match validate::frame(&a.session.config().input, &frame) {
+        Ok(v) => v,
+        Err(e) => return Pending::Ready(frame_error(index, tonic::Code::InvalidArgument, e.to_string())),
+    };
+    let (reply, rx) = oneshot::channel();
+    let job = FrameJob { session: a.session.clone(), epoch: a.epoch, input: valid.input, reply };
+    match state.batcher.submit(job) {
+        Ok(()) => Pending::Step { frame_index: index, pose: valid.pose, received, rx },
+        Err(e) => Pending::Ready(frame_error(index, e.code(), e.to_string())),
+    }
+}
+
+/// Wait for the front answer and turn it into a response.
+async fn next_answer(pending: &mut VecDeque<Pending>) -> Option<pb::StreamResponse> {
+    let result = match pending.front_mut()? {
+        Pending::Ready(_) => None,
+        Pending::Step { rx, .. } => Some(rx.await),
+    };
+    match (pending.pop_front()?, result) {
+        (Pending::Ready(response), _) => Some(response),
+        (Pending::Step { frame_index, pose, received, .. }, Some(result)) => {
+            Some(step_response(frame_index, &pose, received, result))
+        }
+        (Pending::Step { frame_index, .. }, None) => Some(frame_error(
+            frame_index,
+            tonic::Code::Internal,
+            "frame was not answered".into(),
+        )),
+    }
+}
+
+fn step_response(
+    frame_index: u64,
+    pose: &Pose,
+    received: Instant,
+    result: Result<StepResult, oneshot::error::RecvError>,
+) -> pb::StreamResponse {
+    let output = match result {
+        Ok(Ok(output)) => output,
+        Ok(Err(e)) => return frame_error(frame_index, e.code(), e.to_string()),
+        Err(_) => {
+            return frame_error(frame_index, tonic::Code::Unavailable, "the batcher stopped before this frame".into())
+        }
+    };
+    match bones::adjust_pose(pose, &output.lengths) {
+        Ok(adjusted) => {
+            metrics::frame_ok(received.elapsed());
+            pb::StreamResponse {
+                kind: Some(Resp::Frame(pb::AdjustedFrame {
+                    frame_index,
+                    adjusted_pose_3d: adjusted.iter().flatten().copied().collect(),
+                    bone_lengths: output.lengths.to_vec(),
+                    frames_seen: output.frames_seen,
+                })),
+            }
+        }
+        // Validation guarantees a pose the adjustment accepts; report
+        // rather than panic if that ever stops holding.
+        Err(e) => frame_error(frame_index, tonic::Code::Internal, format!("adjustment failed: {e}")),
+    }
+}
+
+fn lost_status(owner: Ownership) -> Status {
+    if owner.closed {
+        Status::aborted("the session was closed (CloseSession) or expired")
+    } else {
+        Status::aborted("the session was resumed by another stream")
+    }
+}
+
+/// The frame phase: read, submit, answer in order.
+async fn frames(
+    state: &AppState,
+    a: &Attachment,
+    inbound: &mut Streaming<pb::StreamRequest>,
+    tx: &mpsc::Sender<Outbound>,
+) -> End {
+    let cap = state.max_inflight_per_stream.max(1);
+    let mut pending: VecDeque<Pending> = VecDeque::with_capacity(cap);
+    let mut owner: watch::Receiver<Ownership> = a.session.watch();
+    let mut reading = true;
+    let mut end = End::Detach;
+    // A takeover between attaching and subscribing would not show up as a
+    // change: check the current owner once up front.
+    let now = *owner.borrow_and_update();
+    if now.closed || now.epoch != a.epoch {
+        return End::Lost(lost_status(now));
+    }
+    loop {
+        if !reading && pending.is_empty() {
+            return end;
+        }
+        tokio::select! {
+            biased;
+            changed = owner.changed() => {
+                let now = *owner.borrow_and_update();
+                if changed.is_err() || now.closed || now.epoch != a.epoch {
+                    // Pending frames will be refused by the batcher; the
+                    // client learns why from the status.
+                    return End::Lost(lost_status(now));
+                }
+            }
+            response = next_answer(&mut pending), if !pending.is_empty() => {
+                if let Some(response) = response {
+                    if tx.send(Ok(response)).await.is_err() {
+                        return End::Gone;
+                    }
+                }
+            }
+            _ = state.draining.cancelled(), if reading => {
+                reading = false;
+                end = End::Fail(shutting_down());
+            }
+            message = inbound.message(), if reading && pending.len() < cap => match message {
+                Ok(Some(request)) => match request.kind {
+                    Some(Req::Frame(frame)) => pending.push_back(submit(state, a, frame)),
+                    Some(Req::Close(_)) => {
+                        reading = false;
+                        end = End::Close;
+                    }
+                    Some(Req::Open(_) | Req::Resume(_)) => {
+                        reading = false;
+                        end = End::Fail(Status::failed_precondition(
+                            "this stream already has a session; open or resume only as the first message",
+                        ));
+                    }
+                    None => {
+                        reading = false;
+                        end = End::Fail(Status::invalid_argument(
+                            "empty StreamRequest: set open, resume, frame or close",
+                        ));
+                    }
+                },
+                Ok(None) => reading = false,
+                Err(status) => {
+                    reading = false;
+                    end = End::Fail(status);
+                }
+            },
+        }
+    }
+}
+
+async fn finish(state: &AppState, a: &Attachment, end: End, tx: &mpsc::Sender<Outbound>) {
+    let id = a.session.id().to_string();
+    match end {
+        End::Close => match state.store.close(&id) {
+            Ok(snapshot) => {
+                tracing::info!(frames_seen = snapshot.frames_seen, "session closed by client");
+                let closed = pb::StreamResponse {
+                    kind: Some(Resp::Closed(pb::SessionClosed {
+                        session_id: id,
+                        frames_seen: snapshot.frames_seen,
+                        bone_lengths: lengths_vec(&snapshot),
+                    })),
+                };
+                let _ = tx.send(Ok(closed)).await;
+            }
+            Err(e) => {
+                let status = session_status(e);
+                metrics::error(status.code(), "Stream");
+                let _ = tx.send(Err(status)).await;
+            }
+        },
+        End::Detach | End::Gone => {
+            state.store.detach(&a.session, a.epoch);
+            tracing::info!("stream ended; session detached");
+        }
+        End::Fail(status) => {
+            state.store.detach(&a.session, a.epoch);
+            tracing::info!(code = ?status.code(), message = status.message(), "stream ended with an error; session detached");
+            metrics::error(status.code(), "Stream");
+            let _ = tx.send(Err(status)).await;
+        }
+        End::Lost(status) => {
+            tracing::info!(message = status.message(), "stream lost its session");
+            metrics::error(status.code(), "Stream");
+            let _ = tx.send(Err(status)).await;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn labels_are_bounded_and_single_line() {
+        assert_eq!(truncate_label("cam 1\nrm -rf"), "cam 1 rm -rf");
+        let long = "é".repeat(200);
+        let t = truncate_label(&long);
+        assert!(t.len() <= MAX_LABEL_BYTES);
+        assert!(t.chars().all(|c| c == 'é'));
+    }
+
+    #[test]
+    fn store_errors_map_to_grpc_codes() {
+        assert_eq!(session_status(SessionError::TooManySessions { max: 1 }).code(), tonic::Code::ResourceExhausted);
+        assert_eq!(session_status(SessionError::NotFound { id: "x".into() }).code(), tonic::Code::NotFound);
+    }
+}

@@ -1,0 +1,561 @@
+//! Validation and conversion of client input, before anything touches a
+//! session.
+//!
+//! Everything a client sends is checked here and turned into the model's
+//! input (Human3.6M-17 keypoints in normalized screen coordinates, via
+//! blapose-core's layouts and camera modules) and a 3D pose that the
+//! adjustment is guaranteed to accept. Because the batcher only ever sees
+//! validated frames, a bad frame can be refused without the session's state
+//! moving. Every error says which value is wrong and what was expected; all
+//! of them map to INVALID_ARGUMENT.
+
+use blapose_core::bones::{self, BoneError};
+use blapose_core::camera::normalize_screen;
+use blapose_core::layouts::KeypointLayout;
+use blapose_core::skeleton::JOINT_NAMES;
+use blapose_core::{Pose, NUM_JOINTS};
+use blapose_proto::v1 as pb;
+
+use crate::backend::INPUT_DIM;
+use crate::session::{Coordinates, InputSpec};
+
+/// Largest accepted magnitude of a 2D keypoint value (pixels or normalized).
+pub const MAX_KEYPOINT_ABS: f32 = 1e6;
+/// Largest accepted magnitude of a 3D pose coordinate, in metres.
+pub const MAX_POSE_ABS: f32 = 1e4;
+/// Values in a 3D pose.
+pub const POSE_VALUES: usize = NUM_JOINTS * 3;
+
+/// A client input the server refuses (INVALID_ARGUMENT).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum InvalidInput {
+    /// `input_format` is absent.
+    #[error("input_format is required (keypoint layout and image size or normalized=true)")]
+    MissingInputFormat,
+    /// Layout not set.
+    #[error("input_format.layout is KEYPOINT_LAYOUT_UNSPECIFIED; choose H36M_17, SH_16 or COCO_17")]
+    UnspecifiedLayout,
+    /// Layout number unknown to this server.
+    #[error("input_format.layout {0} is not a known KeypointLayout (known: 1 H36M_17, 2 SH_16, 3 COCO_17)")]
+    UnknownLayout(i32),
+    /// Neither image size nor normalized.
+    #[error("input_format needs either image_size or normalized=true")]
+    MissingCoordinates,
+    /// Width or height is zero.
+    #[error("input_format.image_size must be positive, got {width}x{height}")]
+    BadImageSize {
+        /// Width given.
+        width: u32,
+        /// Height given.
+        height: u32,
+    },
+    /// `normalized: false`.
+    #[error("input_format.normalized was set to false; set it to true or give image_size instead")]
+    NormalizedFalse,
+    /// A model number this server does not know.
+    #[error("model {0} is not a known Model (known: 1 MODEL_ONLINE_GRU, 2 MODEL_OFFLINE_BIGRU)")]
+    UnknownModel(i32),
+    /// The Bi-GRU on a stream.
+    #[error("MODEL_OFFLINE_BIGRU needs the whole sequence; use AdjustSequence, or MODEL_ONLINE_GRU for streaming")]
+    OfflineModelOnStream,
+    /// Wrong keypoint value count.
+    #[error("keypoints_2d has {got} values, expected {expected} ({joints} joints x 2) for {layout}")]
+    KeypointCount {
+        /// Values given.
+        got: usize,
+        /// Values expected.
+        expected: usize,
+        /// Joints of the layout.
+        joints: usize,
+        /// The layout name.
+        layout: &'static str,
+    },
+    /// A keypoint value is NaN or infinite.
+    #[error("keypoints_2d joint {joint} ({name}) is not finite")]
+    NonFiniteKeypoint {
+        /// Joint index in the client's layout.
+        joint: usize,
+        /// Joint name in that layout.
+        name: &'static str,
+    },
+    /// A keypoint value is absurdly large.
+    #[error("keypoints_2d joint {joint} ({name}) has value {value}, outside +-{MAX_KEYPOINT_ABS:e}")]
+    KeypointOutOfRange {
+        /// Joint index in the client's layout.
+        joint: usize,
+        /// Joint name in that layout.
+        name: &'static str,
+        /// The value.
+        value: f32,
+    },
+    /// Wrong confidence count.
+    #[error("confidence has {got} values, expected 0 or {expected} (one per joint)")]
+    ConfidenceCount {
+        /// Values given.
+        got: usize,
+        /// Joints of the layout.
+        expected: usize,
+    },
+    /// A confidence is negative or not finite.
+    #[error("confidence of joint {joint} is {value}; it must be finite and >= 0")]
+    BadConfidence {
+        /// Joint index in the client's layout.
+        joint: usize,
+        /// The value.
+        value: f32,
+    },
+    /// Wrong pose value count.
+    #[error("pose_3d has {got} values, expected {POSE_VALUES} (17 joints x 3, metres)")]
+    PoseCount {
+        /// Values given.
+        got: usize,
+    },
+    /// A pose coordinate is absurdly large.
+    #[error("pose_3d joint {joint} ({name}) has coordinate {value}, outside +-{MAX_POSE_ABS:e} m")]
+    PoseOutOfRange {
+        /// Joint index.
+        joint: usize,
+        /// Joint name.
+        name: &'static str,
+        /// The value.
+        value: f32,
+    },
+    /// The pose cannot be adjusted (non-finite joint, zero-length bone).
+    #[error("pose_3d: {0}")]
+    Pose(BoneError),
+    /// `num_frames` is zero.
+    #[error("num_frames must be >= 1")]
+    NoFrames,
+    /// A sequence buffer has the wrong length.
+    #[error("{field} has {got} values, expected {expected} ({frames} frames x {per_frame})")]
+    SequenceLength {
+        /// The field.
+        field: &'static str,
+        /// Values given.
+        got: usize,
+        /// Values expected.
+        expected: usize,
+        /// Frames declared.
+        frames: usize,
+        /// Values per frame.
+        per_frame: usize,
+    },
+    /// A problem in one frame of a sequence.
+    #[error("frame {frame}: {source}")]
+    InFrame {
+        /// Frame index in the sequence.
+        frame: usize,
+        /// The problem.
+        source: Box<InvalidInput>,
+    },
+}
+
+impl InvalidInput {
+    /// As a gRPC status.
+    pub fn to_status(&self) -> tonic::Status {
+        tonic::Status::invalid_argument(self.to_string())
+    }
+}
+
+/// The proto enum for a core layout.
+pub fn layout_to_proto(layout: KeypointLayout) -> pb::KeypointLayout {
+    match layout {
+        KeypointLayout::H36m17 => pb::KeypointLayout::H36m17,
+        KeypointLayout::Sh16 => pb::KeypointLayout::Sh16,
+        KeypointLayout::Coco17 => pb::KeypointLayout::Coco17,
+    }
+}
+
+fn layout_from_proto(value: i32) -> Result<KeypointLayout, InvalidInput> {
+    match pb::KeypointLayout::try_from(value) {
+        Ok(pb::KeypointLayout::Unspecified) => Err(InvalidInput::UnspecifiedLayout),
+        Ok(pb::KeypointLayout::H36m17) => Ok(KeypointLayout::H36m17),
+        Ok(pb::KeypointLayout::Sh16) => Ok(KeypointLayout::Sh16),
+        Ok(pb::KeypointLayout::Coco17) => Ok(KeypointLayout::Coco17),
+        Err(_) => Err(InvalidInput::UnknownLayout(value)),
+    }
+}
+
+/// Validate an `InputFormat`.
+pub fn input_spec(format: Option<&pb::InputFormat>) -> Result<InputSpec, InvalidInput> {
+    let format = format.ok_or(InvalidInput::MissingInputFormat)?;
+    let layout = layout_from_proto(format.layout)?;
+    let coordinates = match format.coordinates {
+        None => return Err(InvalidInput::MissingCoordinates),
+        Some(pb::input_format::Coordinates::Normalized(false)) => return Err(InvalidInput::NormalizedFalse),
+        Some(pb::input_format::Coordinates::Normalized(true)) => Coordinates::Normalized,
+        Some(pb::input_format::Coordinates::ImageSize(size)) => {
+            if size.width == 0 || size.height == 0 {
+                return Err(InvalidInput::BadImageSize { width: size.width, height: size.height });
+            }
+            Coordinates::Pixels { width: size.width, height: size.height }
+        }
+    };
+    Ok(InputSpec { layout, coordinates })
+}
+
+/// The `InputFormat` a spec was built from (echoed on open/resume).
+pub fn input_spec_to_proto(spec: &InputSpec) -> pb::InputFormat {
+    let coordinates = match spec.coordinates {
+        Coordinates::Normalized => pb::input_format::Coordinates::Normalized(true),
+        Coordinates::Pixels { width, height } => {
+            pb::input_format::Coordinates::ImageSize(pb::ImageSize { width, height })
+        }
+    };
+    pb::InputFormat { layout: layout_to_proto(spec.layout) as i32, coordinates: Some(coordinates) }
+}
+
+/// Which model an offline request runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum OfflineModel {
+    /// Whole-sequence Bi-GRU.
+    BiGru,
+    /// The online GRU run causally over the sequence.
+    OnlineGru,
+}
+
+/// Check the model of an `OpenSession` (only the online GRU streams).
+pub fn stream_model(value: i32) -> Result<pb::Model, InvalidInput> {
+    match pb::Model::try_from(value) {
+        Ok(pb::Model::Unspecified | pb::Model::OnlineGru) => Ok(pb::Model::OnlineGru),
+        Ok(pb::Model::OfflineBigru) => Err(InvalidInput::OfflineModelOnStream),
+        Err(_) => Err(InvalidInput::UnknownModel(value)),
+    }
+}
+
+/// The model of an `AdjustSequenceRequest` (Bi-GRU by default).
+pub fn offline_model(value: i32) -> Result<OfflineModel, InvalidInput> {
+    match pb::Model::try_from(value) {
+        Ok(pb::Model::Unspecified | pb::Model::OfflineBigru) => Ok(OfflineModel::BiGru),
+        Ok(pb::Model::OnlineGru) => Ok(OfflineModel::OnlineGru),
+        Err(_) => Err(InvalidInput::UnknownModel(value)),
+    }
+}
+
+/// Validate one frame's keypoints (and confidences) and turn them into the
+/// model's input: Human3.6M-17 order, normalized screen coordinates,
+/// joint-major `(x, y)`.
+pub fn model_input(spec: &InputSpec, keypoints: &[f32], confidence: &[f32]) -> Result<[f32; INPUT_DIM], InvalidInput> {
+    let layout = spec.layout;
+    let joints = layout.num_joints();
+    if keypoints.len() != joints * 2 {
+        return Err(InvalidInput::KeypointCount {
+            got: keypoints.len(),
+            expected: joints * 2,
+            joints,
+            layout: pb_layout_name(layout),
+        });
+    }
+    if !confidence.is_empty() && confidence.len() != joints {
+        return Err(InvalidInput::ConfidenceCount { got: confidence.len(), expected: joints });
+    }
+    if let Some((joint, &value)) = confidence.iter().enumerate().find(|(_, c)| !(c.is_finite() && **c >= 0.0)) {
+        return Err(InvalidInput::BadConfidence { joint, value });
+    }
+    let names = layout.joint_names();
+    let mut points = [[0.0f32; 2]; NUM_JOINTS];
+    for (j, pair) in keypoints.chunks_exact(2).enumerate() {
+        for &v in pair {
+            if !v.is_finite() {
+                return Err(InvalidInput::NonFiniteKeypoint { joint: j, name: names[j] });
+            }
+            if v.abs() > MAX_KEYPOINT_ABS {
+                return Err(InvalidInput::KeypointOutOfRange { joint: j, name: names[j], value: v });
+            }
+        }
+        points[j] = [pair[0], pair[1]];
+    }
+    // Counts and values were checked above, so the conversion cannot fail;
+    // map its error anyway rather than assume.
+    let h36m = layout
+        .to_h36m17(&points[..joints])
+        .map_err(|_| InvalidInput::KeypointCount {
+            got: keypoints.len(),
+            expected: joints * 2,
+            joints,
+            layout: pb_layout_name(layout),
+        })?;
+    let mut input = [0.0f32; INPUT_DIM];
+    for (j, p) in h36m.iter().enumerate() {
+        let n = match spec.coordinates {
+            Coordinates::Normalized => *p,
+            Coordinates::Pixels { width, height } => normalize_screen(*p, width, height),
+        };
+        input[2 * j] = n[0];
+        input[2 * j + 1] = n[1];
+    }
+    Ok(input)
+}
+
+fn pb_layout_name(layout: KeypointLayout) -> &'static str {
+    layout_to_proto(layout).as_str_name()
+}
+
+/// Validate a 3D pose: 51 finite values within bounds, every bone longer
+/// than `MIN_BONE_LENGTH` (so the adjustment has a direction to keep).
+pub fn pose(values: &[f32]) -> Result<Pose, InvalidInput> {
+    if values.len() != POSE_VALUES {
+        return Err(InvalidInput::PoseCount { got: values.len() });
+    }
+    let mut pose = [[0.0f32; 3]; NUM_JOINTS];
+    for (j, xyz) in values.chunks_exact(3).enumerate() {
+        for &v in xyz {
+            if !v.is_finite() {
+                return Err(InvalidInput::Pose(BoneError::NonFiniteJoint { joint: j, name: JOINT_NAMES[j] }));
+            }
+            if v.abs() > MAX_POSE_ABS {
+                return Err(InvalidInput::PoseOutOfRange { joint: j, name: JOINT_NAMES[j], value: v });
+            }
+        }
+        pose[j] = [xyz[0], xyz[1], xyz[2]];
+    }
+    bones::decompose(&pose).map_err(InvalidInput::Pose)?;
+    Ok(pose)
+}
+
+/// A validated frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ValidFrame {
+    /// Model input.
+    pub input: [f32; INPUT_DIM],
+    /// Pose to adjust.
+    pub pose: Pose,
+}
+
+/// Validate a streamed frame.
+pub fn frame(spec: &InputSpec, frame: &pb::Frame) -> Result<ValidFrame, InvalidInput> {
+    Ok(ValidFrame {
+        input: model_input(spec, &frame.keypoints_2d, &frame.confidence)?,
+        pose: pose(&frame.pose_3d)?,
+    })
+}
+
+/// A validated offline request.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ValidSequence {
+    /// Which model to run.
+    pub model: OfflineModel,
+    /// `frames x INPUT_DIM` model inputs.
+    pub inputs: Vec<f32>,
+    /// One pose per frame.
+    pub poses: Vec<Pose>,
+}
+
+/// Validate an `AdjustSequenceRequest`.
+pub fn sequence(req: &pb::AdjustSequenceRequest) -> Result<ValidSequence, InvalidInput> {
+    let spec = input_spec(req.input_format.as_ref())?;
+    let model = offline_model(req.model)?;
+    let frames = req.num_frames as usize;
+    if frames == 0 {
+        return Err(InvalidInput::NoFrames);
+    }
+    let joints = spec.layout.num_joints();
+    let check = |field, got: usize, per_frame: usize| {
+        let expected = frames.checked_mul(per_frame).unwrap_or(usize::MAX);
+        if got == expected {
+            Ok(())
+        } else {
+            Err(InvalidInput::SequenceLength { field, got, expected, frames, per_frame })
+        }
+    };
+    check("keypoints_2d", req.keypoints_2d.len(), joints * 2)?;
+    check("poses_3d", req.poses_3d.len(), POSE_VALUES)?;
+    if !req.confidence.is_empty() {
+        check("confidence", req.confidence.len(), joints)?;
+    }
+    let mut inputs = Vec::with_capacity(frames * INPUT_DIM);
+    let mut poses = Vec::with_capacity(frames);
+    for t in 0..frames {
+        let in_frame = |e| InvalidInput::InFrame { frame: t, source: Box::new(e) };
+        let kp = &req.keypoints_2d[t * joints * 2..(t + 1) * joints * 2];
+        let conf = if req.confidence.is_empty() {
+            &[][..]
+        } else {
+            &req.confidence[t * joints..(t + 1) * joints]
+        };
+        inputs.extend_from_slice(&model_input(&spec, kp, conf).map_err(in_frame)?);
+        poses.push(pose(&req.poses_3d[t * POSE_VALUES..(t + 1) * POSE_VALUES]).map_err(in_frame)?);
+    }
+    Ok(ValidSequence { model, inputs, poses })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn spec(layout: KeypointLayout, coordinates: Coordinates) -> InputSpec {
+        InputSpec { layout, coordinates }
+    }
+
+    /// A plausible standing pose (metres).
+    pub(crate) fn standing_pose() -> Vec<f32> {
+        let joints: [[f32; 3]; 17] = [
+            [0.0, 0.0, 4.0],
+            [-0.13, 0.0, 4.0],
+            [-0.13, 0.45, 4.0],
+            [-0.13, 0.9, 4.0],
+            [0.13, 0.0, 4.0],
+            [0.13, 0.45, 4.0],
+            [0.13, 0.9, 4.0],
+            [0.0, -0.23, 4.0],
+            [0.0, -0.48, 4.0],
+            [0.0, -0.58, 4.0],
+            [0.0, -0.7, 4.0],
+            [0.15, -0.45, 4.0],
+            [0.43, -0.45, 4.0],
+            [0.68, -0.45, 4.0],
+            [-0.15, -0.45, 4.0],
+            [-0.43, -0.45, 4.0],
+            [-0.68, -0.45, 4.0],
+        ];
+        joints.iter().flatten().copied().collect()
+    }
+
+    fn format(layout: i32, coordinates: Option<pb::input_format::Coordinates>) -> pb::InputFormat {
+        pb::InputFormat { layout, coordinates }
+    }
+
+    #[test]
+    fn input_formats_are_checked() {
+        use pb::input_format::Coordinates as C;
+        let size = |w, h| Some(C::ImageSize(pb::ImageSize { width: w, height: h }));
+        assert_eq!(input_spec(None), Err(InvalidInput::MissingInputFormat));
+        assert_eq!(input_spec(Some(&format(0, size(10, 10)))), Err(InvalidInput::UnspecifiedLayout));
+        assert_eq!(input_spec(Some(&format(42, size(10, 10)))), Err(InvalidInput::UnknownLayout(42)));
+        assert_eq!(input_spec(Some(&format(-1, size(10, 10)))), Err(InvalidInput::UnknownLayout(-1)));
+        assert_eq!(input_spec(Some(&format(1, None))), Err(InvalidInput::MissingCoordinates));
+        assert_eq!(
+            input_spec(Some(&format(1, size(0, 10)))),
+            Err(InvalidInput::BadImageSize { width: 0, height: 10 })
+        );
+        assert_eq!(input_spec(Some(&format(2, Some(C::Normalized(false))))), Err(InvalidInput::NormalizedFalse));
+        let ok = input_spec(Some(&format(3, size(1920, 1080)))).unwrap();
+        assert_eq!(ok, spec(KeypointLayout::Coco17, Coordinates::Pixels { width: 1920, height: 1080 }));
+        assert_eq!(input_spec(Some(&input_spec_to_proto(&ok))), Ok(ok));
+        let n = input_spec(Some(&format(2, Some(C::Normalized(true))))).unwrap();
+        assert_eq!(n, spec(KeypointLayout::Sh16, Coordinates::Normalized));
+        assert_eq!(input_spec(Some(&input_spec_to_proto(&n))), Ok(n));
+    }
+
+    #[test]
+    fn models_are_checked() {
+        assert_eq!(stream_model(0), Ok(pb::Model::OnlineGru));
+        assert_eq!(stream_model(1), Ok(pb::Model::OnlineGru));
+        assert_eq!(stream_model(2), Err(InvalidInput::OfflineModelOnStream));
+        assert_eq!(stream_model(9), Err(InvalidInput::UnknownModel(9)));
+        assert_eq!(offline_model(0), Ok(OfflineModel::BiGru));
+        assert_eq!(offline_model(1), Ok(OfflineModel::OnlineGru));
+        assert_eq!(offline_model(-3), Err(InvalidInput::UnknownModel(-3)));
+    }
+
+    #[test]
+    fn pixels_are_normalized_after_layout_conversion() {
+        let s = spec(KeypointLayout::H36m17, Coordinates::Pixels { width: 1000, height: 1002 });
+        let kp: Vec<f32> = (0..34).map(|i| i as f32 * 10.0).collect();
+        let input = model_input(&s, &kp, &[]).unwrap();
+        for j in 0..17 {
+            let want = normalize_screen([kp[2 * j], kp[2 * j + 1]], 1000, 1002);
+            assert_eq!([input[2 * j], input[2 * j + 1]], want);
+        }
+        // Normalized input passes through unchanged.
+        let n = spec(KeypointLayout::H36m17, Coordinates::Normalized);
+        assert_eq!(&model_input(&n, &kp, &[]).unwrap()[..], &kp[..]);
+        // COCO goes through blapose-core's conversion.
+        let c = spec(KeypointLayout::Coco17, Coordinates::Normalized);
+        let coco: Vec<f32> = (0..34).map(|i| (i as f32).sin()).collect();
+        let points: Vec<[f32; 2]> = coco.chunks(2).map(|p| [p[0], p[1]]).collect();
+        let want = KeypointLayout::Coco17.to_h36m17(&points).unwrap();
+        let got = model_input(&c, &coco, &[]).unwrap();
+        for j in 0..17 {
+            assert_eq!([got[2 * j], got[2 * j + 1]], want[j]);
+        }
+    }
+
+    #[test]
+    fn bad_keypoints_are_refused_with_a_precise_message() {
+        let s = spec(KeypointLayout::Sh16, Coordinates::Normalized);
+        let err = model_input(&s, &[0.0; 34], &[]).unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "keypoints_2d has 34 values, expected 32 (16 joints x 2) for KEYPOINT_LAYOUT_SH_16"
+        );
+        let mut kp = vec![0.1; 32];
+        kp[5] = f32::NAN;
+        assert!(matches!(model_input(&s, &kp, &[]), Err(InvalidInput::NonFiniteKeypoint { joint: 2, .. })));
+        kp[5] = f32::NEG_INFINITY;
+        assert!(matches!(model_input(&s, &kp, &[]), Err(InvalidInput::NonFiniteKeypoint { joint: 2, .. })));
+        kp[5] = 3e7;
+        assert!(matches!(model_input(&s, &kp, &[]), Err(InvalidInput::KeypointOutOfRange { joint: 2, .. })));
+        kp[5] = 0.1;
+        assert!(model_input(&s, &kp, &[]).is_ok());
+        assert!(matches!(
+            model_input(&s, &kp, &[1.0; 17]),
+            Err(InvalidInput::ConfidenceCount { got: 17, expected: 16 })
+        ));
+        let mut conf = vec![0.9; 16];
+        conf[3] = -0.5;
+        assert!(matches!(model_input(&s, &kp, &conf), Err(InvalidInput::BadConfidence { joint: 3, .. })));
+        conf[3] = f32::NAN;
+        assert!(matches!(model_input(&s, &kp, &conf), Err(InvalidInput::BadConfidence { joint: 3, .. })));
+        conf[3] = 0.0;
+        assert!(model_input(&s, &kp, &conf).is_ok());
+        assert_eq!(err.to_status().code(), tonic::Code::InvalidArgument);
+    }
+
+    #[test]
+    fn bad_poses_are_refused() {
+        let good = standing_pose();
+        assert!(pose(&good).is_ok());
+        assert_eq!(pose(&good[..50]), Err(InvalidInput::PoseCount { got: 50 }));
+        let mut p = good.clone();
+        p[3 * 5 + 1] = f32::NAN;
+        assert!(matches!(pose(&p), Err(InvalidInput::Pose(BoneError::NonFiniteJoint { joint: 5, .. }))));
+        let mut p = good.clone();
+        p[3 * 16] = f32::INFINITY;
+        assert!(matches!(pose(&p), Err(InvalidInput::Pose(BoneError::NonFiniteJoint { joint: 16, .. }))));
+        let mut p = good.clone();
+        p[3 * 7 + 2] = -2e4;
+        assert!(matches!(pose(&p), Err(InvalidInput::PoseOutOfRange { joint: 7, .. })));
+        // Zero-length bone: the left wrist on the left elbow (bone 12).
+        let mut p = good.clone();
+        p.copy_within(3 * 12..3 * 13, 3 * 13);
+        let err = pose(&p).unwrap_err();
+        assert!(matches!(err, InvalidInput::Pose(BoneError::ZeroLengthBone { bone: 12, .. })), "{err}");
+        assert!(err.to_string().contains("l_forearm"), "{err}");
+    }
+
+    #[test]
+    fn sequences_are_checked_frame_by_frame() {
+        let fmt = format(1, Some(pb::input_format::Coordinates::Normalized(true)));
+        let mut req = pb::AdjustSequenceRequest {
+            input_format: Some(fmt),
+            model: 0,
+            num_frames: 3,
+            keypoints_2d: vec![0.1; 3 * 34],
+            confidence: vec![],
+            poses_3d: standing_pose().repeat(3),
+        };
+        let ok = sequence(&req).unwrap();
+        assert_eq!(ok.model, OfflineModel::BiGru);
+        assert_eq!(ok.inputs.len(), 3 * INPUT_DIM);
+        assert_eq!(ok.poses.len(), 3);
+
+        req.poses_3d[51 + 4] = f32::NAN;
+        let err = sequence(&req).unwrap_err();
+        assert!(err.to_string().starts_with("frame 1: pose_3d:"), "{err}");
+        req.poses_3d[51 + 4] = 0.0;
+
+        req.num_frames = 4;
+        assert!(matches!(
+            sequence(&req),
+            Err(InvalidInput::SequenceLength { field: "keypoints_2d", got: 102, expected: 136, .. })
+        ));
+        req.num_frames = 0;
+        assert_eq!(sequence(&req), Err(InvalidInput::NoFrames));
+        req.num_frames = u32::MAX;
+        assert!(matches!(sequence(&req), Err(InvalidInput::SequenceLength { .. })));
+        req.num_frames = 3;
+        req.confidence = vec![1.0; 5];
+        assert!(matches!(sequence(&req), Err(InvalidInput::SequenceLength { field: "confidence", .. })));
+    }
+}
