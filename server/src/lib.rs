@@ -1,1 +1,304 @@
-//! blapose-server (under construction).
+//! blapose-server: BLAPose bone-length adjustment as a streaming gRPC
+//! service.
+//!
+//! Clients open a session per person/camera stream and send, frame by
+//! frame, 2D keypoints and the 3D pose their lifting model produced. The
+//! server keeps each session's GRU state, batches the frames of all sessions
+//! into one GRU step at a time (Triton-style "oldest" sequence batching), and
+//! answers each frame with the pose rebuilt from the lifter's bone directions
+//! and the session's running bone-length estimate. The contract is
+//! `proto/blapose/v1/blapose.proto` (crate `blapose-proto`).
+//!
+//! Module map, one concern each:
+//! [`config`] (flags and [`ServerConfig`]), [`session`] (store, TTL, resume),
+//! [`batcher`] (queue and batched steps on a dedicated thread), [`backend`]
+//! (the model-execution trait), [`engine`] (blapose-model's fast engines
+//! behind it), [`models`] (weights and providers), [`validate`] (client
+//! input), [`stream`] (the bidirectional session protocol), [`offline`]
+//! (whole-sequence requests), [`service`] (the tonic service), [`auth`],
+//! [`metrics`], [`shutdown`], [`telemetry`].
+//!
+//! Embedding (tests, load generators): [`spawn`] starts a server on a bound
+//! listener and returns a [`ServerHandle`]; [`serve`] runs until a future
+//! completes.
+
+pub mod auth;
+pub mod backend;
+pub mod batcher;
+pub mod config;
+pub mod engine;
+pub mod error;
+pub mod metrics;
+pub mod models;
+pub mod offline;
+pub mod service;
+pub mod session;
+pub mod shutdown;
+pub mod stream;
+pub mod telemetry;
+pub mod validate;
+
+use std::future::Future;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use blapose_proto::v1::pose_adjustment_server::PoseAdjustmentServer;
+use tokio::net::TcpListener;
+use tokio::task::JoinHandle;
+use tokio_util::sync::CancellationToken;
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::server::TcpIncoming;
+use tonic::transport::{Identity, Server, ServerTlsConfig};
+use tonic_health::ServingStatus;
+
+pub use config::{Cli, LogFormat, ServerConfig, TlsFiles, WeightsSource};
+pub use error::ServerError;
+pub use models::{embedded_bigru, embedded_gru, ModelProvider, WeightsProvider};
+
+use auth::BearerAuth;
+use batcher::{Batcher, BatcherConfig};
+use offline::OfflineRunner;
+use service::{AppState, PoseService};
+use session::SessionStore;
+
+/// A running server.
+#[derive(Debug)]
+pub struct ServerHandle {
+    local_addr: SocketAddr,
+    shutdown: CancellationToken,
+    /// `None` once the task's result was collected by [`ServerHandle::wait`].
+    task: Option<JoinHandle<Result<(), ServerError>>>,
+}
+
+impl ServerHandle {
+    /// The address the gRPC server listens on.
+    pub fn local_addr(&self) -> SocketAddr {
+        self.local_addr
+    }
+
+    /// Graceful shutdown: stop accepting, answer every frame already
+    /// received, end streams with UNAVAILABLE, stop the batcher; returns when
+    /// done (or after the configured grace period).
+    pub async fn shutdown(mut self) -> Result<(), ServerError> {
+        self.shutdown.cancel();
+        match self.task.take() {
+            Some(task) => join(task).await,
+            None => Ok(()),
+        }
+    }
+
+    /// Wait until the server stops on its own (an error) or through its
+    /// shutdown token. Cancel-safe; later calls return `Ok(())`.
+    pub async fn wait(&mut self) -> Result<(), ServerError> {
+        let Some(task) = self.task.as_mut() else {
+            return Ok(());
+        };
+        let result = join(task).await;
+        self.task = None;
+        result
+    }
+
+    /// A token that starts shutdown when cancelled.
+    pub fn shutdown_token(&self) -> CancellationToken {
+        self.shutdown.clone()
+    }
+}
+
+async fn join<J>(task: J) -> Result<(), ServerError>
+where
+    J: Future<Output = Result<Result<(), ServerError>, tokio::task::JoinError>>,
+{
+    match task.await {
+        Ok(result) => result,
+        Err(e) => Err(ServerError::Task(e.to_string())),
+    }
+}
+
+/// Load the configured weights and start serving on `listener`; returns
+/// once the model is warmed up and the server accepts calls (health
+/// SERVING).
+pub async fn spawn(config: ServerConfig, listener: TcpListener) -> Result<ServerHandle, ServerError> {
+    let (gru, bigru, threads) = (config.weights.clone(), config.bigru_weights.clone(), config.compute_threads);
+    let provider = tokio::task::spawn_blocking(move || WeightsProvider::load(&gru, &bigru, threads))
+        .await
+        .map_err(|e| ServerError::Task(e.to_string()))??;
+    tracing::info!(
+        gru = %provider.gru().origin,
+        gru_sha256 = %provider.gru().sha256,
+        bigru = %provider.bigru().origin,
+        bigru_sha256 = %provider.bigru().sha256,
+        "weights loaded"
+    );
+    spawn_with_provider(config, listener, Arc::new(provider)).await
+}
+
+/// [`spawn`] with any [`ModelProvider`] (e.g. a fake model in tests).
+pub async fn spawn_with_provider(
+    config: ServerConfig,
+    listener: TcpListener,
+    provider: Arc<dyn ModelProvider>,
+) -> Result<ServerHandle, ServerError> {
+    let local_addr = listener.local_addr()?;
+    if let Some(addr) = config.metrics_addr {
+        metrics::install_exporter(addr)?;
+        tracing::info!(%addr, "metrics at http://{addr}/metrics");
+    }
+
+    // Build and warm up the online backend off the async workers.
+    let batcher_config = BatcherConfig {
+        max_batch: config.max_batch.max(1),
+        max_queue_delay: config.max_queue_delay,
+        queue_capacity: config.queue_capacity.max(1),
+    };
+    let online_provider = provider.clone();
+    let batcher = tokio::task::spawn_blocking(move || -> Result<Batcher, ServerError> {
+        let backend = online_provider.online()?;
+        Ok(Batcher::start(backend, batcher_config)?)
+    })
+    .await
+    .map_err(|e| ServerError::Task(e.to_string()))??;
+    let batcher = Arc::new(batcher);
+
+    let (store, purge_guard) = SessionStore::new(config.max_sessions.max(1), config.session_ttl);
+    let shutdown = CancellationToken::new();
+    let state = Arc::new(AppState {
+        store,
+        batcher: batcher.clone(),
+        offline: OfflineRunner::new(provider.clone(), config.compute_threads),
+        provider,
+        draining: shutdown.child_token(),
+        max_inflight_per_stream: config.max_inflight_per_stream.max(1),
+        max_message_bytes: config.max_message_bytes,
+    });
+
+    let (health, health_service) = tonic_health::server::health_reporter();
+    // Warm-up ran inside Batcher::start, so the model is ready now.
+    health.set_service_status("", ServingStatus::Serving).await;
+    health.set_service_status(blapose_proto::SERVICE_NAME, ServingStatus::Serving).await;
+
+    let reflection_v1 = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(blapose_proto::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1()
+        .map_err(|e| ServerError::Reflection(e.to_string()))?;
+    let reflection_v1alpha = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(blapose_proto::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1alpha()
+        .map_err(|e| ServerError::Reflection(e.to_string()))?;
+
+    let pose = PoseAdjustmentServer::new(PoseService::new(state.clone()))
+        .max_decoding_message_size(config.max_message_bytes);
+    let pose = InterceptedService::new(pose, BearerAuth::new(config.auth_token.as_deref()));
+
+    let mut builder = Server::builder()
+        .http2_keepalive_interval(Some(Duration::from_secs(30)))
+        .http2_keepalive_timeout(Some(Duration::from_secs(20)));
+    if let Some(tls) = &config.tls {
+        let cert = std::fs::read(&tls.cert)
+            .map_err(|e| ServerError::Tls(format!("cannot read {}: {e}", tls.cert.display())))?;
+        let key = std::fs::read(&tls.key)
+            .map_err(|e| ServerError::Tls(format!("cannot read {}: {e}", tls.key.display())))?;
+        builder = builder
+            .tls_config(ServerTlsConfig::new().identity(Identity::from_pem(cert, key)))
+            .map_err(|e| ServerError::Tls(e.to_string()))?;
+    }
+    let router = builder
+        .add_service(health_service)
+        .add_service(reflection_v1)
+        .add_service(reflection_v1alpha)
+        .add_service(pose);
+
+    let incoming = TcpIncoming::from(listener)
+        .with_nodelay(Some(true))
+        .with_keepalive(Some(Duration::from_secs(60)));
+    let token = shutdown.clone();
+    let grace = config.shutdown_grace;
+    let task = tokio::spawn(async move {
+        let signal_health = health.clone();
+        let signal_token = token.clone();
+        let server = router.serve_with_incoming_shutdown(incoming, async move {
+            signal_token.cancelled().await;
+            tracing::info!("shutting down: draining in-flight frames");
+            signal_health.set_service_status("", ServingStatus::NotServing).await;
+            signal_health
+                .set_service_status(blapose_proto::SERVICE_NAME, ServingStatus::NotServing)
+                .await;
+        });
+        tokio::pin!(server);
+        let served = tokio::select! {
+            r = &mut server => r.map_err(ServerError::from),
+            _ = async { token.cancelled().await; tokio::time::sleep(grace).await } => {
+                tracing::warn!(?grace, "shutdown grace period expired; dropping remaining connections");
+                Ok(())
+            }
+        };
+        // Streams are done (or abandoned): answer anything still queued and
+        // stop the batcher thread.
+        token.cancel();
+        let b = batcher.clone();
+        let joined = tokio::task::spawn_blocking(move || b.join()).await;
+        drop(purge_guard);
+        drop(state);
+        tracing::info!("server stopped");
+        served?;
+        joined.map_err(|e| ServerError::Task(e.to_string()))
+    });
+    tracing::info!(addr = %local_addr, "serving blapose.v1");
+    Ok(ServerHandle { local_addr, shutdown, task: Some(task) })
+}
+
+/// Run a server on `listener` until `shutdown` completes, then shut down
+/// gracefully. Returns early with the error if the server fails.
+pub async fn serve(
+    config: ServerConfig,
+    listener: TcpListener,
+    shutdown: impl Future<Output = ()>,
+) -> Result<(), ServerError> {
+    let mut handle = spawn(config, listener).await?;
+    tokio::select! {
+        r = handle.wait() => r,
+        _ = shutdown => handle.shutdown().await,
+    }
+}
+
+/// Query `grpc.health.v1` at `addr` (overall status). `Ok(true)` when
+/// SERVING. With `tls_ca`, connect over TLS trusting that PEM certificate
+/// (use the server's own certificate when it is self-signed).
+pub async fn probe_health(addr: SocketAddr, tls_ca: Option<&std::path::Path>) -> Result<bool, ServerError> {
+    use tonic_health::pb::{health_check_response::ServingStatus as S, health_client::HealthClient, HealthCheckRequest};
+    let host = if addr.ip().is_unspecified() {
+        SocketAddr::new(
+            if addr.is_ipv4() {
+                std::net::Ipv4Addr::LOCALHOST.into()
+            } else {
+                std::net::Ipv6Addr::LOCALHOST.into()
+            },
+            addr.port(),
+        )
+    } else {
+        addr
+    };
+    let scheme = if tls_ca.is_some() { "https" } else { "http" };
+    let mut endpoint = tonic::transport::Endpoint::from_shared(format!("{scheme}://{host}"))
+        .map_err(ServerError::from)?
+        .connect_timeout(Duration::from_secs(3))
+        .timeout(Duration::from_secs(3));
+    if let Some(ca) = tls_ca {
+        let pem = std::fs::read(ca).map_err(|e| ServerError::Tls(format!("cannot read {}: {e}", ca.display())))?;
+        endpoint = endpoint
+            .tls_config(
+                tonic::transport::ClientTlsConfig::new()
+                    .ca_certificate(tonic::transport::Certificate::from_pem(pem))
+                    .domain_name("localhost"),
+            )
+            .map_err(ServerError::from)?;
+    }
+    let channel = endpoint.connect().await?;
+    let response = HealthClient::new(channel)
+        .check(HealthCheckRequest { service: String::new() })
+        .await
+        .map_err(|s| ServerError::Task(format!("health check failed: {s}")))?;
+    Ok(response.into_inner().status == S::Serving as i32)
+}

@@ -66,7 +66,7 @@ fn main() -> Result<()> {
     );
     println!(
         "{:<22} {:>6} {:>8} {:>11} {:>13}",
-        "example", "frames", "cam (m)", "MPJPE (mm)", "bone err (mm)"
+        "example", "frames", "depth (m)", "MPJPE (mm)", "bone err (mm)"
     );
     for key in keys {
         let (name, stature) = CLIPS
@@ -87,11 +87,14 @@ fn main() -> Result<()> {
         let seq = &example.sequence;
         let gt = seq.gt_3d.as_deref().unwrap_or_default();
         let m = pose_metrics(&seq.pose_3d, gt)?;
-        let pelvis = world[0][0].map(f64::from);
-        let c = example.camera.center;
-        let dist = ((pelvis[0] - c[0]).powi(2) + (pelvis[1] - c[1]).powi(2)).sqrt();
+        // Mean camera-to-pelvis depth over the clip.
+        let dist = world
+            .iter()
+            .map(|p| example.camera.world_to_camera(p[0].map(f64::from))[2])
+            .sum::<f64>()
+            / world.len() as f64;
         println!(
-            "{:<22} {:>6} {:>8.2} {:>11.1} {:>13.1}",
+            "{:<22} {:>6} {:>9.2} {:>11.1} {:>13.1}",
             name,
             seq.len(),
             dist,

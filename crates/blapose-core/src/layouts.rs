@@ -41,21 +41,19 @@ use std::str::FromStr;
 use crate::pose::Keypoints2d;
 use crate::skeleton::{joint_index, JOINT_NAMES, NUM_JOINTS};
 
-/// `neck_nose = thorax + f * (head_top - thorax)` for SH16 (fitted by least
-/// squares on the training subjects' detections vs projected ground truth).
-pub const SH16_NECK_FRACTION: f32 = 0.5;
-/// `spine = pelvis + f * (thorax - pelvis)` for COCO-17 (fitted on projected
-/// ground truth of the training subjects).
-pub const COCO_SPINE_FRACTION: f32 = 0.5;
-/// `head = thorax + f * (nose - thorax)` for COCO-17 (fitted on projected
-/// ground truth of the training subjects, nose = Human3.6M neck_nose).
-pub const COCO_HEAD_FACTOR: f32 = 1.5;
-
-/// Median pixel distance per Human3.6M joint between converted SH16
-/// detections and projected ground truth (S9 + S11, all cameras), as
-/// `(joint name, median px)`. Filled from the measurement in `blapose-data`'s
-/// `layout_quality` test.
-pub const SH16_QUALITY: [(&str, f32); 0] = [];
+/// SH16: `neck_nose = thorax + f * (head_top - thorax)`.
+pub const SH16_NECK_FRACTION: f32 = 0.22;
+/// SH16: `spine = pelvis + f * (thorax - pelvis)` (the detector's own
+/// "spine" is a different point, see the module docs).
+pub const SH16_SPINE_FRACTION: f32 = 0.51;
+/// SH16: `head = thorax + f * (head_top - thorax)`.
+pub const SH16_HEAD_FRACTION: f32 = 0.48;
+/// COCO-17: `thorax = mid_shoulders + f * (nose - mid_shoulders)`.
+pub const COCO_THORAX_FRACTION: f32 = 0.37;
+/// COCO-17: `spine = pelvis + f * (thorax - pelvis)`.
+pub const COCO_SPINE_FRACTION: f32 = 0.49;
+/// COCO-17: `head = thorax + f * (nose - thorax)` (f > 1: beyond the nose).
+pub const COCO_HEAD_FACTOR: f32 = 1.525;
 
 /// Joint names of the SH16 layout, in its order.
 pub const SH16_JOINTS: [&str; 16] = [
@@ -234,7 +232,10 @@ fn sh16_to_h36m(points: &[[f32; 2]]) -> Keypoints2d {
             out[j] = points[s];
         }
     }
-    out[h("neck_nose")] = lerp(out[h("thorax")], out[h("head")], SH16_NECK_FRACTION);
+    let (pelvis, thorax, top) = (out[h("pelvis")], out[h("thorax")], out[h("head")]);
+    out[h("neck_nose")] = lerp(thorax, top, SH16_NECK_FRACTION);
+    out[h("spine")] = lerp(pelvis, thorax, SH16_SPINE_FRACTION);
+    out[h("head")] = lerp(thorax, top, SH16_HEAD_FRACTION);
     out
 }
 
@@ -247,7 +248,7 @@ fn coco17_to_h36m(points: &[[f32; 2]]) -> Keypoints2d {
     }
     let c = |n| by_name(&COCO17_JOINTS, points, n);
     let pelvis = lerp(c("r_hip"), c("l_hip"), 0.5);
-    let thorax = lerp(c("r_shoulder"), c("l_shoulder"), 0.5);
+    let thorax = lerp(lerp(c("r_shoulder"), c("l_shoulder"), 0.5), c("nose"), COCO_THORAX_FRACTION);
     out[h("pelvis")] = pelvis;
     out[h("thorax")] = thorax;
     out[h("spine")] = lerp(pelvis, thorax, COCO_SPINE_FRACTION);

@@ -10,9 +10,12 @@ pub mod adam;
 pub mod ansur;
 pub mod dataset;
 pub mod error;
+pub mod fastnet;
 pub mod lengths;
 pub mod loader;
 pub mod noise;
+pub mod plot;
 pub mod synth;
+pub mod train;
 
 pub use error::TrainError;

@@ -1,0 +1,589 @@
+//! `fps-table`: the paper's efficiency table (Table 4) measured on this machine.
+//!
+//! Protocol, as in the paper: online, batch 1, one output frame per step,
+//! no test-time flip, `--steps` steps per measurement (10,000 in the
+//! paper). A step is everything a real-time pipeline does for one new
+//! frame:
+//!
+//! * **lifter alone**: append the frame to the sliding window, run the
+//!   lifter on the window, read the pose back. Anatomy3D also advances its
+//!   own bone-length branch on the new frame (its lengths are a running
+//!   attention average over the stream, the online form of its video-level
+//!   prediction).
+//! * **with adjustment**: the above, plus BLAPose: one online GRU step on
+//!   the new frame ([`OnlineGruEngine`], batch 1), the running mean of the
+//!   per-frame length predictions (the reference's online use), and the
+//!   adjustment of the lifter's pose ([`adjust_pose_lenient`]: decompose
+//!   into directions, rebuild with the predicted lengths).
+//! * **bone-length models alone**: our GRU step (+ running mean), and
+//!   Anatomy3D's bone-length branch on the new frame.
+//!
+//! Weights are random (timing only; PyTorch-style initialization, so the
+//! arithmetic is the trained models'). Each row is measured `--runs` times,
+//! alternating "alone" and "with adjustment" so both see the same machine
+//! load, and the median is reported. The lifters' matrix products run on
+//! candle's CPU backend with its default thread count; the GRU engine uses
+//! `--gru-threads`.
+
+use std::hint::black_box;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use clap::{Parser, ValueEnum};
+use serde::Serialize;
+
+use blapose_core::bones::adjust_pose_lenient;
+use blapose_core::{BoneLengths, Keypoints2d, Pose, NUM_BONES, NUM_JOINTS};
+use blapose_lifters::{
+    poses_from_tensor, Anatomy3d, Anatomy3dConfig, Lifter, OnlineBoneLengths, PoseFormer, PoseFormerConfig,
+    SlidingWindow, VideoPose3d, VideoPose3dConfig,
+};
+use blapose_model::fast::{OnlineGruEngine, StepScratch};
+use blapose_model::{LoadedWeights, ModelKind, INPUT_DIM, OUTPUT_DIM, STATE_DIM};
+
+/// Reproduce the paper's FPS table (online, batch 1, one frame per step).
+#[derive(Parser, Debug)]
+#[command(name = "fps-table", version)]
+struct Args {
+    /// Timed steps per measurement (the paper uses 10,000).
+    #[arg(long, default_value_t = 10_000)]
+    steps: usize,
+    /// Measurements per row; the table reports their median.
+    #[arg(long, default_value_t = 3)]
+    runs: usize,
+    /// Untimed steps before each measurement (fills caches and the window).
+    #[arg(long, default_value_t = 100)]
+    warmup: usize,
+    /// Write the table as JSON here too.
+    #[arg(long)]
+    json: Option<PathBuf>,
+    /// Worker threads of the GRU engine (the lifters use candle's default).
+    #[arg(long, default_value_t = 1)]
+    gru_threads: usize,
+    /// Online GRU weights (safetensors); random weights when absent.
+    #[arg(long)]
+    gru_weights: Option<PathBuf>,
+    /// Use the centred (non-causal) VideoPose3D and Anatomy3D; same cost.
+    #[arg(long)]
+    centred: bool,
+    /// Only these rows (default: all).
+    #[arg(long, value_enum, value_delimiter = ',')]
+    only: Vec<RowKind>,
+    /// Seed of the random weights.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+}
+
+/// The rows of the paper's table.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum RowKind {
+    Videopose3d,
+    Anatomy3d,
+    Poseformer,
+    AnatomyBoneLength,
+    Gru,
+}
+
+impl RowKind {
+    const ALL: [RowKind; 5] =
+        [RowKind::Videopose3d, RowKind::Anatomy3d, RowKind::Poseformer, RowKind::AnatomyBoneLength, RowKind::Gru];
+
+    fn label(self) -> &'static str {
+        match self {
+            RowKind::Videopose3d => "VideoPose3D",
+            RowKind::Anatomy3d => "Chen et al. (Anatomy3D)",
+            RowKind::Poseformer => "PoseFormer",
+            RowKind::AnatomyBoneLength => "Chen et al. bone-length branch",
+            RowKind::Gru => "BLAPose GRU (ours)",
+        }
+    }
+
+    /// The paper's figures (GTX 3060 Ti): FPS alone, FPS with adjustment.
+    fn paper(self) -> (f64, Option<f64>) {
+        match self {
+            RowKind::Videopose3d => (958.0, Some(435.0)),
+            RowKind::Anatomy3d => (197.0, Some(154.0)),
+            RowKind::Poseformer => (379.0, Some(252.0)),
+            RowKind::AnatomyBoneLength => (715.0, None),
+            RowKind::Gru => (2097.0, None),
+        }
+    }
+}
+
+/// One row of the output.
+#[derive(Debug, Serialize)]
+struct Row {
+    model: String,
+    frames: Option<usize>,
+    params: usize,
+    fps: f64,
+    fps_with_adjustment: Option<f64>,
+    adjustment_overhead_pct: Option<f64>,
+    paper_fps: f64,
+    paper_fps_with_adjustment: Option<f64>,
+    paper_overhead_pct: Option<f64>,
+    mpjpe_mm: Option<f64>,
+    fps_runs: Vec<f64>,
+    fps_with_adjustment_runs: Vec<f64>,
+}
+
+/// The run's conditions, printed above the table and saved with it.
+#[derive(Debug, Serialize)]
+struct Conditions {
+    steps: usize,
+    runs: usize,
+    warmup: usize,
+    cpu: String,
+    logical_cpus: usize,
+    candle_threads: usize,
+    gru_threads: usize,
+    gru_isa: String,
+    gru_weights: String,
+    causal_lifters: bool,
+    load_average_before: String,
+    load_average_after: String,
+    /// Median time per frame of the adjustment alone (GRU step, running
+    /// mean, adjust_pose), microseconds.
+    adjustment_alone_us: f64,
+}
+
+#[derive(Debug, Serialize)]
+struct Report {
+    conditions: Conditions,
+    rows: Vec<Row>,
+}
+
+/// BLAPose's per-frame work: GRU step, running mean, adjustment.
+struct Adjuster<'a> {
+    engine: &'a OnlineGruEngine,
+    scratch: StepScratch,
+    hidden: Vec<f32>,
+    out: [f32; OUTPUT_DIM],
+    sum: [f64; NUM_BONES],
+    frames: u64,
+}
+
+impl<'a> Adjuster<'a> {
+    fn new(engine: &'a OnlineGruEngine) -> Self {
+        Self {
+            engine,
+            scratch: engine.scratch(1),
+            hidden: vec![0.0; STATE_DIM],
+            out: [0.0; OUTPUT_DIM],
+            sum: [0.0; NUM_BONES],
+            frames: 0,
+        }
+    }
+
+    /// One GRU step; returns the mean prediction over the stream so far.
+    fn lengths(&mut self, frame: &Keypoints2d) -> Result<BoneLengths> {
+        let input: &[f32] = frame.as_flattened();
+        debug_assert_eq!(input.len(), INPUT_DIM);
+        self.engine.step(input, &mut self.hidden, &mut self.out, &mut self.scratch)?;
+        for (s, o) in self.sum.iter_mut().zip(&self.out) {
+            *s += *o as f64;
+        }
+        self.frames += 1;
+        // Random weights can predict negative lengths; a length is >= 0.
+        Ok(std::array::from_fn(|b| (self.sum[b] / self.frames as f64).max(0.0) as f32))
+    }
+
+    fn adjust(&mut self, frame: &Keypoints2d, pose: &Pose) -> Result<Pose> {
+        let lengths = self.lengths(frame)?;
+        Ok(adjust_pose_lenient(pose, &lengths)?)
+    }
+}
+
+/// The models under test.
+struct Models {
+    videopose: Option<VideoPose3d>,
+    poseformer: Option<PoseFormer>,
+    anatomy: Option<Anatomy3d>,
+    gru: OnlineGruEngine,
+}
+
+/// One stream through a lifter (state that a server would keep per session).
+struct LifterStream<'a> {
+    lifter: &'a dyn Lifter,
+    anatomy: Option<&'a Anatomy3d>,
+    window: SlidingWindow,
+    lengths: OnlineBoneLengths,
+}
+
+impl<'a> LifterStream<'a> {
+    fn new(lifter: &'a dyn Lifter, anatomy: Option<&'a Anatomy3d>) -> Self {
+        Self { lifter, anatomy, window: SlidingWindow::new(lifter.receptive_field()), lengths: OnlineBoneLengths::new() }
+    }
+
+    fn step(&mut self, frame: &Keypoints2d) -> Result<Pose> {
+        self.window.push(*frame);
+        let window = self.window.tensor()?.context("window is empty after a push")?;
+        let out = match self.anatomy {
+            Some(a) => {
+                let frame_t = blapose_lifters::keypoints_tensor(std::slice::from_ref(frame))?;
+                let lengths = a.bone_length().step(&frame_t, &mut self.lengths)?;
+                let lengths = candle_core::Tensor::from_slice(&lengths, (1, NUM_BONES), &candle_core::Device::Cpu)?;
+                a.predict_frame_with(&window, None, &lengths)?
+            }
+            None => self.lifter.predict_frame(&window)?,
+        };
+        poses_from_tensor(&out)?.pop().context("lifter returned no pose")
+    }
+}
+
+/// A deterministic 2D stream: a standing figure in normalized screen
+/// coordinates, swaying and breathing a little.
+fn synthetic_stream(frames: usize) -> Vec<Keypoints2d> {
+    const BASE: [[f32; 2]; NUM_JOINTS] = [
+        [0.0, 0.0],
+        [-0.06, 0.0],
+        [-0.07, 0.22],
+        [-0.07, 0.44],
+        [0.06, 0.0],
+        [0.07, 0.22],
+        [0.07, 0.44],
+        [0.0, -0.12],
+        [0.0, -0.24],
+        [0.0, -0.29],
+        [0.0, -0.34],
+        [0.08, -0.23],
+        [0.12, -0.11],
+        [0.13, 0.0],
+        [-0.08, -0.23],
+        [-0.12, -0.11],
+        [-0.13, 0.0],
+    ];
+    (0..frames)
+        .map(|t| {
+            let phase = t as f32 * 0.05;
+            std::array::from_fn(|j| {
+                let s = 0.02 * (phase + j as f32 * 0.3).sin();
+                [BASE[j][0] + s + 0.05 * phase.sin(), BASE[j][1] + 0.5 * s]
+            })
+        })
+        .collect()
+}
+
+/// Frames per second of `steps` calls of `step` after `warmup` untimed ones.
+fn measure(
+    stream: &[Keypoints2d],
+    warmup: usize,
+    steps: usize,
+    mut step: impl FnMut(&Keypoints2d) -> Result<()>,
+) -> Result<f64> {
+    let mut frames = stream.iter().cycle();
+    for _ in 0..warmup {
+        step(frames.next().context("empty stream")?)?;
+    }
+    let start = Instant::now();
+    for _ in 0..steps {
+        step(frames.next().context("empty stream")?)?;
+    }
+    Ok(steps as f64 / start.elapsed().as_secs_f64())
+}
+
+fn median(values: &[f64]) -> f64 {
+    let mut v = values.to_vec();
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n == 0 {
+        f64::NAN
+    } else if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+fn overhead_pct(alone: f64, with: f64) -> f64 {
+    100.0 * (1.0 - with / alone)
+}
+
+fn load_average() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
+        .unwrap_or_else(|_| "unknown".into())
+}
+
+fn cpu_model() -> String {
+    std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|m| m.trim().to_string())
+        })
+        .unwrap_or_else(|| std::env::consts::ARCH.to_string())
+}
+
+/// Measure a lifter row: alone and with the adjustment, interleaved.
+fn lifter_row(
+    args: &Args,
+    kind: RowKind,
+    lifter: &dyn Lifter,
+    anatomy: Option<&Anatomy3d>,
+    gru: &OnlineGruEngine,
+    stream: &[Keypoints2d],
+) -> Result<Row> {
+    let (mut alone, mut with) = (Vec::new(), Vec::new());
+    for run in 0..args.runs {
+        let mut measure_alone = || -> Result<f64> {
+            let mut s = LifterStream::new(lifter, anatomy);
+            measure(stream, args.warmup, args.steps, |f| {
+                black_box(s.step(f)?);
+                Ok(())
+            })
+        };
+        let mut measure_with = || -> Result<f64> {
+            let mut s = LifterStream::new(lifter, anatomy);
+            let mut adj = Adjuster::new(gru);
+            measure(stream, args.warmup, args.steps, |f| {
+                let pose = s.step(f)?;
+                black_box(adj.adjust(f, &pose)?);
+                Ok(())
+            })
+        };
+        if run % 2 == 0 {
+            alone.push(measure_alone()?);
+            with.push(measure_with()?);
+        } else {
+            with.push(measure_with()?);
+            alone.push(measure_alone()?);
+        }
+        eprintln!("  {} run {}: {:.1} FPS alone, {:.1} with adjustment", kind.label(), run + 1, alone[run], with[run]);
+    }
+    let (fps, fps_with) = (median(&alone), median(&with));
+    let (paper, paper_with) = kind.paper();
+    Ok(Row {
+        model: kind.label().into(),
+        frames: Some(lifter.receptive_field()),
+        params: lifter.params(),
+        fps,
+        fps_with_adjustment: Some(fps_with),
+        adjustment_overhead_pct: Some(overhead_pct(fps, fps_with)),
+        paper_fps: paper,
+        paper_fps_with_adjustment: paper_with,
+        paper_overhead_pct: paper_with.map(|w| overhead_pct(paper, w)),
+        mpjpe_mm: None,
+        fps_runs: alone,
+        fps_with_adjustment_runs: with,
+    })
+}
+
+/// Measure a row that has no adjusted variant.
+fn single_row(
+    args: &Args,
+    kind: RowKind,
+    params: usize,
+    mut make_step: impl FnMut() -> Box<dyn FnMut(&Keypoints2d) -> Result<()> + '_>,
+    stream: &[Keypoints2d],
+) -> Result<Row> {
+    let mut runs = Vec::new();
+    for run in 0..args.runs {
+        let step = make_step();
+        runs.push(measure(stream, args.warmup, args.steps, step)?);
+        eprintln!("  {} run {}: {:.1} FPS", kind.label(), run + 1, runs[run]);
+    }
+    Ok(Row {
+        model: kind.label().into(),
+        frames: None,
+        params,
+        fps: median(&runs),
+        fps_with_adjustment: None,
+        adjustment_overhead_pct: None,
+        paper_fps: kind.paper().0,
+        paper_fps_with_adjustment: None,
+        paper_overhead_pct: None,
+        mpjpe_mm: None,
+        fps_runs: runs,
+        fps_with_adjustment_runs: Vec::new(),
+    })
+}
+
+fn build_models(args: &Args, rows: &[RowKind]) -> Result<Models> {
+    let causal = !args.centred;
+    let weights = match &args.gru_weights {
+        Some(path) => blapose_model::weights::load(path, ModelKind::Gru)
+            .with_context(|| format!("loading GRU weights {}", path.display()))?,
+        None => LoadedWeights::random(ModelKind::Gru, args.seed)?,
+    };
+    let want = |k: RowKind| rows.contains(&k);
+    Ok(Models {
+        videopose: want(RowKind::Videopose3d)
+            .then(|| VideoPose3d::random(VideoPose3dConfig::receptive_field_243().with_causal(causal), args.seed))
+            .transpose()?,
+        poseformer: want(RowKind::Poseformer)
+            .then(|| PoseFormer::random(PoseFormerConfig::frames_81(), args.seed))
+            .transpose()?,
+        anatomy: (want(RowKind::Anatomy3d) || want(RowKind::AnatomyBoneLength))
+            .then(|| Anatomy3d::random(Anatomy3dConfig::receptive_field_243().with_causal(causal), args.seed))
+            .transpose()?,
+        gru: OnlineGruEngine::new(&weights, args.gru_threads)?,
+    })
+}
+
+/// Median per-frame time of the adjustment alone, in microseconds.
+fn adjustment_alone_us(args: &Args, models: &Models, stream: &[Keypoints2d]) -> Result<f64> {
+    let pose: Pose = std::array::from_fn(|j| {
+        let [x, y] = stream[0][j];
+        [x, y, 0.1 * j as f32]
+    });
+    let mut runs = Vec::new();
+    for _ in 0..args.runs {
+        let mut adj = Adjuster::new(&models.gru);
+        runs.push(measure(stream, args.warmup, args.steps, |f| {
+            black_box(adj.adjust(f, &pose)?);
+            Ok(())
+        })?);
+    }
+    Ok(1e6 / median(&runs))
+}
+
+fn markdown(report: &Report) -> String {
+    let c = &report.conditions;
+    let mut s = String::new();
+    s.push_str("## FPS: online, batch 1, one output frame per step, no test-time flip\n\n");
+    if c.steps < 10_000 {
+        s.push_str(&format!(
+            "- **{} steps per measurement — fewer than the paper's 10,000 (quick run)**\n",
+            c.steps
+        ));
+    } else {
+        s.push_str(&format!("- {} steps per measurement (the paper: 10,000)\n", c.steps));
+    }
+    s.push_str(&format!("- median of {} runs, {} warm-up steps each; random weights\n", c.runs, c.warmup));
+    s.push_str(&format!(
+        "- lifters: {} variants; adjustment = online GRU step + running mean + adjust_pose\n",
+        if c.causal_lifters { "causal (VideoPose3D, Anatomy3D)" } else { "centred" }
+    ));
+    s.push_str(&format!("- CPU: {} ({} logical CPUs)\n", c.cpu, c.logical_cpus));
+    s.push_str(&format!(
+        "- threads: candle (lifters) {}, GRU engine {} ({}); GRU weights: {}\n",
+        c.candle_threads, c.gru_threads, c.gru_isa, c.gru_weights
+    ));
+    s.push_str(&format!("- load average before: {}; after: {}\n", c.load_average_before, c.load_average_after));
+    s.push_str(&format!("- adjustment alone: {:.1} µs per frame\n\n", c.adjustment_alone_us));
+    s.push_str("| model | frames | params | FPS | FPS with adjustment | adjustment overhead | paper FPS | paper with adjustment | paper overhead | MPJPE (mm) |\n");
+    s.push_str("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
+    let opt = |v: Option<f64>, f: &dyn Fn(f64) -> String| v.map(f).unwrap_or_else(|| "-".into());
+    for r in &report.rows {
+        s.push_str(&format!(
+            "| {} | {} | {} | {:.1} | {} | {} | {:.0} | {} | {} | {} |\n",
+            r.model,
+            r.frames.map(|f| f.to_string()).unwrap_or_else(|| "-".into()),
+            thousands(r.params),
+            r.fps,
+            opt(r.fps_with_adjustment, &|v| format!("{v:.1}")),
+            opt(r.adjustment_overhead_pct, &|v| format!("{v:.1} %")),
+            r.paper_fps,
+            opt(r.paper_fps_with_adjustment, &|v| format!("{v:.0}")),
+            opt(r.paper_overhead_pct, &|v| format!("{v:.1} %")),
+            r.mpjpe_mm.map(|v| format!("{v:.1}")).unwrap_or_else(|| "—".into()),
+        ));
+    }
+    s
+}
+
+fn thousands(n: usize) -> String {
+    let digits = n.to_string();
+    let mut out = String::new();
+    for (i, ch) in digits.chars().enumerate() {
+        if i > 0 && (digits.len() - i) % 3 == 0 {
+            out.push(',');
+        }
+        out.push(ch);
+    }
+    out
+}
+
+fn main() -> Result<()> {
+    let args = Args::parse();
+    if args.steps == 0 || args.runs == 0 {
+        bail!("--steps and --runs must be at least 1");
+    }
+    let rows: Vec<RowKind> = if args.only.is_empty() { RowKind::ALL.to_vec() } else { args.only.clone() };
+    let load_before = load_average();
+    eprintln!("building models (random weights)...");
+    let models = build_models(&args, &rows)?;
+    let stream = synthetic_stream(600);
+    let mut out = Vec::new();
+    for &kind in &rows {
+        let row = match kind {
+            RowKind::Videopose3d => {
+                let m = models.videopose.as_ref().context("VideoPose3D not built")?;
+                lifter_row(&args, kind, m, None, &models.gru, &stream)?
+            }
+            RowKind::Poseformer => {
+                let m = models.poseformer.as_ref().context("PoseFormer not built")?;
+                lifter_row(&args, kind, m, None, &models.gru, &stream)?
+            }
+            RowKind::Anatomy3d => {
+                let m = models.anatomy.as_ref().context("Anatomy3D not built")?;
+                lifter_row(&args, kind, m, Some(m), &models.gru, &stream)?
+            }
+            RowKind::AnatomyBoneLength => {
+                let branch = models.anatomy.as_ref().context("Anatomy3D not built")?.bone_length();
+                single_row(
+                    &args,
+                    kind,
+                    branch.params(),
+                    || {
+                        let mut state = OnlineBoneLengths::new();
+                        Box::new(move |f: &Keypoints2d| {
+                            let t = blapose_lifters::keypoints_tensor(std::slice::from_ref(f))?;
+                            black_box(branch.step(&t, &mut state)?);
+                            Ok(())
+                        })
+                    },
+                    &stream,
+                )?
+            }
+            RowKind::Gru => single_row(
+                &args,
+                kind,
+                blapose_model::PARAMS,
+                || {
+                    let mut adj = Adjuster::new(&models.gru);
+                    Box::new(move |f: &Keypoints2d| {
+                        black_box(adj.lengths(f)?);
+                        Ok(())
+                    })
+                },
+                &stream,
+            )?,
+        };
+        out.push(row);
+    }
+    let adjustment_us = adjustment_alone_us(&args, &models, &stream)?;
+    let report = Report {
+        conditions: Conditions {
+            steps: args.steps,
+            runs: args.runs,
+            warmup: args.warmup,
+            cpu: cpu_model(),
+            logical_cpus: std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
+            candle_threads: candle_core::utils::get_num_threads(),
+            gru_threads: models.gru.threads(),
+            gru_isa: format!("{:?}", models.gru.isa()),
+            gru_weights: args
+                .gru_weights
+                .as_ref()
+                .map(|p| p.display().to_string())
+                .unwrap_or_else(|| format!("random (seed {})", args.seed)),
+            causal_lifters: !args.centred,
+            load_average_before: load_before,
+            load_average_after: load_average(),
+            adjustment_alone_us: adjustment_us,
+        },
+        rows: out,
+    };
+    println!("{}", markdown(&report));
+    if let Some(path) = &args.json {
+        let json = serde_json::to_string_pretty(&report)?;
+        std::fs::write(path, json).with_context(|| format!("writing {}", path.display()))?;
+        eprintln!("wrote {}", path.display());
+    }
+    Ok(())
+}

@@ -1,0 +1,106 @@
+//! The fused GRU panel kernel: one pass over a panel's weights produces the
+//! r, z and n pre-activations of 16 hidden units for a tile of batch rows,
+//! and the epilogue turns them into new states (and, optionally, their
+//! contribution to the 16 outputs) while they are still in registers.
+//!
+//! Every weight loaded from memory is multiplied into all rows of the tile,
+//! so at batch sizes above one the weights are re-read `rows / tile` times
+//! from L2 instead of once per row. The kernels exist in three versions
+//! (scalar, AVX2, AVX-512) with identical layout and arithmetic order per
+//! lane; `tile` dispatches on the [`Isa`] chosen at engine construction.
+
+pub(crate) mod scalar;
+
+#[cfg(target_arch = "x86_64")]
+pub(crate) mod avx2;
+#[cfg(target_arch = "x86_64")]
+pub(crate) mod avx512;
+
+use super::Isa;
+
+/// Raw operands of one kernel call. Row `b` of an operand starts at
+/// `ptr + b * stride`.
+///
+/// Contract (checked by the callers, relied on by the kernels): `w` points
+/// to a full panel of `(k_in + 512) * 48` floats; `bias` to 64 floats;
+/// `x_in` rows hold `k_in` floats; `h` rows hold 512 floats (the previous
+/// state of this GRU direction) and the panel's units start at `unit0`;
+/// `pre` is null or its rows hold 48 floats `[r|z|n]`; `out` rows have room
+/// for 16 floats; `fc` is null or holds 256 floats `[unit][output]`, in
+/// which case `y` rows hold 16 floats that are accumulated into. `out` and
+/// `y` must not overlap any input.
+#[derive(Clone, Copy)]
+pub(crate) struct TileArgs {
+    pub w: *const f32,
+    pub k_in: usize,
+    pub bias: *const f32,
+    pub x_in: *const f32,
+    pub x_stride: usize,
+    pub h: *const f32,
+    pub h_stride: usize,
+    pub unit0: usize,
+    pub pre: *const f32,
+    pub pre_stride: usize,
+    pub out: *mut f32,
+    pub out_stride: usize,
+    pub fc: *const f32,
+    pub y: *mut f32,
+    pub y_stride: usize,
+}
+
+impl TileArgs {
+    /// The same operands advanced by `rows` batch rows.
+    #[inline]
+    pub(crate) fn offset_rows(&self, rows: usize) -> TileArgs {
+        // wrapping_add: pointers may be null (unused operands).
+        TileArgs {
+            x_in: self.x_in.wrapping_add(rows * self.x_stride),
+            h: self.h.wrapping_add(rows * self.h_stride),
+            pre: if self.pre.is_null() {
+                self.pre
+            } else {
+                self.pre.wrapping_add(rows * self.pre_stride)
+            },
+            out: self.out.wrapping_add(rows * self.out_stride),
+            y: if self.fc.is_null() {
+                self.y
+            } else {
+                self.y.wrapping_add(rows * self.y_stride)
+            },
+            ..*self
+        }
+    }
+}
+
+/// Largest tile (rows per weight pass) of each instruction set.
+pub(crate) fn max_tile(isa: Isa) -> usize {
+    match isa {
+        Isa::Scalar => 4,
+        Isa::Avx2 => 2,
+        Isa::Avx512 => 8,
+    }
+}
+
+/// Run the kernel for `rows` batch rows (any count; split into tiles).
+///
+/// # Safety
+/// `a` must satisfy the [`TileArgs`] contract for `rows` rows, and `isa`
+/// must be available on this CPU.
+pub(crate) unsafe fn run(isa: Isa, rows: usize, a: &TileArgs) {
+    let tile = max_tile(isa);
+    let mut done = 0;
+    while done < rows {
+        let n = tile.min(rows - done);
+        let args = a.offset_rows(done);
+        match isa {
+            Isa::Scalar => scalar::tile(n, &args),
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => avx2::tile(n, &args),
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => avx512::tile(n, &args),
+            #[cfg(not(target_arch = "x86_64"))]
+            _ => scalar::tile(n, &args),
+        }
+        done += n;
+    }
+}

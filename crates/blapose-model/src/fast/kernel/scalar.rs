@@ -1,0 +1,73 @@
+//! Portable version of the panel kernel: plain loops, libm non-linearities.
+//! It is the oracle the SIMD versions are tested against and the path on
+//! CPUs without AVX2.
+
+use super::TileArgs;
+use crate::fast::math::scalar::{sigmoid, tanh};
+use crate::fast::pack::{LANES, ROW};
+use crate::{HIDDEN, OUTPUT_DIM};
+
+const MAX_ROWS: usize = 4;
+
+/// Kernel for `rows <= 4` rows.
+///
+/// # Safety
+/// See the [`TileArgs`] contract.
+pub(crate) unsafe fn tile(rows: usize, a: &TileArgs) {
+    assert!(rows <= MAX_ROWS);
+    let mut acc = [[[0.0f32; LANES]; 3]; MAX_ROWS];
+    let mut ni = [[0.0f32; LANES]; MAX_ROWS];
+    // input part, then recurrent part
+    for (phase, (x, stride, len, w0)) in [
+        (a.x_in, a.x_stride, a.k_in, a.w),
+        (a.h, a.h_stride, HIDDEN, a.w.add(a.k_in * ROW)),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        for k in 0..len {
+            let w = std::slice::from_raw_parts(w0.add(k * ROW), ROW);
+            for (b, acc_b) in acc.iter_mut().enumerate().take(rows) {
+                let xv = *x.add(b * stride + k);
+                for (g, acc_g) in acc_b.iter_mut().enumerate() {
+                    for (l, v) in acc_g.iter_mut().enumerate() {
+                        *v += w[g * LANES + l] * xv;
+                    }
+                }
+            }
+        }
+        if phase == 0 {
+            for b in 0..rows {
+                ni[b] = acc[b][2];
+                acc[b][2] = [0.0; LANES];
+            }
+        }
+    }
+    let bias = std::slice::from_raw_parts(a.bias, 4 * LANES);
+    for b in 0..rows {
+        let pre = (!a.pre.is_null())
+            .then(|| std::slice::from_raw_parts(a.pre.add(b * a.pre_stride), ROW));
+        let h_old = std::slice::from_raw_parts(a.h.add(b * a.h_stride + a.unit0), LANES);
+        let out = std::slice::from_raw_parts_mut(a.out.add(b * a.out_stride), LANES);
+        let mut hnew = [0.0f32; LANES];
+        for l in 0..LANES {
+            let p = |g: usize| pre.map_or(0.0, |p| p[g * LANES + l]);
+            let r = sigmoid(acc[b][0][l] + bias[l] + p(0));
+            let z = sigmoid(acc[b][1][l] + bias[LANES + l] + p(1));
+            let n = tanh(ni[b][l] + bias[2 * LANES + l] + p(2)
+                + r * (acc[b][2][l] + bias[3 * LANES + l]));
+            hnew[l] = n + z * (h_old[l] - n);
+        }
+        out.copy_from_slice(&hnew);
+        if !a.fc.is_null() {
+            let fc = std::slice::from_raw_parts(a.fc, LANES * OUTPUT_DIM);
+            let y = std::slice::from_raw_parts_mut(a.y.add(b * a.y_stride), OUTPUT_DIM);
+            for (u, &hv) in hnew.iter().enumerate() {
+                let s = sigmoid(hv);
+                for (o, yo) in y.iter_mut().enumerate() {
+                    *yo += fc[u * OUTPUT_DIM + o] * s;
+                }
+            }
+        }
+    }
+}

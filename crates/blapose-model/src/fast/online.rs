@@ -1,0 +1,320 @@
+//! One online GRU step for a batch of independent sessions — the serving
+//! hot path.
+//!
+//! A call takes one frame per session (`B x 34`), the sessions' states
+//! (`B x 2 x 512`, GRU `gru.0` then `gru.1`) and writes the new states in
+//! place plus each session's 16 (pair-averaged) bone lengths predicted from
+//! its new state. Per call:
+//!
+//! 1. every input value is checked to be finite — a NaN is refused before
+//!    any state is touched (the whole call is refused, naming the row);
+//! 2. the frames are embedded (`relu(W x + b)`);
+//! 3. the 64 panels (2 GRUs x 32) are split into contiguous ranges, one per
+//!    thread; each thread streams its panels once, applying each to all
+//!    rows tile by tile ([`super::kernel`]), writing new states into scratch
+//!    and accumulating its share of the outputs;
+//! 4. the per-thread output shares are summed, the new states are checked
+//!    for non-finite values (absurd inputs can overflow), and only then are
+//!    they copied over the caller's states.
+//!
+//! At batch 1 the step is bound by streaming the 9.4 MB of f32 weights from
+//! L3, so the panel order alternates between calls: the panels used last
+//! in one call are used first in the next, while they are still in L2.
+//! All buffers live in a reusable [`StepScratch`]; a step allocates nothing
+//! once the scratch has seen the largest batch.
+
+use std::ops::Range;
+
+use super::kernel::{self, TileArgs};
+use super::pack::{AlignedBuf, PackedEmbed, PackedGru, PackedHead, LANES, PANELS};
+use super::{build_pool, check_finite, Isa};
+use crate::names::{GruNames, EMBED_BIAS, EMBED_WEIGHT, FC_WEIGHT};
+use crate::{
+    LoadedWeights, ModelError, ModelKind, EMBED_DIM, HIDDEN, INPUT_DIM, OUTPUT_DIM, STATE_DIM,
+};
+
+/// Work items: (GRU, panel) pairs.
+const ITEMS: usize = 2 * PANELS;
+
+/// The fast online (two-GRU) model.
+pub struct OnlineGruEngine {
+    isa: Isa,
+    threads: usize,
+    pool: Option<rayon::ThreadPool>,
+    embed: PackedEmbed,
+    grus: [PackedGru; 2],
+    head: PackedHead,
+}
+
+impl std::fmt::Debug for OnlineGruEngine {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("OnlineGruEngine")
+            .field("isa", &self.isa)
+            .field("threads", &self.threads)
+            .finish_non_exhaustive()
+    }
+}
+
+/// Reusable buffers for [`OnlineGruEngine::step`].
+#[derive(Clone)]
+pub struct StepScratch {
+    batch: usize,
+    threads: usize,
+    embedded: Vec<f32>,
+    new_state: AlignedBuf,
+    partial_out: Vec<f32>,
+    reverse: bool,
+}
+
+impl StepScratch {
+    /// Buffers for batches up to `max_batch` on an engine with `threads` threads.
+    pub fn new(max_batch: usize, threads: usize) -> Self {
+        let batch = max_batch.max(1);
+        let threads = threads.max(1);
+        Self {
+            batch,
+            threads,
+            embedded: vec![0.0; batch * EMBED_DIM],
+            new_state: AlignedBuf::zeros(ITEMS * batch * LANES),
+            partial_out: vec![0.0; threads * batch * OUTPUT_DIM],
+            reverse: false,
+        }
+    }
+
+    /// Largest batch these buffers hold without reallocating.
+    pub fn capacity(&self) -> usize {
+        self.batch
+    }
+
+    fn ensure(&mut self, batch: usize, threads: usize) {
+        if batch > self.batch || threads > self.threads {
+            let reverse = self.reverse;
+            *self = StepScratch::new(batch.max(self.batch), threads.max(self.threads));
+            self.reverse = reverse;
+        }
+    }
+}
+
+/// Read-only operands shared by the worker threads of one step.
+struct StepCtx<'a> {
+    batch: usize,
+    embedded: &'a [f32],
+    hidden: &'a [f32],
+    reverse: bool,
+}
+
+impl OnlineGruEngine {
+    /// Build from online (`gru`) weights with `threads` worker threads,
+    /// using the best instruction set of this CPU.
+    pub fn new(weights: &LoadedWeights, threads: usize) -> Result<Self, ModelError> {
+        Self::with_isa(weights, threads, Isa::detect())
+    }
+
+    /// As [`Self::new`] with an explicit instruction set (tests, benchmarks).
+    pub fn with_isa(weights: &LoadedWeights, threads: usize, isa: Isa) -> Result<Self, ModelError> {
+        if weights.kind() != ModelKind::Gru {
+            return Err(ModelError::WrongKind {
+                expected: ModelKind::Gru,
+                found: weights.kind(),
+            });
+        }
+        let isa = isa.require()?;
+        let pack = |n: &GruNames| -> Result<PackedGru, ModelError> {
+            Ok(PackedGru::new(
+                &weights.values(&n.weight_ih)?,
+                &weights.values(&n.weight_hh)?,
+                &weights.values(&n.bias_ih)?,
+                &weights.values(&n.bias_hh)?,
+                true,
+            ))
+        };
+        let [na, nb] = GruNames::for_kind(ModelKind::Gru);
+        Ok(Self {
+            isa,
+            threads: threads.max(1),
+            pool: build_pool(threads, "blapose-online")?,
+            embed: PackedEmbed::new(&weights.values(EMBED_WEIGHT)?, &weights.values(EMBED_BIAS)?),
+            grus: [pack(&na)?, pack(&nb)?],
+            head: PackedHead::new(&weights.values(FC_WEIGHT)?),
+        })
+    }
+
+    /// The instruction set in use.
+    pub fn isa(&self) -> Isa {
+        self.isa
+    }
+
+    /// Worker threads per step.
+    pub fn threads(&self) -> usize {
+        self.threads
+    }
+
+    /// Scratch sized for batches up to `max_batch` on this engine.
+    pub fn scratch(&self, max_batch: usize) -> StepScratch {
+        StepScratch::new(max_batch, self.threads)
+    }
+
+    /// Advance `B = inputs.len() / 34` sessions by one frame.
+    ///
+    /// `inputs`: `B x 34` normalized keypoints; `hidden`: `B x 1024` states
+    /// (`gru.0` then `gru.1`), updated in place; `out`: `B x 16` bone
+    /// lengths predicted from the new states. On error nothing in `hidden`
+    /// or `out` is changed.
+    pub fn step(
+        &self,
+        inputs: &[f32],
+        hidden: &mut [f32],
+        out: &mut [f32],
+        scratch: &mut StepScratch,
+    ) -> Result<(), ModelError> {
+        let batch = inputs.len() / INPUT_DIM;
+        if batch == 0 || inputs.len() % INPUT_DIM != 0 {
+            return Err(ModelError::BadLength {
+                what: "inputs (B x 34)",
+                expected: batch.max(1) * INPUT_DIM,
+                found: inputs.len(),
+            });
+        }
+        for (what, len, want) in [
+            ("hidden (B x 1024)", hidden.len(), batch * STATE_DIM),
+            ("out (B x 16)", out.len(), batch * OUTPUT_DIM),
+        ] {
+            if len != want {
+                return Err(ModelError::BadLength {
+                    what,
+                    expected: want,
+                    found: len,
+                });
+            }
+        }
+        check_finite(inputs, INPUT_DIM)?;
+        scratch.ensure(batch, self.threads);
+        scratch.reverse = !scratch.reverse;
+
+        let embedded = &mut scratch.embedded[..batch * EMBED_DIM];
+        for (x, e) in inputs
+            .chunks_exact(INPUT_DIM)
+            .zip(embedded.chunks_exact_mut(EMBED_DIM))
+        {
+            self.embed.apply_fast(self.isa, x, e);
+        }
+
+        let ctx = StepCtx {
+            batch,
+            embedded: &scratch.embedded[..batch * EMBED_DIM],
+            hidden,
+            reverse: scratch.reverse,
+        };
+        let new_state = &mut scratch.new_state.as_mut_slice()[..ITEMS * batch * LANES];
+        let partial = &mut scratch.partial_out[..self.threads * batch * OUTPUT_DIM];
+        match &self.pool {
+            Some(pool) => pool.install(|| {
+                self.run_items(0..ITEMS, new_state, partial, self.threads, &ctx)
+            }),
+            None => self.run_items(0..ITEMS, new_state, partial, 1, &ctx),
+        }
+
+        // Commit only if every new state and output is finite.
+        let new_state = &scratch.new_state.as_slice()[..ITEMS * batch * LANES];
+        let partial = &scratch.partial_out[..self.threads * batch * OUTPUT_DIM];
+        for b in 0..batch {
+            let y_ok = (0..self.threads).all(|t| {
+                let start = (t * batch + b) * OUTPUT_DIM;
+                partial[start..start + OUTPUT_DIM].iter().all(|v| v.is_finite())
+            });
+            let h_ok = (0..ITEMS).all(|i| {
+                let start = (i * batch + b) * LANES;
+                new_state[start..start + LANES].iter().all(|v| v.is_finite())
+            });
+            if !(y_ok && h_ok) {
+                return Err(ModelError::NonFiniteState { row: b });
+            }
+        }
+        for (b, y) in out.chunks_exact_mut(OUTPUT_DIM).enumerate() {
+            y.copy_from_slice(&partial[b * OUTPUT_DIM..(b + 1) * OUTPUT_DIM]);
+            for t in 1..self.threads {
+                let start = (t * batch + b) * OUTPUT_DIM;
+                for (yo, p) in y.iter_mut().zip(&partial[start..start + OUTPUT_DIM]) {
+                    *yo += p;
+                }
+            }
+        }
+        for (i, chunk) in new_state.chunks_exact(batch * LANES).enumerate() {
+            let (g, p) = (i / PANELS, i % PANELS);
+            let col = g * HIDDEN + p * LANES;
+            for (b, units) in chunk.chunks_exact(LANES).enumerate() {
+                hidden[b * STATE_DIM + col..b * STATE_DIM + col + LANES].copy_from_slice(units);
+            }
+        }
+        Ok(())
+    }
+
+    /// Process `items` with `threads` threads: split in two and recurse
+    /// with `rayon::join` (no allocation), one range per thread at the leaves.
+    fn run_items(
+        &self,
+        items: Range<usize>,
+        new_state: &mut [f32],
+        partial: &mut [f32],
+        threads: usize,
+        ctx: &StepCtx,
+    ) {
+        if threads <= 1 {
+            self.work(items, new_state, partial, ctx);
+            return;
+        }
+        let left = threads / 2;
+        let mid = items.start + items.len() * left / threads;
+        let (s_l, s_r) = new_state.split_at_mut((mid - items.start) * ctx.batch * LANES);
+        let (p_l, p_r) = partial.split_at_mut(left * ctx.batch * OUTPUT_DIM);
+        rayon::join(
+            || self.run_items(items.start..mid, s_l, p_l, left, ctx),
+            || self.run_items(mid..items.end, s_r, p_r, threads - left, ctx),
+        );
+    }
+
+    /// One thread's share: panels `items`, all rows.
+    fn work(&self, items: Range<usize>, new_state: &mut [f32], partial: &mut [f32], ctx: &StepCtx) {
+        let batch = ctx.batch;
+        let y = &mut partial[..batch * OUTPUT_DIM];
+        y.fill(0.0);
+        assert_eq!(new_state.len(), items.len() * batch * LANES);
+        assert!(ctx.embedded.len() >= batch * EMBED_DIM);
+        assert_eq!(ctx.hidden.len(), batch * STATE_DIM);
+        let first = items.start;
+        let mut run_item = |i: usize| {
+            let (g, p) = (i / PANELS, i % PANELS);
+            let gru = &self.grus[g];
+            let out = &mut new_state[(i - first) * batch * LANES..(i - first + 1) * batch * LANES];
+            let args = TileArgs {
+                w: gru.panel(p).as_ptr(),
+                k_in: gru.k_in,
+                bias: gru.bias(p).as_ptr(),
+                x_in: ctx.embedded.as_ptr(),
+                x_stride: EMBED_DIM,
+                h: ctx.hidden[g * HIDDEN..].as_ptr(),
+                h_stride: STATE_DIM,
+                unit0: p * LANES,
+                pre: std::ptr::null(),
+                pre_stride: 0,
+                out: out.as_mut_ptr(),
+                out_stride: LANES,
+                fc: self.head.panel(g, p).as_ptr(),
+                y: y.as_mut_ptr(),
+                y_stride: OUTPUT_DIM,
+            };
+            // SAFETY: the asserts above and the slice bounds give every row
+            // its operands: `embedded` has `batch` rows of 256, `hidden`
+            // `batch` rows of 1024 (this GRU's 512 start at g * 512), `out`
+            // `batch` rows of 16, `y` `batch` rows of 16; panels, biases and
+            // output weights come from the packers with their full sizes and
+            // 64-byte alignment; `self.isa` was checked at construction.
+            unsafe { kernel::run(self.isa, batch, &args) };
+        };
+        if ctx.reverse {
+            items.rev().for_each(&mut run_item);
+        } else {
+            items.for_each(&mut run_item);
+        }
+    }
+}

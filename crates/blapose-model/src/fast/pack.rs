@@ -1,0 +1,250 @@
+//! Weights rearranged for the fast kernels.
+//!
+//! PyTorch stores a GRU as three gate blocks of rows (r | z | n), so one
+//! hidden unit's three gate rows are 512 rows apart and a kernel that wants
+//! all three gates of a unit at once would stream three distant places. Here
+//! each GRU is cut into *panels* of [`LANES`] = 16 hidden units (one
+//! AVX-512 register, two AVX2 registers); a panel stores, for every input
+//! index `k`, the 16 r-weights, 16 z-weights and 16 n-weights of its units
+//! next to each other (`[k][gate][lane]`, 192 contiguous bytes per `k`).
+//! One sequential pass over a panel therefore yields all three gate
+//! pre-activations of 16 units, ready for the fused epilogue. The input part
+//! (`k < 256`, `W_ih`) precedes the recurrent part (`W_hh`) inside the panel
+//! so the online step streams each panel exactly once. Buffers are 64-byte
+//! aligned so every 16-float row is one cache line.
+//!
+//! The biases are pre-combined per panel (`b_ir + b_hr`, `b_iz + b_hz`,
+//! `b_in`, `b_hn`) and the output layer has the symmetric-pair averaging
+//! folded in (`S · W_fc`), cut per panel as `[unit][output]` so a panel's
+//! new states can update the 16 outputs while still in registers.
+
+use super::Isa;
+use crate::symmetry::averaging_matrix;
+use crate::{EMBED_DIM, FEATURES, GATES, HIDDEN, INPUT_DIM, OUTPUT_DIM};
+
+/// Hidden units per panel.
+pub(crate) const LANES: usize = 16;
+/// Panels per GRU direction.
+pub(crate) const PANELS: usize = HIDDEN / LANES;
+/// Floats per `k` inside a panel (three gates x 16 lanes).
+pub(crate) const ROW: usize = 3 * LANES;
+/// Floats of combined biases per panel.
+pub(crate) const PANEL_BIAS: usize = 4 * LANES;
+/// Floats of output weights per panel (`[unit][output]`).
+pub(crate) const PANEL_FC: usize = LANES * OUTPUT_DIM;
+
+#[derive(Clone, Copy)]
+#[repr(C, align(64))]
+struct Line([f32; 16]);
+
+/// A zero-initialized, 64-byte aligned f32 buffer.
+#[derive(Clone)]
+pub(crate) struct AlignedBuf {
+    lines: Vec<Line>,
+    len: usize,
+}
+
+impl AlignedBuf {
+    pub(crate) fn zeros(len: usize) -> Self {
+        Self {
+            lines: vec![Line([0.0; 16]); len.div_ceil(16)],
+            len,
+        }
+    }
+
+    pub(crate) fn as_slice(&self) -> &[f32] {
+        // SAFETY: `Line` is `repr(C)` over `[f32; 16]`, so the lines are a
+        // contiguous run of `16 * lines.len() >= len` initialized floats.
+        unsafe { std::slice::from_raw_parts(self.lines.as_ptr().cast::<f32>(), self.len) }
+    }
+
+    pub(crate) fn as_mut_slice(&mut self) -> &mut [f32] {
+        // SAFETY: as in `as_slice`, and `&mut self` guarantees exclusivity.
+        unsafe { std::slice::from_raw_parts_mut(self.lines.as_mut_ptr().cast::<f32>(), self.len) }
+    }
+}
+
+/// One GRU direction in panel layout.
+#[derive(Clone)]
+pub(crate) struct PackedGru {
+    /// Input width inside each panel: 256 (online) or 0 (input part
+    /// precomputed by the caller, offline).
+    pub k_in: usize,
+    w: AlignedBuf,
+    bias: AlignedBuf,
+}
+
+impl PackedGru {
+    /// Floats per panel.
+    pub(crate) fn panel_len(&self) -> usize {
+        (self.k_in + HIDDEN) * ROW
+    }
+
+    /// Pack a PyTorch GRU direction. With `with_input` the panels contain
+    /// `W_ih` and the biases are `[b_ir+b_hr, b_iz+b_hz, b_in, b_hn]`;
+    /// without, only `W_hh` and `[b_hr, b_hz, 0, b_hn]` (the caller adds
+    /// `W_ih x + b_ih` itself).
+    pub(crate) fn new(
+        w_ih: &[f32],
+        w_hh: &[f32],
+        b_ih: &[f32],
+        b_hh: &[f32],
+        with_input: bool,
+    ) -> Self {
+        assert_eq!(w_ih.len(), GATES * EMBED_DIM);
+        assert_eq!(w_hh.len(), GATES * HIDDEN);
+        assert_eq!(b_ih.len(), GATES);
+        assert_eq!(b_hh.len(), GATES);
+        let k_in = if with_input { EMBED_DIM } else { 0 };
+        let panel_len = (k_in + HIDDEN) * ROW;
+        let mut w = AlignedBuf::zeros(PANELS * panel_len);
+        let mut bias = AlignedBuf::zeros(PANELS * PANEL_BIAS);
+        let ws = w.as_mut_slice();
+        let bs = bias.as_mut_slice();
+        for p in 0..PANELS {
+            let panel = &mut ws[p * panel_len..(p + 1) * panel_len];
+            for gate in 0..3 {
+                for lane in 0..LANES {
+                    let row = gate * HIDDEN + p * LANES + lane;
+                    for k in 0..k_in {
+                        panel[k * ROW + gate * LANES + lane] = w_ih[row * EMBED_DIM + k];
+                    }
+                    for k in 0..HIDDEN {
+                        panel[(k_in + k) * ROW + gate * LANES + lane] = w_hh[row * HIDDEN + k];
+                    }
+                    let b = &mut bs[p * PANEL_BIAS..(p + 1) * PANEL_BIAS];
+                    let input_bias = if with_input { b_ih[row] } else { 0.0 };
+                    match gate {
+                        0 | 1 => b[gate * LANES + lane] = input_bias + b_hh[row],
+                        _ => {
+                            b[2 * LANES + lane] = input_bias;
+                            b[3 * LANES + lane] = b_hh[row];
+                        }
+                    }
+                }
+            }
+        }
+        Self { k_in, w, bias }
+    }
+
+    /// Weights of panel `p`.
+    #[inline]
+    pub(crate) fn panel(&self, p: usize) -> &[f32] {
+        let n = self.panel_len();
+        &self.w.as_slice()[p * n..(p + 1) * n]
+    }
+
+    /// Combined biases of panel `p`.
+    #[inline]
+    pub(crate) fn bias(&self, p: usize) -> &[f32] {
+        &self.bias.as_slice()[p * PANEL_BIAS..(p + 1) * PANEL_BIAS]
+    }
+}
+
+/// The embedding `relu(W x + b)` with `W` transposed to `[34][256]`, so an
+/// input value scales one contiguous row (a vectorizable axpy).
+#[derive(Clone)]
+pub(crate) struct PackedEmbed {
+    wt: Vec<f32>,
+    b: Vec<f32>,
+}
+
+impl PackedEmbed {
+    pub(crate) fn new(w: &[f32], b: &[f32]) -> Self {
+        assert_eq!(w.len(), EMBED_DIM * INPUT_DIM);
+        assert_eq!(b.len(), EMBED_DIM);
+        let mut wt = vec![0.0; INPUT_DIM * EMBED_DIM];
+        for j in 0..EMBED_DIM {
+            for k in 0..INPUT_DIM {
+                wt[k * EMBED_DIM + j] = w[j * INPUT_DIM + k];
+            }
+        }
+        Self { wt, b: b.to_vec() }
+    }
+
+    /// [`Self::apply`] compiled for the widest vectors `isa` allows.
+    #[inline]
+    pub(crate) fn apply_fast(&self, isa: Isa, x: &[f32], out: &mut [f32]) {
+        match isa {
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: engines only hold an `Isa` that `require()` confirmed.
+            Isa::Avx2 | Isa::Avx512 => unsafe { self.apply_avx2(x, out) },
+            _ => self.apply(x, out),
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn apply_avx2(&self, x: &[f32], out: &mut [f32]) {
+        self.apply(x, out)
+    }
+
+    /// `out = relu(W x + b)` for one frame (`x`: 34, `out`: 256).
+    #[inline(always)]
+    pub(crate) fn apply(&self, x: &[f32], out: &mut [f32]) {
+        let out = &mut out[..EMBED_DIM];
+        out.copy_from_slice(&self.b);
+        for (k, &xk) in x[..INPUT_DIM].iter().enumerate() {
+            let row = &self.wt[k * EMBED_DIM..(k + 1) * EMBED_DIM];
+            for (o, &w) in out.iter_mut().zip(row) {
+                *o += w * xk;
+            }
+        }
+        for o in out.iter_mut() {
+            *o = o.max(0.0);
+        }
+    }
+
+    /// `W^T` (`[34][256]`) and `b`, for a batched GEMM.
+    pub(crate) fn parts(&self) -> (&[f32], &[f32]) {
+        (&self.wt, &self.b)
+    }
+}
+
+/// The output layer with pair averaging folded in, per panel.
+#[derive(Clone)]
+pub(crate) struct PackedHead {
+    /// `[feature block 0..2][panel][unit][output]`.
+    fc: AlignedBuf,
+}
+
+impl PackedHead {
+    /// From the PyTorch `fc.weight` (`[16][1024]`).
+    pub(crate) fn new(fc_w: &[f32]) -> Self {
+        assert_eq!(fc_w.len(), OUTPUT_DIM * FEATURES);
+        let s = averaging_matrix();
+        let mut fc = AlignedBuf::zeros(FEATURES * OUTPUT_DIM);
+        let f = fc.as_mut_slice();
+        for feat in 0..FEATURES {
+            for o in 0..OUTPUT_DIM {
+                // (S W)[o][feat] = sum_i S[o][i] W[i][feat]
+                let v: f32 = (0..OUTPUT_DIM)
+                    .map(|i| s[o][i] * fc_w[i * FEATURES + feat])
+                    .sum();
+                f[feat * OUTPUT_DIM + o] = v;
+            }
+        }
+        Self { fc }
+    }
+
+    /// Output weights of feature block `block` (0: features 0..512, 1:
+    /// 512..1024), panel `p`: `[unit][output]`.
+    #[inline]
+    pub(crate) fn panel(&self, block: usize, p: usize) -> &[f32] {
+        let start = (block * PANELS + p) * PANEL_FC;
+        &self.fc.as_slice()[start..start + PANEL_FC]
+    }
+
+    /// Full head on sigmoid-activated features `s` (1024), accumulated in f64
+    /// order-independent enough for the offline path.
+    pub(crate) fn apply(&self, s: &[f32]) -> [f32; OUTPUT_DIM] {
+        let f = self.fc.as_slice();
+        let mut y = [0.0f32; OUTPUT_DIM];
+        for (feat, &sv) in s[..FEATURES].iter().enumerate() {
+            for (o, yo) in y.iter_mut().enumerate() {
+                *yo += f[feat * OUTPUT_DIM + o] * sv;
+            }
+        }
+        y
+    }
+}

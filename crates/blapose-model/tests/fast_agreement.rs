@@ -1,0 +1,231 @@
+//! The fast engines against the reference candle models, and the SIMD
+//! kernels against the scalar one.
+
+use blapose_model::reference::frames_tensor;
+use blapose_model::{
+    BoneLengthBiGru, BoneLengthGru, Isa, LoadedWeights, ModelError, ModelKind,
+    OfflineBiGruEngine, OnlineGruEngine, INPUT_DIM, OUTPUT_DIM, STATE_DIM,
+};
+use rand::{rngs::StdRng, Rng, SeedableRng};
+
+fn random_frames(n: usize, seed: u64) -> Vec<f32> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    (0..n * INPUT_DIM).map(|_| rng.random_range(-1.0f32..1.0)).collect()
+}
+
+/// Run `steps` online steps for `batch` sessions; frames are
+/// `[b][t][34]`. Returns outputs `[b][t][16]`.
+fn run_online(engine: &OnlineGruEngine, frames: &[f32], batch: usize, steps: usize) -> Vec<f32> {
+    let mut hidden = vec![0.0; batch * STATE_DIM];
+    let mut scratch = engine.scratch(batch);
+    let mut x = vec![0.0; batch * INPUT_DIM];
+    let mut y = vec![0.0; batch * OUTPUT_DIM];
+    let mut outs = vec![0.0; batch * steps * OUTPUT_DIM];
+    for t in 0..steps {
+        for b in 0..batch {
+            let src = (b * steps + t) * INPUT_DIM;
+            x[b * INPUT_DIM..(b + 1) * INPUT_DIM].copy_from_slice(&frames[src..src + INPUT_DIM]);
+        }
+        engine.step(&x, &mut hidden, &mut y, &mut scratch).unwrap();
+        for b in 0..batch {
+            let dst = (b * steps + t) * OUTPUT_DIM;
+            outs[dst..dst + OUTPUT_DIM].copy_from_slice(&y[b * OUTPUT_DIM..(b + 1) * OUTPUT_DIM]);
+        }
+    }
+    outs
+}
+
+fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+}
+
+fn online_matches_reference(batch: usize, threads: usize) {
+    let steps = 1000;
+    let weights = LoadedWeights::random(ModelKind::Gru, 11).unwrap();
+    let model = BoneLengthGru::new(weights.var_builder()).unwrap();
+    let frames = random_frames(batch * steps, 5 + batch as u64);
+    let x = frames_tensor(&frames, batch, steps).unwrap();
+    let expect: Vec<f32> = model
+        .forward_per_frame(&x)
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap();
+    let engine = OnlineGruEngine::new(&weights, threads).unwrap();
+    let got = run_online(&engine, &frames, batch, steps);
+    let err = max_abs_diff(&got, &expect);
+    eprintln!("batch {batch}, {threads} threads, {}: max |fast - reference| = {err:.3e}", engine.isa());
+    assert!(err < 1e-4, "max error {err}");
+    // the final prediction equals the reference's final-state forward
+    let last: Vec<f32> = model.forward(&x, false).unwrap().flatten_all().unwrap().to_vec1().unwrap();
+    for b in 0..batch {
+        let at = (b * steps + steps - 1) * OUTPUT_DIM;
+        let e = max_abs_diff(&got[at..at + OUTPUT_DIM], &last[b * OUTPUT_DIM..(b + 1) * OUTPUT_DIM]);
+        assert!(e < 1e-4, "row {b}: {e}");
+    }
+}
+
+#[test]
+fn online_batch1_agrees_with_reference_over_1000_steps() {
+    online_matches_reference(1, 1);
+}
+
+#[test]
+fn online_batch64_agrees_with_reference_over_1000_steps() {
+    online_matches_reference(64, 2);
+}
+
+#[test]
+fn every_isa_and_thread_count_agrees_with_scalar() {
+    let weights = LoadedWeights::random(ModelKind::Gru, 3).unwrap();
+    let (batch, steps) = (11, 40); // 11 rows: full tiles plus remainders
+    let frames = random_frames(batch * steps, 99);
+    let scalar = OnlineGruEngine::with_isa(&weights, 1, Isa::Scalar).unwrap();
+    let oracle = run_online(&scalar, &frames, batch, steps);
+    let mut tested = 0;
+    for isa in Isa::ALL.into_iter().filter(|i| i.is_available()) {
+        for threads in [1, 2, 3] {
+            let engine = OnlineGruEngine::with_isa(&weights, threads, isa).unwrap();
+            let got = run_online(&engine, &frames, batch, steps);
+            let err = max_abs_diff(&got, &oracle);
+            eprintln!("{isa} x{threads}: max |simd - scalar| = {err:.3e}");
+            assert!(err < 2e-5, "{isa} x{threads}: {err}");
+            tested += 1;
+        }
+    }
+    assert!(tested >= 3);
+}
+
+#[test]
+fn unavailable_or_mismatched_configs_are_refused() {
+    let bigru = LoadedWeights::random(ModelKind::BiGru, 1).unwrap();
+    assert!(matches!(
+        OnlineGruEngine::new(&bigru, 1),
+        Err(ModelError::WrongKind { .. })
+    ));
+    let gru = LoadedWeights::random(ModelKind::Gru, 1).unwrap();
+    assert!(matches!(
+        OfflineBiGruEngine::new(&gru, 1),
+        Err(ModelError::WrongKind { .. })
+    ));
+    assert!(matches!(OnlineGruEngine::new(&gru, 0), Err(ModelError::Config(_))));
+    let engine = OnlineGruEngine::new(&gru, 1).unwrap();
+    let mut scratch = engine.scratch(2);
+    let mut hidden = vec![0.0; 2 * STATE_DIM];
+    let mut out = vec![0.0; 2 * OUTPUT_DIM];
+    let err = engine
+        .step(&[0.0; 2 * INPUT_DIM - 1], &mut hidden, &mut out, &mut scratch)
+        .unwrap_err();
+    assert!(matches!(err, ModelError::BadLength { .. }), "{err}");
+    let err = engine
+        .step(&[0.0; 2 * INPUT_DIM], &mut hidden[..STATE_DIM], &mut out, &mut scratch)
+        .unwrap_err();
+    assert!(matches!(err, ModelError::BadLength { .. }), "{err}");
+}
+
+#[test]
+fn non_finite_input_leaves_every_state_untouched() {
+    let weights = LoadedWeights::random(ModelKind::Gru, 4).unwrap();
+    for threads in [1, 2] {
+        let engine = OnlineGruEngine::new(&weights, threads).unwrap();
+        let batch = 6;
+        let mut scratch = engine.scratch(batch);
+        let mut hidden = vec![0.0; batch * STATE_DIM];
+        let mut out = vec![0.0; batch * OUTPUT_DIM];
+        let mut x = random_frames(batch, 8);
+        // a few good steps so the state is not trivially zero
+        for _ in 0..3 {
+            engine.step(&x, &mut hidden, &mut out, &mut scratch).unwrap();
+        }
+        let (h0, y0) = (hidden.clone(), out.clone());
+        for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
+            x[3 * INPUT_DIM + 7] = bad;
+            let err = engine.step(&x, &mut hidden, &mut out, &mut scratch).unwrap_err();
+            assert!(
+                matches!(err, ModelError::NonFiniteInput { row: 3, col: 7 }),
+                "{err}"
+            );
+            assert_eq!(hidden, h0);
+            assert_eq!(out, y0);
+        }
+        // finite but absurd input: either refused with states untouched, or finite results
+        x[3 * INPUT_DIM + 7] = 3e38;
+        x[3 * INPUT_DIM + 8] = -3e38;
+        match engine.step(&x, &mut hidden, &mut out, &mut scratch) {
+            Err(ModelError::NonFiniteState { row }) => {
+                assert_eq!(row, 3);
+                assert_eq!(hidden, h0);
+                assert_eq!(out, y0);
+            }
+            Err(e) => panic!("unexpected error {e}"),
+            Ok(()) => assert!(hidden.iter().chain(&out).all(|v| v.is_finite())),
+        }
+    }
+}
+
+#[test]
+fn scratch_grows_for_larger_batches() {
+    let weights = LoadedWeights::random(ModelKind::Gru, 5).unwrap();
+    let engine = OnlineGruEngine::new(&weights, 2).unwrap();
+    let mut scratch = engine.scratch(1);
+    for batch in [1, 9, 3] {
+        let x = random_frames(batch, batch as u64);
+        let mut hidden = vec![0.0; batch * STATE_DIM];
+        let mut out = vec![0.0; batch * OUTPUT_DIM];
+        engine.step(&x, &mut hidden, &mut out, &mut scratch).unwrap();
+        // every row equals the same frame run alone
+        let mut single = engine.scratch(1);
+        for b in 0..batch {
+            let mut h1 = vec![0.0; STATE_DIM];
+            let mut y1 = vec![0.0; OUTPUT_DIM];
+            engine
+                .step(&x[b * INPUT_DIM..(b + 1) * INPUT_DIM], &mut h1, &mut y1, &mut single)
+                .unwrap();
+            assert!(max_abs_diff(&h1, &hidden[b * STATE_DIM..(b + 1) * STATE_DIM]) < 1e-6);
+            assert!(max_abs_diff(&y1, &out[b * OUTPUT_DIM..(b + 1) * OUTPUT_DIM]) < 1e-6);
+        }
+    }
+    assert!(scratch.capacity() >= 9);
+}
+
+#[test]
+fn offline_agrees_with_reference() {
+    let weights = LoadedWeights::random(ModelKind::BiGru, 21).unwrap();
+    let model = BoneLengthBiGru::new(weights.var_builder()).unwrap();
+    for (steps, threads) in [(1, 1), (37, 2), (600, 2), (300, 1)] {
+        let frames = random_frames(steps, steps as u64);
+        let expect: Vec<f32> = model
+            .forward(&frames_tensor(&frames, 1, steps).unwrap(), false)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        for isa in Isa::ALL.into_iter().filter(|i| i.is_available()) {
+            let engine = OfflineBiGruEngine::with_isa(&weights, threads, isa).unwrap();
+            let got = engine.predict(&frames).unwrap();
+            let err = max_abs_diff(&got, &expect);
+            eprintln!("offline T={steps} {isa} x{threads}: max error {err:.3e}");
+            assert!(err < 1e-4, "T={steps} {isa}: {err}");
+        }
+    }
+}
+
+#[test]
+fn offline_refuses_bad_sequences() {
+    let weights = LoadedWeights::random(ModelKind::BiGru, 2).unwrap();
+    let engine = OfflineBiGruEngine::new(&weights, 1).unwrap();
+    assert!(matches!(engine.predict(&[]), Err(ModelError::EmptySequence)));
+    assert!(matches!(
+        engine.predict(&[0.0; INPUT_DIM + 1]),
+        Err(ModelError::BadLength { .. })
+    ));
+    let mut frames = random_frames(10, 1);
+    frames[5 * INPUT_DIM + 2] = f32::NAN;
+    assert!(matches!(
+        engine.predict(&frames),
+        Err(ModelError::NonFiniteInput { row: 5, col: 2 })
+    ));
+}

@@ -1,0 +1,524 @@
+//! The training loop: synthetic batches in, L1 on bone lengths, Adam with
+//! exponential decay, validation, checkpoints, resume.
+//!
+//! * **Epoch.** Samples are synthesized on the fly, so there is no natural
+//!   epoch; one *epoch* here is [`TrainConfig::epoch_steps`] optimizer steps
+//!   and the learning rate is `lr * lr_decay^floor(step / epoch_steps)`.
+//! * **Loss.** Mean absolute error between predicted and sampled lengths
+//!   (metres; logged in mm). For the online GRU, `per_frame_weight > 0` adds
+//!   the same L1 on the *running mean* of the per-frame predictions (what an
+//!   online session serves), averaged over all frames of the window.
+//! * **Determinism.** Batch `step` depends only on `(seed, step)`
+//!   ([`crate::synth::sample_rng`]); the initial weights only on `seed`. A
+//!   resumed run sees the same batches as an uninterrupted one. Dropout masks
+//!   come from candle's own RNG and are the one non-reproducible part.
+//! * **Checkpoints** (`checkpoint.safetensors` in the run directory: weights,
+//!   Adam moments, step and the run configuration) are written to a
+//!   temporary file and renamed, so an interruption never leaves a torn
+//!   file; `--resume` continues from the last one.
+
+use std::collections::{BTreeMap, HashMap};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use blapose_core::skeleton::NUM_BONES;
+use blapose_model::weights::{self, varmap_tensors, LoadedWeights, WeightsMetadata};
+use blapose_model::{BoneLengthBiGru, BoneLengthGru, ModelKind};
+use candle_core::{DType, Device, Tensor};
+use candle_nn::{VarBuilder, VarMap};
+use serde::{Deserialize, Serialize};
+
+use crate::adam::{Adam, AdamConfig};
+use crate::dataset::EvalSequence;
+use crate::error::TrainError;
+use crate::loader::Prefetcher;
+use crate::synth::{sample_rng, Batch, SynthConfig, SynthSource, FRAME_DIM};
+
+/// Name of the checkpoint file inside the run directory.
+pub const CHECKPOINT_FILE: &str = "checkpoint.safetensors";
+/// Name of the training log inside the run directory.
+pub const LOG_FILE: &str = "train_log.csv";
+/// Name of the final weights inside the run directory.
+pub const WEIGHTS_FILE: &str = "model.safetensors";
+/// Columns of the training log.
+pub const LOG_HEADER: &str =
+    "step,epoch,lr,train_loss_mm,grad_norm,frames_per_s,val_synth_mm,val_real_sh_mm,val_real_sh_running_mm,elapsed_s";
+/// Seed offset of the fixed synthetic validation set.
+const VAL_SEED_SALT: u64 = 0x5EED_0F_7A11D;
+
+/// Everything that defines a training run.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainConfig {
+    /// `gru` or `bigru`.
+    pub kind: String,
+    /// Length strategy name (for the metadata; the sampler is passed in).
+    pub lengths: String,
+    /// Noise model name (also in `synth`).
+    pub noise: String,
+    /// Frames per training window.
+    pub seq_len: usize,
+    /// Smallest playback stride.
+    pub stride_min: f32,
+    /// Largest playback stride.
+    pub stride_max: f32,
+    /// 3D shift std, metres.
+    pub shift_std: f32,
+    /// Flip probability.
+    pub flip_prob: f32,
+    /// Samples per batch.
+    pub batch: usize,
+    /// Total optimizer steps.
+    pub steps: u64,
+    /// Steps per epoch (learning-rate decay period).
+    pub epoch_steps: u64,
+    /// Initial learning rate.
+    pub lr: f64,
+    /// Learning-rate factor per epoch.
+    pub lr_decay: f64,
+    /// Gradient-norm clip (0 = none).
+    pub clip_norm: f64,
+    /// Weight of the online GRU's running-mean loss (0 = off).
+    pub per_frame_weight: f32,
+    /// Master seed.
+    pub seed: u64,
+    /// Validate every this many steps (0 = only at the end).
+    pub val_every: u64,
+    /// Synthetic validation samples.
+    pub val_samples: usize,
+    /// Frames per real-SH validation window.
+    pub val_frames: usize,
+    /// Seconds between checkpoints.
+    pub checkpoint_secs: u64,
+}
+
+impl TrainConfig {
+    /// The model kind.
+    pub fn model_kind(&self) -> Result<ModelKind, TrainError> {
+        self.kind.parse().map_err(TrainError::Model)
+    }
+
+    /// The augmentation knobs.
+    pub fn synth(&self) -> Result<SynthConfig, TrainError> {
+        let cfg = SynthConfig {
+            seq_len: self.seq_len,
+            stride_min: self.stride_min,
+            stride_max: self.stride_max,
+            shift_std: self.shift_std,
+            min_depth: 1.5,
+            flip_prob: self.flip_prob,
+            noise: self.noise.parse()?,
+        };
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Learning rate at `step`.
+    pub fn lr_at(&self, step: u64) -> f64 {
+        self.lr * self.lr_decay.powi((step / self.epoch_steps.max(1)) as i32)
+    }
+
+    /// The fields a resumed run must share with its checkpoint.
+    fn compatible(&self, other: &TrainConfig) -> Result<(), String> {
+        let mut a = self.clone();
+        // These may change on resume (e.g. train longer, log more often).
+        a.steps = other.steps;
+        a.val_every = other.val_every;
+        a.checkpoint_secs = other.checkpoint_secs;
+        if a == *other {
+            Ok(())
+        } else {
+            Err(format!(
+                "checkpoint was written by a different configuration:\n  checkpoint: {}\n  now:        {}",
+                serde_json::to_string(other).unwrap_or_default(),
+                serde_json::to_string(self).unwrap_or_default()
+            ))
+        }
+    }
+}
+
+/// A bone-length network of either kind.
+#[derive(Debug, Clone)]
+pub enum Net {
+    /// Online model.
+    Gru(BoneLengthGru),
+    /// Offline model.
+    BiGru(BoneLengthBiGru),
+}
+
+impl Net {
+    /// Build `kind` over `vb`.
+    pub fn new(kind: ModelKind, vb: VarBuilder) -> Result<Self, TrainError> {
+        Ok(match kind {
+            ModelKind::Gru => Net::Gru(BoneLengthGru::new(vb)?),
+            ModelKind::BiGru => Net::BiGru(BoneLengthBiGru::new(vb)?),
+        })
+    }
+
+    /// Final-state lengths `(B, 16)`.
+    pub fn forward(&self, x: &Tensor, train: bool) -> Result<Tensor, TrainError> {
+        Ok(match self {
+            Net::Gru(m) => m.forward(x, train)?,
+            Net::BiGru(m) => m.forward(x, train)?,
+        })
+    }
+}
+
+/// Running mean over time of `(B, T, 16)` per-frame predictions.
+pub fn running_mean(per_frame: &Tensor) -> Result<Tensor, TrainError> {
+    let (_, t, _) = per_frame.dims3()?;
+    let counts: Vec<f32> = (1..=t).map(|i| i as f32).collect();
+    let counts = Tensor::from_vec(counts, (1, t, 1), per_frame.device())?;
+    Ok(per_frame.cumsum(1)?.broadcast_div(&counts)?)
+}
+
+/// Mean absolute error of `pred` against `target` (broadcast over frames
+/// when `pred` has a time axis).
+fn l1(pred: &Tensor, target: &Tensor) -> Result<Tensor, TrainError> {
+    Ok(pred.broadcast_sub(target)?.abs()?.mean_all()?)
+}
+
+/// The loss of one batch and its value in mm.
+pub fn batch_loss(net: &Net, batch: &Batch, per_frame_weight: f32, train: bool) -> Result<(Tensor, f64), TrainError> {
+    let x = Tensor::from_slice(&batch.inputs, (batch.batch, batch.seq_len, FRAME_DIM), &Device::Cpu)?;
+    let y = Tensor::from_slice(&batch.targets, (batch.batch, NUM_BONES), &Device::Cpu)?;
+    let loss = match (net, per_frame_weight > 0.0) {
+        (Net::Gru(m), true) => {
+            let per = m.forward_per_frame_with(&x, train)?;
+            let last = per.narrow(1, batch.seq_len - 1, 1)?.squeeze(1)?;
+            let run = running_mean(&per)?;
+            (l1(&last, &y)? + (l1(&run, &y.unsqueeze(1)?)? * f64::from(per_frame_weight))?)?
+        }
+        _ => l1(&net.forward(&x, train)?, &y)?,
+    };
+    let mm = f64::from(loss.to_scalar::<f32>()?) * 1000.0;
+    Ok((loss, mm))
+}
+
+/// Validation numbers (mm).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Validation {
+    /// L1 on the fixed synthetic validation set (final-state prediction).
+    pub synth_mm: f64,
+    /// L1 on the training subjects' real SH windows with their true lengths.
+    pub real_sh_mm: f64,
+    /// For the GRU: the running mean of per-frame predictions on the same
+    /// windows (what serving answers); NaN for the Bi-GRU.
+    pub real_sh_running_mm: f64,
+}
+
+/// The fixed synthetic validation set (independent of the training stream).
+pub fn validation_batches(source: &SynthSource, cfg: &SynthConfig, seed: u64, samples: usize, batch: usize) -> Vec<Batch> {
+    let mut out = Vec::new();
+    let mut i = 0;
+    while i < samples {
+        let n = batch.min(samples - i);
+        let mut inputs = Vec::with_capacity(n * cfg.seq_len * FRAME_DIM);
+        let mut targets = Vec::with_capacity(n * NUM_BONES);
+        for k in 0..n {
+            let s = source.sample(cfg, &mut sample_rng(seed ^ VAL_SEED_SALT, u64::MAX, (i + k) as u64));
+            inputs.extend_from_slice(&s.input);
+            targets.extend_from_slice(&s.target);
+        }
+        out.push(Batch { batch: n, seq_len: cfg.seq_len, inputs, targets });
+        i += n;
+    }
+    out
+}
+
+/// Real-SH validation windows: from each sequence/camera the `frames`
+/// frames in its middle (whole sequence when shorter is not possible:
+/// sequences shorter than `frames` are skipped), batched by `batch`.
+pub fn real_validation_batches(real: &[EvalSequence], frames: usize, batch: usize) -> Vec<Batch> {
+    let windows: Vec<(&[f32], &[f32])> = real
+        .iter()
+        .filter(|s| s.frames() >= frames)
+        .map(|s| {
+            let start = (s.frames() - frames) / 2;
+            (&s.input[start * FRAME_DIM..(start + frames) * FRAME_DIM], &s.gt[..])
+        })
+        .collect();
+    windows
+        .chunks(batch.max(1))
+        .map(|c| Batch {
+            batch: c.len(),
+            seq_len: frames,
+            inputs: c.iter().flat_map(|w| w.0.iter().copied()).collect(),
+            targets: c.iter().flat_map(|w| w.1.iter().copied()).collect(),
+        })
+        .collect()
+}
+
+fn mean_l1_mm(pred: &Tensor, target: &[f32]) -> Result<(f64, usize), TrainError> {
+    let p: Vec<f32> = pred.flatten_all()?.to_vec1()?;
+    let s: f64 = p.iter().zip(target).map(|(a, b)| f64::from((a - b).abs())).sum();
+    Ok((s * 1000.0, p.len()))
+}
+
+/// Run the validation sets through `net` (eval mode).
+pub fn validate(net: &Net, synth: &[Batch], real: &[Batch]) -> Result<Validation, TrainError> {
+    let mut v = Validation { real_sh_running_mm: f64::NAN, ..Default::default() };
+    let (mut s, mut n) = (0.0, 0usize);
+    for b in synth {
+        let x = Tensor::from_slice(&b.inputs, (b.batch, b.seq_len, FRAME_DIM), &Device::Cpu)?;
+        let (a, k) = mean_l1_mm(&net.forward(&x, false)?, &b.targets)?;
+        s += a;
+        n += k;
+    }
+    v.synth_mm = s / n.max(1) as f64;
+    let (mut s, mut n, mut sr) = (0.0, 0usize, 0.0);
+    for b in real {
+        let x = Tensor::from_slice(&b.inputs, (b.batch, b.seq_len, FRAME_DIM), &Device::Cpu)?;
+        match net {
+            Net::Gru(m) => {
+                let per = m.forward_per_frame(&x)?;
+                let last = per.narrow(1, b.seq_len - 1, 1)?;
+                let run = running_mean(&per)?.narrow(1, b.seq_len - 1, 1)?;
+                let (a, k) = mean_l1_mm(&last, &b.targets)?;
+                s += a;
+                n += k;
+                sr += mean_l1_mm(&run, &b.targets)?.0;
+            }
+            Net::BiGru(_) => {
+                let (a, k) = mean_l1_mm(&net.forward(&x, false)?, &b.targets)?;
+                s += a;
+                n += k;
+            }
+        }
+    }
+    v.real_sh_mm = s / n.max(1) as f64;
+    if matches!(net, Net::Gru(_)) {
+        v.real_sh_running_mm = sr / n.max(1) as f64;
+    }
+    Ok(v)
+}
+
+/// Write `bytes` to `path` atomically (temporary file + rename).
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), TrainError> {
+    let tmp = path.with_extension("tmp");
+    {
+        let mut f = std::fs::File::create(&tmp).map_err(|e| TrainError::io(&tmp, e))?;
+        f.write_all(bytes).map_err(|e| TrainError::io(&tmp, e))?;
+        f.sync_all().map_err(|e| TrainError::io(&tmp, e))?;
+    }
+    std::fs::rename(&tmp, path).map_err(|e| TrainError::io(path, e))
+}
+
+/// What a checkpoint holds besides tensors.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct CheckpointMeta {
+    step: u64,
+    adam_steps: u64,
+    elapsed_s: f64,
+    config: TrainConfig,
+}
+
+fn save_checkpoint(path: &Path, varmap: &VarMap, opt: &Adam, meta: &CheckpointMeta) -> Result<(), TrainError> {
+    let mut tensors: BTreeMap<String, Tensor> = varmap_tensors(varmap)?.into_iter().map(|(k, v)| (format!("param.{k}"), v)).collect();
+    let (state, _) = opt.state();
+    tensors.extend(state);
+    let mut header = HashMap::new();
+    header.insert("blapose_checkpoint".to_string(), serde_json::to_string(meta)?);
+    let bytes = safetensors::serialize(tensors.iter().map(|(k, v)| (k.as_str(), v)), Some(header))
+        .map_err(|e| TrainError::Checkpoint { path: path.into(), msg: e.to_string() })?;
+    write_atomic(path, &bytes)
+}
+
+fn load_checkpoint(path: &Path) -> Result<(CheckpointMeta, BTreeMap<String, Tensor>), TrainError> {
+    let bad = |msg: String| TrainError::Checkpoint { path: path.into(), msg };
+    let bytes = std::fs::read(path).map_err(|e| TrainError::io(path, e))?;
+    let (_, header) = safetensors::SafeTensors::read_metadata(&bytes).map_err(|e| bad(e.to_string()))?;
+    let meta_json = header
+        .metadata()
+        .as_ref()
+        .and_then(|m| m.get("blapose_checkpoint").cloned())
+        .ok_or_else(|| bad("no blapose_checkpoint metadata".into()))?;
+    let meta: CheckpointMeta = serde_json::from_str(&meta_json).map_err(|e| bad(e.to_string()))?;
+    let st = safetensors::SafeTensors::deserialize(&bytes).map_err(|e| bad(e.to_string()))?;
+    let mut tensors = BTreeMap::new();
+    for (name, view) in st.iter() {
+        let t = Tensor::from_raw_buffer(view.data(), DType::F32, view.shape(), &Device::Cpu)?;
+        tensors.insert(name.to_string(), t);
+    }
+    Ok((meta, tensors))
+}
+
+/// Keep the log's header and the rows up to `step` (for a resumed run).
+fn truncate_log(path: &Path, step: u64) -> Result<(), TrainError> {
+    let Ok(text) = std::fs::read_to_string(path) else { return Ok(()) };
+    let kept: Vec<&str> = text
+        .lines()
+        .enumerate()
+        .filter(|(i, l)| *i == 0 || l.split(',').next().and_then(|s| s.parse::<u64>().ok()).is_some_and(|s| s <= step))
+        .map(|(_, l)| l)
+        .collect();
+    std::fs::write(path, kept.join("\n") + "\n").map_err(|e| TrainError::io(path, e))
+}
+
+/// Progress callback: `(step, total, loss_mm, frames_per_s)`.
+pub type Progress<'a> = &'a mut dyn FnMut(u64, u64, f64, f64);
+
+/// What a finished run reports.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrainOutcome {
+    /// Path of the final weights.
+    pub weights: PathBuf,
+    /// Last validation.
+    pub validation: Validation,
+    /// Mean training throughput of this invocation (frames/s).
+    pub frames_per_s: f64,
+    /// Wall-clock seconds of this invocation.
+    pub elapsed_s: f64,
+    /// Steps done in this invocation.
+    pub steps_run: u64,
+}
+
+/// Train in `out` (created if needed). `source` must be built from the
+/// training subjects only; `real_val` are their real SH sequences.
+/// `training_data` goes into the weights' metadata.
+pub fn train(
+    cfg: &TrainConfig,
+    source: Arc<SynthSource>,
+    real_val: &[EvalSequence],
+    out: &Path,
+    resume: bool,
+    training_data: &str,
+    progress: Progress,
+) -> Result<TrainOutcome, TrainError> {
+    if cfg.batch == 0 || cfg.steps == 0 {
+        return Err(TrainError::InvalidArgument("batch and steps must be positive".into()));
+    }
+    let kind = cfg.model_kind()?;
+    let synth = cfg.synth()?;
+    std::fs::create_dir_all(out).map_err(|e| TrainError::io(out, e))?;
+    let ckpt_path = out.join(CHECKPOINT_FILE);
+    let log_path = out.join(LOG_FILE);
+
+    let init = LoadedWeights::random(kind, cfg.seed)?;
+    let varmap = init.to_varmap()?;
+    let net = Net::new(kind, VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu))?;
+    let vars: Vec<(String, candle_core::Var)> = {
+        let data = varmap.data().lock().map_err(|_| TrainError::Data("VarMap lock poisoned".into()))?;
+        data.iter().map(|(k, v)| (k.clone(), v.clone())).collect()
+    };
+    let clip = (cfg.clip_norm > 0.0).then_some(cfg.clip_norm);
+    let mut opt = Adam::new(vars.clone(), AdamConfig { lr: cfg.lr, clip_norm: clip, ..Default::default() })?;
+
+    let mut start_step = 0u64;
+    let mut elapsed_before = 0.0;
+    if resume && ckpt_path.exists() {
+        let (meta, tensors) = load_checkpoint(&ckpt_path)?;
+        cfg.compatible(&meta.config).map_err(|msg| TrainError::Checkpoint { path: ckpt_path.clone(), msg })?;
+        for (name, var) in &vars {
+            let t = tensors.get(&format!("param.{name}")).ok_or_else(|| TrainError::Checkpoint {
+                path: ckpt_path.clone(),
+                msg: format!("missing parameter {name}"),
+            })?;
+            var.set(t)?;
+        }
+        opt.restore(&tensors, meta.adam_steps).map_err(|msg| TrainError::Checkpoint { path: ckpt_path.clone(), msg })?;
+        start_step = meta.step;
+        elapsed_before = meta.elapsed_s;
+        truncate_log(&log_path, start_step)?;
+    } else {
+        std::fs::write(&log_path, format!("{LOG_HEADER}\n")).map_err(|e| TrainError::io(&log_path, e))?;
+    }
+    std::fs::write(out.join("config.json"), serde_json::to_string_pretty(cfg)?).map_err(|e| TrainError::io(out, e))?;
+
+    let val_synth = validation_batches(&source, &synth, cfg.seed, cfg.val_samples, cfg.batch.min(64));
+    let val_real = real_validation_batches(real_val, cfg.val_frames, 64);
+
+    let t_start = Instant::now();
+    let mut last_ckpt = Instant::now();
+    let mut window = (0.0f64, 0usize, 0.0f64, Instant::now(), 0usize); // loss sum, n, grad sum, since, frames
+    let mut validation = Validation::default();
+    let mut frames_total = 0usize;
+    let mut loader = Prefetcher::spawn(source.clone(), synth, cfg.seed, cfg.batch, start_step..cfg.steps, 2);
+    let mut step = start_step;
+    while let Some((s, batch)) = loader.next_batch() {
+        opt.config.lr = cfg.lr_at(s);
+        let (loss, mm) = batch_loss(&net, &batch, cfg.per_frame_weight, true)?;
+        if !mm.is_finite() {
+            return Err(TrainError::Data(format!("non-finite loss at step {s}")));
+        }
+        let norm = opt.step(&loss.backward()?)?;
+        step = s + 1;
+        let frames = batch.batch * batch.seq_len;
+        frames_total += frames;
+        window.0 += mm;
+        window.1 += 1;
+        window.2 += norm;
+        window.4 += frames;
+        let fps = window.4 as f64 / window.3.elapsed().as_secs_f64().max(1e-9);
+        progress(step, cfg.steps, window.0 / window.1 as f64, fps);
+
+        let at_end = step == cfg.steps;
+        let do_val = at_end || (cfg.val_every > 0 && step % cfg.val_every == 0);
+        if do_val {
+            validation = validate(&net, &val_synth, &val_real)?;
+            let row = format!(
+                "{step},{:.3},{:.3e},{:.3},{:.4},{:.0},{:.3},{:.3},{:.3},{:.1}\n",
+                step as f64 / cfg.epoch_steps.max(1) as f64,
+                cfg.lr_at(s),
+                window.0 / window.1 as f64,
+                window.2 / window.1 as f64,
+                fps,
+                validation.synth_mm,
+                validation.real_sh_mm,
+                validation.real_sh_running_mm,
+                elapsed_before + t_start.elapsed().as_secs_f64()
+            );
+            let mut f = std::fs::OpenOptions::new().append(true).open(&log_path).map_err(|e| TrainError::io(&log_path, e))?;
+            f.write_all(row.as_bytes()).map_err(|e| TrainError::io(&log_path, e))?;
+            window = (0.0, 0, 0.0, Instant::now(), 0);
+        }
+        if at_end || last_ckpt.elapsed().as_secs() >= cfg.checkpoint_secs {
+            let meta = CheckpointMeta {
+                step,
+                adam_steps: opt.steps(),
+                elapsed_s: elapsed_before + t_start.elapsed().as_secs_f64(),
+                config: cfg.clone(),
+            };
+            save_checkpoint(&ckpt_path, &varmap, &opt, &meta)?;
+            last_ckpt = Instant::now();
+        }
+    }
+    drop(loader);
+    let elapsed = t_start.elapsed().as_secs_f64();
+    let mut meta = WeightsMetadata::new(kind);
+    meta.training_data = training_data.to_string();
+    meta.version = format!("blapose-train {}", env!("CARGO_PKG_VERSION"));
+    meta.extra.insert("train_config".into(), serde_json::to_string(cfg)?);
+    meta.extra.insert("train_steps".into(), step.to_string());
+    meta.extra.insert("train_wall_clock_s".into(), format!("{:.0}", elapsed_before + elapsed));
+    let weights_path = out.join(WEIGHTS_FILE);
+    let bytes = weights::to_bytes(&varmap_tensors(&varmap)?, &meta)?;
+    write_atomic(&weights_path, &bytes)?;
+    Ok(TrainOutcome {
+        weights: weights_path,
+        validation,
+        frames_per_s: frames_total as f64 / elapsed.max(1e-9),
+        elapsed_s: elapsed,
+        steps_run: step - start_step,
+    })
+}
+
+/// Column `name` of a training log as `(step, value)` pairs (NaN skipped).
+pub fn read_log_column(path: &Path, name: &str) -> Result<Vec<(f64, f64)>, TrainError> {
+    let text = std::fs::read_to_string(path).map_err(|e| TrainError::io(path, e))?;
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap_or("").split(',').collect();
+    let col = header
+        .iter()
+        .position(|h| *h == name)
+        .ok_or_else(|| TrainError::Data(format!("{}: no column {name}", path.display())))?;
+    Ok(lines
+        .filter_map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            let x = f.first()?.parse::<f64>().ok()?;
+            let y = f.get(col)?.parse::<f64>().ok()?;
+            y.is_finite().then_some((x, y))
+        })
+        .collect())
+}

@@ -1,0 +1,149 @@
+//! The `blapose.v1.PoseAdjustment` gRPC service: the glue between tonic and
+//! the session store, the batcher and the offline runner.
+//!
+//! Handlers stay thin: validation lives in [`crate::validate`], the stream
+//! protocol in [`crate::stream`], model work in [`crate::batcher`] and
+//! [`crate::offline`].
+
+use std::sync::Arc;
+
+use blapose_core::layouts::KeypointLayout;
+use blapose_core::skeleton::{BONE_NAMES, JOINT_NAMES};
+use blapose_proto::v1 as pb;
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use tokio_util::sync::CancellationToken;
+use tonic::{Request, Response, Status, Streaming};
+
+use crate::batcher::Batcher;
+use crate::metrics;
+use crate::models::ModelProvider;
+use crate::offline::OfflineRunner;
+use crate::session::SessionStore;
+use crate::stream::{self, session_status, Outbound};
+use crate::validate;
+
+/// Shared server state.
+pub struct AppState {
+    /// Sessions.
+    pub store: SessionStore,
+    /// The online batcher.
+    pub batcher: Arc<Batcher>,
+    /// Offline requests.
+    pub offline: OfflineRunner,
+    /// Models, for ModelInfo.
+    pub provider: Arc<dyn ModelProvider>,
+    /// Cancelled when shutdown begins: streams stop reading and drain.
+    pub draining: CancellationToken,
+    /// Per-stream pipelining bound.
+    pub max_inflight_per_stream: usize,
+    /// Request size limit (reported by ModelInfo).
+    pub max_message_bytes: usize,
+}
+
+impl std::fmt::Debug for AppState {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("AppState")
+            .field("sessions", &self.store.len())
+            .field("batcher", &self.batcher.config())
+            .finish()
+    }
+}
+
+/// The tonic service.
+#[derive(Debug, Clone)]
+pub struct PoseService {
+    state: Arc<AppState>,
+}
+
+impl PoseService {
+    /// A service over `state`.
+    pub fn new(state: Arc<AppState>) -> Self {
+        Self { state }
+    }
+}
+
+fn fail<T>(status: Status, rpc: &'static str) -> Result<T, Status> {
+    metrics::error(status.code(), rpc);
+    Err(status)
+}
+
+#[tonic::async_trait]
+impl pb::pose_adjustment_server::PoseAdjustment for PoseService {
+    type StreamStream = ReceiverStream<Outbound>;
+
+    async fn stream(
+        &self,
+        request: Request<Streaming<pb::StreamRequest>>,
+    ) -> Result<Response<Self::StreamStream>, Status> {
+        let inbound = request.into_inner();
+        // A little slack beyond the in-flight bound so answers never wait on
+        // the channel while the stream task is still reading.
+        let (tx, rx) = mpsc::channel(self.state.max_inflight_per_stream.max(1) + 2);
+        tokio::spawn(stream::run(self.state.clone(), inbound, tx));
+        Ok(Response::new(ReceiverStream::new(rx)))
+    }
+
+    async fn close_session(
+        &self,
+        request: Request<pb::CloseSessionRequest>,
+    ) -> Result<Response<pb::CloseSessionResponse>, Status> {
+        match self.state.store.close(&request.get_ref().session_id) {
+            Ok(snapshot) => {
+                tracing::info!(session = %request.get_ref().session_id, frames_seen = snapshot.frames_seen, "session closed by CloseSession");
+                Ok(Response::new(pb::CloseSessionResponse {
+                    frames_seen: snapshot.frames_seen,
+                    bone_lengths: snapshot.bone_lengths.map(|l| l.to_vec()).unwrap_or_default(),
+                }))
+            }
+            Err(e) => fail(session_status(e), "CloseSession"),
+        }
+    }
+
+    async fn adjust_sequence(
+        &self,
+        request: Request<pb::AdjustSequenceRequest>,
+    ) -> Result<Response<pb::AdjustSequenceResponse>, Status> {
+        if self.state.draining.is_cancelled() {
+            return fail(Status::unavailable("the server is shutting down"), "AdjustSequence");
+        }
+        let seq = match validate::sequence(request.get_ref()) {
+            Ok(s) => s,
+            Err(e) => return fail(e.to_status(), "AdjustSequence"),
+        };
+        let model = match seq.model {
+            validate::OfflineModel::BiGru => pb::Model::OfflineBigru,
+            validate::OfflineModel::OnlineGru => pb::Model::OnlineGru,
+        };
+        match self.state.offline.adjust(seq).await {
+            Ok(done) => Ok(Response::new(pb::AdjustSequenceResponse {
+                model: model as i32,
+                adjusted_poses_3d: done.poses.iter().flatten().flatten().copied().collect(),
+                bone_lengths: done.lengths.iter().flatten().copied().collect(),
+            })),
+            Err(status) => fail(status, "AdjustSequence"),
+        }
+    }
+
+    async fn model_info(
+        &self,
+        _request: Request<pb::ModelInfoRequest>,
+    ) -> Result<Response<pb::ModelInfoResponse>, Status> {
+        let config = self.state.batcher.config();
+        Ok(Response::new(pb::ModelInfoResponse {
+            models: self.state.provider.describe(),
+            layouts: KeypointLayout::ALL
+                .iter()
+                .map(|l| validate::layout_to_proto(*l) as i32)
+                .collect(),
+            server_version: env!("CARGO_PKG_VERSION").to_string(),
+            protocol: "blapose.v1".to_string(),
+            joint_names: JOINT_NAMES.iter().map(|s| s.to_string()).collect(),
+            bone_names: BONE_NAMES.iter().map(|s| s.to_string()).collect(),
+            max_sessions: u32::try_from(self.state.store.max_sessions()).unwrap_or(u32::MAX),
+            session_ttl_ms: u64::try_from(self.state.store.ttl().as_millis()).unwrap_or(u64::MAX),
+            max_batch: u32::try_from(config.max_batch).unwrap_or(u32::MAX),
+            max_message_bytes: self.state.max_message_bytes as u64,
+        }))
+    }
+}

@@ -1,0 +1,19 @@
+//! End-to-end tests: a blapose server in this process on an ephemeral
+//! loopback port, driven through the blapose-client library.
+//!
+//! One test binary (one link of the server and the model) with a module per
+//! concern:
+//! - [`streaming`]: many concurrent sessions, ordering, exactly-once
+//!   answers, equality with the library path, offline RPC;
+//! - [`sessions`]: TTL eviction, resume, takeover, guessed/foreign ids,
+//!   session limits;
+//! - [`errors`]: every status code the server defines, bad frames that do
+//!   not corrupt a session, authentication, message size limits;
+//! - [`shutdown`]: graceful shutdown answers frames already received;
+//! - [`example`]: replaying the shipped example improves its accuracy.
+
+mod errors;
+mod example;
+mod sessions;
+mod shutdown;
+mod streaming;

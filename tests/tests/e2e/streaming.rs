@@ -1,0 +1,155 @@
+//! Many sessions at once: every frame answered exactly once, in order, with
+//! exactly what the library computes.
+
+use std::sync::Arc;
+
+use blapose_client::{adjust_offline, replay, KeypointLayout, ModelChoice, ReplayOptions, SessionEvent};
+use blapose_tests::{lengths_diff, pose_diff, synthetic_sequence, test_config, Reference, TestServer, TOLERANCE};
+use tokio::task::JoinSet;
+
+const SESSIONS: u64 = 64;
+const FRAMES: usize = 40;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn concurrent_sessions_match_the_library_path() {
+    let server = TestServer::start(test_config()).await;
+    let client = server.client().await;
+    let reference = Arc::new(Reference::new());
+    let layouts = [KeypointLayout::H36m17, KeypointLayout::Sh16, KeypointLayout::Coco17];
+
+    let mut tasks = JoinSet::new();
+    for s in 0..SESSIONS {
+        let client = client.clone();
+        let layout = layouts[s as usize % layouts.len()];
+        tasks.spawn(async move {
+            let seq = synthetic_sequence(1000 + s, FRAMES, layout);
+            let options = ReplayOptions { window: 8, label: Some(format!("e2e-{s}")), ..ReplayOptions::default() };
+            let result = replay(&client, &seq, &options, |_| {}).await;
+            (s, seq, result)
+        });
+    }
+    let mut ids = std::collections::HashSet::new();
+    while let Some(joined) = tasks.join_next().await {
+        let (s, seq, result) = joined.expect("task");
+        let result = result.unwrap_or_else(|e| panic!("session {s}: {e}"));
+        let (want_poses, want_lengths) = reference.online(&seq);
+        assert_eq!(result.adjusted.len(), FRAMES, "session {s}");
+        for t in 0..FRAMES {
+            let dp = pose_diff(&result.adjusted[t], &want_poses[t]);
+            let dl = lengths_diff(&result.bone_lengths[t], &want_lengths[t]);
+            assert!(dp < TOLERANCE && dl < TOLERANCE, "session {s} frame {t}: pose diff {dp}, length diff {dl}");
+        }
+        let summary = result.session.expect("stream result has a session");
+        assert_eq!(summary.frames_seen, FRAMES as u64);
+        let last = summary.bone_lengths.expect("final lengths");
+        assert!(lengths_diff(&last, &want_lengths[FRAMES - 1]) < TOLERANCE);
+        assert!(ids.insert(summary.session_id.clone()), "duplicate session id");
+    }
+    assert_eq!(ids.len(), SESSIONS as usize);
+    for id in &ids {
+        assert_eq!(id.len(), 32, "{id}");
+        assert!(id.chars().all(|c| c.is_ascii_hexdigit() && !c.is_ascii_uppercase()), "{id}");
+    }
+    server.shutdown().await;
+}
+
+/// Frame indices are the client's own numbers: echoed unchanged, in send
+/// order, one answer each, then exactly one `closed`.
+#[tokio::test]
+async fn answers_echo_arbitrary_indices_in_order_exactly_once() {
+    let server = TestServer::start(test_config()).await;
+    let client = server.client().await;
+    let seq = synthetic_sequence(7, 30, KeypointLayout::H36m17);
+    let session = client.open_session(seq.input_format, None).await.expect("open");
+    assert!(!session.info().resumed);
+    assert_eq!(session.info().frames_seen, 0);
+    assert!(session.info().bone_lengths.is_none());
+    let (_, sender, mut receiver) = session.split();
+    let indices: Vec<u64> = (0..30u64).map(|t| 1_000_000 - 7 * t * t).collect();
+    for (t, &index) in indices.iter().enumerate() {
+        let mut frame = seq.frame(t);
+        frame.frame_index = index;
+        sender.send(&frame).await.expect("send");
+    }
+    sender.close().await.expect("close");
+    let mut seen = Vec::new();
+    let mut closed = 0;
+    while let Some(event) = receiver.next().await.expect("stream ends with OK") {
+        match event {
+            SessionEvent::Adjusted(f) => {
+                assert_eq!(closed, 0, "answer after closed");
+                assert_eq!(f.frames_seen, seen.len() as u64 + 1);
+                seen.push(f.frame_index);
+            }
+            SessionEvent::Closed(s) => {
+                closed += 1;
+                assert_eq!(s.frames_seen, 30);
+            }
+            SessionEvent::Rejected(r) => panic!("unexpected rejection {r:?}"),
+        }
+    }
+    assert_eq!(seen, indices);
+    assert_eq!(closed, 1);
+    server.shutdown().await;
+}
+
+#[tokio::test]
+async fn offline_rpc_matches_the_library_path() {
+    let server = TestServer::start(test_config()).await;
+    let client = server.client().await;
+    let reference = Reference::new();
+    for (seed, layout) in [(11, KeypointLayout::H36m17), (12, KeypointLayout::Sh16), (13, KeypointLayout::Coco17)] {
+        let seq = synthetic_sequence(seed, 75, layout);
+
+        let bigru = adjust_offline(&client, &seq, ModelChoice::OfflineBiGru).await.expect("bigru");
+        assert_eq!(bigru.model, ModelChoice::OfflineBiGru);
+        let (want, lengths) = reference.offline(&seq);
+        for t in 0..seq.len() {
+            assert!(pose_diff(&bigru.adjusted[t], &want[t]) < TOLERANCE, "{layout} frame {t}");
+            assert!(lengths_diff(&bigru.bone_lengths[t], &lengths) < TOLERANCE, "{layout} frame {t}");
+        }
+
+        // The online model through the offline RPC gives what a stream gives.
+        let gru = adjust_offline(&client, &seq, ModelChoice::OnlineGru).await.expect("gru");
+        assert_eq!(gru.model, ModelChoice::OnlineGru);
+        let (want, lengths) = reference.online(&seq);
+        for t in 0..seq.len() {
+            assert!(pose_diff(&gru.adjusted[t], &want[t]) < TOLERANCE, "{layout} frame {t}");
+            assert!(lengths_diff(&gru.bone_lengths[t], &lengths[t]) < TOLERANCE, "{layout} frame {t}");
+        }
+    }
+    server.shutdown().await;
+}
+
+#[tokio::test]
+async fn model_info_and_health() {
+    use tonic_health::pb::health_check_response::ServingStatus;
+    use tonic_health::pb::{health_client::HealthClient, HealthCheckRequest};
+
+    let server = TestServer::start(test_config()).await;
+    let client = server.client().await;
+    let info = client.model_info().await.expect("model info");
+    assert_eq!(info.protocol, "blapose.v1");
+    assert_eq!(info.joint_names.len(), 17);
+    assert_eq!(info.bone_names.len(), 16);
+    assert_eq!(info.layouts.len(), 3);
+    let kinds: Vec<_> = info.models.iter().filter_map(|m| m.model).collect();
+    assert!(kinds.contains(&ModelChoice::OnlineGru) && kinds.contains(&ModelChoice::OfflineBiGru), "{kinds:?}");
+    for m in &info.models {
+        assert_eq!(m.parameter_count, 2_390_784, "{}", m.name);
+        assert_eq!(m.hidden_size, 512);
+        assert_eq!(m.weights_sha256.len(), 64);
+    }
+    assert_eq!(info.session_ttl, test_config().session_ttl);
+
+    for service in ["", blapose_proto::SERVICE_NAME] {
+        let status = HealthClient::new(client.channel())
+            .check(HealthCheckRequest { service: service.to_string() })
+            .await
+            .expect("health check")
+            .into_inner()
+            .status;
+        assert_eq!(status, ServingStatus::Serving as i32, "service {service:?}");
+    }
+    server.shutdown().await;
+}
