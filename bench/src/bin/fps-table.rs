@@ -329,14 +329,14 @@ fn lifter_row(
 ) -> Result<Row> {
     let (mut alone, mut with) = (Vec::new(), Vec::new());
     for run in 0..args.runs {
-        let mut measure_alone = || -> Result<f64> {
+        let measure_alone = || -> Result<f64> {
             let mut s = LifterStream::new(lifter, anatomy);
             measure(stream, args.warmup, args.steps, |f| {
                 black_box(s.step(f)?);
                 Ok(())
             })
         };
-        let mut measure_with = || -> Result<f64> {
+        let measure_with = || -> Result<f64> {
             let mut s = LifterStream::new(lifter, anatomy);
             let mut adj = Adjuster::new(gru);
             measure(stream, args.warmup, args.steps, |f| {
@@ -373,11 +373,11 @@ fn lifter_row(
 }
 
 /// Measure a row that has no adjusted variant.
-fn single_row(
+fn single_row<'m>(
     args: &Args,
     kind: RowKind,
     params: usize,
-    mut make_step: impl FnMut() -> Box<dyn FnMut(&Keypoints2d) -> Result<()> + '_>,
+    mut make_step: impl FnMut() -> Box<dyn FnMut(&Keypoints2d) -> Result<()> + 'm>,
     stream: &[Keypoints2d],
 ) -> Result<Row> {
     let mut runs = Vec::new();

@@ -53,7 +53,7 @@ pub const COCO_THORAX_FRACTION: f32 = 0.37;
 /// COCO-17: `spine = pelvis + f * (thorax - pelvis)`.
 pub const COCO_SPINE_FRACTION: f32 = 0.49;
 /// COCO-17: `head = thorax + f * (nose - thorax)` (f > 1: beyond the nose).
-pub const COCO_HEAD_FACTOR: f32 = 1.525;
+pub const COCO_HEAD_FACTOR: f32 = 1.84;
 
 /// Joint names of the SH16 layout, in its order.
 pub const SH16_JOINTS: [&str; 16] = [

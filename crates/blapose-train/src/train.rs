@@ -24,15 +24,15 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use blapose_core::skeleton::NUM_BONES;
-use blapose_model::weights::{self, varmap_tensors, LoadedWeights, WeightsMetadata};
-use blapose_model::{BoneLengthBiGru, BoneLengthGru, ModelKind};
+use blapose_model::weights::{self, LoadedWeights, WeightsMetadata};
+use blapose_model::{ModelKind, DROPOUT};
 use candle_core::{DType, Device, Tensor};
-use candle_nn::{VarBuilder, VarMap};
 use serde::{Deserialize, Serialize};
 
 use crate::adam::{Adam, AdamConfig};
 use crate::dataset::EvalSequence;
 use crate::error::TrainError;
+use crate::fastnet::{FastNet, LossConfig};
 use crate::loader::Prefetcher;
 use crate::synth::{sample_rng, Batch, SynthConfig, SynthSource, FRAME_DIM};
 
@@ -47,6 +47,8 @@ pub const LOG_HEADER: &str =
     "step,epoch,lr,train_loss_mm,grad_norm,frames_per_s,val_synth_mm,val_real_sh_mm,val_real_sh_running_mm,elapsed_s";
 /// Seed offset of the fixed synthetic validation set.
 const VAL_SEED_SALT: u64 = 0x5EED_0F_7A11D;
+/// Seed offset of the dropout masks.
+const DROPOUT_SEED_SALT: u64 = 0xD0_0D_0D_0D;
 
 /// Everything that defines a training run.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -138,64 +140,6 @@ impl TrainConfig {
     }
 }
 
-/// A bone-length network of either kind.
-#[derive(Debug, Clone)]
-pub enum Net {
-    /// Online model.
-    Gru(BoneLengthGru),
-    /// Offline model.
-    BiGru(BoneLengthBiGru),
-}
-
-impl Net {
-    /// Build `kind` over `vb`.
-    pub fn new(kind: ModelKind, vb: VarBuilder) -> Result<Self, TrainError> {
-        Ok(match kind {
-            ModelKind::Gru => Net::Gru(BoneLengthGru::new(vb)?),
-            ModelKind::BiGru => Net::BiGru(BoneLengthBiGru::new(vb)?),
-        })
-    }
-
-    /// Final-state lengths `(B, 16)`.
-    pub fn forward(&self, x: &Tensor, train: bool) -> Result<Tensor, TrainError> {
-        Ok(match self {
-            Net::Gru(m) => m.forward(x, train)?,
-            Net::BiGru(m) => m.forward(x, train)?,
-        })
-    }
-}
-
-/// Running mean over time of `(B, T, 16)` per-frame predictions.
-pub fn running_mean(per_frame: &Tensor) -> Result<Tensor, TrainError> {
-    let (_, t, _) = per_frame.dims3()?;
-    let counts: Vec<f32> = (1..=t).map(|i| i as f32).collect();
-    let counts = Tensor::from_vec(counts, (1, t, 1), per_frame.device())?;
-    Ok(per_frame.cumsum(1)?.broadcast_div(&counts)?)
-}
-
-/// Mean absolute error of `pred` against `target` (broadcast over frames
-/// when `pred` has a time axis).
-fn l1(pred: &Tensor, target: &Tensor) -> Result<Tensor, TrainError> {
-    Ok(pred.broadcast_sub(target)?.abs()?.mean_all()?)
-}
-
-/// The loss of one batch and its value in mm.
-pub fn batch_loss(net: &Net, batch: &Batch, per_frame_weight: f32, train: bool) -> Result<(Tensor, f64), TrainError> {
-    let x = Tensor::from_slice(&batch.inputs, (batch.batch, batch.seq_len, FRAME_DIM), &Device::Cpu)?;
-    let y = Tensor::from_slice(&batch.targets, (batch.batch, NUM_BONES), &Device::Cpu)?;
-    let loss = match (net, per_frame_weight > 0.0) {
-        (Net::Gru(m), true) => {
-            let per = m.forward_per_frame_with(&x, train)?;
-            let last = per.narrow(1, batch.seq_len - 1, 1)?.squeeze(1)?;
-            let run = running_mean(&per)?;
-            (l1(&last, &y)? + (l1(&run, &y.unsqueeze(1)?)? * f64::from(per_frame_weight))?)?
-        }
-        _ => l1(&net.forward(&x, train)?, &y)?,
-    };
-    let mm = f64::from(loss.to_scalar::<f32>()?) * 1000.0;
-    Ok((loss, mm))
-}
-
 /// Validation numbers (mm).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct Validation {
@@ -250,48 +194,45 @@ pub fn real_validation_batches(real: &[EvalSequence], frames: usize, batch: usiz
         .collect()
 }
 
-fn mean_l1_mm(pred: &Tensor, target: &[f32]) -> Result<(f64, usize), TrainError> {
-    let p: Vec<f32> = pred.flatten_all()?.to_vec1()?;
-    let s: f64 = p.iter().zip(target).map(|(a, b)| f64::from((a - b).abs())).sum();
-    Ok((s * 1000.0, p.len()))
+fn l1_mm(pred: &[f32], target: &[f32]) -> f64 {
+    pred.iter().zip(target).map(|(a, b)| f64::from((a - b).abs())).sum::<f64>() * 1000.0
 }
 
 /// Run the validation sets through `net` (eval mode).
-pub fn validate(net: &Net, synth: &[Batch], real: &[Batch]) -> Result<Validation, TrainError> {
+pub fn validate(net: &FastNet, synth: &[Batch], real: &[Batch]) -> Validation {
     let mut v = Validation { real_sh_running_mm: f64::NAN, ..Default::default() };
     let (mut s, mut n) = (0.0, 0usize);
     for b in synth {
-        let x = Tensor::from_slice(&b.inputs, (b.batch, b.seq_len, FRAME_DIM), &Device::Cpu)?;
-        let (a, k) = mean_l1_mm(&net.forward(&x, false)?, &b.targets)?;
-        s += a;
-        n += k;
+        s += l1_mm(&net.predict(&b.inputs, b.batch, b.seq_len), &b.targets);
+        n += b.targets.len();
     }
     v.synth_mm = s / n.max(1) as f64;
     let (mut s, mut n, mut sr) = (0.0, 0usize, 0.0);
     for b in real {
-        let x = Tensor::from_slice(&b.inputs, (b.batch, b.seq_len, FRAME_DIM), &Device::Cpu)?;
-        match net {
-            Net::Gru(m) => {
-                let per = m.forward_per_frame(&x)?;
-                let last = per.narrow(1, b.seq_len - 1, 1)?;
-                let run = running_mean(&per)?.narrow(1, b.seq_len - 1, 1)?;
-                let (a, k) = mean_l1_mm(&last, &b.targets)?;
-                s += a;
-                n += k;
-                sr += mean_l1_mm(&run, &b.targets)?.0;
+        match net.kind() {
+            ModelKind::Gru => {
+                let per = net.predict_per_frame(&b.inputs, b.batch, b.seq_len);
+                let mut last = Vec::with_capacity(b.batch * NUM_BONES);
+                let mut run = Vec::with_capacity(b.batch * NUM_BONES);
+                for i in 0..b.batch {
+                    let rows = &per[i * b.seq_len * NUM_BONES..(i + 1) * b.seq_len * NUM_BONES];
+                    last.extend_from_slice(&rows[(b.seq_len - 1) * NUM_BONES..]);
+                    for j in 0..NUM_BONES {
+                        run.push(rows.chunks_exact(NUM_BONES).map(|r| r[j]).sum::<f32>() / b.seq_len as f32);
+                    }
+                }
+                s += l1_mm(&last, &b.targets);
+                sr += l1_mm(&run, &b.targets);
             }
-            Net::BiGru(_) => {
-                let (a, k) = mean_l1_mm(&net.forward(&x, false)?, &b.targets)?;
-                s += a;
-                n += k;
-            }
+            ModelKind::BiGru => s += l1_mm(&net.predict(&b.inputs, b.batch, b.seq_len), &b.targets),
         }
+        n += b.targets.len();
     }
     v.real_sh_mm = s / n.max(1) as f64;
-    if matches!(net, Net::Gru(_)) {
+    if net.kind() == ModelKind::Gru {
         v.real_sh_running_mm = sr / n.max(1) as f64;
     }
-    Ok(v)
+    v
 }
 
 /// Write `bytes` to `path` atomically (temporary file + rename).
@@ -314,18 +255,19 @@ struct CheckpointMeta {
     config: TrainConfig,
 }
 
-fn save_checkpoint(path: &Path, varmap: &VarMap, opt: &Adam, meta: &CheckpointMeta) -> Result<(), TrainError> {
-    let mut tensors: BTreeMap<String, Tensor> = varmap_tensors(varmap)?.into_iter().map(|(k, v)| (format!("param.{k}"), v)).collect();
-    let (state, _) = opt.state();
-    tensors.extend(state);
+fn save_checkpoint(path: &Path, net: &FastNet, opt: &Adam, meta: &CheckpointMeta) -> Result<(), TrainError> {
+    let mut tensors: BTreeMap<&str, Tensor> = BTreeMap::new();
+    tensors.insert("params", Tensor::from_slice(&net.params, net.params.len(), &Device::Cpu)?);
+    tensors.insert("adam_m", Tensor::from_slice(&opt.m, opt.m.len(), &Device::Cpu)?);
+    tensors.insert("adam_v", Tensor::from_slice(&opt.v, opt.v.len(), &Device::Cpu)?);
     let mut header = HashMap::new();
     header.insert("blapose_checkpoint".to_string(), serde_json::to_string(meta)?);
-    let bytes = safetensors::serialize(tensors.iter().map(|(k, v)| (k.as_str(), v)), Some(header))
+    let bytes = safetensors::serialize(tensors.iter().map(|(k, v)| (*k, v)), Some(header))
         .map_err(|e| TrainError::Checkpoint { path: path.into(), msg: e.to_string() })?;
     write_atomic(path, &bytes)
 }
 
-fn load_checkpoint(path: &Path) -> Result<(CheckpointMeta, BTreeMap<String, Tensor>), TrainError> {
+fn load_checkpoint(path: &Path) -> Result<(CheckpointMeta, BTreeMap<String, Vec<f32>>), TrainError> {
     let bad = |msg: String| TrainError::Checkpoint { path: path.into(), msg };
     let bytes = std::fs::read(path).map_err(|e| TrainError::io(path, e))?;
     let (_, header) = safetensors::SafeTensors::read_metadata(&bytes).map_err(|e| bad(e.to_string()))?;
@@ -339,7 +281,7 @@ fn load_checkpoint(path: &Path) -> Result<(CheckpointMeta, BTreeMap<String, Tens
     let mut tensors = BTreeMap::new();
     for (name, view) in st.iter() {
         let t = Tensor::from_raw_buffer(view.data(), DType::F32, view.shape(), &Device::Cpu)?;
-        tensors.insert(name.to_string(), t);
+        tensors.insert(name.to_string(), t.flatten_all()?.to_vec1::<f32>()?);
     }
     Ok((meta, tensors))
 }
@@ -396,28 +338,26 @@ pub fn train(
     let log_path = out.join(LOG_FILE);
 
     let init = LoadedWeights::random(kind, cfg.seed)?;
-    let varmap = init.to_varmap()?;
-    let net = Net::new(kind, VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu))?;
-    let vars: Vec<(String, candle_core::Var)> = {
-        let data = varmap.data().lock().map_err(|_| TrainError::Data("VarMap lock poisoned".into()))?;
-        data.iter().map(|(k, v)| (k.clone(), v.clone())).collect()
-    };
+    let mut net = FastNet::from_tensors(kind, init.tensors())?;
     let clip = (cfg.clip_norm > 0.0).then_some(cfg.clip_norm);
-    let mut opt = Adam::new(vars.clone(), AdamConfig { lr: cfg.lr, clip_norm: clip, ..Default::default() })?;
+    let mut opt = Adam::new(net.params.len(), AdamConfig { lr: cfg.lr, clip_norm: clip, ..Default::default() });
 
     let mut start_step = 0u64;
     let mut elapsed_before = 0.0;
     if resume && ckpt_path.exists() {
-        let (meta, tensors) = load_checkpoint(&ckpt_path)?;
+        let (meta, mut tensors) = load_checkpoint(&ckpt_path)?;
         cfg.compatible(&meta.config).map_err(|msg| TrainError::Checkpoint { path: ckpt_path.clone(), msg })?;
-        for (name, var) in &vars {
-            let t = tensors.get(&format!("param.{name}")).ok_or_else(|| TrainError::Checkpoint {
-                path: ckpt_path.clone(),
-                msg: format!("missing parameter {name}"),
-            })?;
-            var.set(t)?;
-        }
-        opt.restore(&tensors, meta.adam_steps).map_err(|msg| TrainError::Checkpoint { path: ckpt_path.clone(), msg })?;
+        let n = net.params.len();
+        let mut take = |name: &str| -> Result<Vec<f32>, TrainError> {
+            match tensors.remove(name) {
+                Some(v) if v.len() == n => Ok(v),
+                _ => Err(TrainError::Checkpoint { path: ckpt_path.clone(), msg: format!("missing or misshaped {name}") }),
+            }
+        };
+        net.params = take("params")?;
+        opt.m = take("adam_m")?;
+        opt.v = take("adam_v")?;
+        opt.t = meta.adam_steps;
         start_step = meta.step;
         elapsed_before = meta.elapsed_s;
         truncate_log(&log_path, start_step)?;
@@ -434,15 +374,21 @@ pub fn train(
     let mut window = (0.0f64, 0usize, 0.0f64, Instant::now(), 0usize); // loss sum, n, grad sum, since, frames
     let mut validation = Validation::default();
     let mut frames_total = 0usize;
+    let mut grad = vec![0.0f32; net.params.len()];
     let mut loader = Prefetcher::spawn(source.clone(), synth, cfg.seed, cfg.batch, start_step..cfg.steps, 2);
     let mut step = start_step;
     while let Some((s, batch)) = loader.next_batch() {
         opt.config.lr = cfg.lr_at(s);
-        let (loss, mm) = batch_loss(&net, &batch, cfg.per_frame_weight, true)?;
-        if !mm.is_finite() {
+        let loss_cfg = LossConfig { running_mean_weight: cfg.per_frame_weight, dropout: DROPOUT };
+        let mut drop_rng = sample_rng(cfg.seed ^ DROPOUT_SEED_SALT, s, 0);
+        let res = net.train_step(&batch.inputs, &batch.targets, batch.batch, batch.seq_len, loss_cfg, &mut drop_rng, &mut grad);
+        let mm = res.final_l1 * 1000.0;
+        if !res.loss.is_finite() {
             return Err(TrainError::Data(format!("non-finite loss at step {s}")));
         }
-        let norm = opt.step(&loss.backward()?)?;
+        let Some(norm) = opt.step(&mut net.params, &grad) else {
+            return Err(TrainError::Data(format!("non-finite gradient at step {s}")));
+        };
         step = s + 1;
         let frames = batch.batch * batch.seq_len;
         frames_total += frames;
@@ -456,7 +402,7 @@ pub fn train(
         let at_end = step == cfg.steps;
         let do_val = at_end || (cfg.val_every > 0 && step % cfg.val_every == 0);
         if do_val {
-            validation = validate(&net, &val_synth, &val_real)?;
+            validation = validate(&net, &val_synth, &val_real);
             let row = format!(
                 "{step},{:.3},{:.3e},{:.3},{:.4},{:.0},{:.3},{:.3},{:.3},{:.1}\n",
                 step as f64 / cfg.epoch_steps.max(1) as f64,
@@ -476,11 +422,11 @@ pub fn train(
         if at_end || last_ckpt.elapsed().as_secs() >= cfg.checkpoint_secs {
             let meta = CheckpointMeta {
                 step,
-                adam_steps: opt.steps(),
+                adam_steps: opt.t,
                 elapsed_s: elapsed_before + t_start.elapsed().as_secs_f64(),
                 config: cfg.clone(),
             };
-            save_checkpoint(&ckpt_path, &varmap, &opt, &meta)?;
+            save_checkpoint(&ckpt_path, &net, &opt, &meta)?;
             last_ckpt = Instant::now();
         }
     }
@@ -493,7 +439,7 @@ pub fn train(
     meta.extra.insert("train_steps".into(), step.to_string());
     meta.extra.insert("train_wall_clock_s".into(), format!("{:.0}", elapsed_before + elapsed));
     let weights_path = out.join(WEIGHTS_FILE);
-    let bytes = weights::to_bytes(&varmap_tensors(&varmap)?, &meta)?;
+    let bytes = weights::to_bytes(&net.to_tensors()?, &meta)?;
     write_atomic(&weights_path, &bytes)?;
     Ok(TrainOutcome {
         weights: weights_path,

@@ -84,7 +84,7 @@ pub(crate) fn input_projection(
     let rev: Vec<u32> = (0..steps as u32).rev().collect();
     let rev = Tensor::new(rev.as_slice(), e.device())?;
     let fwd = gi.narrow(1, 0, 1)?;
-    let bwd = gi.narrow(1, 1, 1)?.index_select(&rev, 0)?;
+    let bwd = gi.narrow(1, 1, 1)?.contiguous()?.index_select(&rev, 0)?;
     Tensor::cat(&[&fwd, &bwd], 1)
 }
 
@@ -99,24 +99,11 @@ pub(crate) fn run_pair(
 ) -> Result<PairRun> {
     let (batch, steps, _) = e.dims3()?;
     let gi = input_projection(a, b, e, reverse_b)?;
-    let w_hh_t = Tensor::stack(&[&a.weight_hh, &b.weight_hh], 0)?
-        .transpose(1, 2)?
-        .contiguous()?; // (2, 512, 1536)
-    let b_hh = Tensor::stack(&[&a.bias_hh, &b.bias_hh], 0)?.unsqueeze(1)?; // (2, 1, 1536)
+    let (w_hh_t, b_hh) = recurrent_params(a, b)?;
     let mut h = Tensor::zeros((2, batch, HIDDEN), e.dtype(), e.device())?;
     let mut all = Vec::with_capacity(if keep_all { steps } else { 0 });
     for t in 0..steps {
-        let gi_t = gi.get(t)?; // (2, B, 1536)
-        let gh = h.matmul(&w_hh_t)?.broadcast_add(&b_hh)?;
-        let rz = candle_nn::ops::sigmoid(
-            &(gi_t.narrow(D::Minus1, 0, 2 * HIDDEN)? + gh.narrow(D::Minus1, 0, 2 * HIDDEN)?)?,
-        )?;
-        let r = rz.narrow(D::Minus1, 0, HIDDEN)?;
-        let z = rz.narrow(D::Minus1, HIDDEN, HIDDEN)?;
-        let n = (gi_t.narrow(D::Minus1, 2 * HIDDEN, HIDDEN)?
-            + r.mul(&gh.narrow(D::Minus1, 2 * HIDDEN, HIDDEN)?)?)?
-        .tanh()?;
-        h = (&n + z.mul(&(&h - &n)?)?)?;
+        h = cell(&gi.get(t)?, &h, &w_hh_t, &b_hh)?;
         if keep_all {
             all.push(h.clone());
         }
@@ -127,4 +114,28 @@ pub(crate) fn run_pair(
         None
     };
     Ok(PairRun { last: h, all })
+}
+
+/// `W_hh^T` of both directions `(2, 512, 1536)` and their `b_hh` `(2, 1, 1536)`.
+pub(crate) fn recurrent_params(a: &GruParams, b: &GruParams) -> Result<(Tensor, Tensor)> {
+    let w_hh_t = Tensor::stack(&[&a.weight_hh, &b.weight_hh], 0)?
+        .transpose(1, 2)?
+        .contiguous()?;
+    let b_hh = Tensor::stack(&[&a.bias_hh, &b.bias_hh], 0)?.unsqueeze(1)?;
+    Ok((w_hh_t, b_hh))
+}
+
+/// One step of both directions: input pre-activations `gi_t` `(2, B, 1536)`
+/// (including `b_ih`), states `h` `(2, B, 512)` -> new states.
+pub(crate) fn cell(gi_t: &Tensor, h: &Tensor, w_hh_t: &Tensor, b_hh: &Tensor) -> Result<Tensor> {
+    let gh = h.matmul(w_hh_t)?.broadcast_add(b_hh)?;
+    let rz = candle_nn::ops::sigmoid(
+        &(gi_t.narrow(D::Minus1, 0, 2 * HIDDEN)? + gh.narrow(D::Minus1, 0, 2 * HIDDEN)?)?,
+    )?;
+    let r = rz.narrow(D::Minus1, 0, HIDDEN)?;
+    let z = rz.narrow(D::Minus1, HIDDEN, HIDDEN)?;
+    let n = (gi_t.narrow(D::Minus1, 2 * HIDDEN, HIDDEN)?
+        + r.mul(&gh.narrow(D::Minus1, 2 * HIDDEN, HIDDEN)?)?)?
+    .tanh()?;
+    &n + z.mul(&(h - &n)?)?
 }

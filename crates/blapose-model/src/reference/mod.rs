@@ -25,7 +25,7 @@ use candle_nn::VarBuilder;
 use crate::init::init_for;
 use crate::names::{GruNames, EMBED_BIAS, EMBED_WEIGHT, FC_WEIGHT};
 use crate::symmetry::averaging_matrix;
-use crate::{ModelKind, DROPOUT, EMBED_DIM, FEATURES, INPUT_DIM, OUTPUT_DIM};
+use crate::{ModelKind, DROPOUT, EMBED_DIM, FEATURES, HIDDEN, INPUT_DIM, OUTPUT_DIM};
 use blapose_core::skeleton::NUM_BONES;
 
 /// Parts both models share.
@@ -123,6 +123,25 @@ impl BoneLengthGru {
     /// reference averages these rows over the frames seen so far.
     pub fn forward_per_frame(&self, x: &Tensor) -> Result<Tensor> {
         self.forward_per_frame_with(x, false)
+    }
+
+    /// One online step in candle (the unoptimized baseline of the fast
+    /// engine): frames `x` `(B, 34)` and states `(B, 1024)` (`gru.0` then
+    /// `gru.1`, zeros at the start) -> `(new states, lengths (B, 16))`.
+    pub fn step(&self, x: &Tensor, state: &Tensor) -> Result<(Tensor, Tensor)> {
+        let (batch, width) = x.dims2()?;
+        let e = self.shared.embed(&x.reshape((batch, 1, width))?, false)?;
+        let [a, b] = &self.shared.grus;
+        let gi = gru::input_projection(a, b, &e, false)?.get(0)?; // (2, B, 1536)
+        let (w_hh_t, b_hh) = gru::recurrent_params(a, b)?;
+        let h = state
+            .reshape((batch, 2, HIDDEN))?
+            .transpose(0, 1)?
+            .contiguous()?;
+        let h = gru::cell(&gi, &h, &w_hh_t, &b_hh)?;
+        let features = h.transpose(0, 1)?.reshape((batch, 2 * HIDDEN))?;
+        let y = self.shared.head(&features)?;
+        Ok((features, y))
     }
 
     /// [`Self::forward_per_frame`] with dropout when `train` (per-frame losses).
