@@ -83,6 +83,28 @@ pub const VIEW_OFFSET_DEG: f64 = 50.0;
 /// Keypoints stay this far inside the image (pixels).
 pub const MARGIN_PX: f64 = 40.0;
 
+/// The CMU clips the shipped examples come from: npz key, example file stem
+/// and stature factor of the example person. The factors vary the person
+/// between examples (0.96-1.04 times [`PERSON_LENGTHS`]); they are our
+/// choice, not measurements.
+pub const CLIPS: [(&str, &str, f32); 5] = [
+    ("subject02/02_02", "cmu_02_02_walk", 1.00),
+    ("subject09/09_01", "cmu_09_01_run", 0.96),
+    ("subject13/13_32", "cmu_13_32_jump", 1.04),
+    ("subject20/20_06", "cmu_20_06_march", 0.98),
+    ("subject21/21_11", "cmu_21_11_highfive", 1.02),
+];
+
+/// File stem and stature factor for a clip key (unknown clips: `cmu_<key>`
+/// with `/` replaced, stature 1).
+pub fn clip_name_and_stature(key: &str) -> (String, f32) {
+    CLIPS
+        .iter()
+        .find(|(k, _, _)| *k == key)
+        .map(|(_, name, stature)| (name.to_string(), *stature))
+        .unwrap_or_else(|| (format!("cmu_{}", key.replace('/', "_")), 1.0))
+}
+
 /// Knobs of the synthesis (defaults are what the shipped examples use).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ExampleConfig {
@@ -505,6 +527,51 @@ mod tests {
             "gt_bone_lengths",
         ] {
             assert!(arrays.contains(key), "{key}");
+        }
+    }
+
+    /// The committed examples are what `make-example` builds from the CMU
+    /// data (skips when the data is absent).
+    #[test]
+    fn committed_examples_match_the_generator() {
+        let Some(root) =
+            blapose_data::test_data_root("cmu/cmu_h36m17.npz", "example regeneration check")
+        else {
+            return;
+        };
+        let cmu = blapose_data::read_npz(root.join("cmu/cmu_h36m17.npz")).unwrap();
+        let examples = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples");
+        for (key, stem, _) in CLIPS {
+            let (name, stature) = clip_name_and_stature(key);
+            assert_eq!(name, stem);
+            let config = ExampleConfig {
+                stature,
+                ..ExampleConfig::default()
+            };
+            let built = make_example(key, &cmu.poses(key).unwrap(), &config)
+                .unwrap()
+                .to_npz()
+                .unwrap();
+            let committed = blapose_data::read_npz(examples.join(format!("{stem}.npz"))).unwrap();
+            assert_eq!(
+                built.keys().collect::<Vec<_>>(),
+                committed.keys().collect::<Vec<_>>(),
+                "{stem}"
+            );
+            for (k, a) in built.iter() {
+                let b = committed.get(k).unwrap();
+                assert_eq!(a.shape(), b.shape(), "{stem}/{k}");
+                let diff = a
+                    .data()
+                    .iter()
+                    .zip(b.data())
+                    .map(|(x, y)| (x - y).abs())
+                    .fold(0.0f32, f32::max);
+                assert!(
+                    diff < 1e-3,
+                    "{stem}/{k} differs by {diff}: regenerate with make-example"
+                );
+            }
         }
     }
 

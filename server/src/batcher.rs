@@ -388,17 +388,30 @@ fn run_batch<B: Backend>(backend: &mut B, batch: &mut Vec<Queued>, buf: &mut Buf
             &mut buf.lengths[..n * OUTPUT_DIM],
             n,
         );
-        // Scatter: only finite rows of sessions whose owner is unchanged.
-        for (r, &i) in buf.rows.iter().enumerate() {
-            let answer = match &result {
-                Err(e) => Err(StepError::Model(e.to_string())),
-                Ok(()) => {
+        match result {
+            // Scatter: only finite rows of sessions whose owner is unchanged.
+            Ok(()) => {
+                for (r, &i) in buf.rows.iter().enumerate() {
                     let hidden = &buf.hidden[r * STATE_DIM..(r + 1) * STATE_DIM];
                     let lengths = &buf.lengths[r * OUTPUT_DIM..(r + 1) * OUTPUT_DIM];
-                    scatter(&batch[i].job, hidden, lengths)
+                    answers[i] = Some(scatter(&batch[i].job, hidden, lengths));
                 }
-            };
-            answers[i] = Some(answer);
+            }
+            // The engine refuses a whole batch for one bad row; isolate it by
+            // re-running the rows one at a time, so one session's problem
+            // never fails another session's frame.
+            Err(e) if n > 1 => {
+                tracing::warn!(error = %e, batch = n, "batched step failed; retrying its rows one by one");
+                for (r, &i) in buf.rows.iter().enumerate() {
+                    let input = &buf.inputs[r * INPUT_DIM..(r + 1) * INPUT_DIM];
+                    answers[i] = Some(step_alone(backend, &batch[i].job, input));
+                }
+            }
+            Err(e) => {
+                for &i in &buf.rows {
+                    answers[i] = Some(Err(StepError::Model(e.to_string())));
+                }
+            }
         }
     }
     let queue_depth = shared.lock().len;
@@ -409,6 +422,24 @@ fn run_batch<B: Backend>(backend: &mut B, batch: &mut Vec<Queued>, buf: &mut Buf
         let answer = answer.unwrap_or_else(|| Err(StepError::Model("frame was not run".into())));
         // A dropped receiver means the stream went away; nothing to do.
         let _ = item.job.reply.send(answer);
+    }
+}
+
+/// Run one frame on its own (state re-read from the session, since a failed
+/// step may have touched the gathered buffer).
+fn step_alone<B: Backend>(backend: &mut B, job: &FrameJob, input: &[f32]) -> StepResult {
+    let mut hidden = vec![0.0f32; STATE_DIM];
+    {
+        let st = job.session.lock();
+        if !st.accepts(job.epoch) {
+            return Err(StepError::Superseded);
+        }
+        hidden.copy_from_slice(&st.hidden);
+    }
+    let mut lengths = [0.0f32; OUTPUT_DIM];
+    match backend.step(input, &mut hidden, &mut lengths, 1) {
+        Ok(()) => scatter(job, &hidden, &lengths),
+        Err(e) => Err(StepError::Model(e.to_string())),
     }
 }
 
@@ -455,6 +486,11 @@ mod tests {
             crate::backend::check_step_shapes(inputs, hidden, out, batch)?;
             if self.fail.load(Ordering::Relaxed) {
                 return Err(BackendError::Model("fake failure".into()));
+            }
+            // x[2] = 999 makes the whole call fail, as the real engine does
+            // when one row goes non-finite.
+            if inputs.chunks_exact(INPUT_DIM).any(|x| x[2] == 999.0) {
+                return Err(BackendError::Model("row refused".into()));
             }
             std::thread::sleep(self.delay);
             let mut tags = Vec::new();
@@ -527,6 +563,8 @@ mod tests {
             assert_eq!(a.session.lock().hidden[5], expected_sum[s]);
         }
         let log = log.lock().unwrap();
+        // The first entry is the warm-up step.
+        let log = &log[1..];
         assert_eq!(log.iter().map(Vec::len).sum::<usize>(), 100);
         for tags in log.iter() {
             assert!(tags.len() <= 8);
@@ -647,6 +685,35 @@ mod tests {
         let (j, rx) = job(&a.session, a.epoch, 1.0, 0.0);
         batcher.submit(j).unwrap();
         assert_eq!(rx.await.unwrap().unwrap().frames_seen, 2);
+    }
+
+    #[tokio::test]
+    async fn a_row_that_fails_the_whole_step_fails_only_its_own_frame() {
+        // A long delay on the first frame makes the next two share a batch.
+        let fake = Fake { delay: Duration::from_millis(30), ..Fake::default() };
+        let log = fake.log.clone();
+        let batcher = Batcher::start(fake, config(8, 0, 100)).unwrap();
+        let (store, _g) = SessionStore::new(10, Duration::from_secs(60));
+        let a = store.open(session_config()).unwrap();
+        let b = store.open(session_config()).unwrap();
+        let c = store.open(session_config()).unwrap();
+        let (jc, rc) = job(&c.session, c.epoch, 1.0, 2.0);
+        batcher.submit(jc).unwrap();
+        tokio::time::sleep(Duration::from_millis(5)).await;
+        let (mut ja, ra) = job(&a.session, a.epoch, 4.0, 0.0);
+        ja.input[2] = 999.0;
+        let (jb, rb) = job(&b.session, b.epoch, 3.0, 1.0);
+        batcher.submit(ja).unwrap();
+        batcher.submit(jb).unwrap();
+        rc.await.unwrap().unwrap();
+        assert!(matches!(ra.await.unwrap(), Err(StepError::Model(_))));
+        let ob = rb.await.unwrap().unwrap();
+        assert_eq!(ob.frames_seen, 1);
+        assert_eq!(ob.lengths[0], 3.0);
+        assert_eq!(a.session.lock().frames_seen(), 0);
+        assert!(a.session.lock().hidden.iter().all(|&v| v == 0.0));
+        // The retry ran b alone (a batch of one after the failed pair).
+        assert_eq!(log.lock().unwrap().last().map(Vec::len), Some(1));
     }
 
     #[tokio::test]

@@ -8,15 +8,17 @@
 //! blapose-model's fast engines, tests plug in fakes.
 
 use std::collections::HashMap;
+use std::sync::Arc;
 
 use blapose_model::weights::{self, LoadedWeights};
-use blapose_model::{ModelError, ModelKind};
+use blapose_model::{ModelError, ModelKind, OfflineBiGruEngine, OnlineGruEngine};
 use blapose_proto::v1 as pb;
 use sha2::{Digest, Sha256};
 
 use crate::backend::{Backend, BackendError, SequenceBackend};
 use crate::config::WeightsSource;
 use crate::engine;
+use crate::error::ServerError;
 
 /// The embedded online GRU weights, if the build found them.
 pub fn embedded_gru() -> Option<&'static [u8]> {
@@ -149,22 +151,27 @@ pub trait ModelProvider: Send + Sync + 'static {
     fn describe(&self) -> Vec<pb::ModelDescription>;
 }
 
-/// The real provider: blapose-model's fast engines on loaded weights.
+/// The real provider: blapose-model's fast engines on loaded weights,
+/// built once and shared by every backend.
 #[derive(Debug, Clone)]
 pub struct WeightsProvider {
     gru: LoadedModel,
     bigru: LoadedModel,
-    threads: usize,
+    online: Arc<OnlineGruEngine>,
+    offline: Arc<OfflineBiGruEngine>,
 }
 
+/// Scratch preallocated per online backend (it grows if a batch is larger).
+const SCRATCH_BATCH: usize = 64;
+
 impl WeightsProvider {
-    /// Load both models.
-    pub fn load(gru: &WeightsSource, bigru: &WeightsSource, threads: usize) -> Result<Self, WeightsError> {
-        Ok(Self {
-            gru: LoadedModel::load(gru, ModelKind::Gru)?,
-            bigru: LoadedModel::load(bigru, ModelKind::BiGru)?,
-            threads: threads.max(1),
-        })
+    /// Load both models and build their engines with `threads` workers.
+    pub fn load(gru: &WeightsSource, bigru: &WeightsSource, threads: usize) -> Result<Self, ServerError> {
+        let gru = LoadedModel::load(gru, ModelKind::Gru)?;
+        let bigru = LoadedModel::load(bigru, ModelKind::BiGru)?;
+        let online = engine::online_engine(&gru.weights, threads)?;
+        let offline = engine::offline_engine(&bigru.weights, threads)?;
+        Ok(Self { gru, bigru, online, offline })
     }
 
     /// The online model's weights.
@@ -180,11 +187,11 @@ impl WeightsProvider {
 
 impl ModelProvider for WeightsProvider {
     fn online(&self) -> Result<Box<dyn Backend>, BackendError> {
-        Ok(Box::new(engine::GruBackend::new(&self.gru.weights, self.threads)?))
+        Ok(Box::new(engine::GruBackend::new(self.online.clone(), SCRATCH_BATCH)))
     }
 
     fn offline(&self) -> Result<Box<dyn SequenceBackend>, BackendError> {
-        Ok(Box::new(engine::BiGruBackend::new(&self.bigru.weights)?))
+        Ok(Box::new(engine::BiGruBackend::new(self.offline.clone())))
     }
 
     fn describe(&self) -> Vec<pb::ModelDescription> {

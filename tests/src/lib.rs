@@ -21,10 +21,12 @@ use std::time::Duration;
 use blapose_client::{Client, ClientConfig, Coordinates, KeypointLayout, Sequence};
 use blapose_core::bones::adjust_pose;
 use blapose_core::camera::normalize_screen;
-use blapose_core::skeleton::{NUM_BONES, NUM_JOINTS};
+use blapose_core::skeleton::NUM_BONES;
 use blapose_core::{BoneLengths, Pose};
 use blapose_model::weights::{self, LoadedWeights};
-use blapose_model::{ModelKind, OfflineBiGruEngine, OnlineGruEngine, INPUT_DIM, OUTPUT_DIM, STATE_DIM};
+use blapose_model::{
+    ModelKind, OfflineBiGruEngine, OnlineGruEngine, INPUT_DIM, OUTPUT_DIM, STATE_DIM,
+};
 use blapose_server::{ServerConfig, ServerHandle, WeightsSource};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -40,7 +42,10 @@ pub fn test_weights(kind: ModelKind) -> LoadedWeights {
     let random = LoadedWeights::random(kind, WEIGHTS_SEED).expect("random weights");
     let mut tensors = random.tensors().clone();
     if let Some(fc) = tensors.get(blapose_model::names::FC_WEIGHT) {
-        let positive = fc.abs().and_then(|t| t.affine(FC_SCALE, 0.0)).expect("scale fc");
+        let positive = fc
+            .abs()
+            .and_then(|t| t.affine(FC_SCALE, 0.0))
+            .expect("scale fc");
         tensors.insert(blapose_model::names::FC_WEIGHT.to_string(), positive);
     }
     LoadedWeights::from_tensors(tensors, random.meta.clone()).expect("valid weights")
@@ -53,7 +58,10 @@ pub fn weights_dir() -> &'static Path {
     DIR.get_or_init(|| {
         let dir = std::env::temp_dir().join(format!("blapose-tests-{}", std::process::id()));
         std::fs::create_dir_all(&dir).expect("temp dir");
-        for (kind, name) in [(ModelKind::Gru, "gru.safetensors"), (ModelKind::BiGru, "bigru.safetensors")] {
+        for (kind, name) in [
+            (ModelKind::Gru, "gru.safetensors"),
+            (ModelKind::BiGru, "bigru.safetensors"),
+        ] {
             let w = test_weights(kind);
             let bytes = weights::to_bytes(w.tensors(), &w.meta).expect("serialize weights");
             std::fs::write(dir.join(name), bytes).expect("write weights");
@@ -92,9 +100,13 @@ impl TestServer {
     /// Start a server with `config` (its `addr` is ignored: the listener is
     /// bound to an ephemeral loopback port).
     pub async fn start(config: ServerConfig) -> TestServer {
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind loopback");
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+            .await
+            .expect("bind loopback");
         let addr = listener.local_addr().expect("local addr");
-        let handle = blapose_server::spawn(config, listener).await.expect("server starts");
+        let handle = blapose_server::spawn(config, listener)
+            .await
+            .expect("server starts");
         TestServer { handle, addr }
     }
 
@@ -161,10 +173,15 @@ pub fn synthetic_sequence(seed: u64, frames: usize, layout: KeypointLayout) -> S
     let mut rng = StdRng::seed_from_u64(seed);
     let j = layout.num_joints();
     let mut keypoints = Vec::with_capacity(frames * j * 2);
-    let (cx, cy) = (rng.random_range(300.0..700.0f32), rng.random_range(300.0..700.0f32));
+    let (cx, cy) = (
+        rng.random_range(300.0..700.0f32),
+        rng.random_range(300.0..700.0f32),
+    );
     for t in 0..frames {
         for k in 0..j {
-            keypoints.push(cx + 8.0 * k as f32 + 3.0 * (t as f32 * 0.2).sin() + rng.random_range(-2.0..2.0));
+            keypoints.push(
+                cx + 8.0 * k as f32 + 3.0 * (t as f32 * 0.2).sin() + rng.random_range(-2.0..2.0),
+            );
             keypoints.push(cy + 20.0 * k as f32 - 150.0 + rng.random_range(-2.0..2.0));
         }
     }
@@ -202,7 +219,8 @@ impl Reference {
     pub fn new() -> Reference {
         Reference {
             gru: OnlineGruEngine::new(&test_weights(ModelKind::Gru), 1).expect("gru engine"),
-            bigru: OfflineBiGruEngine::new(&test_weights(ModelKind::BiGru), 1).expect("bigru engine"),
+            bigru: OfflineBiGruEngine::new(&test_weights(ModelKind::BiGru), 1)
+                .expect("bigru engine"),
         }
     }
 
@@ -236,7 +254,9 @@ impl Reference {
         let mut poses = Vec::with_capacity(seq.len());
         let mut lengths = Vec::with_capacity(seq.len());
         for (t, x) in inputs.chunks_exact(INPUT_DIM).enumerate() {
-            self.gru.step(x, &mut hidden, &mut out, &mut scratch).expect("gru step");
+            self.gru
+                .step(x, &mut hidden, &mut out, &mut scratch)
+                .expect("gru step");
             for (s, v) in sum.iter_mut().zip(&out) {
                 *s += f64::from(*v);
             }
@@ -249,20 +269,34 @@ impl Reference {
 
     /// Offline Bi-GRU results for `seq`.
     pub fn offline(&self, seq: &Sequence) -> (Vec<Pose>, BoneLengths) {
-        let lengths = self.bigru.predict(&Reference::model_inputs(seq)).expect("bigru");
-        let poses = seq.pose_3d.iter().map(|p| adjust_pose(p, &lengths).expect("adjust")).collect();
+        let lengths = self
+            .bigru
+            .predict(&Reference::model_inputs(seq))
+            .expect("bigru");
+        let poses = seq
+            .pose_3d
+            .iter()
+            .map(|p| adjust_pose(p, &lengths).expect("adjust"))
+            .collect();
         (poses, lengths)
     }
 }
 
 /// Largest absolute difference between two poses.
 pub fn pose_diff(a: &Pose, b: &Pose) -> f32 {
-    a.iter().flatten().zip(b.iter().flatten()).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+    a.iter()
+        .flatten()
+        .zip(b.iter().flatten())
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
 }
 
 /// Largest absolute difference between two length vectors.
 pub fn lengths_diff(a: &BoneLengths, b: &BoneLengths) -> f32 {
-    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
 }
 
 /// Tolerance for server-vs-library comparisons (metres): batched and
@@ -273,6 +307,3 @@ pub const TOLERANCE: f32 = 2e-5;
 pub fn workspace_root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
 }
-
-/// Number of joints of the skeleton (re-exported for tests).
-pub const JOINTS: usize = NUM_JOINTS;

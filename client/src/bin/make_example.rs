@@ -9,21 +9,10 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
-use blapose_client::example::{make_example, ExampleConfig};
+use blapose_client::example::{clip_name_and_stature, make_example, ExampleConfig};
 use blapose_client::report::pose_metrics;
 use blapose_data::npz::{read_npz, write_npz};
 use clap::Parser;
-
-/// Known clips: npz key, output name, stature factor of the example person.
-/// The factors vary the person between examples (0.96-1.04 of a ~1.75 m
-/// adult); they are our choice, not measurements.
-const CLIPS: [(&str, &str, f32); 5] = [
-    ("subject02/02_02", "cmu_02_02_walk", 1.00),
-    ("subject09/09_01", "cmu_09_01_run", 0.96),
-    ("subject13/13_32", "cmu_13_32_jump", 1.04),
-    ("subject20/20_06", "cmu_20_06_march", 0.98),
-    ("subject21/21_11", "cmu_21_11_highfive", 1.02),
-];
 
 /// Build replay examples (2D keypoints from a synthetic camera, a plausibly
 /// wrong lifted pose and the ground truth) from CMU motion capture clips.
@@ -69,11 +58,7 @@ fn main() -> Result<()> {
         "example", "frames", "depth (m)", "MPJPE (mm)", "bone err (mm)"
     );
     for key in keys {
-        let (name, stature) = CLIPS
-            .iter()
-            .find(|(k, _, _)| *k == key)
-            .map(|(_, n, s)| (n.to_string(), *s))
-            .unwrap_or_else(|| (format!("cmu_{}", key.replace('/', "_")), 1.0));
+        let (name, stature) = clip_name_and_stature(&key);
         let world = npz.poses(&key)?;
         let config = ExampleConfig {
             seed: args.seed,

@@ -1,14 +1,31 @@
+use blapose_lifters::*;
 use candle_core::{Device, Tensor};
 use std::time::Instant;
+fn time(iters: usize, mut f: impl FnMut()) -> f64 {
+    for _ in 0..3 { f(); }
+    let t = Instant::now();
+    for _ in 0..iters { f(); }
+    t.elapsed().as_secs_f64() / iters as f64
+}
 fn main() {
-    for (m, k, n) in [(81usize, 102usize, 1024usize), (27, 3072, 1024), (27, 1024, 1024), (9, 3072, 1024), (1, 3072, 1024), (1, 1024, 51)] {
-        let a = Tensor::rand(-1f32, 1f32, (m, k), &Device::Cpu).unwrap();
-        let b = Tensor::rand(-1f32, 1f32, (k, n), &Device::Cpu).unwrap();
-        for _ in 0..3 { a.matmul(&b).unwrap(); }
-        let t = Instant::now();
-        let iters = 50;
-        for _ in 0..iters { std::hint::black_box(a.matmul(&b).unwrap()); }
-        let dt = t.elapsed().as_secs_f64() / iters as f64;
-        println!("{m}x{k}x{n}: {:.3} ms, {:.1} GFLOP/s", dt * 1e3, 2.0 * (m * k * n) as f64 / dt / 1e9);
+    let which = std::env::args().nth(1).unwrap_or_default();
+    let iters: usize = std::env::args().nth(2).and_then(|s| s.parse().ok()).unwrap_or(30);
+    let w243 = Tensor::rand(-1f32, 1f32, (1, 243, 17, 2), &Device::Cpu).unwrap();
+    if which.is_empty() || which == "vp" {
+        let vp = VideoPose3d::random(VideoPose3dConfig::receptive_field_243(), 0).unwrap();
+        let d = time(iters, || { std::hint::black_box(vp.predict_frame(&w243).unwrap()); });
+        println!("videopose {:.2} ms ({:.1} GFLOP/s)", d*1e3, 0.352 / d);
+    }
+    if which.is_empty() || which == "pf" {
+        let pf = PoseFormer::random(PoseFormerConfig::frames_81(), 0).unwrap();
+        let w = Tensor::rand(-1f32, 1f32, (1, 81, 17, 2), &Device::Cpu).unwrap();
+        let d = time(iters, || { std::hint::black_box(pf.predict_frame(&w).unwrap()); });
+        println!("poseformer {:.2} ms", d*1e3);
+    }
+    if which.is_empty() || which == "an" {
+        let an = Anatomy3d::random(Anatomy3dConfig::receptive_field_243(), 0).unwrap();
+        let l = Tensor::rand(0f32, 1f32, (1, 16), &Device::Cpu).unwrap();
+        let d = time(iters, || { std::hint::black_box(an.predict_frame_with(&w243, None, &l).unwrap()); });
+        println!("anatomy3d {:.2} ms", d*1e3);
     }
 }

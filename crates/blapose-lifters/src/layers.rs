@@ -13,10 +13,11 @@
 //! `running_mean`, `running_var`) and shapes (`Conv1d`: `(out, in, k)`,
 //! `Linear`: `(out, in)`), so converted checkpoints load unchanged.
 
-use candle_core::{Tensor, D};
+use candle_core::{DType, Storage, Tensor, D};
 
 use crate::error::{LifterError, Result};
 use crate::init::torch_default;
+use crate::kernel::PackedMatrix;
 use crate::params::ParamLoader;
 
 /// PyTorch's default `BatchNorm1d` epsilon.
@@ -62,8 +63,13 @@ impl RawAffine {
         let (c_out, c_in, k) = self.weight.dims3()?;
         // (out, in, k) -> (k, in, out) -> (k·in, out): row `j·in + c` holds
         // tap `j` of input channel `c`, matching the time-major im2col.
-        let w = self.weight.permute((2, 1, 0))?.contiguous()?.reshape((k * c_in, c_out))?;
-        Ok(TemporalConv { kernel: k, dense: Dense { w, b: self.bias } })
+        let w = self.weight.permute((2, 1, 0))?.flatten_all()?.to_vec1::<f32>()?;
+        let b = match self.bias {
+            Some(b) => Some(b.to_dtype(DType::F32)?.to_vec1::<f32>()?),
+            None => None,
+        };
+        let w = PackedMatrix::new(&w, k * c_in, c_out);
+        Ok(TemporalConv { kernel: k, dense: Dense { w, b } })
     }
 
     /// Build the dense layer this (kernel-1) layer is.
@@ -92,27 +98,34 @@ impl BatchNorm {
     }
 }
 
-/// `y = x W + b` over the last dimension, `W` stored `(in, out)`.
+/// `y = x W + b` over the last dimension, `W` packed for [`PackedMatrix`].
 #[derive(Debug, Clone)]
 pub(crate) struct Dense {
-    w: Tensor,
-    b: Option<Tensor>,
+    w: PackedMatrix,
+    b: Option<Vec<f32>>,
 }
 
 impl Dense {
     pub(crate) fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let (k, n) = self.w.dims2()?;
+        let (k, n) = (self.w.k(), self.w.n());
         let mut dims = x.dims().to_vec();
-        let rows = x.elem_count() / k.max(1);
-        let y = x.contiguous()?.reshape((rows, k))?.matmul(&self.w)?;
-        let y = match &self.b {
-            Some(b) => y.broadcast_add(b)?,
-            None => y,
+        if dims.last() != Some(&k) {
+            return Err(LifterError::Shape { what: "dense input", expected: format!("(..., {k})"), got: dims });
+        }
+        let x = x.to_dtype(DType::F32)?.contiguous()?;
+        let y = {
+            let (storage, layout) = x.storage_and_layout();
+            let Storage::Cpu(cpu) = &*storage else {
+                return Err(LifterError::Config("the lifters run on the CPU only".into()));
+            };
+            let start = layout.start_offset();
+            let values = &cpu.as_slice::<f32>()?[start..start + x.elem_count()];
+            self.w.matmul(values, self.b.as_deref())
         };
         if let Some(last) = dims.last_mut() {
             *last = n;
         }
-        Ok(y.reshape(dims)?)
+        Ok(Tensor::from_vec(y, dims, x.device())?)
     }
 }
 

@@ -27,6 +27,7 @@
 pub mod anatomy;
 mod error;
 mod init;
+mod kernel;
 mod layers;
 mod params;
 pub mod poseformer;

@@ -10,6 +10,7 @@ pub mod adam;
 pub mod ansur;
 pub mod dataset;
 pub mod error;
+pub mod eval;
 pub mod fastnet;
 pub mod lengths;
 pub mod loader;

@@ -6,6 +6,7 @@ use std::time::Instant;
 
 use anyhow::Result;
 use blapose_core::skeleton::BONE_NAMES;
+use blapose_core::BoneLengths;
 use blapose_train::ansur::{load_population, AnsurPopulation};
 use blapose_train::dataset::TrainingSet;
 use blapose_train::lengths::{LengthSampler, LengthStrategy, TrainingLengthStats};
@@ -95,8 +96,63 @@ struct TrainArgs {
     data: Option<PathBuf>,
 }
 
+/// Arguments of `blapose eval`.
+#[derive(clap::Args, Debug)]
+struct EvalArgs {
+    /// Model kind: gru (online, running mean) or bigru (offline).
+    #[arg(long)]
+    model: String,
+    /// 2D input: sh (real Stacked Hourglass detections) or gt (projected ground truth).
+    #[arg(long, default_value = "sh")]
+    input: String,
+    /// Weights file (safetensors written by `blapose train`).
+    #[arg(long)]
+    weights: PathBuf,
+    /// Write the full report as JSON here.
+    #[arg(long)]
+    json: Option<PathBuf>,
+    /// Write the error-vs-frames plot (SVG) here (online GRU).
+    #[arg(long)]
+    plot: Option<PathBuf>,
+    /// Subjects to evaluate (comma separated).
+    #[arg(long, default_value = "S9,S11", value_delimiter = ',')]
+    subjects: Vec<String>,
+    /// Bi-GRU only: average the estimates of consecutive windows of this
+    /// many frames instead of one pass over the whole sequence (0 = whole).
+    #[arg(long, default_value_t = 0)]
+    chunk: usize,
+    /// Evaluate only every k-th trial (quick subsets; 1 = all).
+    #[arg(long, default_value_t = 1)]
+    every: usize,
+    /// Data root (default: $BLAPOSE_DATA or ../shared/data).
+    #[arg(long)]
+    data: Option<PathBuf>,
+}
+
 #[derive(Subcommand)]
 enum Command {
+    /// Evaluate bone-length predictions on Human3.6M (default S9 and S11,
+    /// all cameras, all sequences) beside the naive baselines.
+    Eval(Box<EvalArgs>),
+    /// Time training steps of the hand-written network on random input
+    /// (prints frames_per_second=...).
+    BenchTrain {
+        /// gru or bigru.
+        #[arg(long, default_value = "bigru")]
+        model: String,
+        /// Samples per batch.
+        #[arg(long, default_value_t = 64)]
+        batch: usize,
+        /// Frames per window.
+        #[arg(long, default_value_t = 64)]
+        seq_len: usize,
+        /// Timed steps (after one warm-up step).
+        #[arg(long, default_value_t = 5)]
+        steps: usize,
+        /// Weight of the running-mean loss (GRU).
+        #[arg(long, default_value_t = 0.0)]
+        per_frame_weight: f32,
+    },
     /// Train a bone-length model on synthetic sequences built from the
     /// Human3.6M training subjects (S1 S5 S6 S7 S8).
     Train(Box<TrainArgs>),
@@ -114,6 +170,10 @@ fn main() -> Result<()> {
     match cli.command {
         Command::DataReport { data } => data_report(data),
         Command::Train(args) => train(*args),
+        Command::Eval(args) => eval(*args),
+        Command::BenchTrain { model, batch, seq_len, steps, per_frame_weight } => {
+            bench_train(&model, batch, seq_len, steps, per_frame_weight)
+        }
     }
 }
 
@@ -233,5 +293,92 @@ fn train(a: TrainArgs) -> Result<()> {
     );
     println!("weights: {}", outcome.weights.display());
     println!("curve: {}", curve.display());
+    Ok(())
+}
+
+fn bench_train(model: &str, batch: usize, seq_len: usize, steps: usize, per_frame_weight: f32) -> Result<()> {
+    use blapose_train::fastnet::{FastNet, LossConfig};
+    use rand::{Rng, SeedableRng};
+    let kind: blapose_model::ModelKind = model.parse()?;
+    let w = blapose_model::LoadedWeights::random(kind, 0)?;
+    let net = FastNet::from_tensors(kind, w.tensors())?;
+    let mut rng = rand::rngs::StdRng::seed_from_u64(0);
+    let x: Vec<f32> = (0..batch * seq_len * 34).map(|_| rng.random_range(-1.0f32..1.0)).collect();
+    let y: Vec<f32> = (0..batch * 16).map(|_| rng.random_range(0.1f32..0.5)).collect();
+    let mut grad = vec![0.0f32; net.params.len()];
+    let cfg = LossConfig { running_mean_weight: per_frame_weight, ..Default::default() };
+    net.train_step(&x, &y, batch, seq_len, cfg, &mut rng, &mut grad);
+    let t0 = Instant::now();
+    for _ in 0..steps {
+        net.train_step(&x, &y, batch, seq_len, cfg, &mut rng, &mut grad);
+    }
+    let dt = t0.elapsed().as_secs_f64();
+    println!("{model} batch {batch} seq_len {seq_len}: {:.3} s/step", dt / steps as f64);
+    println!("frames_per_second={:.0}", (batch * seq_len * steps) as f64 / dt);
+    Ok(())
+}
+
+fn eval(a: EvalArgs) -> Result<()> {
+    use blapose_data::h36m::{H36m, Parts, ALL_SUBJECTS, TRAIN_SUBJECTS};
+    use blapose_train::dataset::{eval_sequences, subject_lengths, InputKind};
+    use blapose_train::eval::{evaluate, markdown, BiGruEstimator, GruEstimator, LengthEstimator};
+    let root = blapose_data::data_root(a.data.clone());
+    let kind: blapose_model::ModelKind = a.model.parse()?;
+    let input: InputKind = a.input.parse()?;
+    let weights = blapose_model::weights::load(&a.weights, kind)?;
+    let subjects: Vec<&str> = a.subjects.iter().map(String::as_str).collect();
+    if let Some(bad) = subjects.iter().find(|s| !ALL_SUBJECTS.contains(s)) {
+        anyhow::bail!("unknown subject {bad} (known: {})", ALL_SUBJECTS.join(","));
+    }
+    let t0 = Instant::now();
+    let all = H36m::load(&root, &ALL_SUBJECTS, Parts::POSES)?;
+    let lengths = subject_lengths(&all);
+    let parts = if input == InputKind::Sh { Parts::ALL } else { Parts::POSES };
+    let h36m = H36m::load(&root, &subjects, parts)?;
+    let mut trials = eval_sequences(&h36m, &subjects, input, &lengths)?;
+    if a.every > 1 {
+        trials = trials.into_iter().step_by(a.every).collect();
+    }
+    if trials.is_empty() {
+        anyhow::bail!("no trials for subjects {}", a.subjects.join(","));
+    }
+    eprintln!("loaded {} trials in {:.1}s", trials.len(), t0.elapsed().as_secs_f64());
+    let mean_of = |names: &[&str]| -> Result<BoneLengths> {
+        let ls: Vec<&BoneLengths> = names.iter().filter_map(|s| lengths.get(*s)).collect();
+        anyhow::ensure!(ls.len() == names.len(), "missing subject lengths");
+        Ok(std::array::from_fn(|b| ls.iter().map(|l| l[b]).sum::<f32>() / ls.len() as f32))
+    };
+    let baselines = [("training_mean", mean_of(&TRAIN_SUBJECTS)?), ("all_subjects_mean", mean_of(&ALL_SUBJECTS)?)];
+    let estimator: Box<dyn LengthEstimator> = match kind {
+        blapose_model::ModelKind::BiGru => Box::new(BiGruEstimator::new(&weights, a.chunk)?),
+        blapose_model::ModelKind::Gru => Box::new(GruEstimator::new(&weights)?),
+    };
+    let report = evaluate(
+        estimator.as_ref(),
+        &trials,
+        &baselines,
+        kind.as_str(),
+        input.name(),
+        &a.weights.display().to_string(),
+        &a.subjects,
+    )?;
+    println!("{}", markdown(&report));
+    println!(
+        "model pass: {:.1}s for {} frames ({:.0} frames/s)",
+        report.seconds,
+        report.frames,
+        report.frames as f64 / report.seconds.max(1e-9)
+    );
+    if let Some(p) = &a.json {
+        std::fs::write(p, serde_json::to_string_pretty(&report)?)?;
+    }
+    if let Some(p) = &a.plot {
+        if report.curve.is_empty() {
+            eprintln!("no error curve for the offline model; plot not written");
+        } else {
+            blapose_train::plot::error_curve(&report, p)?;
+            eprintln!("plot: {}", p.display());
+        }
+    }
     Ok(())
 }

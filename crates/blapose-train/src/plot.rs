@@ -81,3 +81,15 @@ pub fn training_curve(log: &Path, out: &Path) -> Result<(), TrainError> {
     }
     line_chart(out, "bone-length training", "step", "mean bone-length error (mm)", &series, false)
 }
+
+/// The online model's error against frames seen (log x), with the naive
+/// baselines as flat lines.
+pub fn error_curve(report: &crate::eval::EvalReport, out: &Path) -> Result<(), TrainError> {
+    let pts: Vec<(f64, f64)> = report.curve.iter().map(|c| (c.frames as f64, c.mean_bone_error_mm)).collect();
+    let (x0, x1) = (pts.first().map_or(1.0, |p| p.0), pts.last().map_or(1.0, |p| p.0));
+    let mut series = vec![(format!("{} ({} input), running mean", report.model, report.input), pts)];
+    for (name, s) in &report.baselines {
+        series.push((format!("baseline: {name}"), vec![(x0, s.mean_bone_error_mm), (x1, s.mean_bone_error_mm)]));
+    }
+    line_chart(out, "bone-length error vs frames seen", "frames seen", "mean bone-length error (mm)", &series, true)
+}

@@ -318,7 +318,8 @@ impl SynthSource {
             }
             _ => None,
         };
-        let flipped = cfg.flip_prob > 0.0 && rng.random::<f32>() < cfg.flip_prob;
+        // Always drawn, so the flip probability does not shift later draws.
+        let flipped = rng.random::<f32>() < cfg.flip_prob;
 
         let mut input = Vec::with_capacity(t_len * FRAME_DIM);
         for (t, p) in cam_poses.iter().enumerate() {

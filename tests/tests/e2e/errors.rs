@@ -5,7 +5,9 @@
 use blapose_client::{ClientError, FrameInput, KeypointLayout, SessionEvent};
 use blapose_proto::v1 as pb;
 use blapose_proto::v1::stream_request::Kind;
-use blapose_tests::{lengths_diff, pose_diff, synthetic_sequence, test_config, Reference, TestServer, TOLERANCE};
+use blapose_tests::{
+    lengths_diff, pose_diff, synthetic_sequence, test_config, Reference, TestServer, TOLERANCE,
+};
 use tonic::Code;
 
 fn status_of<T: std::fmt::Debug>(result: Result<T, ClientError>) -> tonic::Status {
@@ -15,10 +17,17 @@ fn status_of<T: std::fmt::Debug>(result: Result<T, ClientError>) -> tonic::Statu
     }
 }
 
-fn open_request(layout: i32, coordinates: Option<pb::input_format::Coordinates>, model: pb::Model) -> pb::StreamRequest {
+fn open_request(
+    layout: i32,
+    coordinates: Option<pb::input_format::Coordinates>,
+    model: pb::Model,
+) -> pb::StreamRequest {
     pb::StreamRequest {
         kind: Some(Kind::Open(pb::OpenSession {
-            input_format: Some(pb::InputFormat { layout, coordinates }),
+            input_format: Some(pb::InputFormat {
+                layout,
+                coordinates,
+            }),
             model: model as i32,
             client_label: "hostile".into(),
         })),
@@ -26,7 +35,10 @@ fn open_request(layout: i32, coordinates: Option<pb::input_format::Coordinates>,
 }
 
 fn image(width: u32, height: u32) -> Option<pb::input_format::Coordinates> {
-    Some(pb::input_format::Coordinates::ImageSize(pb::ImageSize { width, height }))
+    Some(pb::input_format::Coordinates::ImageSize(pb::ImageSize {
+        width,
+        height,
+    }))
 }
 
 #[tokio::test]
@@ -44,28 +56,76 @@ async fn bad_opens_and_first_messages_end_the_stream_with_the_right_code() {
     };
     let cases: Vec<(&str, pb::StreamRequest, Code)> = vec![
         ("frame before open", frame, Code::FailedPrecondition),
-        ("close before open", pb::StreamRequest { kind: Some(Kind::Close(pb::CloseSession {})) }, Code::FailedPrecondition),
-        ("empty request", pb::StreamRequest { kind: None }, Code::InvalidArgument),
-        ("zero width", open_request(h36m, image(0, 1000), pb::Model::Unspecified), Code::InvalidArgument),
-        ("zero height", open_request(h36m, image(1000, 0), pb::Model::Unspecified), Code::InvalidArgument),
-        ("unspecified layout", open_request(0, image(1000, 1000), pb::Model::Unspecified), Code::InvalidArgument),
-        ("unknown layout", open_request(99, image(1000, 1000), pb::Model::Unspecified), Code::InvalidArgument),
-        ("negative layout", open_request(-1, image(1000, 1000), pb::Model::Unspecified), Code::InvalidArgument),
-        ("no coordinates", open_request(h36m, None, pb::Model::Unspecified), Code::InvalidArgument),
         (
-            "normalized = false",
-            open_request(h36m, Some(pb::input_format::Coordinates::Normalized(false)), pb::Model::Unspecified),
+            "close before open",
+            pb::StreamRequest {
+                kind: Some(Kind::Close(pb::CloseSession {})),
+            },
+            Code::FailedPrecondition,
+        ),
+        (
+            "empty request",
+            pb::StreamRequest { kind: None },
             Code::InvalidArgument,
         ),
-        ("bigru on a stream", open_request(h36m, image(1000, 1000), pb::Model::OfflineBigru), Code::InvalidArgument),
+        (
+            "zero width",
+            open_request(h36m, image(0, 1000), pb::Model::Unspecified),
+            Code::InvalidArgument,
+        ),
+        (
+            "zero height",
+            open_request(h36m, image(1000, 0), pb::Model::Unspecified),
+            Code::InvalidArgument,
+        ),
+        (
+            "unspecified layout",
+            open_request(0, image(1000, 1000), pb::Model::Unspecified),
+            Code::InvalidArgument,
+        ),
+        (
+            "unknown layout",
+            open_request(99, image(1000, 1000), pb::Model::Unspecified),
+            Code::InvalidArgument,
+        ),
+        (
+            "negative layout",
+            open_request(-1, image(1000, 1000), pb::Model::Unspecified),
+            Code::InvalidArgument,
+        ),
+        (
+            "no coordinates",
+            open_request(h36m, None, pb::Model::Unspecified),
+            Code::InvalidArgument,
+        ),
+        (
+            "normalized = false",
+            open_request(
+                h36m,
+                Some(pb::input_format::Coordinates::Normalized(false)),
+                pb::Model::Unspecified,
+            ),
+            Code::InvalidArgument,
+        ),
+        (
+            "bigru on a stream",
+            open_request(h36m, image(1000, 1000), pb::Model::OfflineBigru),
+            Code::InvalidArgument,
+        ),
         (
             "no input format",
-            pb::StreamRequest { kind: Some(Kind::Open(pb::OpenSession::default())) },
+            pb::StreamRequest {
+                kind: Some(Kind::Open(pb::OpenSession::default())),
+            },
             Code::InvalidArgument,
         ),
         (
             "unknown session id",
-            pb::StreamRequest { kind: Some(Kind::Resume(pb::ResumeSession { session_id: "0123456789abcdef0123456789abcdef".into() })) },
+            pb::StreamRequest {
+                kind: Some(Kind::Resume(pb::ResumeSession {
+                    session_id: "0123456789abcdef0123456789abcdef".into(),
+                })),
+            },
             Code::NotFound,
         ),
     ];
@@ -75,7 +135,9 @@ async fn bad_opens_and_first_messages_end_the_stream_with_the_right_code() {
         assert!(!status.message().is_empty(), "{what}: empty message");
     }
     // The server is unharmed: a proper open still works.
-    let ok = client.open_raw(open_request(h36m, image(1000, 1000), pb::Model::OnlineGru)).await;
+    let ok = client
+        .open_raw(open_request(h36m, image(1000, 1000), pb::Model::OnlineGru))
+        .await;
     assert!(ok.is_ok(), "{ok:?}");
     server.shutdown().await;
 }
@@ -85,9 +147,15 @@ async fn a_second_open_on_a_stream_is_failed_precondition() {
     let server = TestServer::start(test_config()).await;
     let client = server.client().await;
     let seq = synthetic_sequence(31, 1, KeypointLayout::H36m17);
-    let session = client.open_session(seq.input_format, None).await.expect("open");
+    let session = client
+        .open_session(seq.input_format, None)
+        .await
+        .expect("open");
     let (_, sender, mut receiver) = session.split();
-    sender.send_raw(open_request(1, image(1000, 1000), pb::Model::Unspecified)).await.expect("send");
+    sender
+        .send_raw(open_request(1, image(1000, 1000), pb::Model::Unspecified))
+        .await
+        .expect("send");
     let err = receiver.next().await.expect_err("stream ends");
     assert_eq!(err.code(), Some(Code::FailedPrecondition), "{err}");
     server.shutdown().await;
@@ -111,20 +179,38 @@ async fn bad_frames_are_rejected_in_band_and_do_not_corrupt_the_session() {
         frame
     };
     let bad: Vec<(&str, FrameInput)> = vec![
-        ("16 keypoints for h36m17", with(&|f| f.keypoints_2d.truncate(16))),
+        (
+            "16 keypoints for h36m17",
+            with(&|f| f.keypoints_2d.truncate(16)),
+        ),
         ("18 keypoints", with(&|f| f.keypoints_2d.push([1.0, 2.0]))),
         ("NaN keypoint", with(&|f| f.keypoints_2d[3][1] = f32::NAN)),
-        ("+Inf keypoint", with(&|f| f.keypoints_2d[0][0] = f32::INFINITY)),
+        (
+            "+Inf keypoint",
+            with(&|f| f.keypoints_2d[0][0] = f32::INFINITY),
+        ),
         ("-Inf pose", with(&|f| f.pose_3d[7][2] = f32::NEG_INFINITY)),
         ("NaN pose", with(&|f| f.pose_3d[16][0] = f32::NAN)),
         ("zero-length bone", with(&|f| f.pose_3d[2] = f.pose_3d[1])),
         ("huge coordinate", with(&|f| f.keypoints_2d[5][0] = 3.0e38)),
-        ("wrong confidence count", with(&|f| f.confidence = vec![1.0; 5])),
-        ("negative confidence", with(&|f| f.confidence = vec![-1.0; 17])),
-        ("NaN confidence", with(&|f| f.confidence = vec![f32::NAN; 17])),
+        (
+            "wrong confidence count",
+            with(&|f| f.confidence = vec![1.0; 5]),
+        ),
+        (
+            "negative confidence",
+            with(&|f| f.confidence = vec![-1.0; 17]),
+        ),
+        (
+            "NaN confidence",
+            with(&|f| f.confidence = vec![f32::NAN; 17]),
+        ),
     ];
 
-    let session = client.open_session(seq.input_format, None).await.expect("open");
+    let session = client
+        .open_session(seq.input_format, None)
+        .await
+        .expect("open");
     let (_, sender, mut receiver) = session.split();
     sender.send(&good(0)).await.expect("send");
     for (_, frame) in &bad {
@@ -134,7 +220,12 @@ async fn bad_frames_are_rejected_in_band_and_do_not_corrupt_the_session() {
     let mut short_pose = seq.frame(1).to_proto();
     short_pose.pose_3d.pop();
     short_pose.frame_index = 200;
-    sender.send_raw(pb::StreamRequest { kind: Some(Kind::Frame(short_pose)) }).await.expect("send");
+    sender
+        .send_raw(pb::StreamRequest {
+            kind: Some(Kind::Frame(short_pose)),
+        })
+        .await
+        .expect("send");
     sender.send(&good(1)).await.expect("send");
     sender.close().await.expect("close");
 
@@ -154,8 +245,17 @@ async fn bad_frames_are_rejected_in_band_and_do_not_corrupt_the_session() {
     }
     match receiver.next().await.expect("answer") {
         Some(SessionEvent::Rejected(r)) => {
-            assert_eq!((r.code, r.frame_index), (Code::InvalidArgument, 200), "{}", r.message);
-            assert!(r.message.contains("50"), "message should name the count: {}", r.message);
+            assert_eq!(
+                (r.code, r.frame_index),
+                (Code::InvalidArgument, 200),
+                "{}",
+                r.message
+            );
+            assert!(
+                r.message.contains("50"),
+                "message should name the count: {}",
+                r.message
+            );
         }
         other => panic!("short pose: {other:?}"),
     }
@@ -187,12 +287,16 @@ async fn a_hostile_session_does_not_affect_a_good_one() {
     let hostile_client = client.clone();
     let hostile = tokio::spawn(async move {
         let seq = synthetic_sequence(34, 1, KeypointLayout::Coco17);
-        let session = hostile_client.open_session(seq.input_format, None).await.expect("open");
+        let session = hostile_client
+            .open_session(seq.input_format, None)
+            .await
+            .expect("open");
         let (_, sender, mut receiver) = session.split();
         let mut frame = seq.frame(0);
         for t in 0..200u64 {
             frame.frame_index = t;
-            frame.keypoints_2d[(t % 17) as usize][0] = if t % 2 == 0 { f32::NAN } else { f32::INFINITY };
+            frame.keypoints_2d[(t % 17) as usize][0] =
+                if t % 2 == 0 { f32::NAN } else { f32::INFINITY };
             sender.send(&frame).await.expect("send");
         }
         sender.close().await.expect("close");
@@ -205,11 +309,19 @@ async fn a_hostile_session_does_not_affect_a_good_one() {
         }
         rejected
     });
-    let good = blapose_client::replay(&client, &seq, &blapose_client::ReplayOptions::default(), |_| {})
-        .await
-        .expect("good session");
+    let good = blapose_client::replay(
+        &client,
+        &seq,
+        &blapose_client::ReplayOptions::default(),
+        |_| {},
+    )
+    .await
+    .expect("good session");
     for t in 0..seq.len() {
-        assert!(pose_diff(&good.adjusted[t], &want.0[t]) < TOLERANCE, "frame {t}");
+        assert!(
+            pose_diff(&good.adjusted[t], &want.0[t]) < TOLERANCE,
+            "frame {t}"
+        );
     }
     assert_eq!(hostile.await.expect("hostile task"), 200);
     server.shutdown().await;
@@ -217,15 +329,19 @@ async fn a_hostile_session_does_not_affect_a_good_one() {
 
 #[tokio::test]
 async fn oversize_messages_are_out_of_range() {
-    let config = blapose_server::ServerConfig { max_message_bytes: 64 * 1024, ..test_config() };
+    let config = blapose_server::ServerConfig {
+        max_message_bytes: 64 * 1024,
+        ..test_config()
+    };
     let server = TestServer::start(config).await;
     let client = server.client().await;
 
     // Offline: 1,000 frames is ~340 KB, over the 64 KiB limit.
     let seq = synthetic_sequence(35, 1000, KeypointLayout::H36m17);
-    let err = blapose_client::adjust_offline(&client, &seq, blapose_client::ModelChoice::OfflineBiGru)
-        .await
-        .expect_err("too big");
+    let err =
+        blapose_client::adjust_offline(&client, &seq, blapose_client::ModelChoice::OfflineBiGru)
+            .await
+            .expect_err("too big");
     assert_eq!(err.code(), Some(Code::OutOfRange), "{err}");
     // A smaller one on the same connection is fine.
     let small = synthetic_sequence(36, 50, KeypointLayout::H36m17);
@@ -234,11 +350,19 @@ async fn oversize_messages_are_out_of_range() {
         .expect("within the limit");
 
     // Streaming: one frame with 100,000 keypoint values ends the stream.
-    let session = client.open_session(small.input_format, None).await.expect("open");
+    let session = client
+        .open_session(small.input_format, None)
+        .await
+        .expect("open");
     let (_, sender, mut receiver) = session.split();
     let mut huge = small.frame(0).to_proto();
     huge.keypoints_2d = vec![1.0; 100_000];
-    sender.send_raw(pb::StreamRequest { kind: Some(Kind::Frame(huge)) }).await.expect("send");
+    sender
+        .send_raw(pb::StreamRequest {
+            kind: Some(Kind::Frame(huge)),
+        })
+        .await
+        .expect("send");
     let err = receiver.next().await.expect_err("stream ends");
     assert_eq!(err.code(), Some(Code::OutOfRange), "{err}");
     server.shutdown().await;
@@ -250,61 +374,122 @@ async fn bad_offline_requests_are_invalid_argument() {
     let client = server.client().await;
     let seq = synthetic_sequence(37, 10, KeypointLayout::H36m17);
     let good = pb::AdjustSequenceRequest {
-        input_format: Some(blapose_client::InputFormat::pixels(KeypointLayout::H36m17, 1000, 1002).to_proto()),
+        input_format: Some(
+            blapose_client::InputFormat::pixels(KeypointLayout::H36m17, 1000, 1002).to_proto(),
+        ),
         model: pb::Model::OfflineBigru as i32,
         num_frames: 10,
         keypoints_2d: seq.keypoints_2d.clone(),
         confidence: vec![],
         poses_3d: seq.pose_3d.as_flattened().as_flattened().to_vec(),
     };
-    client.adjust_sequence_raw(good.clone()).await.expect("good request");
+    client
+        .adjust_sequence_raw(good.clone())
+        .await
+        .expect("good request");
     let mut cases: Vec<(&str, pb::AdjustSequenceRequest)> = Vec::new();
-    cases.push(("frame count mismatch", pb::AdjustSequenceRequest { num_frames: 11, ..good.clone() }));
-    cases.push(("zero frames", pb::AdjustSequenceRequest { num_frames: 0, keypoints_2d: vec![], poses_3d: vec![], ..good.clone() }));
+    cases.push((
+        "frame count mismatch",
+        pb::AdjustSequenceRequest {
+            num_frames: 11,
+            ..good.clone()
+        },
+    ));
+    cases.push((
+        "zero frames",
+        pb::AdjustSequenceRequest {
+            num_frames: 0,
+            keypoints_2d: vec![],
+            poses_3d: vec![],
+            ..good.clone()
+        },
+    ));
     let mut nan = good.clone();
     nan.keypoints_2d[100] = f32::NAN;
     cases.push(("NaN keypoint", nan));
     let mut inf = good.clone();
     inf.poses_3d[51 * 4 + 2] = f32::INFINITY;
     cases.push(("Inf pose", inf));
-    cases.push(("no input format", pb::AdjustSequenceRequest { input_format: None, ..good.clone() }));
+    cases.push((
+        "no input format",
+        pb::AdjustSequenceRequest {
+            input_format: None,
+            ..good.clone()
+        },
+    ));
     let mut layout = good.clone();
-    layout.input_format = Some(pb::InputFormat { layout: 42, ..good.input_format.clone().expect("format") });
+    layout.input_format = Some(pb::InputFormat {
+        layout: 42,
+        ..good.input_format.expect("format")
+    });
     cases.push(("unknown layout", layout));
     let mut size = good.clone();
-    size.input_format = Some(pb::InputFormat { coordinates: image(0, 0), ..good.input_format.clone().expect("format") });
+    size.input_format = Some(pb::InputFormat {
+        coordinates: image(0, 0),
+        ..good.input_format.expect("format")
+    });
     cases.push(("zero image size", size));
     for (what, req) in cases {
         let status = status_of(client.adjust_sequence_raw(req).await);
-        assert_eq!(status.code(), Code::InvalidArgument, "{what}: {}", status.message());
+        assert_eq!(
+            status.code(),
+            Code::InvalidArgument,
+            "{what}: {}",
+            status.message()
+        );
     }
     server.shutdown().await;
 }
 
 #[tokio::test]
 async fn bearer_token_is_required_when_configured() {
-    let config = blapose_server::ServerConfig { auth_token: Some("s3cret-token".into()), ..test_config() };
+    let config = blapose_server::ServerConfig {
+        auth_token: Some("s3cret-token".into()),
+        ..test_config()
+    };
     let server = TestServer::start(config).await;
     let format = synthetic_sequence(38, 1, KeypointLayout::H36m17).input_format;
 
     let anonymous = server.client().await;
-    assert_eq!(anonymous.model_info().await.expect_err("no token").code(), Some(Code::Unauthenticated));
     assert_eq!(
-        anonymous.open_session(format, None).await.expect_err("no token").code(),
+        anonymous.model_info().await.expect_err("no token").code(),
+        Some(Code::Unauthenticated)
+    );
+    assert_eq!(
+        anonymous
+            .open_session(format, None)
+            .await
+            .expect_err("no token")
+            .code(),
         Some(Code::Unauthenticated)
     );
     let wrong = anonymous.with_token(Some("s3cret-tokeN")).expect("token");
-    assert_eq!(wrong.model_info().await.expect_err("wrong token").code(), Some(Code::Unauthenticated));
-    assert_eq!(wrong.close_session("x").await.expect_err("wrong token").code(), Some(Code::Unauthenticated));
+    assert_eq!(
+        wrong.model_info().await.expect_err("wrong token").code(),
+        Some(Code::Unauthenticated)
+    );
+    assert_eq!(
+        wrong
+            .close_session("x")
+            .await
+            .expect_err("wrong token")
+            .code(),
+        Some(Code::Unauthenticated)
+    );
 
     let right = anonymous.with_token(Some("s3cret-token")).expect("token");
     right.model_info().await.expect("right token");
-    let session = right.open_session(format, None).await.expect("right token opens");
+    let session = right
+        .open_session(format, None)
+        .await
+        .expect("right token opens");
     session.close().await.expect("close");
 
     // Health stays reachable without a token (probes have none).
     let health = tonic_health::pb::health_client::HealthClient::new(anonymous.channel())
-        .check(tonic_health::pb::HealthCheckRequest { service: String::new() })
+        .check(tonic_health::pb::HealthCheckRequest {
+            service: String::new(),
+        })
         .await;
     assert!(health.is_ok(), "{health:?}");
     server.shutdown().await;

@@ -3,7 +3,9 @@
 //! MPJPE than the "lifted" input. Needs the trained weights embedded in the
 //! server; without them the test says so and passes vacuously.
 
-use blapose_client::{adjust_offline, evaluate, replay, Evaluation, ModelChoice, ReplayOptions, Sequence};
+use blapose_client::{
+    adjust_offline, evaluate, replay, Evaluation, ModelChoice, ReplayOptions, Sequence,
+};
 use blapose_server::{ServerConfig, WeightsSource};
 use blapose_tests::{workspace_root, TestServer};
 
@@ -23,7 +25,10 @@ fn examples() -> Vec<std::path::PathBuf> {
 
 fn mean(evals: &[Evaluation], f: impl Fn(&Evaluation) -> (f64, f64)) -> (f64, f64) {
     let n = evals.len() as f64;
-    let (b, a) = evals.iter().map(f).fold((0.0, 0.0), |acc, (b, a)| (acc.0 + b, acc.1 + a));
+    let (b, a) = evals
+        .iter()
+        .map(f)
+        .fold((0.0, 0.0), |acc, (b, a)| (acc.0 + b, acc.1 + a));
     (b / n, a / n)
 }
 
@@ -47,18 +52,25 @@ async fn replaying_the_examples_improves_them() {
     for file in &files {
         let seq = Sequence::load(file, None).expect("example loads");
         let gt = seq.gt_3d.as_deref().expect("examples carry gt_3d");
-        let streamed = replay(&client, &seq, &ReplayOptions::default(), |_| {}).await.expect("replay");
+        let streamed = replay(&client, &seq, &ReplayOptions::default(), |_| {})
+            .await
+            .expect("replay");
         let e = evaluate(&seq.pose_3d, &streamed.adjusted, gt).expect("metrics");
         println!("{} (stream, gru):\n{e}", file.display());
         online.push(e);
-        let adjusted = adjust_offline(&client, &seq, ModelChoice::OfflineBiGru).await.expect("offline");
+        let adjusted = adjust_offline(&client, &seq, ModelChoice::OfflineBiGru)
+            .await
+            .expect("offline");
         let e = evaluate(&seq.pose_3d, &adjusted.adjusted, gt).expect("metrics");
         println!("{} (offline, bigru):\n{e}", file.display());
         offline.push(e);
     }
     for (name, evals) in [("stream (gru)", &online), ("offline (bigru)", &offline)] {
         let (before, after) = mean(evals, |e| (e.before.bone_error_mm, e.after.bone_error_mm));
-        assert!(after < before, "{name}: bone error {before:.1} -> {after:.1} mm");
+        assert!(
+            after < before,
+            "{name}: bone error {before:.1} -> {after:.1} mm"
+        );
         let (before, after) = mean(evals, |e| (e.before.mpjpe_mm, e.after.mpjpe_mm));
         assert!(after < before, "{name}: MPJPE {before:.1} -> {after:.1} mm");
     }

@@ -17,17 +17,26 @@ const FRAMES: usize = 8;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn shutdown_drains_frames_already_received() {
-    let config = blapose_server::ServerConfig { max_queue_delay: Duration::from_millis(250), ..test_config() };
+    let config = blapose_server::ServerConfig {
+        max_queue_delay: Duration::from_millis(250),
+        ..test_config()
+    };
     let server = TestServer::start(config).await;
     let addr = server.addr;
     let client = server.client().await;
     let format = synthetic_sequence(40, 1, KeypointLayout::H36m17).input_format;
-    let idle = client.open_session(format, Some("idle")).await.expect("idle session");
+    let idle = client
+        .open_session(format, Some("idle"))
+        .await
+        .expect("idle session");
 
     let mut streams = Vec::new();
     for s in 0..ACTIVE {
         let seq = synthetic_sequence(41 + s, FRAMES, KeypointLayout::H36m17);
-        let session = client.open_session(seq.input_format, None).await.expect("open");
+        let session = client
+            .open_session(seq.input_format, None)
+            .await
+            .expect("open");
         let (_, sender, receiver) = session.split();
         for t in 0..FRAMES {
             sender.send(&seq.frame(t)).await.expect("send");
@@ -59,14 +68,22 @@ async fn shutdown_drains_frames_already_received() {
             }
         };
         assert_eq!(end.code(), Some(Code::Unavailable), "session {s}: {end}");
-        assert_eq!(answered[s], (0..FRAMES as u64).collect::<Vec<_>>(), "session {s}: every frame, once, in order");
+        assert_eq!(
+            answered[s],
+            (0..FRAMES as u64).collect::<Vec<_>>(),
+            "session {s}: every frame, once, in order"
+        );
     }
     assert!(
         after_shutdown >= ACTIVE as usize,
         "only {after_shutdown} answers came after shutdown began: nothing was drained"
     );
     shutdown.await.expect("shutdown task");
-    assert!(started.elapsed() < Duration::from_secs(9), "shutdown took {:?}", started.elapsed());
+    assert!(
+        started.elapsed() < Duration::from_secs(9),
+        "shutdown took {:?}",
+        started.elapsed()
+    );
     drop(idle);
     drop(streams);
 
@@ -74,5 +91,8 @@ async fn shutdown_drains_frames_already_received() {
     let mut config = blapose_client::ClientConfig::new(format!("http://{addr}"));
     config.connect_attempts = 1;
     config.connect_timeout = Duration::from_millis(500);
-    assert!(blapose_client::Client::connect(config).await.is_err(), "server still accepts connections");
+    assert!(
+        blapose_client::Client::connect(config).await.is_err(),
+        "server still accepts connections"
+    );
 }

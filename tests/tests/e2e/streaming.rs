@@ -3,8 +3,12 @@
 
 use std::sync::Arc;
 
-use blapose_client::{adjust_offline, replay, KeypointLayout, ModelChoice, ReplayOptions, SessionEvent};
-use blapose_tests::{lengths_diff, pose_diff, synthetic_sequence, test_config, Reference, TestServer, TOLERANCE};
+use blapose_client::{
+    adjust_offline, replay, KeypointLayout, ModelChoice, ReplayOptions, SessionEvent,
+};
+use blapose_tests::{
+    lengths_diff, pose_diff, synthetic_sequence, test_config, Reference, TestServer, TOLERANCE,
+};
 use tokio::task::JoinSet;
 
 const SESSIONS: u64 = 64;
@@ -15,7 +19,11 @@ async fn concurrent_sessions_match_the_library_path() {
     let server = TestServer::start(test_config()).await;
     let client = server.client().await;
     let reference = Arc::new(Reference::new());
-    let layouts = [KeypointLayout::H36m17, KeypointLayout::Sh16, KeypointLayout::Coco17];
+    let layouts = [
+        KeypointLayout::H36m17,
+        KeypointLayout::Sh16,
+        KeypointLayout::Coco17,
+    ];
 
     let mut tasks = JoinSet::new();
     for s in 0..SESSIONS {
@@ -23,7 +31,11 @@ async fn concurrent_sessions_match_the_library_path() {
         let layout = layouts[s as usize % layouts.len()];
         tasks.spawn(async move {
             let seq = synthetic_sequence(1000 + s, FRAMES, layout);
-            let options = ReplayOptions { window: 8, label: Some(format!("e2e-{s}")), ..ReplayOptions::default() };
+            let options = ReplayOptions {
+                window: 8,
+                label: Some(format!("e2e-{s}")),
+                ..ReplayOptions::default()
+            };
             let result = replay(&client, &seq, &options, |_| {}).await;
             (s, seq, result)
         });
@@ -37,18 +49,28 @@ async fn concurrent_sessions_match_the_library_path() {
         for t in 0..FRAMES {
             let dp = pose_diff(&result.adjusted[t], &want_poses[t]);
             let dl = lengths_diff(&result.bone_lengths[t], &want_lengths[t]);
-            assert!(dp < TOLERANCE && dl < TOLERANCE, "session {s} frame {t}: pose diff {dp}, length diff {dl}");
+            assert!(
+                dp < TOLERANCE && dl < TOLERANCE,
+                "session {s} frame {t}: pose diff {dp}, length diff {dl}"
+            );
         }
         let summary = result.session.expect("stream result has a session");
         assert_eq!(summary.frames_seen, FRAMES as u64);
         let last = summary.bone_lengths.expect("final lengths");
         assert!(lengths_diff(&last, &want_lengths[FRAMES - 1]) < TOLERANCE);
-        assert!(ids.insert(summary.session_id.clone()), "duplicate session id");
+        assert!(
+            ids.insert(summary.session_id.clone()),
+            "duplicate session id"
+        );
     }
     assert_eq!(ids.len(), SESSIONS as usize);
     for id in &ids {
         assert_eq!(id.len(), 32, "{id}");
-        assert!(id.chars().all(|c| c.is_ascii_hexdigit() && !c.is_ascii_uppercase()), "{id}");
+        assert!(
+            id.chars()
+                .all(|c| c.is_ascii_hexdigit() && !c.is_ascii_uppercase()),
+            "{id}"
+        );
     }
     server.shutdown().await;
 }
@@ -60,7 +82,10 @@ async fn answers_echo_arbitrary_indices_in_order_exactly_once() {
     let server = TestServer::start(test_config()).await;
     let client = server.client().await;
     let seq = synthetic_sequence(7, 30, KeypointLayout::H36m17);
-    let session = client.open_session(seq.input_format, None).await.expect("open");
+    let session = client
+        .open_session(seq.input_format, None)
+        .await
+        .expect("open");
     assert!(!session.info().resumed);
     assert_eq!(session.info().frames_seen, 0);
     assert!(session.info().bone_lengths.is_none());
@@ -98,24 +123,42 @@ async fn offline_rpc_matches_the_library_path() {
     let server = TestServer::start(test_config()).await;
     let client = server.client().await;
     let reference = Reference::new();
-    for (seed, layout) in [(11, KeypointLayout::H36m17), (12, KeypointLayout::Sh16), (13, KeypointLayout::Coco17)] {
+    for (seed, layout) in [
+        (11, KeypointLayout::H36m17),
+        (12, KeypointLayout::Sh16),
+        (13, KeypointLayout::Coco17),
+    ] {
         let seq = synthetic_sequence(seed, 75, layout);
 
-        let bigru = adjust_offline(&client, &seq, ModelChoice::OfflineBiGru).await.expect("bigru");
+        let bigru = adjust_offline(&client, &seq, ModelChoice::OfflineBiGru)
+            .await
+            .expect("bigru");
         assert_eq!(bigru.model, ModelChoice::OfflineBiGru);
         let (want, lengths) = reference.offline(&seq);
-        for t in 0..seq.len() {
-            assert!(pose_diff(&bigru.adjusted[t], &want[t]) < TOLERANCE, "{layout} frame {t}");
-            assert!(lengths_diff(&bigru.bone_lengths[t], &lengths) < TOLERANCE, "{layout} frame {t}");
+        for (t, (got, want)) in bigru.adjusted.iter().zip(&want).enumerate() {
+            assert!(pose_diff(got, want) < TOLERANCE, "{layout} frame {t}");
+            assert!(
+                lengths_diff(&bigru.bone_lengths[t], &lengths) < TOLERANCE,
+                "{layout} frame {t}"
+            );
         }
+        assert_eq!(bigru.adjusted.len(), seq.len());
 
         // The online model through the offline RPC gives what a stream gives.
-        let gru = adjust_offline(&client, &seq, ModelChoice::OnlineGru).await.expect("gru");
+        let gru = adjust_offline(&client, &seq, ModelChoice::OnlineGru)
+            .await
+            .expect("gru");
         assert_eq!(gru.model, ModelChoice::OnlineGru);
         let (want, lengths) = reference.online(&seq);
         for t in 0..seq.len() {
-            assert!(pose_diff(&gru.adjusted[t], &want[t]) < TOLERANCE, "{layout} frame {t}");
-            assert!(lengths_diff(&gru.bone_lengths[t], &lengths[t]) < TOLERANCE, "{layout} frame {t}");
+            assert!(
+                pose_diff(&gru.adjusted[t], &want[t]) < TOLERANCE,
+                "{layout} frame {t}"
+            );
+            assert!(
+                lengths_diff(&gru.bone_lengths[t], &lengths[t]) < TOLERANCE,
+                "{layout} frame {t}"
+            );
         }
     }
     server.shutdown().await;
@@ -134,7 +177,10 @@ async fn model_info_and_health() {
     assert_eq!(info.bone_names.len(), 16);
     assert_eq!(info.layouts.len(), 3);
     let kinds: Vec<_> = info.models.iter().filter_map(|m| m.model).collect();
-    assert!(kinds.contains(&ModelChoice::OnlineGru) && kinds.contains(&ModelChoice::OfflineBiGru), "{kinds:?}");
+    assert!(
+        kinds.contains(&ModelChoice::OnlineGru) && kinds.contains(&ModelChoice::OfflineBiGru),
+        "{kinds:?}"
+    );
     for m in &info.models {
         assert_eq!(m.parameter_count, 2_390_784, "{}", m.name);
         assert_eq!(m.hidden_size, 512);
@@ -144,7 +190,9 @@ async fn model_info_and_health() {
 
     for service in ["", blapose_proto::SERVICE_NAME] {
         let status = HealthClient::new(client.channel())
-            .check(HealthCheckRequest { service: service.to_string() })
+            .check(HealthCheckRequest {
+                service: service.to_string(),
+            })
             .await
             .expect("health check")
             .into_inner()

@@ -207,8 +207,7 @@ impl OfflineBiGruEngine {
                         w: gru.panel(p).as_ptr(),
                         k_in: 0,
                         bias: gru.bias(p).as_ptr(),
-                        x_in: std::ptr::null(),
-                        x_stride: 0,
+                        x: h.as_ptr(),
                         h: h.as_ptr(),
                         h_stride: HIDDEN,
                         unit0: p * LANES,
@@ -220,7 +219,8 @@ impl OfflineBiGruEngine {
                         y: std::ptr::null_mut(),
                         y_stride: 0,
                     };
-                    // SAFETY: one row: `h` holds 512 floats, `pre_t` from
+                    // SAFETY: one row: `h` holds 512 floats (for one row and
+                    // k_in = 0 it is its own packed form), `pre_t` from
                     // `p * 48` holds this panel's 48 pre-activations, `out`
                     // has 16 floats from `p * 16`; the panel holds
                     // `512 * 48` aligned floats (k_in = 0); no output layer.

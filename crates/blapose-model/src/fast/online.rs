@@ -61,6 +61,7 @@ pub struct StepScratch {
     batch: usize,
     threads: usize,
     embedded: Vec<f32>,
+    packed: Vec<f32>,
     new_state: AlignedBuf,
     partial_out: Vec<f32>,
     reverse: bool,
@@ -75,6 +76,7 @@ impl StepScratch {
             batch,
             threads,
             embedded: vec![0.0; batch * EMBED_DIM],
+            packed: vec![0.0; 2 * batch * (EMBED_DIM + HIDDEN)],
             new_state: AlignedBuf::zeros(ITEMS * batch * LANES),
             partial_out: vec![0.0; threads * batch * OUTPUT_DIM],
             reverse: false,
@@ -98,7 +100,8 @@ impl StepScratch {
 /// Read-only operands shared by the worker threads of one step.
 struct StepCtx<'a> {
     batch: usize,
-    embedded: &'a [f32],
+    /// Per GRU: the kernel's packed inputs, `batch * 768` floats.
+    packed: [&'a [f32]; 2],
     hidden: &'a [f32],
     reverse: bool,
 }
@@ -199,9 +202,23 @@ impl OnlineGruEngine {
             self.embed.apply_fast(self.isa, x, e);
         }
 
+        let k_total = EMBED_DIM + HIDDEN;
+        let embedded = &scratch.embedded[..batch * EMBED_DIM];
+        let (packed_a, packed_b) = scratch.packed[..2 * batch * k_total].split_at_mut(batch * k_total);
+        for (g, packed) in [packed_a, packed_b].into_iter().enumerate() {
+            kernel::pack_rows(
+                self.isa,
+                batch,
+                EMBED_DIM,
+                |b| &embedded[b * EMBED_DIM..(b + 1) * EMBED_DIM],
+                |b| &hidden[b * STATE_DIM + g * HIDDEN..b * STATE_DIM + (g + 1) * HIDDEN],
+                packed,
+            );
+        }
+        let (packed_a, packed_b) = scratch.packed[..2 * batch * k_total].split_at(batch * k_total);
         let ctx = StepCtx {
             batch,
-            embedded: &scratch.embedded[..batch * EMBED_DIM],
+            packed: [packed_a, packed_b],
             hidden,
             reverse: scratch.reverse,
         };
@@ -279,7 +296,7 @@ impl OnlineGruEngine {
         let y = &mut partial[..batch * OUTPUT_DIM];
         y.fill(0.0);
         assert_eq!(new_state.len(), items.len() * batch * LANES);
-        assert!(ctx.embedded.len() >= batch * EMBED_DIM);
+        assert!(ctx.packed.iter().all(|p| p.len() == batch * (EMBED_DIM + HIDDEN)));
         assert_eq!(ctx.hidden.len(), batch * STATE_DIM);
         let first = items.start;
         let mut run_item = |i: usize| {
@@ -290,8 +307,7 @@ impl OnlineGruEngine {
                 w: gru.panel(p).as_ptr(),
                 k_in: gru.k_in,
                 bias: gru.bias(p).as_ptr(),
-                x_in: ctx.embedded.as_ptr(),
-                x_stride: EMBED_DIM,
+                x: ctx.packed[g].as_ptr(),
                 h: ctx.hidden[g * HIDDEN..].as_ptr(),
                 h_stride: STATE_DIM,
                 unit0: p * LANES,
@@ -304,7 +320,8 @@ impl OnlineGruEngine {
                 y_stride: OUTPUT_DIM,
             };
             // SAFETY: the asserts above and the slice bounds give every row
-            // its operands: `embedded` has `batch` rows of 256, `hidden`
+            // its operands: `packed[g]` holds `batch` rows of 768 packed by
+            // `pack_rows` for `self.isa`, `hidden`
             // `batch` rows of 1024 (this GRU's 512 start at g * 512), `out`
             // `batch` rows of 16, `y` `batch` rows of 16; panels, biases and
             // output weights come from the packers with their full sizes and

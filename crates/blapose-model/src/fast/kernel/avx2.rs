@@ -21,26 +21,27 @@ pub(crate) unsafe fn tile(rows: usize, a: &TileArgs) {
     }
 }
 
-/// `acc[u][b][g][half] += W[k+u][g][half] * x[b][k+u]` over `len` values of `k`.
+/// `acc[u][b][g][half] += W[k+u][g][half] * x[k+u][b]` over `len` values
+/// of `k`, advancing `w` and `x`.
 macro_rules! accumulate {
-    ($acc:ident, $w:expr, $x:expr, $stride:expr, $len:expr, $BT:ident, $KU:ident) => {{
-        let mut w = $w;
+    ($acc:ident, $w:ident, $x:ident, $len:expr, $BT:ident, $KU:ident) => {{
         let mut k = 0;
         while k < $len {
             for u in 0..$KU {
                 for b in 0..$BT {
-                    let xv = _mm256_set1_ps(*$x.add(b * $stride + k + u));
+                    let xv = _mm256_set1_ps(*$x.add(b));
                     for g in 0..3 {
                         for half in 0..2 {
                             $acc[u][b][g][half] = _mm256_fmadd_ps(
-                                _mm256_load_ps(w.add(g * LANES + half * 8)),
+                                _mm256_load_ps($w.add(g * LANES + half * 8)),
                                 xv,
                                 $acc[u][b][g][half],
                             );
                         }
                     }
                 }
-                w = w.add(ROW);
+                $w = $w.add(ROW);
+                $x = $x.add($BT);
             }
             k += $KU;
         }
@@ -51,7 +52,9 @@ macro_rules! accumulate {
 unsafe fn tile_n<const BT: usize, const KU: usize>(a: &TileArgs) {
     let zero = _mm256_setzero_ps();
     let mut acc = [[[[zero; 2]; 3]; BT]; KU];
-    accumulate!(acc, a.w, a.x_in, a.x_stride, a.k_in, BT, KU);
+    let mut w = a.w;
+    let mut x = a.x;
+    accumulate!(acc, w, x, a.k_in, BT, KU);
     let mut ni = [[zero; 2]; BT];
     for b in 0..BT {
         for part in &mut acc {
@@ -61,7 +64,7 @@ unsafe fn tile_n<const BT: usize, const KU: usize>(a: &TileArgs) {
             }
         }
     }
-    accumulate!(acc, a.w.add(a.k_in * ROW), a.h, a.h_stride, HIDDEN, BT, KU);
+    accumulate!(acc, w, x, HIDDEN, BT, KU);
 
     for b in 0..BT {
         let mut h_new = [zero; 2];

@@ -17,25 +17,27 @@ pub(crate) mod avx2;
 pub(crate) mod avx512;
 
 use super::Isa;
+use crate::HIDDEN;
 
 /// Raw operands of one kernel call. Row `b` of an operand starts at
 /// `ptr + b * stride`.
 ///
 /// Contract (checked by the callers, relied on by the kernels): `w` points
-/// to a full panel of `(k_in + 512) * 48` floats; `bias` to 64 floats;
-/// `x_in` rows hold `k_in` floats; `h` rows hold 512 floats (the previous
-/// state of this GRU direction) and the panel's units start at `unit0`;
-/// `pre` is null or its rows hold 48 floats `[r|z|n]`; `out` rows have room
-/// for 16 floats; `fc` is null or holds 256 floats `[unit][output]`, in
-/// which case `y` rows hold 16 floats that are accumulated into. `out` and
-/// `y` must not overlap any input.
+/// to a full 64-byte aligned panel of `(k_in + 512) * 48` floats; `bias` to
+/// 64 floats; `x` to the rows' inputs packed by [`pack_rows`] (`k_in`
+/// input values then the 512 previous state values, `[k][row]` per tile);
+/// `h` rows hold 512 floats (the previous state of this GRU direction) and
+/// the panel's units start at `unit0`; `pre` is null or its rows hold 48
+/// floats `[r|z|n]`; `out` rows have room for 16 floats; `fc` is null or
+/// holds 256 aligned floats `[unit][output]`, in which case `y` rows hold 16
+/// floats that are accumulated into. `out` and `y` must not overlap any
+/// input.
 #[derive(Clone, Copy)]
 pub(crate) struct TileArgs {
     pub w: *const f32,
     pub k_in: usize,
     pub bias: *const f32,
-    pub x_in: *const f32,
-    pub x_stride: usize,
+    pub x: *const f32,
     pub h: *const f32,
     pub h_stride: usize,
     pub unit0: usize,
@@ -54,7 +56,7 @@ impl TileArgs {
     pub(crate) fn offset_rows(&self, rows: usize) -> TileArgs {
         // wrapping_add: pointers may be null (unused operands).
         TileArgs {
-            x_in: self.x_in.wrapping_add(rows * self.x_stride),
+            x: self.x.wrapping_add(rows * (self.k_in + HIDDEN)),
             h: self.h.wrapping_add(rows * self.h_stride),
             pre: if self.pre.is_null() {
                 self.pre
@@ -78,6 +80,38 @@ pub(crate) fn max_tile(isa: Isa) -> usize {
         Isa::Scalar => 4,
         Isa::Avx2 => 2,
         Isa::Avx512 => 8,
+    }
+}
+
+/// Pack the inputs of `rows` rows for the kernel: for each tile of
+/// `max_tile(isa)` rows (the last may be shorter), `[k][row]` with `k` over
+/// the `k_in` values of `input(row)` then the 512 values of `state(row)`.
+/// Interleaving the rows of a tile lets the kernel broadcast every row's
+/// `x[k]` from one cache line at fixed offsets. `out` must hold
+/// `rows * (k_in + 512)` floats.
+pub(crate) fn pack_rows<'a>(
+    isa: Isa,
+    rows: usize,
+    k_in: usize,
+    input: impl Fn(usize) -> &'a [f32],
+    state: impl Fn(usize) -> &'a [f32],
+    out: &mut [f32],
+) {
+    let k_total = k_in + HIDDEN;
+    let tile = max_tile(isa);
+    assert!(out.len() >= rows * k_total);
+    let mut r0 = 0;
+    while r0 < rows {
+        let n = tile.min(rows - r0);
+        let block = &mut out[r0 * k_total..(r0 + n) * k_total];
+        for b in 0..n {
+            let src_in = &input(r0 + b)[..k_in];
+            let src_h = &state(r0 + b)[..HIDDEN];
+            for (k, &v) in src_in.iter().chain(src_h).enumerate() {
+                block[k * n + b] = v;
+            }
+        }
+        r0 += n;
     }
 }
 

@@ -17,18 +17,12 @@ pub(crate) unsafe fn tile(rows: usize, a: &TileArgs) {
     assert!(rows <= MAX_ROWS);
     let mut acc = [[[0.0f32; LANES]; 3]; MAX_ROWS];
     let mut ni = [[0.0f32; LANES]; MAX_ROWS];
-    // input part, then recurrent part
-    for (phase, (x, stride, len, w0)) in [
-        (a.x_in, a.x_stride, a.k_in, a.w),
-        (a.h, a.h_stride, HIDDEN, a.w.add(a.k_in * ROW)),
-    ]
-    .into_iter()
-    .enumerate()
-    {
-        for k in 0..len {
-            let w = std::slice::from_raw_parts(w0.add(k * ROW), ROW);
+    // input part (k < k_in), then recurrent part
+    for (phase, (k0, len)) in [(0, a.k_in), (a.k_in, HIDDEN)].into_iter().enumerate() {
+        for k in k0..k0 + len {
+            let w = std::slice::from_raw_parts(a.w.add(k * ROW), ROW);
             for (b, acc_b) in acc.iter_mut().enumerate().take(rows) {
-                let xv = *x.add(b * stride + k);
+                let xv = *a.x.add(k * rows + b);
                 for (g, acc_g) in acc_b.iter_mut().enumerate() {
                     for (l, v) in acc_g.iter_mut().enumerate() {
                         *v += w[g * LANES + l] * xv;

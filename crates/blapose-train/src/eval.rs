@@ -1,0 +1,397 @@
+//! Bone-length evaluation on the standard protocol.
+//!
+//! Every (sequence, camera) of the evaluated subjects is one *trial*: the
+//! model reads the whole 2D stream and gives one estimate of the subject's
+//! 16 lengths; the trial's error is the mean absolute error over the 16
+//! bones (mm).
+//!
+//! * **Offline Bi-GRU**: one pass over the whole sequence
+//!   ([`OfflineBiGruEngine`]), or, with `chunk > 0`, the mean of the
+//!   estimates of consecutive `chunk`-frame windows.
+//! * **Online GRU**: the serving estimate, i.e. the running mean of the
+//!   per-frame predictions over all frames seen ([`OnlineGruEngine`],
+//!   trials stepped in lockstep batches); its error after the whole
+//!   sequence is the headline, and the error after `n` frames for `n` in
+//!   [`CURVE_FRAMES`] is the curve (a trial shorter than `n` contributes its
+//!   final estimate).
+//!
+//! **Aggregation** (the headline `mean_bone_error_mm`): trials are averaged
+//! within each action (take number dropped, e.g. "Walking 1" and "Walking"
+//! are both "Walking"; both subjects, all cameras, each trial weighted
+//! equally), then the per-action means are averaged over actions — the
+//! Human3.6M tables' "Avg" ([`ActionAggregator`]). The plain mean over
+//! trials, per subject and per bone are reported too. The naive baselines
+//! (predict the training subjects' mean for everyone; the mean of all seven
+//! subjects, test subjects included) are aggregated the same way.
+
+use std::collections::BTreeMap;
+
+use blapose_core::metrics::ActionAggregator;
+use blapose_core::skeleton::{BONE_NAMES, NUM_BONES};
+use blapose_core::BoneLengths;
+use blapose_model::{LoadedWeights, OfflineBiGruEngine, OnlineGruEngine, STATE_DIM};
+use rayon::prelude::*;
+use serde::Serialize;
+
+use crate::dataset::EvalSequence;
+use crate::error::TrainError;
+use crate::synth::FRAME_DIM;
+
+/// Frames-seen points of the online error curve.
+pub const CURVE_FRAMES: [usize; 9] = [1, 2, 5, 10, 20, 50, 100, 200, 500];
+
+/// Streams stepped together by the online evaluation.
+const ONLINE_GROUP: usize = 32;
+
+/// One trial's estimate.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Estimate {
+    /// After the whole sequence.
+    pub lengths: BoneLengths,
+    /// Online only: the running estimate after `CURVE_FRAMES[i]` frames.
+    pub curve: Vec<BoneLengths>,
+}
+
+/// Anything that estimates lengths for a batch of trials.
+pub trait LengthEstimator: Sync {
+    /// One estimate per trial, in order.
+    fn estimate(&self, trials: &[EvalSequence]) -> Result<Vec<Estimate>, TrainError>;
+}
+
+/// The offline Bi-GRU over whole sequences (or chunks).
+pub struct BiGruEstimator {
+    engine: OfflineBiGruEngine,
+    chunk: usize,
+}
+
+impl BiGruEstimator {
+    /// From Bi-GRU weights; `chunk = 0` reads each sequence in one pass.
+    pub fn new(weights: &LoadedWeights, chunk: usize) -> Result<Self, TrainError> {
+        Ok(Self { engine: OfflineBiGruEngine::new(weights, 1)?, chunk })
+    }
+}
+
+/// Window starts covering `frames` with windows of `chunk` (last one aligned
+/// to the end); one window when `chunk` is 0 or covers everything.
+pub fn chunk_starts(frames: usize, chunk: usize) -> Vec<usize> {
+    if chunk == 0 || frames <= chunk {
+        return vec![0];
+    }
+    let mut starts: Vec<usize> = (0..frames - chunk).step_by(chunk).collect();
+    starts.push(frames - chunk);
+    starts
+}
+
+impl LengthEstimator for BiGruEstimator {
+    fn estimate(&self, trials: &[EvalSequence]) -> Result<Vec<Estimate>, TrainError> {
+        trials
+            .par_iter()
+            .map(|t| {
+                let n = t.frames();
+                let len = if self.chunk == 0 { n } else { self.chunk.min(n) };
+                let starts = chunk_starts(n, self.chunk);
+                let mut acc = [0.0f32; NUM_BONES];
+                for &s in &starts {
+                    let p = self.engine.predict(&t.input[s * FRAME_DIM..(s + len) * FRAME_DIM])?;
+                    for (a, v) in acc.iter_mut().zip(p) {
+                        *a += v;
+                    }
+                }
+                Ok(Estimate { lengths: acc.map(|v| v / starts.len() as f32), curve: Vec::new() })
+            })
+            .collect()
+    }
+}
+
+/// The online GRU's running mean of per-frame predictions.
+pub struct GruEstimator {
+    engine: OnlineGruEngine,
+}
+
+impl GruEstimator {
+    /// From GRU weights.
+    pub fn new(weights: &LoadedWeights) -> Result<Self, TrainError> {
+        Ok(Self { engine: OnlineGruEngine::new(weights, 1)? })
+    }
+
+    /// Step a group of trials in lockstep; finished trials are fed their
+    /// last frame again but stop accumulating.
+    fn run_group(&self, group: &[&EvalSequence]) -> Result<Vec<Estimate>, TrainError> {
+        let b = group.len();
+        let longest = group.iter().map(|t| t.frames()).max().unwrap_or(0);
+        let mut hidden = vec![0.0f32; b * STATE_DIM];
+        let mut out = vec![0.0f32; b * NUM_BONES];
+        let mut input = vec![0.0f32; b * FRAME_DIM];
+        let mut sums = vec![[0.0f64; NUM_BONES]; b];
+        let mut curves = vec![Vec::with_capacity(CURVE_FRAMES.len()); b];
+        let mut scratch = self.engine.scratch(b);
+        for t in 0..longest {
+            for (i, tr) in group.iter().enumerate() {
+                let f = t.min(tr.frames() - 1);
+                input[i * FRAME_DIM..(i + 1) * FRAME_DIM].copy_from_slice(&tr.input[f * FRAME_DIM..(f + 1) * FRAME_DIM]);
+            }
+            self.engine.step(&input, &mut hidden, &mut out, &mut scratch)?;
+            for (i, tr) in group.iter().enumerate() {
+                if t >= tr.frames() {
+                    continue;
+                }
+                for j in 0..NUM_BONES {
+                    sums[i][j] += f64::from(out[i * NUM_BONES + j]);
+                }
+                let seen = t + 1;
+                let mean: BoneLengths = std::array::from_fn(|j| (sums[i][j] / seen as f64) as f32);
+                for &n in &CURVE_FRAMES {
+                    if seen == n || (seen == tr.frames() && n > seen) {
+                        curves[i].push(mean);
+                    }
+                }
+            }
+        }
+        Ok((0..b)
+            .map(|i| {
+                let n = group[i].frames() as f64;
+                Estimate { lengths: std::array::from_fn(|j| (sums[i][j] / n) as f32), curve: curves[i].clone() }
+            })
+            .collect())
+    }
+}
+
+impl LengthEstimator for GruEstimator {
+    fn estimate(&self, trials: &[EvalSequence]) -> Result<Vec<Estimate>, TrainError> {
+        // Group trials of similar length so lockstep wastes little.
+        let mut order: Vec<usize> = (0..trials.len()).filter(|&i| trials[i].frames() > 0).collect();
+        order.sort_by_key(|&i| trials[i].frames());
+        let groups: Vec<Vec<usize>> = order.chunks(ONLINE_GROUP).map(|c| c.to_vec()).collect();
+        let results: Vec<Vec<(usize, Estimate)>> = groups
+            .par_iter()
+            .map(|g| {
+                let refs: Vec<&EvalSequence> = g.iter().map(|&i| &trials[i]).collect();
+                Ok(g.iter().copied().zip(self.run_group(&refs)?).collect())
+            })
+            .collect::<Result<_, TrainError>>()?;
+        let mut out: Vec<Option<Estimate>> = vec![None; trials.len()];
+        for (i, e) in results.into_iter().flatten() {
+            out[i] = Some(e);
+        }
+        out.into_iter()
+            .enumerate()
+            .map(|(i, e)| e.ok_or_else(|| TrainError::Data(format!("trial {i} has no frames"))))
+            .collect()
+    }
+}
+
+/// Errors of one set of estimates, aggregated (mm).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Summary {
+    /// Mean over actions of the per-action mean trial error (headline).
+    pub mean_bone_error_mm: f64,
+    /// Plain mean over trials.
+    pub mean_over_trials_mm: f64,
+    /// Per subject (mean over its trials).
+    pub per_subject_mm: BTreeMap<String, f64>,
+    /// Per bone, mean over trials, in [`BONE_NAMES`] order.
+    pub per_bone_mm: Vec<f64>,
+    /// Per action.
+    pub per_action_mm: BTreeMap<String, f64>,
+}
+
+/// Mean absolute error over the 16 bones, mm.
+pub fn trial_error_mm(pred: &BoneLengths, gt: &BoneLengths) -> f64 {
+    pred.iter().zip(gt).map(|(p, g)| f64::from((p - g).abs())).sum::<f64>() * 1000.0 / NUM_BONES as f64
+}
+
+/// Aggregate predictions `pred[i]` for `trials[i]` (see the module docs).
+pub fn summarize(trials: &[EvalSequence], pred: &[BoneLengths]) -> Result<Summary, TrainError> {
+    if trials.len() != pred.len() || trials.is_empty() {
+        return Err(TrainError::InvalidArgument(format!("{} trials but {} predictions", trials.len(), pred.len())));
+    }
+    let mut actions = ActionAggregator::new();
+    let mut subj: BTreeMap<String, (f64, usize)> = BTreeMap::new();
+    let mut per_bone = [0.0f64; NUM_BONES];
+    let mut total = 0.0;
+    for (t, p) in trials.iter().zip(pred) {
+        let e = trial_error_mm(p, &t.gt);
+        actions.add_mean(&t.sequence, e, 1);
+        let s = subj.entry(t.subject.clone()).or_insert((0.0, 0));
+        s.0 += e;
+        s.1 += 1;
+        for b in 0..NUM_BONES {
+            per_bone[b] += f64::from((p[b] - t.gt[b]).abs()) * 1000.0;
+        }
+        total += e;
+    }
+    let n = trials.len() as f64;
+    Ok(Summary {
+        mean_bone_error_mm: actions.mean_over_actions().unwrap_or(f64::NAN),
+        mean_over_trials_mm: total / n,
+        per_subject_mm: subj.into_iter().map(|(k, (s, c))| (k, s / c as f64)).collect(),
+        per_bone_mm: per_bone.iter().map(|v| v / n).collect(),
+        per_action_mm: actions.per_action().into_iter().collect(),
+    })
+}
+
+/// One point of the online error curve.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CurvePoint {
+    /// Frames seen.
+    pub frames: usize,
+    /// Headline error after that many frames (mm).
+    pub mean_bone_error_mm: f64,
+    /// Plain mean over trials (mm).
+    pub mean_over_trials_mm: f64,
+}
+
+/// The full evaluation report (`--json`).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct EvalReport {
+    /// `gru` or `bigru`.
+    pub model: String,
+    /// `sh` or `gt`.
+    pub input: String,
+    /// Weights file.
+    pub weights: String,
+    /// Evaluated subjects.
+    pub subjects: Vec<String>,
+    /// How the headline is averaged.
+    pub aggregation: String,
+    /// Trials (sequence x camera).
+    pub trials: usize,
+    /// Frames read.
+    pub frames: usize,
+    /// Headline (mean over actions), mm.
+    pub mean_bone_error_mm: f64,
+    /// The model's full summary.
+    pub summary: Summary,
+    /// Per bone (mm), [`BONE_NAMES`] order (duplicated at top level for tools).
+    pub per_bone_mm: Vec<f64>,
+    /// Bone names of `per_bone_mm`.
+    pub bone_names: Vec<String>,
+    /// Per action (mm).
+    pub per_action_mm: BTreeMap<String, f64>,
+    /// Naive baselines, same aggregation.
+    pub baselines: BTreeMap<String, Summary>,
+    /// Online only: error against frames seen.
+    pub curve: Vec<CurvePoint>,
+    /// Wall-clock seconds of the model pass.
+    pub seconds: f64,
+}
+
+/// Evaluate `estimator` on `trials`; `baselines` are `(name, lengths)`
+/// predicted for every trial.
+#[allow(clippy::too_many_arguments)]
+pub fn evaluate(
+    estimator: &dyn LengthEstimator,
+    trials: &[EvalSequence],
+    baselines: &[(&str, BoneLengths)],
+    model: &str,
+    input: &str,
+    weights: &str,
+    subjects: &[String],
+) -> Result<EvalReport, TrainError> {
+    let t0 = std::time::Instant::now();
+    let est = estimator.estimate(trials)?;
+    let seconds = t0.elapsed().as_secs_f64();
+    let pred: Vec<BoneLengths> = est.iter().map(|e| e.lengths).collect();
+    let summary = summarize(trials, &pred)?;
+    let mut base = BTreeMap::new();
+    for (name, l) in baselines {
+        base.insert(name.to_string(), summarize(trials, &vec![*l; trials.len()])?);
+    }
+    let mut curve = Vec::new();
+    if est.iter().all(|e| e.curve.len() == CURVE_FRAMES.len()) && !est.is_empty() {
+        for (k, &n) in CURVE_FRAMES.iter().enumerate() {
+            let p: Vec<BoneLengths> = est.iter().map(|e| e.curve[k]).collect();
+            let s = summarize(trials, &p)?;
+            curve.push(CurvePoint { frames: n, mean_bone_error_mm: s.mean_bone_error_mm, mean_over_trials_mm: s.mean_over_trials_mm });
+        }
+    }
+    Ok(EvalReport {
+        model: model.into(),
+        input: input.into(),
+        weights: weights.into(),
+        subjects: subjects.to_vec(),
+        aggregation: "mean over actions of the mean error of each action's trials (sequence x camera, \
+                      both subjects, each trial weighted equally); per trial: mean |pred - true| over 16 bones"
+            .into(),
+        trials: trials.len(),
+        frames: trials.iter().map(|t| t.frames()).sum(),
+        mean_bone_error_mm: summary.mean_bone_error_mm,
+        per_bone_mm: summary.per_bone_mm.clone(),
+        bone_names: BONE_NAMES.iter().map(|s| s.to_string()).collect(),
+        per_action_mm: summary.per_action_mm.clone(),
+        summary,
+        baselines: base,
+        curve,
+        seconds,
+    })
+}
+
+/// The report as a markdown table (model beside the baselines).
+pub fn markdown(r: &EvalReport) -> String {
+    let mut s = String::new();
+    let names: Vec<&String> = r.baselines.keys().collect();
+    s.push_str(&format!(
+        "## Bone-length error (mm), {} on {} input, subjects {} ({} trials, {} frames)\n\n",
+        r.model,
+        r.input,
+        r.subjects.join(" "),
+        r.trials,
+        r.frames
+    ));
+    s.push_str("| | model |");
+    for n in &names {
+        s.push_str(&format!(" baseline: {n} |"));
+    }
+    s.push_str("\n|---|---|");
+    for _ in &names {
+        s.push_str("---|");
+    }
+    s.push('\n');
+    let row = |s: &mut String, label: &str, f: &dyn Fn(&Summary) -> Option<f64>| {
+        s.push_str(&format!("| {label} | {} |", f(&r.summary).map_or("-".into(), |v| format!("{v:.2}"))));
+        for n in &names {
+            s.push_str(&format!(" {} |", f(&r.baselines[*n]).map_or("-".into(), |v| format!("{v:.2}"))));
+        }
+        s.push('\n');
+    };
+    row(&mut s, "**mean over actions (headline)**", &|x| Some(x.mean_bone_error_mm));
+    row(&mut s, "mean over trials", &|x| Some(x.mean_over_trials_mm));
+    for subj in r.summary.per_subject_mm.keys() {
+        row(&mut s, subj, &|x| x.per_subject_mm.get(subj).copied());
+    }
+    for (b, name) in BONE_NAMES.iter().enumerate() {
+        row(&mut s, name, &|x| x.per_bone_mm.get(b).copied());
+    }
+    for a in r.summary.per_action_mm.keys() {
+        row(&mut s, a, &|x| x.per_action_mm.get(a).copied());
+    }
+    if !r.curve.is_empty() {
+        s.push_str("\n| frames seen |");
+        for c in &r.curve {
+            s.push_str(&format!(" {} |", c.frames));
+        }
+        s.push_str("\n|---|");
+        for _ in &r.curve {
+            s.push_str("---|");
+        }
+        s.push_str("\n| error (mm) |");
+        for c in &r.curve {
+            s.push_str(&format!(" {:.2} |", c.mean_bone_error_mm));
+        }
+        s.push('\n');
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn chunks_cover_the_sequence() {
+        assert_eq!(chunk_starts(10, 0), vec![0]);
+        assert_eq!(chunk_starts(10, 20), vec![0]);
+        assert_eq!(chunk_starts(10, 4), vec![0, 4, 6]);
+        assert_eq!(chunk_starts(8, 4), vec![0, 4]);
+    }
+}
