@@ -9,12 +9,21 @@
 use std::path::PathBuf;
 
 const FILES: [(&str, &str, &str); 2] = [
-    ("bone_length_gru.safetensors", "blapose_embedded_gru", "BLAPOSE_EMBEDDED_GRU"),
-    ("bone_length_bigru.safetensors", "blapose_embedded_bigru", "BLAPOSE_EMBEDDED_BIGRU"),
+    (
+        "bone_length_gru.safetensors",
+        "blapose_embedded_gru",
+        "BLAPOSE_EMBEDDED_GRU",
+    ),
+    (
+        "bone_length_bigru.safetensors",
+        "blapose_embedded_bigru",
+        "BLAPOSE_EMBEDDED_BIGRU",
+    ),
 ];
 
 fn main() {
-    let manifest = PathBuf::from(std::env::var("CARGO_MANIFEST_DIR").unwrap_or_else(|_| ".".into()));
+    let manifest =
+        PathBuf::from(std::env::var("CARGO_MANIFEST_DIR").unwrap_or_else(|_| ".".into()));
     let models = manifest.join("../models");
     println!("cargo:rerun-if-changed={}", models.display());
     for (file, cfg, env) in FILES {

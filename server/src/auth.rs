@@ -21,7 +21,9 @@ pub struct BearerAuth {
 impl BearerAuth {
     /// Require `token` (`None` lets every request through).
     pub fn new(token: Option<&str>) -> Self {
-        Self { token: token.map(|t| Arc::from(t.as_bytes())) }
+        Self {
+            token: token.map(|t| Arc::from(t.as_bytes())),
+        }
     }
 }
 
@@ -40,7 +42,9 @@ impl Interceptor for BearerAuth {
         };
         let Some(value) = request.metadata().get("authorization") else {
             crate::metrics::error(tonic::Code::Unauthenticated, "auth");
-            return Err(Status::unauthenticated("missing authorization header (expected: Bearer <token>)"));
+            return Err(Status::unauthenticated(
+                "missing authorization header (expected: Bearer <token>)",
+            ));
         };
         let presented = value.as_bytes();
         let ok = presented.len() > 7
@@ -79,7 +83,14 @@ mod tests {
         let mut auth = BearerAuth::new(Some("s3cret"));
         assert!(auth.call(request(Some("Bearer s3cret"))).is_ok());
         assert!(auth.call(request(Some("bearer s3cret"))).is_ok());
-        for bad in [None, Some("Bearer s3cre"), Some("Bearer s3cret2"), Some("Basic s3cret"), Some("s3cret"), Some("Bearer ")] {
+        for bad in [
+            None,
+            Some("Bearer s3cre"),
+            Some("Bearer s3cret2"),
+            Some("Basic s3cret"),
+            Some("s3cret"),
+            Some("Bearer "),
+        ] {
             let err = auth.call(request(bad)).unwrap_err();
             assert_eq!(err.code(), tonic::Code::Unauthenticated, "{bad:?}");
         }

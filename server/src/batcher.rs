@@ -84,7 +84,9 @@ pub enum StepError {
     #[error("the model failed: {0}")]
     Model(String),
     /// The model produced NaN or infinity for this frame.
-    #[error("the model produced a non-finite result for this frame; the session state was not updated")]
+    #[error(
+        "the model produced a non-finite result for this frame; the session state was not updated"
+    )]
     NonFinite,
 }
 
@@ -194,7 +196,9 @@ pub fn warm_up<B: Backend>(backend: &mut B) -> Result<(), BackendError> {
     if hidden.iter().chain(lengths.iter()).all(|v| v.is_finite()) {
         Ok(())
     } else {
-        Err(BackendError::Model("warm-up step produced non-finite values".into()))
+        Err(BackendError::Model(
+            "warm-up step produced non-finite values".into(),
+        ))
     }
 }
 
@@ -218,7 +222,10 @@ impl Batcher {
             .name("blapose-batcher".into())
             .spawn(move || run(worker, backend))
             .map_err(|e| BackendError::Model(format!("cannot start the batcher thread: {e}")))?;
-        Ok(Self { shared, thread: Mutex::new(Some(thread)) })
+        Ok(Self {
+            shared,
+            thread: Mutex::new(Some(thread)),
+        })
     }
 
     /// The limits in force.
@@ -229,7 +236,9 @@ impl Batcher {
     /// Register an attached stream for the duration of the guard.
     pub fn stream_guard(&self) -> StreamGuard {
         self.shared.active_streams.fetch_add(1, Ordering::Relaxed);
-        StreamGuard { shared: self.shared.clone() }
+        StreamGuard {
+            shared: self.shared.clone(),
+        }
     }
 
     /// Frames waiting now.
@@ -250,7 +259,10 @@ impl Batcher {
         let key = job.session.key();
         let frames = q.per_session.entry(key).or_default();
         let first = frames.is_empty();
-        frames.push_back(Queued { job, enqueued: Instant::now() });
+        frames.push_back(Queued {
+            job,
+            enqueued: Instant::now(),
+        });
         if first {
             q.ready.push_back(key);
         }
@@ -270,7 +282,11 @@ impl Batcher {
     /// [`close`](Self::close) and wait for the thread to finish (blocking).
     pub fn join(&self) {
         self.close();
-        let handle = self.thread.lock().unwrap_or_else(PoisonError::into_inner).take();
+        let handle = self
+            .thread
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .take();
         if let Some(handle) = handle {
             if handle.join().is_err() {
                 tracing::error!("the batcher thread panicked");
@@ -316,7 +332,10 @@ fn next_batch(shared: &Shared, batch: &mut Vec<Queued>) -> bool {
         if q.closed {
             return false;
         }
-        q = shared.available.wait(q).unwrap_or_else(PoisonError::into_inner);
+        q = shared
+            .available
+            .wait(q)
+            .unwrap_or_else(PoisonError::into_inner);
     }
     if let Some(oldest) = q.oldest() {
         let deadline = oldest + config.max_queue_delay;
@@ -361,7 +380,12 @@ fn next_batch(shared: &Shared, batch: &mut Vec<Queued>) -> bool {
     true
 }
 
-fn run_batch<B: Backend>(backend: &mut B, batch: &mut Vec<Queued>, buf: &mut Buffers, shared: &Shared) {
+fn run_batch<B: Backend>(
+    backend: &mut B,
+    batch: &mut Vec<Queued>,
+    buf: &mut Buffers,
+    shared: &Shared,
+) {
     let started = Instant::now();
     buf.rows.clear();
     let mut answers: Vec<Option<StepResult>> = Vec::with_capacity(batch.len());
@@ -482,7 +506,13 @@ mod tests {
     }
 
     impl Backend for Fake {
-        fn step(&mut self, inputs: &[f32], hidden: &mut [f32], out: &mut [f32], batch: usize) -> Result<(), BackendError> {
+        fn step(
+            &mut self,
+            inputs: &[f32],
+            hidden: &mut [f32],
+            out: &mut [f32],
+            batch: usize,
+        ) -> Result<(), BackendError> {
             crate::backend::check_step_shapes(inputs, hidden, out, batch)?;
             if self.fail.load(Ordering::Relaxed) {
                 return Err(BackendError::Model("fake failure".into()));
@@ -520,26 +550,47 @@ mod tests {
 
     fn session_config() -> SessionConfig {
         SessionConfig {
-            input: InputSpec { layout: KeypointLayout::H36m17, coordinates: Coordinates::Normalized },
+            input: InputSpec {
+                layout: KeypointLayout::H36m17,
+                coordinates: Coordinates::Normalized,
+            },
             label: String::new(),
         }
     }
 
-    fn job(session: &Arc<Session>, epoch: u64, value: f32, tag: f32) -> (FrameJob, oneshot::Receiver<StepResult>) {
+    fn job(
+        session: &Arc<Session>,
+        epoch: u64,
+        value: f32,
+        tag: f32,
+    ) -> (FrameJob, oneshot::Receiver<StepResult>) {
         let (tx, rx) = oneshot::channel();
         let mut input = [0.0; INPUT_DIM];
         input[0] = value;
         input[1] = tag;
-        (FrameJob { session: session.clone(), epoch, input, reply: tx }, rx)
+        (
+            FrameJob {
+                session: session.clone(),
+                epoch,
+                input,
+                reply: tx,
+            },
+            rx,
+        )
     }
 
     #[tokio::test]
     async fn frames_run_in_order_at_most_one_per_session_per_batch() {
-        let fake = Fake { delay: Duration::from_millis(1), ..Fake::default() };
+        let fake = Fake {
+            delay: Duration::from_millis(1),
+            ..Fake::default()
+        };
         let log = fake.log.clone();
         let batcher = Batcher::start(fake, config(8, 2, 1000)).unwrap();
         let (store, _g) = SessionStore::new(100, Duration::from_secs(60));
-        let sessions: Vec<_> = (0..5).map(|_| store.open(session_config()).unwrap()).collect();
+        let sessions: Vec<_> = (0..5)
+            .map(|_| store.open(session_config()).unwrap())
+            .collect();
         let _guards: Vec<_> = sessions.iter().map(|_| batcher.stream_guard()).collect();
         let mut rxs = Vec::new();
         // 20 pipelined frames per session, interleaved; values 1..=20.
@@ -556,8 +607,12 @@ mod tests {
             expected_sum[s] += f as f32;
             // Running sum of inputs as state => in-order, exactly-once.
             assert_eq!(out.frames_seen, f as u64, "session {s}");
-            let mean_of_running_sums: f32 = (1..=f).map(|k| (k * (k + 1) / 2) as f32).sum::<f32>() / f as f32;
-            assert!((out.lengths[0] - mean_of_running_sums).abs() < 1e-3, "session {s} frame {f}");
+            let mean_of_running_sums: f32 =
+                (1..=f).map(|k| (k * (k + 1) / 2) as f32).sum::<f32>() / f as f32;
+            assert!(
+                (out.lengths[0] - mean_of_running_sums).abs() < 1e-3,
+                "session {s} frame {f}"
+            );
         }
         for (s, a) in sessions.iter().enumerate() {
             assert_eq!(a.session.lock().hidden[5], expected_sum[s]);
@@ -571,15 +626,25 @@ mod tests {
             let mut sorted = tags.clone();
             sorted.sort_by(f32::total_cmp);
             sorted.dedup();
-            assert_eq!(sorted.len(), tags.len(), "a session appears twice in batch {tags:?}");
+            assert_eq!(
+                sorted.len(),
+                tags.len(),
+                "a session appears twice in batch {tags:?}"
+            );
         }
         // With 5 pipelined sessions, batches are mostly full-width.
-        assert!(log.iter().filter(|t| t.len() == 5).count() >= 15, "batches: {log:?}");
+        assert!(
+            log.iter().filter(|t| t.len() == 5).count() >= 15,
+            "batches: {log:?}"
+        );
     }
 
     #[tokio::test]
     async fn full_queue_refuses_instead_of_dropping() {
-        let fake = Fake { delay: Duration::from_millis(50), ..Fake::default() };
+        let fake = Fake {
+            delay: Duration::from_millis(50),
+            ..Fake::default()
+        };
         let batcher = Batcher::start(fake, config(1, 0, 3)).unwrap();
         let (store, _g) = SessionStore::new(100, Duration::from_secs(60));
         let a = store.open(session_config()).unwrap();
@@ -618,7 +683,11 @@ mod tests {
             rx.await.unwrap().unwrap();
         }
         // 20 sequential frames with a 500 ms max delay: far under 20 x 500 ms.
-        assert!(t.elapsed() < Duration::from_millis(400), "{:?}", t.elapsed());
+        assert!(
+            t.elapsed() < Duration::from_millis(400),
+            "{:?}",
+            t.elapsed()
+        );
     }
 
     #[tokio::test]
@@ -646,7 +715,10 @@ mod tests {
         batcher.submit(ja).unwrap();
         ra.await.unwrap().unwrap();
         let waited = t.elapsed();
-        assert!(waited >= Duration::from_millis(190) && waited < Duration::from_secs(2), "{waited:?}");
+        assert!(
+            waited >= Duration::from_millis(190) && waited < Duration::from_secs(2),
+            "{waited:?}"
+        );
     }
 
     #[tokio::test]
@@ -690,7 +762,10 @@ mod tests {
     #[tokio::test]
     async fn a_row_that_fails_the_whole_step_fails_only_its_own_frame() {
         // A long delay on the first frame makes the next two share a batch.
-        let fake = Fake { delay: Duration::from_millis(30), ..Fake::default() };
+        let fake = Fake {
+            delay: Duration::from_millis(30),
+            ..Fake::default()
+        };
         let log = fake.log.clone();
         let batcher = Batcher::start(fake, config(8, 0, 100)).unwrap();
         let (store, _g) = SessionStore::new(10, Duration::from_secs(60));
@@ -732,7 +807,10 @@ mod tests {
 
     #[tokio::test]
     async fn close_drains_every_queued_frame_then_refuses() {
-        let fake = Fake { delay: Duration::from_millis(5), ..Fake::default() };
+        let fake = Fake {
+            delay: Duration::from_millis(5),
+            ..Fake::default()
+        };
         let batcher = Batcher::start(fake, config(2, 0, 100)).unwrap();
         let (store, _g) = SessionStore::new(10, Duration::from_secs(60));
         let a = store.open(session_config()).unwrap();
@@ -745,7 +823,9 @@ mod tests {
         batcher.close();
         let (j, _rx) = job(&a.session, a.epoch, 1.0, 0.0);
         assert_eq!(batcher.submit(j), Err(SubmitError::ShuttingDown));
-        tokio::task::spawn_blocking(move || batcher.join()).await.unwrap();
+        tokio::task::spawn_blocking(move || batcher.join())
+            .await
+            .unwrap();
         for (k, rx) in rxs.into_iter().enumerate() {
             assert_eq!(rx.await.unwrap().unwrap().frames_seen, k as u64 + 1);
         }
@@ -755,7 +835,13 @@ mod tests {
     fn warm_up_rejects_a_model_that_produces_nan() {
         struct Nan;
         impl Backend for Nan {
-            fn step(&mut self, _: &[f32], h: &mut [f32], _: &mut [f32], _: usize) -> Result<(), BackendError> {
+            fn step(
+                &mut self,
+                _: &[f32],
+                h: &mut [f32],
+                _: &mut [f32],
+                _: usize,
+            ) -> Result<(), BackendError> {
                 h[0] = f32::NAN;
                 Ok(())
             }

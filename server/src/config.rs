@@ -181,15 +181,30 @@ pub struct Cli {
     pub log_format: LogFormat,
 
     /// TLS certificate chain (PEM); requires --tls-key. Without both, plaintext HTTP/2.
-    #[arg(long, env = "BLAPOSE_TLS_CERT", value_name = "PEM", requires = "tls_key")]
+    #[arg(
+        long,
+        env = "BLAPOSE_TLS_CERT",
+        value_name = "PEM",
+        requires = "tls_key"
+    )]
     pub tls_cert: Option<PathBuf>,
 
     /// TLS private key (PEM); requires --tls-cert.
-    #[arg(long, env = "BLAPOSE_TLS_KEY", value_name = "PEM", requires = "tls_cert")]
+    #[arg(
+        long,
+        env = "BLAPOSE_TLS_KEY",
+        value_name = "PEM",
+        requires = "tls_cert"
+    )]
     pub tls_key: Option<PathBuf>,
 
     /// Require `authorization: Bearer <TOKEN>` on blapose.v1 calls (health and reflection stay open).
-    #[arg(long, env = "BLAPOSE_AUTH_TOKEN", value_name = "TOKEN", hide_env_values = true)]
+    #[arg(
+        long,
+        env = "BLAPOSE_AUTH_TOKEN",
+        value_name = "TOKEN",
+        hide_env_values = true
+    )]
     pub auth_token: Option<String>,
 
     /// Largest request message accepted, in bytes; larger -> OUT_OF_RANGE.
@@ -215,8 +230,12 @@ impl Cli {
         };
         ServerConfig {
             metrics_addr: (!self.no_metrics).then_some(self.metrics_addr),
-            weights: self.weights.map_or(WeightsSource::Embedded, WeightsSource::File),
-            bigru_weights: self.bigru_weights.map_or(WeightsSource::Embedded, WeightsSource::File),
+            weights: self
+                .weights
+                .map_or(WeightsSource::Embedded, WeightsSource::File),
+            bigru_weights: self
+                .bigru_weights
+                .map_or(WeightsSource::Embedded, WeightsSource::File),
             max_sessions: self.max_sessions,
             session_ttl: self.session_ttl,
             max_batch: self.max_batch,
@@ -252,7 +271,11 @@ pub fn parse_duration(text: &str) -> Result<Duration, String> {
         "s" => 1.0,
         "m" | "min" => 60.0,
         "h" => 3600.0,
-        other => return Err(format!("{text:?}: unknown unit {other:?} (use us, ms, s, m or h)")),
+        other => {
+            return Err(format!(
+                "{text:?}: unknown unit {other:?} (use us, ms, s, m or h)"
+            ))
+        }
     };
     Duration::try_from_secs_f64(value * scale).map_err(|e| format!("{text:?}: {e}"))
 }

@@ -16,13 +16,23 @@ fn model_error(e: ModelError) -> BackendError {
 }
 
 /// Build the online engine (`threads` workers per step).
-pub fn online_engine(weights: &LoadedWeights, threads: usize) -> Result<Arc<OnlineGruEngine>, BackendError> {
-    OnlineGruEngine::new(weights, threads.max(1)).map(Arc::new).map_err(model_error)
+pub fn online_engine(
+    weights: &LoadedWeights,
+    threads: usize,
+) -> Result<Arc<OnlineGruEngine>, BackendError> {
+    OnlineGruEngine::new(weights, threads.max(1))
+        .map(Arc::new)
+        .map_err(model_error)
 }
 
 /// Build the offline engine (`threads >= 2` runs both directions at once).
-pub fn offline_engine(weights: &LoadedWeights, threads: usize) -> Result<Arc<OfflineBiGruEngine>, BackendError> {
-    OfflineBiGruEngine::new(weights, threads.max(1)).map(Arc::new).map_err(model_error)
+pub fn offline_engine(
+    weights: &LoadedWeights,
+    threads: usize,
+) -> Result<Arc<OfflineBiGruEngine>, BackendError> {
+    OfflineBiGruEngine::new(weights, threads.max(1))
+        .map(Arc::new)
+        .map_err(model_error)
 }
 
 /// The online GRU step on the shared fast engine.
@@ -85,7 +95,10 @@ impl SequenceBackend for BiGruBackend {
         if inputs.len() != frames * INPUT_DIM {
             return Err(BackendError::Shape {
                 batch: frames,
-                detail: format!("{} input values for {frames} frames of {INPUT_DIM}", inputs.len()),
+                detail: format!(
+                    "{} input values for {frames} frames of {INPUT_DIM}",
+                    inputs.len()
+                ),
             });
         }
         self.engine.predict(inputs).map_err(model_error)
@@ -102,21 +115,31 @@ mod tests {
         let weights = LoadedWeights::random(ModelKind::Gru, 3).unwrap();
         let engine = online_engine(&weights, 1).unwrap();
         let mut backend = GruBackend::new(engine.clone(), 4);
-        let inputs: Vec<f32> = (0..2 * INPUT_DIM).map(|i| (i as f32 * 0.37).sin()).collect();
+        let inputs: Vec<f32> = (0..2 * INPUT_DIM)
+            .map(|i| (i as f32 * 0.37).sin())
+            .collect();
         let mut h1 = vec![0.0; 2 * crate::backend::STATE_DIM];
         let mut y1 = vec![0.0; 2 * crate::backend::OUTPUT_DIM];
         backend.step(&inputs, &mut h1, &mut y1, 2).unwrap();
         let mut h2 = vec![0.0; 2 * crate::backend::STATE_DIM];
         let mut y2 = vec![0.0; 2 * crate::backend::OUTPUT_DIM];
-        engine.step(&inputs, &mut h2, &mut y2, &mut engine.scratch(2)).unwrap();
+        engine
+            .step(&inputs, &mut h2, &mut y2, &mut engine.scratch(2))
+            .unwrap();
         assert_eq!(h1, h2);
         assert_eq!(y1, y2);
         assert!(h1.iter().any(|&v| v != 0.0));
-        assert!(matches!(backend.step(&inputs, &mut h1, &mut y1, 3), Err(BackendError::Shape { .. })));
+        assert!(matches!(
+            backend.step(&inputs, &mut h1, &mut y1, 3),
+            Err(BackendError::Shape { .. })
+        ));
         let mut bad = inputs.clone();
         bad[3] = f32::NAN;
         let before = h1.clone();
-        assert!(matches!(backend.step(&bad, &mut h1, &mut y1, 2), Err(BackendError::Model(_))));
+        assert!(matches!(
+            backend.step(&bad, &mut h1, &mut y1, 2),
+            Err(BackendError::Model(_))
+        ));
         assert_eq!(h1, before, "a refused step leaves the states alone");
     }
 
@@ -124,9 +147,14 @@ mod tests {
     fn offline_backend_predicts_finite_lengths() {
         let weights = LoadedWeights::random(ModelKind::BiGru, 4).unwrap();
         let mut backend = BiGruBackend::new(offline_engine(&weights, 1).unwrap());
-        let inputs: Vec<f32> = (0..5 * INPUT_DIM).map(|i| (i as f32 * 0.11).cos()).collect();
+        let inputs: Vec<f32> = (0..5 * INPUT_DIM)
+            .map(|i| (i as f32 * 0.11).cos())
+            .collect();
         let y = backend.predict(&inputs, 5).unwrap();
         assert!(y.iter().all(|v| v.is_finite()));
-        assert!(matches!(backend.predict(&inputs, 4), Err(BackendError::Shape { .. })));
+        assert!(matches!(
+            backend.predict(&inputs, 4),
+            Err(BackendError::Shape { .. })
+        ));
     }
 }

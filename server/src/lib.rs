@@ -118,11 +118,19 @@ where
 /// Load the configured weights and start serving on `listener`; returns
 /// once the model is warmed up and the server accepts calls (health
 /// SERVING).
-pub async fn spawn(config: ServerConfig, listener: TcpListener) -> Result<ServerHandle, ServerError> {
-    let (gru, bigru, threads) = (config.weights.clone(), config.bigru_weights.clone(), config.compute_threads);
-    let provider = tokio::task::spawn_blocking(move || WeightsProvider::load(&gru, &bigru, threads))
-        .await
-        .map_err(|e| ServerError::Task(e.to_string()))??;
+pub async fn spawn(
+    config: ServerConfig,
+    listener: TcpListener,
+) -> Result<ServerHandle, ServerError> {
+    let (gru, bigru, threads) = (
+        config.weights.clone(),
+        config.bigru_weights.clone(),
+        config.compute_threads,
+    );
+    let provider =
+        tokio::task::spawn_blocking(move || WeightsProvider::load(&gru, &bigru, threads))
+            .await
+            .map_err(|e| ServerError::Task(e.to_string()))??;
     tracing::info!(
         gru = %provider.gru().origin,
         gru_sha256 = %provider.gru().sha256,
@@ -175,7 +183,9 @@ pub async fn spawn_with_provider(
     let (health, health_service) = tonic_health::server::health_reporter();
     // Warm-up ran inside Batcher::start, so the model is ready now.
     health.set_service_status("", ServingStatus::Serving).await;
-    health.set_service_status(blapose_proto::SERVICE_NAME, ServingStatus::Serving).await;
+    health
+        .set_service_status(blapose_proto::SERVICE_NAME, ServingStatus::Serving)
+        .await;
 
     let reflection_v1 = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(blapose_proto::FILE_DESCRIPTOR_SET)
@@ -221,7 +231,9 @@ pub async fn spawn_with_provider(
         let server = router.serve_with_incoming_shutdown(incoming, async move {
             signal_token.cancelled().await;
             tracing::info!("shutting down: draining in-flight frames");
-            signal_health.set_service_status("", ServingStatus::NotServing).await;
+            signal_health
+                .set_service_status("", ServingStatus::NotServing)
+                .await;
             signal_health
                 .set_service_status(blapose_proto::SERVICE_NAME, ServingStatus::NotServing)
                 .await;
@@ -246,7 +258,11 @@ pub async fn spawn_with_provider(
         joined.map_err(|e| ServerError::Task(e.to_string()))
     });
     tracing::info!(addr = %local_addr, "serving blapose.v1");
-    Ok(ServerHandle { local_addr, shutdown, task: Some(task) })
+    Ok(ServerHandle {
+        local_addr,
+        shutdown,
+        task: Some(task),
+    })
 }
 
 /// Run a server on `listener` until `shutdown` completes, then shut down
@@ -266,8 +282,13 @@ pub async fn serve(
 /// Query `grpc.health.v1` at `addr` (overall status). `Ok(true)` when
 /// SERVING. With `tls_ca`, connect over TLS trusting that PEM certificate
 /// (use the server's own certificate when it is self-signed).
-pub async fn probe_health(addr: SocketAddr, tls_ca: Option<&std::path::Path>) -> Result<bool, ServerError> {
-    use tonic_health::pb::{health_check_response::ServingStatus as S, health_client::HealthClient, HealthCheckRequest};
+pub async fn probe_health(
+    addr: SocketAddr,
+    tls_ca: Option<&std::path::Path>,
+) -> Result<bool, ServerError> {
+    use tonic_health::pb::{
+        health_check_response::ServingStatus as S, health_client::HealthClient, HealthCheckRequest,
+    };
     let host = if addr.ip().is_unspecified() {
         SocketAddr::new(
             if addr.is_ipv4() {
@@ -286,7 +307,8 @@ pub async fn probe_health(addr: SocketAddr, tls_ca: Option<&std::path::Path>) ->
         .connect_timeout(Duration::from_secs(3))
         .timeout(Duration::from_secs(3));
     if let Some(ca) = tls_ca {
-        let pem = std::fs::read(ca).map_err(|e| ServerError::Tls(format!("cannot read {}: {e}", ca.display())))?;
+        let pem = std::fs::read(ca)
+            .map_err(|e| ServerError::Tls(format!("cannot read {}: {e}", ca.display())))?;
         endpoint = endpoint
             .tls_config(
                 tonic::transport::ClientTlsConfig::new()
@@ -297,7 +319,9 @@ pub async fn probe_health(addr: SocketAddr, tls_ca: Option<&std::path::Path>) ->
     }
     let channel = endpoint.connect().await?;
     let response = HealthClient::new(channel)
-        .check(HealthCheckRequest { service: String::new() })
+        .check(HealthCheckRequest {
+            service: String::new(),
+        })
         .await
         .map_err(|s| ServerError::Task(format!("health check failed: {s}")))?;
     Ok(response.into_inner().status == S::Serving as i32)

@@ -11,7 +11,9 @@ use std::net::SocketAddr;
 use std::sync::OnceLock;
 use std::time::Duration;
 
-use metrics::{counter, describe_counter, describe_gauge, describe_histogram, gauge, histogram, Unit};
+use metrics::{
+    counter, describe_counter, describe_gauge, describe_histogram, gauge, histogram, Unit,
+};
 use metrics_exporter_prometheus::{BuildError, Matcher, PrometheusBuilder};
 
 /// Frames answered, by outcome (`ok` or `error`).
@@ -42,7 +44,9 @@ pub const OFFLINE_LATENCY: &str = "blapose_offline_latency_seconds";
 const LATENCY_BUCKETS: [f64; 14] = [
     50e-6, 100e-6, 250e-6, 500e-6, 1e-3, 2e-3, 5e-3, 10e-3, 20e-3, 50e-3, 100e-3, 250e-3, 1.0, 5.0,
 ];
-const BATCH_BUCKETS: [f64; 12] = [1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0, 512.0, 1024.0, 4096.0];
+const BATCH_BUCKETS: [f64; 12] = [
+    1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0, 512.0, 1024.0, 4096.0,
+];
 
 /// Why the exporter could not start.
 #[derive(Debug, thiserror::Error)]
@@ -94,15 +98,34 @@ fn describe() {
     describe_counter!(FRAMES, "Frames answered, by outcome (ok, error).");
     describe_gauge!(SESSIONS, "Sessions currently held (attached or detached).");
     describe_gauge!(STREAMS, "Streams currently attached to a session.");
-    describe_counter!(SESSION_EVENTS, "Session lifecycle events (opened, resumed, closed, evicted).");
+    describe_counter!(
+        SESSION_EVENTS,
+        "Session lifecycle events (opened, resumed, closed, evicted)."
+    );
     describe_histogram!(BATCH_SIZE, "Frames per batched GRU step.");
-    describe_histogram!(QUEUE_LATENCY, Unit::Seconds, "Time a frame waited in the batcher queue.");
-    describe_histogram!(COMPUTE_LATENCY, Unit::Seconds, "Time one batched GRU step took.");
-    describe_histogram!(FRAME_LATENCY, Unit::Seconds, "Time from receiving a frame to its answer.");
+    describe_histogram!(
+        QUEUE_LATENCY,
+        Unit::Seconds,
+        "Time a frame waited in the batcher queue."
+    );
+    describe_histogram!(
+        COMPUTE_LATENCY,
+        Unit::Seconds,
+        "Time one batched GRU step took."
+    );
+    describe_histogram!(
+        FRAME_LATENCY,
+        Unit::Seconds,
+        "Time from receiving a frame to its answer."
+    );
     describe_gauge!(QUEUE_DEPTH, "Frames waiting in the batcher queue.");
     describe_counter!(ERRORS, "Errors returned, by gRPC code and rpc.");
     describe_counter!(OFFLINE_SEQUENCES, "Offline sequences adjusted, by model.");
-    describe_histogram!(OFFLINE_LATENCY, Unit::Seconds, "Model time of one offline request.");
+    describe_histogram!(
+        OFFLINE_LATENCY,
+        Unit::Seconds,
+        "Model time of one offline request."
+    );
 }
 
 /// A session was opened; `held` sessions now.
@@ -203,7 +226,10 @@ mod tests {
     #[test]
     fn code_names_follow_the_grpc_spec() {
         assert_eq!(code_name(tonic::Code::InvalidArgument), "INVALID_ARGUMENT");
-        assert_eq!(code_name(tonic::Code::ResourceExhausted), "RESOURCE_EXHAUSTED");
+        assert_eq!(
+            code_name(tonic::Code::ResourceExhausted),
+            "RESOURCE_EXHAUSTED"
+        );
         assert_eq!(code_name(tonic::Code::Unauthenticated), "UNAUTHENTICATED");
     }
 

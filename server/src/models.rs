@@ -111,13 +111,21 @@ impl LoadedModel {
                 (bytes.into(), path.display().to_string())
             }
         };
-        let weights = weights::load_bytes(&bytes, kind).map_err(|source| WeightsError::Invalid {
-            kind,
-            origin: origin.clone(),
-            source,
-        })?;
-        let sha256 = Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect();
-        Ok(Self { weights, origin, sha256 })
+        let weights =
+            weights::load_bytes(&bytes, kind).map_err(|source| WeightsError::Invalid {
+                kind,
+                origin: origin.clone(),
+                source,
+            })?;
+        let sha256 = Sha256::digest(&bytes)
+            .iter()
+            .map(|b| format!("{b:02x}"))
+            .collect();
+        Ok(Self {
+            weights,
+            origin,
+            sha256,
+        })
     }
 
     /// The `ModelInfo` entry for this model.
@@ -127,7 +135,8 @@ impl LoadedModel {
             ModelKind::Gru => (pb::Model::OnlineGru, "bone_length_gru"),
             ModelKind::BiGru => (pb::Model::OfflineBigru, "bone_length_bigru"),
         };
-        let parameter_count = blapose_model::reference::count_parameters(self.weights.tensors().values()) as u64;
+        let parameter_count =
+            blapose_model::reference::count_parameters(self.weights.tensors().values()) as u64;
         let metadata: HashMap<String, String> = self.weights.meta.to_header().into_iter().collect();
         pb::ModelDescription {
             model: model as i32,
@@ -166,12 +175,21 @@ const SCRATCH_BATCH: usize = 64;
 
 impl WeightsProvider {
     /// Load both models and build their engines with `threads` workers.
-    pub fn load(gru: &WeightsSource, bigru: &WeightsSource, threads: usize) -> Result<Self, ServerError> {
+    pub fn load(
+        gru: &WeightsSource,
+        bigru: &WeightsSource,
+        threads: usize,
+    ) -> Result<Self, ServerError> {
         let gru = LoadedModel::load(gru, ModelKind::Gru)?;
         let bigru = LoadedModel::load(bigru, ModelKind::BiGru)?;
         let online = engine::online_engine(&gru.weights, threads)?;
         let offline = engine::offline_engine(&bigru.weights, threads)?;
-        Ok(Self { gru, bigru, online, offline })
+        Ok(Self {
+            gru,
+            bigru,
+            online,
+            offline,
+        })
     }
 
     /// The online model's weights.
@@ -187,7 +205,10 @@ impl WeightsProvider {
 
 impl ModelProvider for WeightsProvider {
     fn online(&self) -> Result<Box<dyn Backend>, BackendError> {
-        Ok(Box::new(engine::GruBackend::new(self.online.clone(), SCRATCH_BATCH)))
+        Ok(Box::new(engine::GruBackend::new(
+            self.online.clone(),
+            SCRATCH_BATCH,
+        )))
     }
 
     fn offline(&self) -> Result<Box<dyn SequenceBackend>, BackendError> {

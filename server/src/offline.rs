@@ -51,7 +51,9 @@ fn take<T>(pool: &Pool<T>) -> Option<T> {
 }
 
 fn give<T>(pool: &Pool<T>, item: T) {
-    pool.lock().unwrap_or_else(PoisonError::into_inner).push(item);
+    pool.lock()
+        .unwrap_or_else(PoisonError::into_inner)
+        .push(item);
 }
 
 fn internal(e: BackendError) -> Status {
@@ -94,7 +96,9 @@ impl OfflineRunner {
                     give(&offline, backend);
                     let predicted = predicted.map_err(internal)?;
                     if !predicted.iter().all(|v| v.is_finite()) {
-                        return Err(Status::internal("the model produced non-finite bone lengths"));
+                        return Err(Status::internal(
+                            "the model produced non-finite bone lengths",
+                        ));
                     }
                     vec![predicted; frames]
                 }
@@ -108,8 +112,9 @@ impl OfflineRunner {
                     result?
                 }
             };
-            let poses = bones::adjust_sequence_per_frame(&seq.poses, &lengths, ZeroBonePolicy::Error)
-                .map_err(|e| Status::internal(format!("adjustment failed: {e}")))?;
+            let poses =
+                bones::adjust_sequence_per_frame(&seq.poses, &lengths, ZeroBonePolicy::Error)
+                    .map_err(|e| Status::internal(format!("adjustment failed: {e}")))?;
             Ok(AdjustedSequence { poses, lengths })
         })
         .await
@@ -128,15 +133,27 @@ impl OfflineRunner {
 /// The online model run causally over a sequence, one step per frame: row
 /// `t` is the running mean of the predictions of frames `0..=t`, exactly
 /// what a stream would have answered.
-pub fn online_lengths(backend: &mut dyn Backend, inputs: &[f32], frames: usize) -> Result<Vec<BoneLengths>, Status> {
+pub fn online_lengths(
+    backend: &mut dyn Backend,
+    inputs: &[f32],
+    frames: usize,
+) -> Result<Vec<BoneLengths>, Status> {
     let mut hidden = vec![0.0f32; STATE_DIM];
     let mut prediction = [0.0f32; OUTPUT_DIM];
     let mut running = RunningLengths::default();
     let mut out = Vec::with_capacity(frames);
     for (t, x) in inputs.chunks_exact(INPUT_DIM).take(frames).enumerate() {
-        backend.step(x, &mut hidden, &mut prediction, 1).map_err(internal)?;
-        if !hidden.iter().chain(prediction.iter()).all(|v| v.is_finite()) {
-            return Err(Status::internal(format!("the model produced a non-finite result at frame {t}")));
+        backend
+            .step(x, &mut hidden, &mut prediction, 1)
+            .map_err(internal)?;
+        if !hidden
+            .iter()
+            .chain(prediction.iter())
+            .all(|v| v.is_finite())
+        {
+            return Err(Status::internal(format!(
+                "the model produced a non-finite result at frame {t}"
+            )));
         }
         running.add(&prediction);
         out.push(running.mean().unwrap_or(prediction));

@@ -93,7 +93,10 @@ impl pb::pose_adjustment_server::PoseAdjustment for PoseService {
                 tracing::info!(session = %request.get_ref().session_id, frames_seen = snapshot.frames_seen, "session closed by CloseSession");
                 Ok(Response::new(pb::CloseSessionResponse {
                     frames_seen: snapshot.frames_seen,
-                    bone_lengths: snapshot.bone_lengths.map(|l| l.to_vec()).unwrap_or_default(),
+                    bone_lengths: snapshot
+                        .bone_lengths
+                        .map(|l| l.to_vec())
+                        .unwrap_or_default(),
                 }))
             }
             Err(e) => fail(session_status(e), "CloseSession"),
@@ -105,7 +108,10 @@ impl pb::pose_adjustment_server::PoseAdjustment for PoseService {
         request: Request<pb::AdjustSequenceRequest>,
     ) -> Result<Response<pb::AdjustSequenceResponse>, Status> {
         if self.state.draining.is_cancelled() {
-            return fail(Status::unavailable("the server is shutting down"), "AdjustSequence");
+            return fail(
+                Status::unavailable("the server is shutting down"),
+                "AdjustSequence",
+            );
         }
         let seq = match validate::sequence(request.get_ref()) {
             Ok(s) => s,

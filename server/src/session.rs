@@ -223,8 +223,17 @@ impl Session {
             hidden: vec![0.0; STATE_DIM].into_boxed_slice(),
             lengths: RunningLengths::default(),
         };
-        let (owner, _) = watch::channel(Ownership { epoch: 1, closed: false });
-        Self { id, key, config, state: Mutex::new(state), owner }
+        let (owner, _) = watch::channel(Ownership {
+            epoch: 1,
+            closed: false,
+        });
+        Self {
+            id,
+            key,
+            config,
+            state: Mutex::new(state),
+            owner,
+        }
     }
 
     /// Public id.
@@ -255,7 +264,10 @@ impl Session {
     }
 
     fn publish(&self, st: &SessionState) {
-        self.owner.send_replace(Ownership { epoch: st.epoch, closed: st.closed });
+        self.owner.send_replace(Ownership {
+            epoch: st.epoch,
+            closed: st.closed,
+        });
     }
 }
 
@@ -354,7 +366,10 @@ fn mark_closed(session: &Session) -> SessionSnapshot {
     let mut st = session.lock();
     st.closed = true;
     session.publish(&st);
-    SessionSnapshot { frames_seen: st.frames_seen(), bone_lengths: st.estimate() }
+    SessionSnapshot {
+        frames_seen: st.frames_seen(),
+        bone_lengths: st.estimate(),
+    }
 }
 
 /// The session store: bounded, with TTL eviction of detached sessions.
@@ -422,27 +437,40 @@ impl SessionStore {
         let session = Arc::new(Session::new(id, key, config));
         let mut inner = self.shared.lock();
         if inner.sessions.len() >= self.shared.max_sessions {
-            return Err(SessionError::TooManySessions { max: self.shared.max_sessions });
+            return Err(SessionError::TooManySessions {
+                max: self.shared.max_sessions,
+            });
         }
         // 128 random bits: a collision is astronomically unlikely, but an id
         // must never silently replace another session.
         if inner.sessions.contains_key(&id) {
             return Err(SessionError::Rng("duplicate session id drawn".into()));
         }
-        inner.sessions.insert(id, Entry { session: session.clone(), expires_at: None });
+        inner.sessions.insert(
+            id,
+            Entry {
+                session: session.clone(),
+                expires_at: None,
+            },
+        );
         metrics::session_opened(inner.sessions.len());
         drop(inner);
         Ok(Attachment {
             session,
             epoch: 1,
-            snapshot: SessionSnapshot { frames_seen: 0, bone_lengths: None },
+            snapshot: SessionSnapshot {
+                frames_seen: 0,
+                bone_lengths: None,
+            },
         })
     }
 
     /// Re-attach to a session by id, taking it over from any stream still
     /// attached (whose frames are refused from now on).
     pub fn resume(&self, id_text: &str) -> Result<Attachment, SessionError> {
-        let not_found = || SessionError::NotFound { id: truncate(id_text, 64) };
+        let not_found = || SessionError::NotFound {
+            id: truncate(id_text, 64),
+        };
         let id = SessionId::parse(id_text).ok_or_else(not_found)?;
         let mut inner = self.shared.lock();
         let entry = inner.sessions.get_mut(&id).ok_or_else(not_found)?;
@@ -457,7 +485,10 @@ impl SessionStore {
         let attachment = Attachment {
             session: session.clone(),
             epoch: st.epoch,
-            snapshot: SessionSnapshot { frames_seen: st.frames_seen(), bone_lengths: st.estimate() },
+            snapshot: SessionSnapshot {
+                frames_seen: st.frames_seen(),
+                bone_lengths: st.estimate(),
+            },
         };
         drop(st);
         drop(inner);
@@ -490,7 +521,9 @@ impl SessionStore {
 
     /// Close a session for good and return its final state.
     pub fn close(&self, id_text: &str) -> Result<SessionSnapshot, SessionError> {
-        let not_found = || SessionError::NotFound { id: truncate(id_text, 64) };
+        let not_found = || SessionError::NotFound {
+            id: truncate(id_text, 64),
+        };
         let id = SessionId::parse(id_text).ok_or_else(not_found)?;
         let mut inner = self.shared.lock();
         let entry = inner.sessions.remove(&id).ok_or_else(not_found)?;
@@ -540,7 +573,10 @@ mod tests {
 
     fn config() -> SessionConfig {
         SessionConfig {
-            input: InputSpec { layout: KeypointLayout::H36m17, coordinates: Coordinates::Normalized },
+            input: InputSpec {
+                layout: KeypointLayout::H36m17,
+                coordinates: Coordinates::Normalized,
+            },
             label: String::new(),
         }
     }
@@ -550,7 +586,9 @@ mod tests {
         let id = SessionId::random().unwrap();
         let s = id.to_string();
         assert_eq!(s.len(), 32);
-        assert!(s.bytes().all(|c| c.is_ascii_hexdigit() && !c.is_ascii_uppercase()));
+        assert!(s
+            .bytes()
+            .all(|c| c.is_ascii_hexdigit() && !c.is_ascii_uppercase()));
         assert_eq!(SessionId::parse(&s), Some(id));
         assert_eq!(SessionId::parse(&s.to_uppercase()), Some(id));
         assert_eq!(SessionId::parse(&s[..31]), None);
@@ -568,9 +606,15 @@ mod tests {
         let distinct: std::collections::HashSet<_> = ids.iter().collect();
         assert_eq!(distinct.len(), ids.len());
         for bit in 0..128 {
-            let ones = ids.iter().filter(|id| id.as_bytes()[bit / 8] >> (bit % 8) & 1 == 1).count();
+            let ones = ids
+                .iter()
+                .filter(|id| id.as_bytes()[bit / 8] >> (bit % 8) & 1 == 1)
+                .count();
             // Binomial(2000, 0.5): mean 1000, sd ~22; 6 sd either side.
-            assert!((866..=1134).contains(&ones), "bit {bit} set in {ones}/2000 ids");
+            assert!(
+                (866..=1134).contains(&ones),
+                "bit {bit} set in {ones}/2000 ids"
+            );
         }
     }
 
@@ -579,10 +623,16 @@ mod tests {
         let (store, _guard) = SessionStore::new(2, Duration::from_secs(10));
         let a = store.open(config()).unwrap();
         let _b = store.open(config()).unwrap();
-        assert_eq!(store.open(config()).unwrap_err(), SessionError::TooManySessions { max: 2 });
+        assert_eq!(
+            store.open(config()).unwrap_err(),
+            SessionError::TooManySessions { max: 2 }
+        );
         // Detached sessions still count.
         store.detach(&a.session, a.epoch);
-        assert!(matches!(store.open(config()), Err(SessionError::TooManySessions { .. })));
+        assert!(matches!(
+            store.open(config()),
+            Err(SessionError::TooManySessions { .. })
+        ));
         store.close(&a.session.id().to_string()).unwrap();
         assert!(store.open(config()).is_ok());
         assert_eq!(store.len(), 2);
@@ -603,7 +653,10 @@ mod tests {
         tokio::time::sleep(Duration::from_millis(20)).await;
         assert!(!store.contains(&id), "not evicted after its TTL");
         assert!(watch.borrow_and_update().closed, "eviction is published");
-        assert_eq!(store.resume(&id).unwrap_err(), SessionError::NotFound { id: id.clone() });
+        assert_eq!(
+            store.resume(&id).unwrap_err(),
+            SessionError::NotFound { id: id.clone() }
+        );
 
         tokio::time::sleep(ttl * 10).await;
         assert!(store.contains(&attached.session.id().to_string()));
@@ -665,17 +718,32 @@ mod tests {
     async fn unknown_malformed_and_closed_ids_are_not_found() {
         let (store, _guard) = SessionStore::new(10, Duration::from_secs(5));
         let guess = SessionId::random().unwrap().to_string();
-        assert!(matches!(store.resume(&guess), Err(SessionError::NotFound { .. })));
-        assert!(matches!(store.resume("not-an-id"), Err(SessionError::NotFound { .. })));
-        assert!(matches!(store.close(&guess), Err(SessionError::NotFound { .. })));
+        assert!(matches!(
+            store.resume(&guess),
+            Err(SessionError::NotFound { .. })
+        ));
+        assert!(matches!(
+            store.resume("not-an-id"),
+            Err(SessionError::NotFound { .. })
+        ));
+        assert!(matches!(
+            store.close(&guess),
+            Err(SessionError::NotFound { .. })
+        ));
         let a = store.open(config()).unwrap();
         let id = a.session.id().to_string();
         let snap = store.close(&id).unwrap();
         assert_eq!(snap.frames_seen, 0);
         assert!(a.session.lock().closed);
         assert!(!a.session.lock().accepts(a.epoch));
-        assert!(matches!(store.resume(&id), Err(SessionError::NotFound { .. })));
-        assert!(matches!(store.close(&id), Err(SessionError::NotFound { .. })));
+        assert!(matches!(
+            store.resume(&id),
+            Err(SessionError::NotFound { .. })
+        ));
+        assert!(matches!(
+            store.close(&id),
+            Err(SessionError::NotFound { .. })
+        ));
     }
 
     #[test]

@@ -31,7 +31,9 @@ use tracing::Instrument;
 use crate::batcher::{FrameJob, StepResult};
 use crate::metrics;
 use crate::service::AppState;
-use crate::session::{Attachment, Ownership, SessionConfig, SessionError, SessionSnapshot, MAX_LABEL_BYTES};
+use crate::session::{
+    Attachment, Ownership, SessionConfig, SessionError, SessionSnapshot, MAX_LABEL_BYTES,
+};
 use crate::validate;
 
 /// What the response channel carries.
@@ -65,7 +67,11 @@ enum End {
 }
 
 /// Drive one stream to completion. Runs as its own task.
-pub async fn run(state: Arc<AppState>, mut inbound: Streaming<pb::StreamRequest>, tx: mpsc::Sender<Outbound>) {
+pub async fn run(
+    state: Arc<AppState>,
+    mut inbound: Streaming<pb::StreamRequest>,
+    tx: mpsc::Sender<Outbound>,
+) {
     let attachment = tokio::select! {
         first = inbound.message() => match open_or_resume(&state, first) {
             Ok(a) => a,
@@ -106,7 +112,9 @@ pub async fn run(state: Arc<AppState>, mut inbound: Streaming<pb::StreamRequest>
 }
 
 fn shutting_down() -> Status {
-    Status::unavailable("the server is shutting down; resume or reopen the session on another server")
+    Status::unavailable(
+        "the server is shutting down; resume or reopen the session on another server",
+    )
 }
 
 fn open_or_resume(
@@ -115,12 +123,17 @@ fn open_or_resume(
 ) -> Result<Attachment, Status> {
     let request = match first {
         Ok(Some(r)) => r,
-        Ok(None) => return Err(Status::failed_precondition("the stream ended before an open or resume request")),
+        Ok(None) => {
+            return Err(Status::failed_precondition(
+                "the stream ended before an open or resume request",
+            ))
+        }
         Err(status) => return Err(status),
     };
     match request.kind {
         Some(Req::Open(open)) => {
-            let input = validate::input_spec(open.input_format.as_ref()).map_err(|e| e.to_status())?;
+            let input =
+                validate::input_spec(open.input_format.as_ref()).map_err(|e| e.to_status())?;
             validate::stream_model(open.model).map_err(|e| e.to_status())?;
             let label = truncate_label(&open.client_label);
             let attachment = state
@@ -136,7 +149,10 @@ fn open_or_resume(
             Ok(attachment)
         }
         Some(Req::Resume(resume)) => {
-            let attachment = state.store.resume(&resume.session_id).map_err(session_status)?;
+            let attachment = state
+                .store
+                .resume(&resume.session_id)
+                .map_err(session_status)?;
             tracing::info!(session = %attachment.session.id(), frames_seen = attachment.snapshot.frames_seen, "session resumed");
             Ok(attachment)
         }
@@ -146,7 +162,9 @@ fn open_or_resume(
         Some(Req::Close(_)) => Err(Status::failed_precondition(
             "close arrived before the session was opened: send open or resume first",
         )),
-        None => Err(Status::invalid_argument("empty StreamRequest: set open, resume, frame or close")),
+        None => Err(Status::invalid_argument(
+            "empty StreamRequest: set open, resume, frame or close",
+        )),
     }
 }
 
@@ -165,7 +183,10 @@ fn truncate_label(label: &str) -> String {
         end -= 1;
     }
     // Labels go into logs: keep them on one line.
-    label[..end].chars().map(|c| if c.is_control() { ' ' } else { c }).collect()
+    label[..end]
+        .chars()
+        .map(|c| if c.is_control() { ' ' } else { c })
+        .collect()
 }
 
 fn opened_response(state: &AppState, a: &Attachment) -> pb::StreamResponse {
@@ -189,7 +210,11 @@ fn lengths_vec(s: &SessionSnapshot) -> Vec<f32> {
 fn frame_error(frame_index: u64, code: tonic::Code, message: String) -> pb::StreamResponse {
     metrics::frame_error(code);
     pb::StreamResponse {
-        kind: Some(Resp::Error(pb::FrameError { frame_index, code: code as i32, message })),
+        kind: Some(Resp::Error(pb::FrameError {
+            frame_index,
+            code: code as i32,
+            message,
+        })),
     }
 }
 
@@ -199,12 +224,28 @@ fn submit(state: &AppState, a: &Attachment, frame: pb::Frame) -> Pending {
     let index = frame.frame_index;
     let valid = match validate::frame(&a.session.config().input, &frame) {
         Ok(v) => v,
-        Err(e) => return Pending::Ready(frame_error(index, tonic::Code::InvalidArgument, e.to_string())),
+        Err(e) => {
+            return Pending::Ready(frame_error(
+                index,
+                tonic::Code::InvalidArgument,
+                e.to_string(),
+            ))
+        }
     };
     let (reply, rx) = oneshot::channel();
-    let job = FrameJob { session: a.session.clone(), epoch: a.epoch, input: valid.input, reply };
+    let job = FrameJob {
+        session: a.session.clone(),
+        epoch: a.epoch,
+        input: valid.input,
+        reply,
+    };
     match state.batcher.submit(job) {
-        Ok(()) => Pending::Step { frame_index: index, pose: valid.pose, received, rx },
+        Ok(()) => Pending::Step {
+            frame_index: index,
+            pose: valid.pose,
+            received,
+            rx,
+        },
         Err(e) => Pending::Ready(frame_error(index, e.code(), e.to_string())),
     }
 }
@@ -217,9 +258,15 @@ async fn next_answer(pending: &mut VecDeque<Pending>) -> Option<pb::StreamRespon
     };
     match (pending.pop_front()?, result) {
         (Pending::Ready(response), _) => Some(response),
-        (Pending::Step { frame_index, pose, received, .. }, Some(result)) => {
-            Some(step_response(frame_index, &pose, received, result))
-        }
+        (
+            Pending::Step {
+                frame_index,
+                pose,
+                received,
+                ..
+            },
+            Some(result),
+        ) => Some(step_response(frame_index, &pose, received, result)),
         (Pending::Step { frame_index, .. }, None) => Some(frame_error(
             frame_index,
             tonic::Code::Internal,
@@ -238,7 +285,11 @@ fn step_response(
         Ok(Ok(output)) => output,
         Ok(Err(e)) => return frame_error(frame_index, e.code(), e.to_string()),
         Err(_) => {
-            return frame_error(frame_index, tonic::Code::Unavailable, "the batcher stopped before this frame".into())
+            return frame_error(
+                frame_index,
+                tonic::Code::Unavailable,
+                "the batcher stopped before this frame".into(),
+            )
         }
     };
     match bones::adjust_pose(pose, &output.lengths) {
@@ -255,7 +306,11 @@ fn step_response(
         }
         // Validation guarantees a pose the adjustment accepts; report
         // rather than panic if that ever stops holding.
-        Err(e) => frame_error(frame_index, tonic::Code::Internal, format!("adjustment failed: {e}")),
+        Err(e) => frame_error(
+            frame_index,
+            tonic::Code::Internal,
+            format!("adjustment failed: {e}"),
+        ),
     }
 }
 
@@ -345,7 +400,10 @@ async fn finish(state: &AppState, a: &Attachment, end: End, tx: &mpsc::Sender<Ou
     match end {
         End::Close => match state.store.close(&id) {
             Ok(snapshot) => {
-                tracing::info!(frames_seen = snapshot.frames_seen, "session closed by client");
+                tracing::info!(
+                    frames_seen = snapshot.frames_seen,
+                    "session closed by client"
+                );
                 let closed = pb::StreamResponse {
                     kind: Some(Resp::Closed(pb::SessionClosed {
                         session_id: id,
@@ -394,7 +452,13 @@ mod tests {
 
     #[test]
     fn store_errors_map_to_grpc_codes() {
-        assert_eq!(session_status(SessionError::TooManySessions { max: 1 }).code(), tonic::Code::ResourceExhausted);
-        assert_eq!(session_status(SessionError::NotFound { id: "x".into() }).code(), tonic::Code::NotFound);
+        assert_eq!(
+            session_status(SessionError::TooManySessions { max: 1 }).code(),
+            tonic::Code::ResourceExhausted
+        );
+        assert_eq!(
+            session_status(SessionError::NotFound { id: "x".into() }).code(),
+            tonic::Code::NotFound
+        );
     }
 }

@@ -33,7 +33,9 @@ pub enum InvalidInput {
     #[error("input_format is required (keypoint layout and image size or normalized=true)")]
     MissingInputFormat,
     /// Layout not set.
-    #[error("input_format.layout is KEYPOINT_LAYOUT_UNSPECIFIED; choose H36M_17, SH_16 or COCO_17")]
+    #[error(
+        "input_format.layout is KEYPOINT_LAYOUT_UNSPECIFIED; choose H36M_17, SH_16 or COCO_17"
+    )]
     UnspecifiedLayout,
     /// Layout number unknown to this server.
     #[error("input_format.layout {0} is not a known KeypointLayout (known: 1 H36M_17, 2 SH_16, 3 COCO_17)")]
@@ -59,7 +61,9 @@ pub enum InvalidInput {
     #[error("MODEL_OFFLINE_BIGRU needs the whole sequence; use AdjustSequence, or MODEL_ONLINE_GRU for streaming")]
     OfflineModelOnStream,
     /// Wrong keypoint value count.
-    #[error("keypoints_2d has {got} values, expected {expected} ({joints} joints x 2) for {layout}")]
+    #[error(
+        "keypoints_2d has {got} values, expected {expected} ({joints} joints x 2) for {layout}"
+    )]
     KeypointCount {
         /// Values given.
         got: usize,
@@ -79,7 +83,9 @@ pub enum InvalidInput {
         name: &'static str,
     },
     /// A keypoint value is absurdly large.
-    #[error("keypoints_2d joint {joint} ({name}) has value {value}, outside +-{MAX_KEYPOINT_ABS:e}")]
+    #[error(
+        "keypoints_2d joint {joint} ({name}) has value {value}, outside +-{MAX_KEYPOINT_ABS:e}"
+    )]
     KeypointOutOfRange {
         /// Joint index in the client's layout.
         joint: usize,
@@ -182,16 +188,27 @@ pub fn input_spec(format: Option<&pb::InputFormat>) -> Result<InputSpec, Invalid
     let layout = layout_from_proto(format.layout)?;
     let coordinates = match format.coordinates {
         None => return Err(InvalidInput::MissingCoordinates),
-        Some(pb::input_format::Coordinates::Normalized(false)) => return Err(InvalidInput::NormalizedFalse),
+        Some(pb::input_format::Coordinates::Normalized(false)) => {
+            return Err(InvalidInput::NormalizedFalse)
+        }
         Some(pb::input_format::Coordinates::Normalized(true)) => Coordinates::Normalized,
         Some(pb::input_format::Coordinates::ImageSize(size)) => {
             if size.width == 0 || size.height == 0 {
-                return Err(InvalidInput::BadImageSize { width: size.width, height: size.height });
+                return Err(InvalidInput::BadImageSize {
+                    width: size.width,
+                    height: size.height,
+                });
             }
-            Coordinates::Pixels { width: size.width, height: size.height }
+            Coordinates::Pixels {
+                width: size.width,
+                height: size.height,
+            }
         }
     };
-    Ok(InputSpec { layout, coordinates })
+    Ok(InputSpec {
+        layout,
+        coordinates,
+    })
 }
 
 /// The `InputFormat` a spec was built from (echoed on open/resume).
@@ -202,7 +219,10 @@ pub fn input_spec_to_proto(spec: &InputSpec) -> pb::InputFormat {
             pb::input_format::Coordinates::ImageSize(pb::ImageSize { width, height })
         }
     };
-    pb::InputFormat { layout: layout_to_proto(spec.layout) as i32, coordinates: Some(coordinates) }
+    pb::InputFormat {
+        layout: layout_to_proto(spec.layout) as i32,
+        coordinates: Some(coordinates),
+    }
 }
 
 /// Which model an offline request runs.
@@ -235,7 +255,11 @@ pub fn offline_model(value: i32) -> Result<OfflineModel, InvalidInput> {
 /// Validate one frame's keypoints (and confidences) and turn them into the
 /// model's input: Human3.6M-17 order, normalized screen coordinates,
 /// joint-major `(x, y)`.
-pub fn model_input(spec: &InputSpec, keypoints: &[f32], confidence: &[f32]) -> Result<[f32; INPUT_DIM], InvalidInput> {
+pub fn model_input(
+    spec: &InputSpec,
+    keypoints: &[f32],
+    confidence: &[f32],
+) -> Result<[f32; INPUT_DIM], InvalidInput> {
     let layout = spec.layout;
     let joints = layout.num_joints();
     if keypoints.len() != joints * 2 {
@@ -247,9 +271,16 @@ pub fn model_input(spec: &InputSpec, keypoints: &[f32], confidence: &[f32]) -> R
         });
     }
     if !confidence.is_empty() && confidence.len() != joints {
-        return Err(InvalidInput::ConfidenceCount { got: confidence.len(), expected: joints });
+        return Err(InvalidInput::ConfidenceCount {
+            got: confidence.len(),
+            expected: joints,
+        });
     }
-    if let Some((joint, &value)) = confidence.iter().enumerate().find(|(_, c)| !(c.is_finite() && **c >= 0.0)) {
+    if let Some((joint, &value)) = confidence
+        .iter()
+        .enumerate()
+        .find(|(_, c)| !(c.is_finite() && **c >= 0.0))
+    {
         return Err(InvalidInput::BadConfidence { joint, value });
     }
     let names = layout.joint_names();
@@ -257,10 +288,17 @@ pub fn model_input(spec: &InputSpec, keypoints: &[f32], confidence: &[f32]) -> R
     for (j, pair) in keypoints.chunks_exact(2).enumerate() {
         for &v in pair {
             if !v.is_finite() {
-                return Err(InvalidInput::NonFiniteKeypoint { joint: j, name: names[j] });
+                return Err(InvalidInput::NonFiniteKeypoint {
+                    joint: j,
+                    name: names[j],
+                });
             }
             if v.abs() > MAX_KEYPOINT_ABS {
-                return Err(InvalidInput::KeypointOutOfRange { joint: j, name: names[j], value: v });
+                return Err(InvalidInput::KeypointOutOfRange {
+                    joint: j,
+                    name: names[j],
+                    value: v,
+                });
             }
         }
         points[j] = [pair[0], pair[1]];
@@ -301,10 +339,17 @@ pub fn pose(values: &[f32]) -> Result<Pose, InvalidInput> {
     for (j, xyz) in values.chunks_exact(3).enumerate() {
         for &v in xyz {
             if !v.is_finite() {
-                return Err(InvalidInput::Pose(BoneError::NonFiniteJoint { joint: j, name: JOINT_NAMES[j] }));
+                return Err(InvalidInput::Pose(BoneError::NonFiniteJoint {
+                    joint: j,
+                    name: JOINT_NAMES[j],
+                }));
             }
             if v.abs() > MAX_POSE_ABS {
-                return Err(InvalidInput::PoseOutOfRange { joint: j, name: JOINT_NAMES[j], value: v });
+                return Err(InvalidInput::PoseOutOfRange {
+                    joint: j,
+                    name: JOINT_NAMES[j],
+                    value: v,
+                });
             }
         }
         pose[j] = [xyz[0], xyz[1], xyz[2]];
@@ -351,11 +396,17 @@ pub fn sequence(req: &pb::AdjustSequenceRequest) -> Result<ValidSequence, Invali
     }
     let joints = spec.layout.num_joints();
     let check = |field, got: usize, per_frame: usize| {
-        let expected = frames.checked_mul(per_frame).unwrap_or(usize::MAX);
+        let expected = frames.saturating_mul(per_frame);
         if got == expected {
             Ok(())
         } else {
-            Err(InvalidInput::SequenceLength { field, got, expected, frames, per_frame })
+            Err(InvalidInput::SequenceLength {
+                field,
+                got,
+                expected,
+                frames,
+                per_frame,
+            })
         }
     };
     check("keypoints_2d", req.keypoints_2d.len(), joints * 2)?;
@@ -366,7 +417,10 @@ pub fn sequence(req: &pb::AdjustSequenceRequest) -> Result<ValidSequence, Invali
     let mut inputs = Vec::with_capacity(frames * INPUT_DIM);
     let mut poses = Vec::with_capacity(frames);
     for t in 0..frames {
-        let in_frame = |e| InvalidInput::InFrame { frame: t, source: Box::new(e) };
+        let in_frame = |e| InvalidInput::InFrame {
+            frame: t,
+            source: Box::new(e),
+        };
         let kp = &req.keypoints_2d[t * joints * 2..(t + 1) * joints * 2];
         let conf = if req.confidence.is_empty() {
             &[][..]
@@ -376,7 +430,11 @@ pub fn sequence(req: &pb::AdjustSequenceRequest) -> Result<ValidSequence, Invali
         inputs.extend_from_slice(&model_input(&spec, kp, conf).map_err(in_frame)?);
         poses.push(pose(&req.poses_3d[t * POSE_VALUES..(t + 1) * POSE_VALUES]).map_err(in_frame)?);
     }
-    Ok(ValidSequence { model, inputs, poses })
+    Ok(ValidSequence {
+        model,
+        inputs,
+        poses,
+    })
 }
 
 #[cfg(test)]
@@ -384,7 +442,10 @@ mod tests {
     use super::*;
 
     fn spec(layout: KeypointLayout, coordinates: Coordinates) -> InputSpec {
-        InputSpec { layout, coordinates }
+        InputSpec {
+            layout,
+            coordinates,
+        }
     }
 
     /// A plausible standing pose (metres).
@@ -412,25 +473,60 @@ mod tests {
     }
 
     fn format(layout: i32, coordinates: Option<pb::input_format::Coordinates>) -> pb::InputFormat {
-        pb::InputFormat { layout, coordinates }
+        pb::InputFormat {
+            layout,
+            coordinates,
+        }
     }
 
     #[test]
     fn input_formats_are_checked() {
         use pb::input_format::Coordinates as C;
-        let size = |w, h| Some(C::ImageSize(pb::ImageSize { width: w, height: h }));
+        let size = |w, h| {
+            Some(C::ImageSize(pb::ImageSize {
+                width: w,
+                height: h,
+            }))
+        };
         assert_eq!(input_spec(None), Err(InvalidInput::MissingInputFormat));
-        assert_eq!(input_spec(Some(&format(0, size(10, 10)))), Err(InvalidInput::UnspecifiedLayout));
-        assert_eq!(input_spec(Some(&format(42, size(10, 10)))), Err(InvalidInput::UnknownLayout(42)));
-        assert_eq!(input_spec(Some(&format(-1, size(10, 10)))), Err(InvalidInput::UnknownLayout(-1)));
-        assert_eq!(input_spec(Some(&format(1, None))), Err(InvalidInput::MissingCoordinates));
+        assert_eq!(
+            input_spec(Some(&format(0, size(10, 10)))),
+            Err(InvalidInput::UnspecifiedLayout)
+        );
+        assert_eq!(
+            input_spec(Some(&format(42, size(10, 10)))),
+            Err(InvalidInput::UnknownLayout(42))
+        );
+        assert_eq!(
+            input_spec(Some(&format(-1, size(10, 10)))),
+            Err(InvalidInput::UnknownLayout(-1))
+        );
+        assert_eq!(
+            input_spec(Some(&format(1, None))),
+            Err(InvalidInput::MissingCoordinates)
+        );
         assert_eq!(
             input_spec(Some(&format(1, size(0, 10)))),
-            Err(InvalidInput::BadImageSize { width: 0, height: 10 })
+            Err(InvalidInput::BadImageSize {
+                width: 0,
+                height: 10
+            })
         );
-        assert_eq!(input_spec(Some(&format(2, Some(C::Normalized(false))))), Err(InvalidInput::NormalizedFalse));
+        assert_eq!(
+            input_spec(Some(&format(2, Some(C::Normalized(false))))),
+            Err(InvalidInput::NormalizedFalse)
+        );
         let ok = input_spec(Some(&format(3, size(1920, 1080)))).unwrap();
-        assert_eq!(ok, spec(KeypointLayout::Coco17, Coordinates::Pixels { width: 1920, height: 1080 }));
+        assert_eq!(
+            ok,
+            spec(
+                KeypointLayout::Coco17,
+                Coordinates::Pixels {
+                    width: 1920,
+                    height: 1080
+                }
+            )
+        );
         assert_eq!(input_spec(Some(&input_spec_to_proto(&ok))), Ok(ok));
         let n = input_spec(Some(&format(2, Some(C::Normalized(true))))).unwrap();
         assert_eq!(n, spec(KeypointLayout::Sh16, Coordinates::Normalized));
@@ -450,7 +546,13 @@ mod tests {
 
     #[test]
     fn pixels_are_normalized_after_layout_conversion() {
-        let s = spec(KeypointLayout::H36m17, Coordinates::Pixels { width: 1000, height: 1002 });
+        let s = spec(
+            KeypointLayout::H36m17,
+            Coordinates::Pixels {
+                width: 1000,
+                height: 1002,
+            },
+        );
         let kp: Vec<f32> = (0..34).map(|i| i as f32 * 10.0).collect();
         let input = model_input(&s, &kp, &[]).unwrap();
         for j in 0..17 {
@@ -481,22 +583,40 @@ mod tests {
         );
         let mut kp = vec![0.1; 32];
         kp[5] = f32::NAN;
-        assert!(matches!(model_input(&s, &kp, &[]), Err(InvalidInput::NonFiniteKeypoint { joint: 2, .. })));
+        assert!(matches!(
+            model_input(&s, &kp, &[]),
+            Err(InvalidInput::NonFiniteKeypoint { joint: 2, .. })
+        ));
         kp[5] = f32::NEG_INFINITY;
-        assert!(matches!(model_input(&s, &kp, &[]), Err(InvalidInput::NonFiniteKeypoint { joint: 2, .. })));
+        assert!(matches!(
+            model_input(&s, &kp, &[]),
+            Err(InvalidInput::NonFiniteKeypoint { joint: 2, .. })
+        ));
         kp[5] = 3e7;
-        assert!(matches!(model_input(&s, &kp, &[]), Err(InvalidInput::KeypointOutOfRange { joint: 2, .. })));
+        assert!(matches!(
+            model_input(&s, &kp, &[]),
+            Err(InvalidInput::KeypointOutOfRange { joint: 2, .. })
+        ));
         kp[5] = 0.1;
         assert!(model_input(&s, &kp, &[]).is_ok());
         assert!(matches!(
             model_input(&s, &kp, &[1.0; 17]),
-            Err(InvalidInput::ConfidenceCount { got: 17, expected: 16 })
+            Err(InvalidInput::ConfidenceCount {
+                got: 17,
+                expected: 16
+            })
         ));
         let mut conf = vec![0.9; 16];
         conf[3] = -0.5;
-        assert!(matches!(model_input(&s, &kp, &conf), Err(InvalidInput::BadConfidence { joint: 3, .. })));
+        assert!(matches!(
+            model_input(&s, &kp, &conf),
+            Err(InvalidInput::BadConfidence { joint: 3, .. })
+        ));
         conf[3] = f32::NAN;
-        assert!(matches!(model_input(&s, &kp, &conf), Err(InvalidInput::BadConfidence { joint: 3, .. })));
+        assert!(matches!(
+            model_input(&s, &kp, &conf),
+            Err(InvalidInput::BadConfidence { joint: 3, .. })
+        ));
         conf[3] = 0.0;
         assert!(model_input(&s, &kp, &conf).is_ok());
         assert_eq!(err.to_status().code(), tonic::Code::InvalidArgument);
@@ -509,18 +629,39 @@ mod tests {
         assert_eq!(pose(&good[..50]), Err(InvalidInput::PoseCount { got: 50 }));
         let mut p = good.clone();
         p[3 * 5 + 1] = f32::NAN;
-        assert!(matches!(pose(&p), Err(InvalidInput::Pose(BoneError::NonFiniteJoint { joint: 5, .. }))));
+        assert!(matches!(
+            pose(&p),
+            Err(InvalidInput::Pose(BoneError::NonFiniteJoint {
+                joint: 5,
+                ..
+            }))
+        ));
         let mut p = good.clone();
         p[3 * 16] = f32::INFINITY;
-        assert!(matches!(pose(&p), Err(InvalidInput::Pose(BoneError::NonFiniteJoint { joint: 16, .. }))));
+        assert!(matches!(
+            pose(&p),
+            Err(InvalidInput::Pose(BoneError::NonFiniteJoint {
+                joint: 16,
+                ..
+            }))
+        ));
         let mut p = good.clone();
         p[3 * 7 + 2] = -2e4;
-        assert!(matches!(pose(&p), Err(InvalidInput::PoseOutOfRange { joint: 7, .. })));
+        assert!(matches!(
+            pose(&p),
+            Err(InvalidInput::PoseOutOfRange { joint: 7, .. })
+        ));
         // Zero-length bone: the left wrist on the left elbow (bone 12).
         let mut p = good.clone();
         p.copy_within(3 * 12..3 * 13, 3 * 13);
         let err = pose(&p).unwrap_err();
-        assert!(matches!(err, InvalidInput::Pose(BoneError::ZeroLengthBone { bone: 12, .. })), "{err}");
+        assert!(
+            matches!(
+                err,
+                InvalidInput::Pose(BoneError::ZeroLengthBone { bone: 12, .. })
+            ),
+            "{err}"
+        );
         assert!(err.to_string().contains("l_forearm"), "{err}");
     }
 
@@ -548,14 +689,28 @@ mod tests {
         req.num_frames = 4;
         assert!(matches!(
             sequence(&req),
-            Err(InvalidInput::SequenceLength { field: "keypoints_2d", got: 102, expected: 136, .. })
+            Err(InvalidInput::SequenceLength {
+                field: "keypoints_2d",
+                got: 102,
+                expected: 136,
+                ..
+            })
         ));
         req.num_frames = 0;
         assert_eq!(sequence(&req), Err(InvalidInput::NoFrames));
         req.num_frames = u32::MAX;
-        assert!(matches!(sequence(&req), Err(InvalidInput::SequenceLength { .. })));
+        assert!(matches!(
+            sequence(&req),
+            Err(InvalidInput::SequenceLength { .. })
+        ));
         req.num_frames = 3;
         req.confidence = vec![1.0; 5];
-        assert!(matches!(sequence(&req), Err(InvalidInput::SequenceLength { field: "confidence", .. })));
+        assert!(matches!(
+            sequence(&req),
+            Err(InvalidInput::SequenceLength {
+                field: "confidence",
+                ..
+            })
+        ));
     }
 }

@@ -148,23 +148,39 @@ unsafe fn panel_avx2(x: &[f32], k: usize, panel: &[f32], bias: &[f32; NR], out: 
     panel_rows::<true, 1>(x, k, panel, bias, out)
 }
 
-/// All rows in blocks of `R` (then the remainder one row at a time).
+/// All rows in blocks of `R`, then the remaining rows as one smaller block
+/// (so every row block streams the panel once).
 #[inline(always)]
 fn panel_rows<const FMA: bool, const R: usize>(x: &[f32], k: usize, panel: &[f32], bias: &[f32; NR], out: &mut [f32]) {
     let m = out.len() / NR;
     let mut row = 0;
     while row + R <= m {
-        let xs: [&[f32]; R] = std::array::from_fn(|r| &x[(row + r) * k..(row + r + 1) * k]);
-        let acc = block::<FMA, R>(xs, k, panel, bias);
-        for (r, a) in acc.iter().enumerate() {
-            out[(row + r) * NR..(row + r + 1) * NR].copy_from_slice(a);
-        }
+        rows::<FMA, R>(x, k, panel, bias, out, row);
         row += R;
     }
-    while row < m {
-        let acc = block::<FMA, 1>([&x[row * k..(row + 1) * k]], k, panel, bias);
-        out[row * NR..(row + 1) * NR].copy_from_slice(&acc[0]);
-        row += 1;
+    match m - row {
+        0 => {}
+        1 => rows::<FMA, 1>(x, k, panel, bias, out, row),
+        2 => rows::<FMA, 2>(x, k, panel, bias, out, row),
+        3 => rows::<FMA, 3>(x, k, panel, bias, out, row),
+        4 => rows::<FMA, 4>(x, k, panel, bias, out, row),
+        5 => rows::<FMA, 5>(x, k, panel, bias, out, row),
+        _ => {
+            // Only reachable with R > 6: finish one row at a time.
+            for r in row..m {
+                rows::<FMA, 1>(x, k, panel, bias, out, r);
+            }
+        }
+    }
+}
+
+/// Rows `row .. row + R` into `out`.
+#[inline(always)]
+fn rows<const FMA: bool, const R: usize>(x: &[f32], k: usize, panel: &[f32], bias: &[f32; NR], out: &mut [f32], row: usize) {
+    let xs: [&[f32]; R] = std::array::from_fn(|r| &x[(row + r) * k..(row + r + 1) * k]);
+    let acc = block::<FMA, R>(xs, k, panel, bias);
+    for (r, a) in acc.iter().enumerate() {
+        out[(row + r) * NR..(row + r + 1) * NR].copy_from_slice(a);
     }
 }
 

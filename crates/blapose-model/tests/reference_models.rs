@@ -6,7 +6,7 @@ use std::collections::HashMap;
 
 use blapose_core::skeleton::SYMMETRIC_BONE_PAIRS;
 use blapose_model::names::{GruNames, EMBED_BIAS, EMBED_WEIGHT, FC_WEIGHT};
-use blapose_model::reference::{count_parameters, frames_tensor};
+use blapose_model::reference::{count_parameters, frames_tensor, GruImpl};
 use blapose_model::{
     BoneLengthBiGru, BoneLengthGru, LoadedWeights, ModelKind, HIDDEN, INPUT_DIM, OUTPUT_DIM,
     PARAMS,
@@ -218,6 +218,62 @@ fn every_parameter_receives_a_gradient() {
             let g = grads.get(var.as_tensor()).unwrap_or_else(|| panic!("{kind}: no grad for {name}"));
             let norm: f32 = g.sqr().unwrap().sum_all().unwrap().to_scalar().unwrap();
             assert!(norm > 0.0 && norm.is_finite(), "{kind} {name}: {norm}");
+        }
+    }
+}
+
+/// The fused recurrence op against the plain-ops recurrence: outputs and
+/// the gradient of every parameter.
+#[test]
+fn fused_recurrence_matches_autograd_values_and_gradients() {
+    for kind in [ModelKind::Gru, ModelKind::BiGru] {
+        let w = LoadedWeights::random(kind, 23).unwrap();
+        let (batch, steps) = (3, 7);
+        let x = frames_tensor(&frames(batch * steps, 6), batch, steps).unwrap();
+        let target = Tensor::full(0.3f32, (batch, OUTPUT_DIM), &Device::Cpu).unwrap();
+        let mut results = Vec::new();
+        for imp in [GruImpl::Fused, GruImpl::Autograd] {
+            let vm = w.to_varmap().unwrap();
+            let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
+            let (y, per_frame) = match kind {
+                ModelKind::Gru => {
+                    let m = BoneLengthGru::new(vb).unwrap().with_gru_impl(imp);
+                    (m.forward(&x, false).unwrap(), Some(m.forward_per_frame(&x).unwrap()))
+                }
+                ModelKind::BiGru => {
+                    let m = BoneLengthBiGru::new(vb).unwrap().with_gru_impl(imp);
+                    (m.forward(&x, false).unwrap(), None)
+                }
+            };
+            // a loss that weights frames differently, so per-frame gradients matter
+            let mut loss = (&y - &target).unwrap().abs().unwrap().sum_all().unwrap();
+            if let Some(pf) = &per_frame {
+                let ramp = Tensor::arange(0f32, steps as f32, &Device::Cpu)
+                    .unwrap()
+                    .reshape((1, steps, 1))
+                    .unwrap();
+                let extra = pf.broadcast_mul(&ramp).unwrap().sqr().unwrap().sum_all().unwrap();
+                loss = (loss + extra).unwrap();
+            }
+            let grads = loss.backward().unwrap();
+            let data = vm.data().lock().unwrap().clone();
+            let mut g: Vec<(String, Vec<f32>)> = data
+                .iter()
+                .map(|(n, v)| (n.clone(), to_vec(grads.get(v.as_tensor()).unwrap())))
+                .collect();
+            g.sort_by(|a, b| a.0.cmp(&b.0));
+            results.push((to_vec(&y), per_frame.map(|p| to_vec(&p)), g));
+        }
+        let (fused, plain) = (&results[0], &results[1]);
+        assert_close(&fused.0, &plain.0, 1e-5);
+        if let (Some(a), Some(b)) = (&fused.1, &plain.1) {
+            assert_close(a, b, 1e-5);
+        }
+        for ((name, ga), (_, gb)) in fused.2.iter().zip(&plain.2) {
+            let scale = gb.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-3);
+            for (i, (a, b)) in ga.iter().zip(gb).enumerate() {
+                assert!((a - b).abs() <= 1e-3 * scale, "{kind} {name}[{i}]: {a} vs {b}");
+            }
         }
     }
 }

@@ -16,7 +16,8 @@ pub mod v1 {
 
 /// Encoded `google.protobuf.FileDescriptorSet` of `blapose/v1/blapose.proto`
 /// (with source info), for gRPC server reflection.
-pub const FILE_DESCRIPTOR_SET: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/blapose_descriptor.bin"));
+pub const FILE_DESCRIPTOR_SET: &[u8] =
+    include_bytes!(concat!(env!("OUT_DIR"), "/blapose_descriptor.bin"));
 
 /// Fully-qualified name of the gRPC service, as health checks name it.
 pub const SERVICE_NAME: &str = "blapose.v1.PoseAdjustment";

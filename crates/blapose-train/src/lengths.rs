@@ -109,6 +109,10 @@ impl TrainingLengthStats {
             mean[b] = m as f32;
             std[b] = v.sqrt() as f32;
         }
+        // Human3.6M's left and right bones agree to float rounding; make
+        // them exactly equal so every strategy is exactly symmetric.
+        average_symmetric_pairs(&mut mean);
+        average_symmetric_pairs(&mut std);
         Ok(Self { mean, std, count: subject_lengths.len() })
     }
 

@@ -76,6 +76,9 @@ struct TrainArgs {
     /// GRU only: weight of the L1 loss on the running mean of per-frame predictions.
     #[arg(long, default_value_t = 0.0)]
     per_frame_weight: f32,
+    /// Initialize the output layer at the training mean lengths (false: PyTorch's random init).
+    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
+    init_output_mean: bool,
     /// Master seed (data, initial weights).
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -243,6 +246,7 @@ fn train(a: TrainArgs) -> Result<()> {
         lr_decay: a.lr_decay,
         clip_norm: a.clip_norm,
         per_frame_weight: a.per_frame_weight,
+        init_output_mean: a.init_output_mean,
         seed: a.seed,
         val_every: a.val_every,
         val_samples: a.val_samples,

@@ -83,6 +83,9 @@ pub struct TrainConfig {
     pub clip_norm: f64,
     /// Weight of the online GRU's running-mean loss (0 = off).
     pub per_frame_weight: f32,
+    /// Start the output layer at the training mean lengths
+    /// ([`FastNet::init_output_at`]).
+    pub init_output_mean: bool,
     /// Master seed.
     pub seed: u64,
     /// Validate every this many steps (0 = only at the end).
@@ -339,6 +342,9 @@ pub fn train(
 
     let init = LoadedWeights::random(kind, cfg.seed)?;
     let mut net = FastNet::from_tensors(kind, init.tensors())?;
+    if cfg.init_output_mean {
+        net.init_output_at(&source.sampler().stats().mean, 0.05);
+    }
     let clip = (cfg.clip_norm > 0.0).then_some(cfg.clip_norm);
     let mut opt = Adam::new(net.params.len(), AdamConfig { lr: cfg.lr, clip_norm: clip, ..Default::default() });
 

@@ -9,6 +9,20 @@ pub(crate) fn matmul(
     dst: &mut [f32],
     a: &[f32],
     b: &[f32],
+    dims: (usize, usize, usize),
+    accumulate: bool,
+    threads: usize,
+) {
+    matmul_t(dst, (a, false), (b, false), dims, accumulate, threads)
+}
+
+/// As [`matmul`], with either operand stored transposed: `(a, true)` means
+/// `a` holds the `k x m` matrix whose transpose is the left factor, and
+/// `(b, true)` that `b` holds `n x k`.
+pub(crate) fn matmul_t(
+    dst: &mut [f32],
+    (a, a_t): (&[f32], bool),
+    (b, b_t): (&[f32], bool),
     (m, k, n): (usize, usize, usize),
     accumulate: bool,
     threads: usize,
@@ -16,6 +30,9 @@ pub(crate) fn matmul(
     assert_eq!(a.len(), m * k, "lhs size");
     assert_eq!(b.len(), k * n, "rhs size");
     assert_eq!(dst.len(), m * n, "dst size");
+    // (row stride, column stride) of each operand as stored
+    let (a_rs, a_cs) = if a_t { (1, m as isize) } else { (k as isize, 1) };
+    let (b_rs, b_cs) = if b_t { (1, k as isize) } else { (n as isize, 1) };
     if m == 0 || n == 0 {
         return;
     }
@@ -37,11 +54,11 @@ pub(crate) fn matmul(
             n as isize,
             accumulate,
             a.as_ptr(),
-            1,
-            k as isize,
+            a_cs,
+            a_rs,
             b.as_ptr(),
-            1,
-            n as isize,
+            b_cs,
+            b_rs,
             1.0,
             1.0,
             false,
@@ -55,6 +72,24 @@ pub(crate) fn matmul(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn transposed_operands() {
+        let (m, k, n) = (4, 6, 5);
+        let a: Vec<f32> = (0..m * k).map(|i| (i as f32 * 0.37).sin()).collect();
+        let b: Vec<f32> = (0..k * n).map(|i| (i as f32 * 0.11).cos()).collect();
+        let at: Vec<f32> = (0..k * m).map(|i| a[(i % m) * k + i / m]).collect();
+        let bt: Vec<f32> = (0..n * k).map(|i| b[(i % k) * n + i / k]).collect();
+        let mut want = vec![0.0; m * n];
+        matmul(&mut want, &a, &b, (m, k, n), false, 1);
+        for (aa, bb) in [((&at, true), (&b, false)), ((&a, false), (&bt, true)), ((&at, true), (&bt, true))] {
+            let mut d = vec![0.0; m * n];
+            matmul_t(&mut d, (aa.0, aa.1), (bb.0, bb.1), (m, k, n), false, 2);
+            for (x, y) in d.iter().zip(&want) {
+                assert!((x - y).abs() < 1e-5);
+            }
+        }
+    }
 
     #[test]
     fn matches_naive_product() {

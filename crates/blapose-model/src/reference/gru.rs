@@ -16,7 +16,7 @@
 //! h' = (1 - z) ⊙ n + z ⊙ h
 //! ```
 
-use candle_core::{Result, Tensor, D};
+use candle_core::{DType, Result, Tensor, D};
 use candle_nn::VarBuilder;
 
 use crate::init::init_for;
@@ -49,6 +49,18 @@ impl GruParams {
             bias_hh: get(&[GATES], &names.bias_hh)?,
         })
     }
+}
+
+/// How the recurrence is computed; both give the same values and gradients.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum GruImpl {
+    /// One custom candle op with a hand-written backward pass (CPU, f32;
+    /// other devices or dtypes fall back to [`GruImpl::Autograd`]).
+    #[default]
+    Fused,
+    /// Plain candle ops per time step, differentiated by candle (slow; the
+    /// transparent definition the fused op is tested against).
+    Autograd,
 }
 
 /// Result of running a GRU pair over a sequence.
@@ -96,9 +108,21 @@ pub(crate) fn run_pair(
     e: &Tensor,
     reverse_b: bool,
     keep_all: bool,
+    imp: GruImpl,
 ) -> Result<PairRun> {
     let (batch, steps, _) = e.dims3()?;
     let gi = input_projection(a, b, e, reverse_b)?;
+    if imp == GruImpl::Fused && e.device().is_cpu() && e.dtype() == DType::F32 {
+        let gi = gi.contiguous()?;
+        let w = Tensor::stack(&[&a.weight_hh, &b.weight_hh], 0)?.contiguous()?;
+        let bias = Tensor::stack(&[&a.bias_hh, &b.bias_hh], 0)?.contiguous()?;
+        let save = gi.track_op() || w.track_op() || bias.track_op();
+        let all = gi.apply_op3(&w, &bias, super::fused::GruPairSeq::new(save))?;
+        return Ok(PairRun {
+            last: all.get(steps - 1)?,
+            all: keep_all.then_some(all),
+        });
+    }
     let (w_hh_t, b_hh) = recurrent_params(a, b)?;
     let mut h = Tensor::zeros((2, batch, HIDDEN), e.dtype(), e.device())?;
     let mut all = Vec::with_capacity(if keep_all { steps } else { 0 });

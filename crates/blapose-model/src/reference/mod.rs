@@ -15,9 +15,10 @@
 //! tensors are created with PyTorch's initialization, over
 //! [`crate::LoadedWeights::var_builder`] they are the loaded weights.
 
+mod fused;
 mod gru;
 
-pub use gru::GruParams;
+pub use gru::{GruImpl, GruParams};
 
 use candle_core::{bail, DType, Device, Result, Tensor, D};
 use candle_nn::VarBuilder;
@@ -36,6 +37,7 @@ struct Shared {
     grus: [GruParams; 2],
     fc_w: Tensor,
     sym: Tensor,
+    imp: GruImpl,
 }
 
 impl Shared {
@@ -53,6 +55,7 @@ impl Shared {
             sym: Tensor::from_vec(sym, (NUM_BONES, NUM_BONES), &Device::Cpu)?
                 .to_dtype(vb.dtype())?
                 .to_device(vb.device())?,
+            imp: GruImpl::default(),
         })
     }
 
@@ -95,6 +98,12 @@ pub struct BoneLengthGru {
 }
 
 impl BoneLengthGru {
+    /// The same model computing its recurrence with `imp` (default: fused).
+    pub fn with_gru_impl(mut self, imp: GruImpl) -> Self {
+        self.shared.imp = imp;
+        self
+    }
+
     /// Build from `vb` (tensor names in [`crate::names`]).
     pub fn new(vb: VarBuilder) -> Result<Self> {
         Ok(Self {
@@ -112,7 +121,7 @@ impl BoneLengthGru {
     pub fn forward(&self, x: &Tensor, train: bool) -> Result<Tensor> {
         let e = self.shared.embed(x, train)?;
         let [a, b] = &self.shared.grus;
-        let run = gru::run_pair(a, b, &e, false, false)?;
+        let run = gru::run_pair(a, b, &e, false, false, self.shared.imp)?;
         let (_, batch, hidden) = run.last.dims3()?;
         let features = run.last.transpose(0, 1)?.reshape((batch, 2 * hidden))?;
         self.shared.head(&features)
@@ -148,7 +157,7 @@ impl BoneLengthGru {
     pub fn forward_per_frame_with(&self, x: &Tensor, train: bool) -> Result<Tensor> {
         let e = self.shared.embed(x, train)?;
         let [a, b] = &self.shared.grus;
-        let run = gru::run_pair(a, b, &e, false, true)?;
+        let run = gru::run_pair(a, b, &e, false, true, self.shared.imp)?;
         let all = match run.all {
             Some(all) => all,
             None => bail!("GRU run kept no per-step states"),
@@ -168,6 +177,12 @@ pub struct BoneLengthBiGru {
 }
 
 impl BoneLengthBiGru {
+    /// The same model computing its recurrence with `imp` (default: fused).
+    pub fn with_gru_impl(mut self, imp: GruImpl) -> Self {
+        self.shared.imp = imp;
+        self
+    }
+
     /// Build from `vb` (tensor names in [`crate::names`]).
     pub fn new(vb: VarBuilder) -> Result<Self> {
         Ok(Self {
@@ -185,7 +200,7 @@ impl BoneLengthBiGru {
     pub fn forward(&self, x: &Tensor, train: bool) -> Result<Tensor> {
         let e = self.shared.embed(x, train)?;
         let [fwd, bwd] = &self.shared.grus;
-        let run = gru::run_pair(fwd, bwd, &e, true, false)?;
+        let run = gru::run_pair(fwd, bwd, &e, true, false, self.shared.imp)?;
         // backward direction's final state first, as in the reference code
         let features = Tensor::cat(&[run.last.get(1)?, run.last.get(0)?], D::Minus1)?;
         self.shared.head(&features)

@@ -1,0 +1,858 @@
+//! The server over real gRPC on a loopback port, driven with the generated
+//! client stub. A fake model (deterministic, state-dependent) isolates the
+//! protocol: ordering, exactly-once answers, per-frame errors, resume and
+//! takeover, close, limits, auth, size limits, health and shutdown draining.
+//! One test runs the real fast engines on random weights.
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use blapose_proto::v1 as pb;
+use blapose_server::backend::{
+    Backend, BackendError, SequenceBackend, INPUT_DIM, OUTPUT_DIM, STATE_DIM,
+};
+use blapose_server::{ModelProvider, ServerConfig, ServerHandle};
+use pb::pose_adjustment_client::PoseAdjustmentClient;
+use pb::stream_request::Kind as Req;
+use pb::stream_response::Kind as Resp;
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::transport::Channel;
+use tonic::Code;
+
+/// Fake online model: every state slot counts the frames seen; the per-frame
+/// prediction for bone `b` is `0.2 + 0.01 * b + 0.001 * count`. So the
+/// running mean after `n` frames is `0.2 + 0.01 b + 0.001 (n + 1) / 2`,
+/// which exposes lost, repeated or reordered frames and lost state.
+struct FakeStep {
+    delay: Duration,
+}
+
+impl Backend for FakeStep {
+    fn step(
+        &mut self,
+        inputs: &[f32],
+        hidden: &mut [f32],
+        out: &mut [f32],
+        batch: usize,
+    ) -> Result<(), BackendError> {
+        blapose_server::backend::check_step_shapes(inputs, hidden, out, batch)?;
+        std::thread::sleep(self.delay);
+        for b in 0..batch {
+            let h = &mut hidden[b * STATE_DIM..(b + 1) * STATE_DIM];
+            h.iter_mut().for_each(|v| *v += 1.0);
+            for (bone, y) in out[b * OUTPUT_DIM..(b + 1) * OUTPUT_DIM]
+                .iter_mut()
+                .enumerate()
+            {
+                *y = 0.2 + 0.01 * bone as f32 + 0.001 * h[0];
+            }
+        }
+        Ok(())
+    }
+}
+
+struct FakeSeq;
+
+impl SequenceBackend for FakeSeq {
+    fn predict(&mut self, inputs: &[f32], frames: usize) -> Result<[f32; 16], BackendError> {
+        assert_eq!(inputs.len(), frames * INPUT_DIM);
+        Ok(std::array::from_fn(|b| 0.3 + 0.001 * b as f32))
+    }
+}
+
+struct Fake {
+    delay: Duration,
+}
+
+impl ModelProvider for Fake {
+    fn online(&self) -> Result<Box<dyn Backend>, BackendError> {
+        Ok(Box::new(FakeStep { delay: self.delay }))
+    }
+    fn offline(&self) -> Result<Box<dyn SequenceBackend>, BackendError> {
+        Ok(Box::new(FakeSeq))
+    }
+    fn describe(&self) -> Vec<pb::ModelDescription> {
+        vec![pb::ModelDescription {
+            name: "fake".into(),
+            ..Default::default()
+        }]
+    }
+}
+
+fn expected_mean(bone: usize, n: u64) -> f32 {
+    0.2 + 0.01 * bone as f32 + 0.001 * (n as f32 + 1.0) / 2.0
+}
+
+fn config() -> ServerConfig {
+    ServerConfig {
+        metrics_addr: None,
+        ..ServerConfig::default()
+    }
+}
+
+async fn start(config: ServerConfig, delay: Duration) -> ServerHandle {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    blapose_server::spawn_with_provider(config, listener, Arc::new(Fake { delay }))
+        .await
+        .unwrap()
+}
+
+async fn client(addr: SocketAddr) -> PoseAdjustmentClient<Channel> {
+    PoseAdjustmentClient::connect(format!("http://{addr}"))
+        .await
+        .unwrap()
+}
+
+/// A plausible standing pose in metres, 4 m in front of the camera.
+fn pose() -> Vec<f32> {
+    let joints: [[f32; 3]; 17] = [
+        [0.0, 0.0, 4.0],
+        [-0.13, 0.0, 4.0],
+        [-0.13, 0.45, 4.0],
+        [-0.13, 0.9, 4.0],
+        [0.13, 0.0, 4.0],
+        [0.13, 0.45, 4.0],
+        [0.13, 0.9, 4.0],
+        [0.0, -0.23, 4.0],
+        [0.0, -0.48, 4.0],
+        [0.0, -0.58, 4.0],
+        [0.0, -0.7, 4.0],
+        [0.15, -0.45, 4.0],
+        [0.43, -0.45, 4.0],
+        [0.68, -0.45, 4.0],
+        [-0.15, -0.45, 4.0],
+        [-0.43, -0.45, 4.0],
+        [-0.68, -0.45, 4.0],
+    ];
+    joints.iter().flatten().copied().collect()
+}
+
+fn open_request() -> pb::StreamRequest {
+    pb::StreamRequest {
+        kind: Some(Req::Open(pb::OpenSession {
+            input_format: Some(pb::InputFormat {
+                layout: pb::KeypointLayout::H36m17 as i32,
+                coordinates: Some(pb::input_format::Coordinates::ImageSize(pb::ImageSize {
+                    width: 1000,
+                    height: 1000,
+                })),
+            }),
+            model: 0,
+            client_label: "test".into(),
+        })),
+    }
+}
+
+fn frame(index: u64) -> pb::StreamRequest {
+    pb::StreamRequest {
+        kind: Some(Req::Frame(pb::Frame {
+            frame_index: index,
+            keypoints_2d: (0..34).map(|i| 400.0 + i as f32).collect(),
+            confidence: vec![],
+            pose_3d: pose(),
+        })),
+    }
+}
+
+fn request(kind: Req) -> pb::StreamRequest {
+    pb::StreamRequest { kind: Some(kind) }
+}
+
+/// An open stream: a sender for requests and the response stream.
+struct Conn {
+    tx: mpsc::Sender<pb::StreamRequest>,
+    rx: tonic::Streaming<pb::StreamResponse>,
+}
+
+impl Conn {
+    async fn new(client: &mut PoseAdjustmentClient<Channel>) -> Self {
+        let (tx, rx) = mpsc::channel(1024);
+        let rx = client
+            .stream(ReceiverStream::new(rx))
+            .await
+            .unwrap()
+            .into_inner();
+        Self { tx, rx }
+    }
+
+    async fn send(&self, r: pb::StreamRequest) {
+        self.tx.send(r).await.unwrap();
+    }
+
+    async fn next(&mut self) -> Result<Option<Resp>, tonic::Status> {
+        tokio::time::timeout(Duration::from_secs(10), self.rx.message())
+            .await
+            .expect("response within 10 s")
+            .map(|m| m.and_then(|r| r.kind))
+    }
+
+    async fn open(client: &mut PoseAdjustmentClient<Channel>) -> (Self, pb::SessionOpened) {
+        let mut c = Self::new(client).await;
+        c.send(open_request()).await;
+        match c.next().await.unwrap() {
+            Some(Resp::Opened(o)) => (c, o),
+            other => panic!("expected opened, got {other:?}"),
+        }
+    }
+
+    async fn frame(&mut self) -> pb::AdjustedFrame {
+        match self.next().await.unwrap() {
+            Some(Resp::Frame(f)) => f,
+            other => panic!("expected a frame, got {other:?}"),
+        }
+    }
+
+    async fn status(&mut self) -> tonic::Status {
+        loop {
+            match self.next().await {
+                Err(s) => return s,
+                Ok(None) => panic!("stream ended with OK, expected an error status"),
+                Ok(Some(_)) => continue,
+            }
+        }
+    }
+}
+
+fn bone_length(p: &[f32], child: usize, parent: usize) -> f32 {
+    let d: Vec<f32> = (0..3)
+        .map(|k| p[3 * child + k] - p[3 * parent + k])
+        .collect();
+    d.iter().map(|v| v * v).sum::<f32>().sqrt()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn frames_are_answered_in_order_exactly_once() {
+    let server = start(config(), Duration::ZERO).await;
+    let mut c = client(server.local_addr()).await;
+    let (mut conn, opened) = Conn::open(&mut c).await;
+    assert_eq!(opened.session_id.len(), 32);
+    assert!(opened.session_id.bytes().all(|b| b.is_ascii_hexdigit()));
+    assert!(!opened.resumed);
+    assert_eq!(opened.frames_seen, 0);
+    assert_eq!(opened.model, pb::Model::OnlineGru as i32);
+    // Pipeline 200 frames with arbitrary (non-monotonic) indices.
+    let indices: Vec<u64> = (0..200u64).map(|i| (i * 7919) % 1000).collect();
+    for &i in &indices {
+        conn.send(frame(i)).await;
+    }
+    let input = pose();
+    for (n, &i) in indices.iter().enumerate() {
+        let f = conn.frame().await;
+        assert_eq!(f.frame_index, i);
+        assert_eq!(f.frames_seen, n as u64 + 1);
+        assert_eq!(f.bone_lengths.len(), 16);
+        for b in 0..16 {
+            assert!((f.bone_lengths[b] - expected_mean(b, n as u64 + 1)).abs() < 1e-5);
+        }
+        // Root kept, lengths applied, directions kept.
+        assert_eq!(&f.adjusted_pose_3d[..3], &input[..3]);
+        let parents = blapose_core::skeleton::PARENTS;
+        for b in 0..16 {
+            let l = bone_length(&f.adjusted_pose_3d, b + 1, parents[b + 1]);
+            assert!((l - f.bone_lengths[b]).abs() < 1e-5, "bone {b}");
+        }
+    }
+    conn.send(request(Req::Close(pb::CloseSession {}))).await;
+    match conn.next().await.unwrap() {
+        Some(Resp::Closed(c)) => {
+            assert_eq!(c.session_id, opened.session_id);
+            assert_eq!(c.frames_seen, 200);
+        }
+        other => panic!("expected closed, got {other:?}"),
+    }
+    assert!(
+        conn.next().await.unwrap().is_none(),
+        "stream ends OK after close"
+    );
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_bad_frame_gets_an_error_and_leaves_the_session_untouched() {
+    let server = start(config(), Duration::ZERO).await;
+    let mut c = client(server.local_addr()).await;
+    let (mut conn, _) = Conn::open(&mut c).await;
+    conn.send(frame(0)).await;
+    let mut bad = frame(1);
+    if let Some(Req::Frame(f)) = &mut bad.kind {
+        f.keypoints_2d.pop();
+    }
+    conn.send(bad).await;
+    let mut nan = frame(2);
+    if let Some(Req::Frame(f)) = &mut nan.kind {
+        f.pose_3d[7] = f32::NAN;
+    }
+    conn.send(nan).await;
+    let mut zero_bone = frame(3);
+    if let Some(Req::Frame(f)) = &mut zero_bone.kind {
+        let wrist: Vec<f32> = f.pose_3d[36..39].to_vec();
+        f.pose_3d[39..42].copy_from_slice(&wrist);
+    }
+    conn.send(zero_bone).await;
+    conn.send(frame(4)).await;
+
+    assert_eq!(conn.frame().await.frames_seen, 1);
+    for (index, needle) in [
+        (1, "keypoints_2d has 33 values"),
+        (2, "non-finite"),
+        (3, "zero length"),
+    ] {
+        match conn.next().await.unwrap() {
+            Some(Resp::Error(e)) => {
+                assert_eq!(e.frame_index, index);
+                assert_eq!(e.code, Code::InvalidArgument as i32);
+                assert!(e.message.contains(needle), "{}", e.message);
+            }
+            other => panic!("expected a frame error, got {other:?}"),
+        }
+    }
+    let f = conn.frame().await;
+    assert_eq!(f.frame_index, 4);
+    assert_eq!(f.frames_seen, 2, "bad frames are not counted");
+    assert!(
+        (f.bone_lengths[0] - expected_mean(0, 2)).abs() < 1e-6,
+        "bad frames did not move the state"
+    );
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn protocol_errors_end_the_stream_with_the_right_code() {
+    let mut cfg = config();
+    cfg.max_sessions = 1;
+    let server = start(cfg, Duration::ZERO).await;
+    let mut c = client(server.local_addr()).await;
+
+    let cases: Vec<(pb::StreamRequest, Code, &str)> = vec![
+        (
+            frame(0),
+            Code::FailedPrecondition,
+            "before the session was opened",
+        ),
+        (
+            request(Req::Close(pb::CloseSession {})),
+            Code::FailedPrecondition,
+            "before the session was opened",
+        ),
+        (
+            pb::StreamRequest { kind: None },
+            Code::InvalidArgument,
+            "empty StreamRequest",
+        ),
+        (
+            request(Req::Resume(pb::ResumeSession {
+                session_id: "00112233445566778899aabbccddeeff".into(),
+            })),
+            Code::NotFound,
+            "no session",
+        ),
+        (
+            request(Req::Resume(pb::ResumeSession {
+                session_id: "garbage".into(),
+            })),
+            Code::NotFound,
+            "no session",
+        ),
+    ];
+    for (first, code, needle) in cases {
+        let mut conn = Conn::new(&mut c).await;
+        conn.send(first).await;
+        let status = conn.status().await;
+        assert_eq!(status.code(), code, "{}", status.message());
+        assert!(status.message().contains(needle), "{}", status.message());
+    }
+
+    let bad_opens: Vec<(pb::OpenSession, &str)> = vec![
+        (
+            pb::OpenSession {
+                input_format: None,
+                ..Default::default()
+            },
+            "input_format is required",
+        ),
+        (
+            pb::OpenSession {
+                input_format: Some(pb::InputFormat {
+                    layout: 0,
+                    coordinates: Some(pb::input_format::Coordinates::Normalized(true)),
+                }),
+                ..Default::default()
+            },
+            "UNSPECIFIED",
+        ),
+        (
+            pb::OpenSession {
+                input_format: Some(pb::InputFormat {
+                    layout: 77,
+                    coordinates: Some(pb::input_format::Coordinates::Normalized(true)),
+                }),
+                ..Default::default()
+            },
+            "not a known KeypointLayout",
+        ),
+        (
+            pb::OpenSession {
+                input_format: Some(pb::InputFormat {
+                    layout: 1,
+                    coordinates: Some(pb::input_format::Coordinates::ImageSize(pb::ImageSize {
+                        width: 0,
+                        height: 720,
+                    })),
+                }),
+                ..Default::default()
+            },
+            "must be positive",
+        ),
+        (
+            pb::OpenSession {
+                input_format: Some(pb::InputFormat {
+                    layout: 1,
+                    coordinates: Some(pb::input_format::Coordinates::Normalized(true)),
+                }),
+                model: pb::Model::OfflineBigru as i32,
+                ..Default::default()
+            },
+            "AdjustSequence",
+        ),
+    ];
+    for (open, needle) in bad_opens {
+        let mut conn = Conn::new(&mut c).await;
+        conn.send(request(Req::Open(open))).await;
+        let status = conn.status().await;
+        assert_eq!(status.code(), Code::InvalidArgument, "{}", status.message());
+        assert!(status.message().contains(needle), "{}", status.message());
+    }
+
+    // A second open on a live stream; then the session limit (1).
+    let (mut conn, _) = Conn::open(&mut c).await;
+    let mut other = Conn::new(&mut c).await;
+    other.send(open_request()).await;
+    let status = other.status().await;
+    assert_eq!(
+        status.code(),
+        Code::ResourceExhausted,
+        "{}",
+        status.message()
+    );
+    conn.send(frame(0)).await;
+    conn.send(open_request()).await;
+    assert_eq!(
+        conn.frame().await.frame_index,
+        0,
+        "frames before the error are answered"
+    );
+    assert_eq!(conn.status().await.code(), Code::FailedPrecondition);
+
+    let err = c
+        .close_session(pb::CloseSessionRequest {
+            session_id: "ffffffffffffffffffffffffffffffff".into(),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(err.code(), Code::NotFound);
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_dropped_stream_can_be_resumed_and_a_live_one_is_taken_over() {
+    let server = start(config(), Duration::ZERO).await;
+    let mut c = client(server.local_addr()).await;
+    let (mut conn, opened) = Conn::open(&mut c).await;
+    for i in 0..3 {
+        conn.send(frame(i)).await;
+        conn.frame().await;
+    }
+    drop(conn);
+    tokio::time::sleep(Duration::from_millis(100)).await;
+
+    let mut resumed = Conn::new(&mut c).await;
+    resumed
+        .send(request(Req::Resume(pb::ResumeSession {
+            session_id: opened.session_id.clone(),
+        })))
+        .await;
+    match resumed.next().await.unwrap() {
+        Some(Resp::Opened(o)) => {
+            assert!(o.resumed);
+            assert_eq!(o.session_id, opened.session_id);
+            assert_eq!(o.frames_seen, 3);
+            assert!((o.bone_lengths[5] - expected_mean(5, 3)).abs() < 1e-6);
+            assert_eq!(o.input_format, opened.input_format);
+        }
+        other => panic!("expected opened, got {other:?}"),
+    }
+    resumed.send(frame(3)).await;
+    let f = resumed.frame().await;
+    assert_eq!(f.frames_seen, 4);
+    assert!(
+        (f.bone_lengths[0] - expected_mean(0, 4)).abs() < 1e-6,
+        "state intact across resume"
+    );
+
+    // Another stream resumes the live session: the old one is aborted.
+    let mut thief = Conn::new(&mut c).await;
+    thief
+        .send(request(Req::Resume(pb::ResumeSession {
+            session_id: opened.session_id.clone(),
+        })))
+        .await;
+    assert!(matches!(thief.next().await.unwrap(), Some(Resp::Opened(_))));
+    let status = resumed.status().await;
+    assert_eq!(status.code(), Code::Aborted, "{}", status.message());
+    thief.send(frame(4)).await;
+    assert_eq!(thief.frame().await.frames_seen, 5);
+
+    // CloseSession from outside ends the attached stream too.
+    let closed = c
+        .close_session(pb::CloseSessionRequest {
+            session_id: opened.session_id.clone(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(closed.frames_seen, 5);
+    assert_eq!(thief.status().await.code(), Code::Aborted);
+    let mut late = Conn::new(&mut c).await;
+    late.send(request(Req::Resume(pb::ResumeSession {
+        session_id: opened.session_id,
+    })))
+    .await;
+    assert_eq!(late.status().await.code(), Code::NotFound);
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn detached_sessions_expire_after_the_ttl() {
+    let mut cfg = config();
+    cfg.session_ttl = Duration::from_millis(300);
+    let server = start(cfg, Duration::ZERO).await;
+    let mut c = client(server.local_addr()).await;
+    let (conn, opened) = Conn::open(&mut c).await;
+    drop(conn);
+    tokio::time::sleep(Duration::from_millis(900)).await;
+    let mut late = Conn::new(&mut c).await;
+    late.send(request(Req::Resume(pb::ResumeSession {
+        session_id: opened.session_id,
+    })))
+    .await;
+    assert_eq!(late.status().await.code(), Code::NotFound);
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn auth_token_and_message_size_are_enforced() {
+    let mut cfg = config();
+    cfg.auth_token = Some("s3cret".into());
+    cfg.max_message_bytes = 2048;
+    let server = start(cfg, Duration::ZERO).await;
+    let addr = server.local_addr();
+    let mut c = client(addr).await;
+    let err = c.model_info(pb::ModelInfoRequest {}).await.unwrap_err();
+    assert_eq!(err.code(), Code::Unauthenticated);
+    let mut req = tonic::Request::new(pb::ModelInfoRequest {});
+    req.metadata_mut()
+        .insert("authorization", "Bearer wrong".parse().unwrap());
+    assert_eq!(
+        c.model_info(req).await.unwrap_err().code(),
+        Code::Unauthenticated
+    );
+
+    // Health stays open without the token.
+    assert!(blapose_server::probe_health(addr, None).await.unwrap());
+
+    let channel = Channel::from_shared(format!("http://{addr}"))
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    let mut authed = PoseAdjustmentClient::with_interceptor(channel, |mut r: tonic::Request<()>| {
+        r.metadata_mut()
+            .insert("authorization", "Bearer s3cret".parse().unwrap());
+        Ok(r)
+    });
+    let info = authed
+        .model_info(pb::ModelInfoRequest {})
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(info.models[0].name, "fake");
+    assert_eq!(info.protocol, "blapose.v1");
+    assert_eq!(info.max_message_bytes, 2048);
+    assert_eq!(info.joint_names.len(), 17);
+    assert_eq!(info.bone_names.len(), 16);
+    assert_eq!(info.layouts.len(), 3);
+
+    // An oversize offline request is refused by the decoder.
+    let big = pb::AdjustSequenceRequest {
+        input_format: None,
+        model: 0,
+        num_frames: 10,
+        keypoints_2d: vec![0.0; 340],
+        confidence: vec![],
+        poses_3d: vec![0.0; 510],
+    };
+    let err = authed.adjust_sequence(big).await.unwrap_err();
+    assert_eq!(err.code(), Code::OutOfRange, "{}", err.message());
+    // And an oversize frame ends a stream with the same code.
+    let (tx, rx) = mpsc::channel(4);
+    let mut responses = authed
+        .stream(ReceiverStream::new(rx))
+        .await
+        .unwrap()
+        .into_inner();
+    tx.send(open_request()).await.unwrap();
+    assert!(matches!(
+        responses.message().await.unwrap().and_then(|r| r.kind),
+        Some(Resp::Opened(_))
+    ));
+    let mut huge = frame(0);
+    if let Some(Req::Frame(f)) = &mut huge.kind {
+        f.keypoints_2d = vec![1.0; 1000];
+    }
+    tx.send(huge).await.unwrap();
+    let status = loop {
+        match responses.message().await {
+            Err(s) => break s,
+            Ok(Some(_)) => continue,
+            Ok(None) => panic!("stream ended OK"),
+        }
+    };
+    assert_eq!(status.code(), Code::OutOfRange, "{}", status.message());
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn offline_online_model_equals_the_stream() {
+    let server = start(config(), Duration::ZERO).await;
+    let mut c = client(server.local_addr()).await;
+    let (mut conn, _) = Conn::open(&mut c).await;
+    let n = 6;
+    let mut streamed = Vec::new();
+    for i in 0..n {
+        conn.send(frame(i)).await;
+        streamed.push(conn.frame().await);
+    }
+    let frames: Vec<pb::Frame> = (0..n)
+        .map(|i| match frame(i).kind {
+            Some(Req::Frame(f)) => f,
+            _ => unreachable!(),
+        })
+        .collect();
+    let mut req = pb::AdjustSequenceRequest {
+        input_format: Some(pb::InputFormat {
+            layout: pb::KeypointLayout::H36m17 as i32,
+            coordinates: Some(pb::input_format::Coordinates::ImageSize(pb::ImageSize {
+                width: 1000,
+                height: 1000,
+            })),
+        }),
+        model: pb::Model::OnlineGru as i32,
+        num_frames: n as u32,
+        keypoints_2d: frames.iter().flat_map(|f| f.keypoints_2d.clone()).collect(),
+        confidence: vec![],
+        poses_3d: frames.iter().flat_map(|f| f.pose_3d.clone()).collect(),
+    };
+    let offline = c.adjust_sequence(req.clone()).await.unwrap().into_inner();
+    assert_eq!(offline.model, pb::Model::OnlineGru as i32);
+    for (t, s) in streamed.iter().enumerate() {
+        assert_eq!(
+            &offline.bone_lengths[t * 16..(t + 1) * 16],
+            &s.bone_lengths[..]
+        );
+        assert_eq!(
+            &offline.adjusted_poses_3d[t * 51..(t + 1) * 51],
+            &s.adjusted_pose_3d[..]
+        );
+    }
+    req.model = 0;
+    let bigru = c.adjust_sequence(req.clone()).await.unwrap().into_inner();
+    assert_eq!(bigru.model, pb::Model::OfflineBigru as i32);
+    assert_eq!(bigru.bone_lengths.len(), n as usize * 16);
+    assert!(bigru
+        .bone_lengths
+        .chunks(16)
+        .all(|row| (row[3] - 0.303).abs() < 1e-6));
+    req.poses_3d[51 * 2 + 9] = f32::INFINITY;
+    let err = c.adjust_sequence(req).await.unwrap_err();
+    assert_eq!(err.code(), Code::InvalidArgument);
+    assert!(err.message().starts_with("frame 2:"), "{}", err.message());
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shutdown_answers_frames_already_received() {
+    // 5 ms per step: 40 pipelined frames are still in flight at shutdown.
+    let server = start(config(), Duration::from_millis(5)).await;
+    let addr = server.local_addr();
+    assert!(blapose_server::probe_health(addr, None).await.unwrap());
+    let mut c = client(addr).await;
+    let (mut conn, _) = Conn::open(&mut c).await;
+    for i in 0..40 {
+        conn.send(frame(i)).await;
+    }
+    // Let the server read them, then shut down while they run.
+    tokio::time::sleep(Duration::from_millis(30)).await;
+    let shutdown = tokio::spawn(server.shutdown());
+    let mut answered = 0;
+    let status = loop {
+        match conn.next().await {
+            Ok(Some(Resp::Frame(f))) => {
+                assert_eq!(f.frame_index, answered);
+                answered += 1;
+            }
+            Ok(other) => panic!("unexpected {other:?}"),
+            Err(s) => break s,
+        }
+    };
+    assert_eq!(status.code(), Code::Unavailable, "{}", status.message());
+    assert_eq!(
+        answered, 40,
+        "every frame received before shutdown is answered"
+    );
+    tokio::time::timeout(Duration::from_secs(10), shutdown)
+        .await
+        .unwrap()
+        .unwrap()
+        .unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn hostile_frames_never_break_the_stream_or_other_sessions() {
+    use rand::{Rng, SeedableRng};
+    let server = start(config(), Duration::ZERO).await;
+    let mut c = client(server.local_addr()).await;
+    let (mut victim, _) = Conn::open(&mut c).await;
+    let (mut attacker, _) = Conn::open(&mut c).await;
+    let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+    let specials = [
+        f32::NAN,
+        f32::INFINITY,
+        f32::NEG_INFINITY,
+        f32::MAX,
+        -f32::MAX,
+        0.0,
+        1e30,
+        f32::MIN_POSITIVE,
+    ];
+    let total = 300u64;
+    for i in 0..total {
+        let mut kp: Vec<f32> = (0..rng.random_range(0..40))
+            .map(|_| rng.random_range(-2000.0..2000.0))
+            .collect();
+        let mut p: Vec<f32> = if rng.random_bool(0.5) {
+            pose()
+        } else {
+            (0..rng.random_range(0..60)).map(|_| rng.random()).collect()
+        };
+        if !kp.is_empty() && rng.random_bool(0.3) {
+            let k = rng.random_range(0..kp.len());
+            kp[k] = specials[rng.random_range(0..specials.len())];
+        }
+        if !p.is_empty() && rng.random_bool(0.3) {
+            let k = rng.random_range(0..p.len());
+            p[k] = specials[rng.random_range(0..specials.len())];
+        }
+        let conf: Vec<f32> = if rng.random_bool(0.2) {
+            (0..rng.random_range(0..20))
+                .map(|_| rng.random_range(-1.0..1.0))
+                .collect()
+        } else {
+            vec![]
+        };
+        attacker
+            .send(request(Req::Frame(pb::Frame {
+                frame_index: i,
+                keypoints_2d: kp,
+                confidence: conf,
+                pose_3d: p,
+            })))
+            .await;
+    }
+    let mut ok = 0u64;
+    for i in 0..total {
+        match attacker.next().await.unwrap() {
+            Some(Resp::Frame(f)) => {
+                assert_eq!(f.frame_index, i);
+                ok += 1;
+                assert_eq!(f.frames_seen, ok);
+                assert!(f.adjusted_pose_3d.iter().all(|v| v.is_finite()));
+            }
+            Some(Resp::Error(e)) => {
+                assert_eq!(e.frame_index, i);
+                assert_eq!(e.code, Code::InvalidArgument as i32, "{}", e.message);
+            }
+            other => panic!("unexpected {other:?}"),
+        }
+    }
+    assert!(ok > 0 && ok < total, "ok {ok}");
+    // The victim session is unaffected.
+    victim.send(frame(0)).await;
+    let f = victim.frame().await;
+    assert_eq!(f.frames_seen, 1);
+    assert!((f.bone_lengths[0] - expected_mean(0, 1)).abs() < 1e-6);
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn real_engines_serve_random_weights_from_files() {
+    use blapose_model::weights::{self, LoadedWeights};
+    use blapose_model::ModelKind;
+    let dir = std::env::temp_dir().join(format!("blapose-server-test-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let mut paths = Vec::new();
+    for (kind, name) in [
+        (ModelKind::Gru, "gru.safetensors"),
+        (ModelKind::BiGru, "bigru.safetensors"),
+    ] {
+        let w = LoadedWeights::random(kind, 5).unwrap();
+        let path = dir.join(name);
+        std::fs::write(&path, weights::to_bytes(w.tensors(), &w.meta).unwrap()).unwrap();
+        paths.push(path);
+    }
+    let mut cfg = config();
+    cfg.weights = blapose_server::WeightsSource::File(paths[0].clone());
+    cfg.bigru_weights = blapose_server::WeightsSource::File(paths[1].clone());
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let server = blapose_server::spawn(cfg, listener).await.unwrap();
+    let mut c = client(server.local_addr()).await;
+    let info = c
+        .model_info(pb::ModelInfoRequest {})
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(info.models.len(), 2);
+    for m in &info.models {
+        assert_eq!(m.parameter_count, 2_390_784);
+        assert_eq!(m.hidden_size, 512);
+        assert_eq!(m.weights_sha256.len(), 64);
+        assert!(m.weights_source.ends_with(".safetensors"));
+        assert_eq!(
+            m.metadata.get("format").map(String::as_str),
+            Some("blapose-bone-length")
+        );
+    }
+    // Random weights may predict negative lengths, so only the protocol and
+    // the state are checked here: one answer per frame, frames counted.
+    let (mut conn, _) = Conn::open(&mut c).await;
+    for i in 0..5 {
+        conn.send(frame(i)).await;
+    }
+    for i in 0..5 {
+        match conn.next().await.unwrap() {
+            Some(Resp::Frame(f)) => assert_eq!(f.frames_seen, i + 1),
+            Some(Resp::Error(e)) => assert!(e.message.contains("length"), "{}", e.message),
+            other => panic!("unexpected {other:?}"),
+        }
+    }
+    server.shutdown().await.unwrap();
+    let missing = ServerConfig {
+        weights: blapose_server::WeightsSource::File(dir.join("nope.safetensors")),
+        ..config()
+    };
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let err = blapose_server::spawn(missing, listener).await.unwrap_err();
+    assert!(err.to_string().contains("nope.safetensors"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
