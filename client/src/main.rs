@@ -178,7 +178,7 @@ fn finish(io: &IoArgs, seq: &Sequence, result: &Adjusted) -> Result<()> {
             let evaluation = evaluate(&seq.pose_3d, &result.adjusted, gt)?;
             print!("{evaluation}");
             if let Some(path) = &io.json {
-                write_json(path, &serde_json::to_value(evaluation)?)?;
+                write_json(path, &evaluation)?;
             }
         }
         None => {
@@ -194,7 +194,7 @@ fn finish(io: &IoArgs, seq: &Sequence, result: &Adjusted) -> Result<()> {
     Ok(())
 }
 
-fn write_json(path: &Path, value: &serde_json::Value) -> Result<()> {
+fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<()> {
     let text = serde_json::to_string_pretty(value)?;
     std::fs::write(path, text + "\n").with_context(|| format!("writing {}", path.display()))?;
     println!("wrote {}", path.display());

@@ -70,6 +70,11 @@ struct Args {
     /// Only these rows (default: all).
     #[arg(long, value_enum, value_delimiter = ',')]
     only: Vec<RowKind>,
+    /// Threads for the lifters' products and candle's element-wise ops
+    /// (sets RAYON_NUM_THREADS and CANDLE_NUM_THREADS); default: the
+    /// libraries' own default (one per core).
+    #[arg(long)]
+    threads: Option<usize>,
     /// Seed of the random weights.
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -124,8 +129,36 @@ struct Row {
     paper_fps_with_adjustment: Option<f64>,
     paper_overhead_pct: Option<f64>,
     mpjpe_mm: Option<f64>,
-    fps_runs: Vec<f64>,
-    fps_with_adjustment_runs: Vec<f64>,
+    /// Median CPU use (process CPU time / wall time, %) alone.
+    cpu_pct: Option<f64>,
+    /// Median CPU use with the adjustment.
+    cpu_pct_with_adjustment: Option<f64>,
+    runs: Vec<Measurement>,
+    runs_with_adjustment: Vec<Measurement>,
+}
+
+impl Row {
+    fn new(kind: RowKind, frames: Option<usize>, params: usize, alone: Vec<Measurement>, with: Vec<Measurement>) -> Self {
+        let fps = median_of(&alone, |m| Some(m.fps)).unwrap_or(f64::NAN);
+        let fps_with = median_of(&with, |m| Some(m.fps));
+        let (paper, paper_with) = kind.paper();
+        Self {
+            model: kind.label().into(),
+            frames,
+            params,
+            fps,
+            fps_with_adjustment: fps_with,
+            adjustment_overhead_pct: fps_with.map(|w| overhead_pct(fps, w)),
+            paper_fps: paper,
+            paper_fps_with_adjustment: paper_with,
+            paper_overhead_pct: paper_with.map(|w| overhead_pct(paper, w)),
+            mpjpe_mm: None,
+            cpu_pct: median_of(&alone, |m| m.cpu_pct),
+            cpu_pct_with_adjustment: median_of(&with, |m| m.cpu_pct),
+            runs: alone,
+            runs_with_adjustment: with,
+        }
+    }
 }
 
 /// The run's conditions, printed above the table and saved with it.
@@ -137,6 +170,8 @@ struct Conditions {
     cpu: String,
     logical_cpus: usize,
     candle_threads: usize,
+    /// `RAYON_NUM_THREADS` / `CANDLE_NUM_THREADS` as set for the run.
+    thread_env: String,
     gru_threads: usize,
     gru_isa: String,
     gru_weights: String,
@@ -265,34 +300,57 @@ fn synthetic_stream(frames: usize) -> Vec<Keypoints2d> {
         .collect()
 }
 
-/// Frames per second of `steps` calls of `step` after `warmup` untimed ones.
+/// One timed measurement.
+#[derive(Debug, Clone, Copy, Serialize)]
+struct Measurement {
+    /// Steps per wall-clock second.
+    fps: f64,
+    /// Process CPU time over wall time, in percent (100 = one core busy
+    /// throughout; below the thread count means the process waited for a
+    /// CPU, i.e. the machine was shared).
+    cpu_pct: Option<f64>,
+}
+
+/// Time `steps` calls of `step` after `warmup` untimed ones.
 fn measure(
     stream: &[Keypoints2d],
     warmup: usize,
     steps: usize,
     mut step: impl FnMut(&Keypoints2d) -> Result<()>,
-) -> Result<f64> {
+) -> Result<Measurement> {
     let mut frames = stream.iter().cycle();
     for _ in 0..warmup {
         step(frames.next().context("empty stream")?)?;
     }
+    let cpu0 = process_cpu_seconds();
     let start = Instant::now();
     for _ in 0..steps {
         step(frames.next().context("empty stream")?)?;
     }
-    Ok(steps as f64 / start.elapsed().as_secs_f64())
+    let wall = start.elapsed().as_secs_f64();
+    let cpu_pct = cpu0.zip(process_cpu_seconds()).map(|(a, b)| 100.0 * (b - a) / wall);
+    Ok(Measurement { fps: steps as f64 / wall, cpu_pct })
 }
 
-fn median(values: &[f64]) -> f64 {
-    let mut v = values.to_vec();
+/// User + system CPU time of this process so far (Linux `/proc/self/stat`,
+/// in USER_HZ = 100 ticks per second; 10 ms resolution).
+fn process_cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    let after_name = &stat[stat.rfind(')')? + 1..];
+    let fields: Vec<&str> = after_name.split_whitespace().collect();
+    let ticks: u64 = fields.get(11)?.parse::<u64>().ok()? + fields.get(12)?.parse::<u64>().ok()?;
+    Some(ticks as f64 / 100.0)
+}
+
+/// Median of the defined values of `f` over `runs` (`None` if there are none).
+fn median_of(runs: &[Measurement], f: impl Fn(&Measurement) -> Option<f64>) -> Option<f64> {
+    let mut v: Vec<f64> = runs.iter().filter_map(f).collect();
     v.sort_by(f64::total_cmp);
     let n = v.len();
-    if n == 0 {
-        f64::NAN
-    } else if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
+    match n {
+        0 => None,
+        _ if n % 2 == 1 => Some(v[n / 2]),
+        _ => Some(0.5 * (v[n / 2 - 1] + v[n / 2])),
     }
 }
 
@@ -329,14 +387,14 @@ fn lifter_row(
 ) -> Result<Row> {
     let (mut alone, mut with) = (Vec::new(), Vec::new());
     for run in 0..args.runs {
-        let measure_alone = || -> Result<f64> {
+        let measure_alone = || -> Result<Measurement> {
             let mut s = LifterStream::new(lifter, anatomy);
             measure(stream, args.warmup, args.steps, |f| {
                 black_box(s.step(f)?);
                 Ok(())
             })
         };
-        let measure_with = || -> Result<f64> {
+        let measure_with = || -> Result<Measurement> {
             let mut s = LifterStream::new(lifter, anatomy);
             let mut adj = Adjuster::new(gru);
             measure(stream, args.warmup, args.steps, |f| {
@@ -345,6 +403,7 @@ fn lifter_row(
                 Ok(())
             })
         };
+        // Alternate the order so neither variant always runs first.
         if run % 2 == 0 {
             alone.push(measure_alone()?);
             with.push(measure_with()?);
@@ -352,24 +411,15 @@ fn lifter_row(
             with.push(measure_with()?);
             alone.push(measure_alone()?);
         }
-        eprintln!("  {} run {}: {:.1} FPS alone, {:.1} with adjustment", kind.label(), run + 1, alone[run], with[run]);
+        eprintln!(
+            "  {} run {}: {:.1} FPS alone, {:.1} with adjustment",
+            kind.label(),
+            run + 1,
+            alone[run].fps,
+            with[run].fps
+        );
     }
-    let (fps, fps_with) = (median(&alone), median(&with));
-    let (paper, paper_with) = kind.paper();
-    Ok(Row {
-        model: kind.label().into(),
-        frames: Some(lifter.receptive_field()),
-        params: lifter.params(),
-        fps,
-        fps_with_adjustment: Some(fps_with),
-        adjustment_overhead_pct: Some(overhead_pct(fps, fps_with)),
-        paper_fps: paper,
-        paper_fps_with_adjustment: paper_with,
-        paper_overhead_pct: paper_with.map(|w| overhead_pct(paper, w)),
-        mpjpe_mm: None,
-        fps_runs: alone,
-        fps_with_adjustment_runs: with,
-    })
+    Ok(Row::new(kind, Some(lifter.receptive_field()), lifter.params(), alone, with))
 }
 
 /// Measure a row that has no adjusted variant.
@@ -384,22 +434,9 @@ fn single_row<'m>(
     for run in 0..args.runs {
         let step = make_step();
         runs.push(measure(stream, args.warmup, args.steps, step)?);
-        eprintln!("  {} run {}: {:.1} FPS", kind.label(), run + 1, runs[run]);
+        eprintln!("  {} run {}: {:.1} FPS", kind.label(), run + 1, runs[run].fps);
     }
-    Ok(Row {
-        model: kind.label().into(),
-        frames: None,
-        params,
-        fps: median(&runs),
-        fps_with_adjustment: None,
-        adjustment_overhead_pct: None,
-        paper_fps: kind.paper().0,
-        paper_fps_with_adjustment: None,
-        paper_overhead_pct: None,
-        mpjpe_mm: None,
-        fps_runs: runs,
-        fps_with_adjustment_runs: Vec::new(),
-    })
+    Ok(Row::new(kind, None, params, runs, Vec::new()))
 }
 
 fn build_models(args: &Args, rows: &[RowKind]) -> Result<Models> {
@@ -438,7 +475,7 @@ fn adjustment_alone_us(args: &Args, models: &Models, stream: &[Keypoints2d]) -> 
             Ok(())
         })?);
     }
-    Ok(1e6 / median(&runs))
+    Ok(1e6 / median_of(&runs, |m| Some(m.fps)).unwrap_or(f64::NAN))
 }
 
 fn markdown(report: &Report) -> String {
@@ -460,17 +497,19 @@ fn markdown(report: &Report) -> String {
     ));
     s.push_str(&format!("- CPU: {} ({} logical CPUs)\n", c.cpu, c.logical_cpus));
     s.push_str(&format!(
-        "- threads: candle (lifters) {}, GRU engine {} ({}); GRU weights: {}\n",
-        c.candle_threads, c.gru_threads, c.gru_isa, c.gru_weights
+        "- threads: lifters {} ({}), GRU engine {} ({}); GRU weights: {}\n",
+        c.candle_threads, c.thread_env, c.gru_threads, c.gru_isa, c.gru_weights
     ));
     s.push_str(&format!("- load average before: {}; after: {}\n", c.load_average_before, c.load_average_after));
-    s.push_str(&format!("- adjustment alone: {:.1} µs per frame\n\n", c.adjustment_alone_us));
-    s.push_str("| model | frames | params | FPS | FPS with adjustment | adjustment overhead | paper FPS | paper with adjustment | paper overhead | MPJPE (mm) |\n");
-    s.push_str("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
+    s.push_str(&format!("- adjustment alone: {:.1} µs per frame\n", c.adjustment_alone_us));
+    s.push_str("- CPU use: process CPU time / wall time during the timed steps (alone / with adjustment); ");
+    s.push_str("below the thread count means the process waited for a CPU\n\n");
+    s.push_str("| model | frames | params | FPS | FPS with adjustment | adjustment overhead | paper FPS | paper with adjustment | paper overhead | MPJPE (mm) | CPU use |\n");
+    s.push_str("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
     let opt = |v: Option<f64>, f: &dyn Fn(f64) -> String| v.map(f).unwrap_or_else(|| "-".into());
     for r in &report.rows {
         s.push_str(&format!(
-            "| {} | {} | {} | {:.1} | {} | {} | {:.0} | {} | {} | {} |\n",
+            "| {} | {} | {} | {:.1} | {} | {} | {:.0} | {} | {} | {} | {} |\n",
             r.model,
             r.frames.map(|f| f.to_string()).unwrap_or_else(|| "-".into()),
             thousands(r.params),
@@ -481,6 +520,11 @@ fn markdown(report: &Report) -> String {
             opt(r.paper_fps_with_adjustment, &|v| format!("{v:.0}")),
             opt(r.paper_overhead_pct, &|v| format!("{v:.1} %")),
             r.mpjpe_mm.map(|v| format!("{v:.1}")).unwrap_or_else(|| "—".into()),
+            match (r.cpu_pct, r.cpu_pct_with_adjustment) {
+                (Some(a), Some(w)) => format!("{a:.0} / {w:.0} %"),
+                (Some(a), None) => format!("{a:.0} %"),
+                _ => "-".into(),
+            },
         ));
     }
     s
@@ -503,6 +547,17 @@ fn main() -> Result<()> {
     if args.steps == 0 || args.runs == 0 {
         bail!("--steps and --runs must be at least 1");
     }
+    if let Some(n) = args.threads {
+        if n == 0 {
+            bail!("--threads must be at least 1");
+        }
+        // Before anything starts a thread pool: both read these once.
+        std::env::set_var("RAYON_NUM_THREADS", n.to_string());
+        std::env::set_var("CANDLE_NUM_THREADS", n.to_string());
+    }
+    let thread_env = ["RAYON_NUM_THREADS", "CANDLE_NUM_THREADS"]
+        .map(|v| format!("{v}={}", std::env::var(v).unwrap_or_else(|_| "unset".into())))
+        .join(", ");
     let rows: Vec<RowKind> = if args.only.is_empty() { RowKind::ALL.to_vec() } else { args.only.clone() };
     let load_before = load_average();
     eprintln!("building models (random weights)...");
@@ -565,6 +620,7 @@ fn main() -> Result<()> {
             cpu: cpu_model(),
             logical_cpus: std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
             candle_threads: candle_core::utils::get_num_threads(),
+            thread_env,
             gru_threads: models.gru.threads(),
             gru_isa: format!("{:?}", models.gru.isa()),
             gru_weights: args

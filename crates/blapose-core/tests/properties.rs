@@ -128,6 +128,17 @@ proptest! {
     }
 
     #[test]
+    fn huge_lengths_overflow_to_an_error_not_infinity(
+        (pose, _, _) in skeleton_pose(),
+        target in prop::array::uniform16(prop_oneof![Just(0.3f32), Just(1e38f32), Just(f32::MAX)]),
+    ) {
+        match adjust_pose(&pose, &target) {
+            Ok(p) => prop_assert!(p.iter().flatten().all(|v| v.is_finite())),
+            Err(e) => prop_assert_eq!(e, BoneError::Overflow),
+        }
+    }
+
+    #[test]
     fn lenient_adjustment_always_succeeds_on_finite_input(
         (mut pose, _, _) in skeleton_pose(),
         collapse in prop::collection::vec(1usize..17, 0..4),

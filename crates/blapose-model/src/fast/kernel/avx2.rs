@@ -1,6 +1,8 @@
 //! AVX2 + FMA version of the panel kernel: a panel's 16 units are two `ymm`
 //! per gate, so a row needs six accumulators; with 16 registers a tile holds
 //! at most two rows, and a single row unrolls `k` twice to hide latency.
+//! As in the AVX-512 kernel, accumulators are separate variables (an array
+//! indexed in loops was kept in memory by LLVM).
 
 use std::arch::x86_64::*;
 
@@ -15,66 +17,97 @@ use crate::{HIDDEN, OUTPUT_DIM};
 /// See the [`TileArgs`] contract; AVX2 and FMA must be available.
 pub(crate) unsafe fn tile(rows: usize, a: &TileArgs) {
     match rows {
-        1 => tile_n::<1, 2>(a),
-        2 => tile_n::<2, 1>(a),
+        1 => tile1(a),
+        2 => tile2(a),
         _ => unreachable!("tile of {rows} rows"),
     }
 }
 
-/// `acc[u][b][g][half] += W[k+u][g][half] * x[k+u][b]` over `len` values
-/// of `k`, advancing `w` and `x`.
+/// Accumulate `len` values of `k` into the named per-"slot" accumulators;
+/// each slot is `(r_lo, r_hi, z_lo, z_hi, n_lo, n_hi, x offset, w offset)`.
+/// `x` advances by `$xstep` and `w` by `$wstep` rows per iteration.
 macro_rules! accumulate {
-    ($acc:ident, $w:ident, $x:ident, $len:expr, $BT:ident, $KU:ident) => {{
-        let mut k = 0;
-        while k < $len {
-            for u in 0..$KU {
-                for b in 0..$BT {
-                    let xv = _mm256_set1_ps(*$x.add(b));
-                    for g in 0..3 {
-                        for half in 0..2 {
-                            $acc[u][b][g][half] = _mm256_fmadd_ps(
-                                _mm256_load_ps($w.add(g * LANES + half * 8)),
-                                xv,
-                                $acc[u][b][g][half],
-                            );
-                        }
-                    }
-                }
-                $w = $w.add(ROW);
-                $x = $x.add($BT);
-            }
-            k += $KU;
+    ($w:ident, $x:ident, $len:expr, $xstep:expr, $wstep:expr,
+     $(($rl:ident, $rh:ident, $zl:ident, $zh:ident, $nl:ident, $nh:ident, $xo:expr, $wo:expr)),+) => {
+        for _ in 0..$len {
+            $(
+                let xv = _mm256_set1_ps(*$x.add($xo));
+                let wp = $w.add($wo * ROW);
+                $rl = _mm256_fmadd_ps(_mm256_load_ps(wp), xv, $rl);
+                $rh = _mm256_fmadd_ps(_mm256_load_ps(wp.add(8)), xv, $rh);
+                $zl = _mm256_fmadd_ps(_mm256_load_ps(wp.add(LANES)), xv, $zl);
+                $zh = _mm256_fmadd_ps(_mm256_load_ps(wp.add(LANES + 8)), xv, $zh);
+                $nl = _mm256_fmadd_ps(_mm256_load_ps(wp.add(2 * LANES)), xv, $nl);
+                $nh = _mm256_fmadd_ps(_mm256_load_ps(wp.add(2 * LANES + 8)), xv, $nh);
+            )+
+            $w = $w.add($wstep * ROW);
+            $x = $x.add($xstep);
         }
-    }};
+    };
 }
 
+/// Two rows, one `k` per iteration.
 #[target_feature(enable = "avx2,fma")]
-unsafe fn tile_n<const BT: usize, const KU: usize>(a: &TileArgs) {
+unsafe fn tile2(a: &TileArgs) {
     let zero = _mm256_setzero_ps();
-    let mut acc = [[[[zero; 2]; 3]; BT]; KU];
+    let (mut ar0, mut br0, mut az0, mut bz0, mut an0, mut bn0) = (zero, zero, zero, zero, zero, zero);
+    let (mut ar1, mut br1, mut az1, mut bz1, mut an1, mut bn1) = (zero, zero, zero, zero, zero, zero);
     let mut w = a.w;
     let mut x = a.x;
-    accumulate!(acc, w, x, a.k_in, BT, KU);
-    let mut ni = [[zero; 2]; BT];
-    for b in 0..BT {
-        for part in &mut acc {
-            for half in 0..2 {
-                ni[b][half] = _mm256_add_ps(ni[b][half], part[b][2][half]);
-                part[b][2][half] = zero;
-            }
-        }
-    }
-    accumulate!(acc, w, x, HIDDEN, BT, KU);
+    accumulate!(w, x, a.k_in, 2, 1,
+        (ar0, br0, az0, bz0, an0, bn0, 0, 0),
+        (ar1, br1, az1, bz1, an1, bn1, 1, 0));
+    let ni = [[an0, bn0], [an1, bn1]];
+    (an0, bn0, an1, bn1) = (zero, zero, zero, zero);
+    accumulate!(w, x, HIDDEN, 2, 1,
+        (ar0, br0, az0, bz0, an0, bn0, 0, 0),
+        (ar1, br1, az1, bz1, an1, bn1, 1, 0));
+    let acc = [
+        [[ar0, br0], [az0, bz0], [an0, bn0]],
+        [[ar1, br1], [az1, bz1], [an1, bn1]],
+    ];
+    epilogue(a, &acc, &ni);
+}
 
+/// One row, `k` unrolled twice (12 independent accumulators).
+#[target_feature(enable = "avx2,fma")]
+unsafe fn tile1(a: &TileArgs) {
+    let zero = _mm256_setzero_ps();
+    let (mut ar0, mut br0, mut az0, mut bz0, mut an0, mut bn0) = (zero, zero, zero, zero, zero, zero);
+    let (mut ar1, mut br1, mut az1, mut bz1, mut an1, mut bn1) = (zero, zero, zero, zero, zero, zero);
+    let mut w = a.w;
+    let mut x = a.x;
+    // k_in and HIDDEN are even
+    accumulate!(w, x, a.k_in / 2, 2, 2,
+        (ar0, br0, az0, bz0, an0, bn0, 0, 0),
+        (ar1, br1, az1, bz1, an1, bn1, 1, 1));
+    let ni = [[_mm256_add_ps(an0, an1), _mm256_add_ps(bn0, bn1)]];
+    (an0, bn0, an1, bn1) = (zero, zero, zero, zero);
+    accumulate!(w, x, HIDDEN / 2, 2, 2,
+        (ar0, br0, az0, bz0, an0, bn0, 0, 0),
+        (ar1, br1, az1, bz1, an1, bn1, 1, 1));
+    let acc = [[
+        [_mm256_add_ps(ar0, ar1), _mm256_add_ps(br0, br1)],
+        [_mm256_add_ps(az0, az1), _mm256_add_ps(bz0, bz1)],
+        [_mm256_add_ps(an0, an1), _mm256_add_ps(bn0, bn1)],
+    ]];
+    epilogue(a, &acc, &ni);
+}
+
+/// Gates -> new states (and output contributions) for each row:
+/// `acc[b][gate][half]` pre-activations without biases (`gate` 2 is the
+/// recurrent part of `n`), `ni[b][half]` the input part of `n`.
+#[inline]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn epilogue<const BT: usize>(
+    a: &TileArgs,
+    acc: &[[[__m256; 2]; 3]; BT],
+    ni: &[[__m256; 2]; BT],
+) {
     for b in 0..BT {
-        let mut h_new = [zero; 2];
+        let mut h_new = [_mm256_setzero_ps(); 2];
         for half in 0..2 {
-            let mut g = [zero; 3];
-            for part in &acc {
-                for (gi, gate) in g.iter_mut().zip(part[b]) {
-                    *gi = _mm256_add_ps(*gi, gate[half]);
-                }
-            }
+            let g = [acc[b][0][half], acc[b][1][half], acc[b][2][half]];
             let lane = |gate: usize| gate * LANES + half * 8;
             let mut pr = _mm256_add_ps(g[0], _mm256_loadu_ps(a.bias.add(lane(0))));
             let mut pz = _mm256_add_ps(g[1], _mm256_loadu_ps(a.bias.add(lane(1))));
