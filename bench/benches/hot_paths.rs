@@ -81,7 +81,9 @@ fn gru_step(c: &mut Criterion) {
     for threads in [1, 2] {
         let engine = OnlineGruEngine::new(&weights, threads).expect("GRU engine");
         for batch in [1usize, 64] {
-            let inputs: Vec<f32> = (0..batch * INPUT_DIM).map(|i| ((i % 34) as f32 * 0.05).sin() * 0.5).collect();
+            let inputs: Vec<f32> = (0..batch * INPUT_DIM)
+                .map(|i| ((i % 34) as f32 * 0.05).sin() * 0.5)
+                .collect();
             let mut hidden = vec![0.0f32; batch * STATE_DIM];
             let mut out = vec![0.0f32; batch * OUTPUT_DIM];
             let mut scratch = engine.scratch(batch);

@@ -191,7 +191,7 @@ impl Example {
             Array::new(shape, v).map_err(|e| {
                 ExampleError::Sequence(SequenceError::Npz {
                     path: "<example>".into(),
-                    source: e,
+                    error: e,
                 })
             })
         };

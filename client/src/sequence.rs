@@ -57,13 +57,12 @@ pub const KEY_BONE_LENGTHS: &str = "bone_lengths";
 #[derive(Debug, thiserror::Error)]
 pub enum SequenceError {
     /// Reading, parsing or writing the npz failed (missing key, bad shape, ...).
-    #[error("{path}: {source}")]
+    #[error("{}", npz_message(path, error))]
     Npz {
         /// The file.
         path: PathBuf,
         /// The npz error, naming the key.
-        #[source]
-        source: NpzError,
+        error: NpzError,
     },
     /// The file has no frames.
     #[error("the sequence has no frames")]
@@ -125,6 +124,19 @@ pub enum SequenceError {
         /// Length rows.
         lengths: usize,
     },
+}
+
+/// `path: error`, without repeating the path when the npz error names it
+/// already. The npz error is part of the message (not a `source()`), so
+/// error chains print it once.
+fn npz_message(path: &Path, error: &NpzError) -> String {
+    let text = error.to_string();
+    let shown = path.display().to_string();
+    if text.contains(&shown) {
+        text
+    } else {
+        format!("{shown}: {text}")
+    }
 }
 
 /// A recorded sequence, validated.
@@ -267,7 +279,7 @@ impl Sequence {
     ) -> Result<Self, SequenceError> {
         let wrap = |source| SequenceError::Npz {
             path: PathBuf::from("<arrays>"),
-            source,
+            error: source,
         };
         let pose_3d = npz.poses(KEY_POSE_3D).map_err(wrap)?;
         let kp = npz
@@ -351,12 +363,12 @@ impl Sequence {
         let path = path.as_ref();
         let npz = read_npz(path).map_err(|source| SequenceError::Npz {
             path: path.to_owned(),
-            source,
+            error: source,
         })?;
         Sequence::from_npz(&npz, layout_override).map_err(|e| match e {
-            SequenceError::Npz { source, .. } => SequenceError::Npz {
+            SequenceError::Npz { error: source, .. } => SequenceError::Npz {
                 path: path.to_owned(),
-                source,
+                error: source,
             },
             e => e,
         })
@@ -366,7 +378,7 @@ impl Sequence {
     pub fn to_npz(&self) -> Result<Npz, SequenceError> {
         let npz_err = |source| SequenceError::Npz {
             path: PathBuf::from("<arrays>"),
-            source,
+            error: source,
         };
         let t = self.len();
         let j = self.num_joints();
@@ -408,7 +420,7 @@ impl Sequence {
         let path = path.as_ref();
         write_npz(path, &self.to_npz()?).map_err(|source| SequenceError::Npz {
             path: path.to_owned(),
-            source,
+            error: source,
         })
     }
 }
@@ -429,7 +441,7 @@ pub fn write_adjusted(
     }
     let npz_err = |source| SequenceError::Npz {
         path: path.to_owned(),
-        source,
+        error: source,
     };
     let mut npz = Npz::new();
     npz.insert(KEY_ADJUSTED, Array::from_poses(adjusted));
@@ -448,7 +460,7 @@ pub fn read_adjusted(
     let path = path.as_ref();
     let npz_err = |source| SequenceError::Npz {
         path: path.to_owned(),
-        source,
+        error: source,
     };
     let npz = read_npz(path).map_err(npz_err)?;
     let adjusted = npz.poses(KEY_ADJUSTED).map_err(npz_err)?;

@@ -15,7 +15,7 @@ async fn main() -> anyhow::Result<()> {
                 std::process::exit(1)
             }
             Err(e) => {
-                eprintln!("{}: {e}", cli.addr);
+                eprintln!("{}: {:#}", cli.addr, anyhow::Error::from(e));
                 std::process::exit(1)
             }
         }

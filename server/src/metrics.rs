@@ -91,6 +91,10 @@ pub fn install_exporter(addr: SocketAddr) -> Result<(), MetricsError> {
         }
     });
     describe();
+    // Gauges appear in the exposition only once set: start them at zero.
+    gauge!(SESSIONS).set(0.0);
+    gauge!(STREAMS).set(0.0);
+    gauge!(QUEUE_DEPTH).set(0.0);
     Ok(())
 }
 

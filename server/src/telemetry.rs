@@ -1,6 +1,8 @@
 //! Log setup: `tracing` to stderr as text or JSON, filtered by `RUST_LOG`
 //! (default `info`).
 
+use std::io::IsTerminal;
+
 use tracing_subscriber::EnvFilter;
 
 use crate::config::LogFormat;

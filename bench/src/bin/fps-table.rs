@@ -36,8 +36,8 @@ use serde::Serialize;
 use blapose_core::bones::adjust_pose_lenient;
 use blapose_core::{BoneLengths, Keypoints2d, Pose, NUM_BONES, NUM_JOINTS};
 use blapose_lifters::{
-    poses_from_tensor, Anatomy3d, Anatomy3dConfig, Lifter, OnlineBoneLengths, PoseFormer, PoseFormerConfig,
-    SlidingWindow, VideoPose3d, VideoPose3dConfig,
+    poses_from_tensor, Anatomy3d, Anatomy3dConfig, Lifter, OnlineBoneLengths, PoseFormer,
+    PoseFormerConfig, SlidingWindow, VideoPose3d, VideoPose3dConfig,
 };
 use blapose_model::fast::{OnlineGruEngine, StepScratch};
 use blapose_model::{LoadedWeights, ModelKind, INPUT_DIM, OUTPUT_DIM, STATE_DIM};
@@ -91,8 +91,13 @@ enum RowKind {
 }
 
 impl RowKind {
-    const ALL: [RowKind; 5] =
-        [RowKind::Videopose3d, RowKind::Anatomy3d, RowKind::Poseformer, RowKind::AnatomyBoneLength, RowKind::Gru];
+    const ALL: [RowKind; 5] = [
+        RowKind::Videopose3d,
+        RowKind::Anatomy3d,
+        RowKind::Poseformer,
+        RowKind::AnatomyBoneLength,
+        RowKind::Gru,
+    ];
 
     fn label(self) -> &'static str {
         match self {
@@ -138,7 +143,13 @@ struct Row {
 }
 
 impl Row {
-    fn new(kind: RowKind, frames: Option<usize>, params: usize, alone: Vec<Measurement>, with: Vec<Measurement>) -> Self {
+    fn new(
+        kind: RowKind,
+        frames: Option<usize>,
+        params: usize,
+        alone: Vec<Measurement>,
+        with: Vec<Measurement>,
+    ) -> Self {
         let fps = median_of(&alone, |m| Some(m.fps)).unwrap_or(f64::NAN);
         let fps_with = median_of(&with, |m| Some(m.fps));
         let (paper, paper_with) = kind.paper();
@@ -215,13 +226,16 @@ impl<'a> Adjuster<'a> {
     fn lengths(&mut self, frame: &Keypoints2d) -> Result<BoneLengths> {
         let input: &[f32] = frame.as_flattened();
         debug_assert_eq!(input.len(), INPUT_DIM);
-        self.engine.step(input, &mut self.hidden, &mut self.out, &mut self.scratch)?;
+        self.engine
+            .step(input, &mut self.hidden, &mut self.out, &mut self.scratch)?;
         for (s, o) in self.sum.iter_mut().zip(&self.out) {
             *s += *o as f64;
         }
         self.frames += 1;
         // Random weights can predict negative lengths; a length is >= 0.
-        Ok(std::array::from_fn(|b| (self.sum[b] / self.frames as f64).max(0.0) as f32))
+        Ok(std::array::from_fn(|b| {
+            (self.sum[b] / self.frames as f64).max(0.0) as f32
+        }))
     }
 
     fn adjust(&mut self, frame: &Keypoints2d, pose: &Pose) -> Result<Pose> {
@@ -248,22 +262,36 @@ struct LifterStream<'a> {
 
 impl<'a> LifterStream<'a> {
     fn new(lifter: &'a dyn Lifter, anatomy: Option<&'a Anatomy3d>) -> Self {
-        Self { lifter, anatomy, window: SlidingWindow::new(lifter.receptive_field()), lengths: OnlineBoneLengths::new() }
+        Self {
+            lifter,
+            anatomy,
+            window: SlidingWindow::new(lifter.receptive_field()),
+            lengths: OnlineBoneLengths::new(),
+        }
     }
 
     fn step(&mut self, frame: &Keypoints2d) -> Result<Pose> {
         self.window.push(*frame);
-        let window = self.window.tensor()?.context("window is empty after a push")?;
+        let window = self
+            .window
+            .tensor()?
+            .context("window is empty after a push")?;
         let out = match self.anatomy {
             Some(a) => {
                 let frame_t = blapose_lifters::keypoints_tensor(std::slice::from_ref(frame))?;
                 let lengths = a.bone_length().step(&frame_t, &mut self.lengths)?;
-                let lengths = candle_core::Tensor::from_slice(&lengths, (1, NUM_BONES), &candle_core::Device::Cpu)?;
+                let lengths = candle_core::Tensor::from_slice(
+                    &lengths,
+                    (1, NUM_BONES),
+                    &candle_core::Device::Cpu,
+                )?;
                 a.predict_frame_with(&window, None, &lengths)?
             }
             None => self.lifter.predict_frame(&window)?,
         };
-        poses_from_tensor(&out)?.pop().context("lifter returned no pose")
+        poses_from_tensor(&out)?
+            .pop()
+            .context("lifter returned no pose")
     }
 }
 
@@ -328,8 +356,13 @@ fn measure(
         step(frames.next().context("empty stream")?)?;
     }
     let wall = start.elapsed().as_secs_f64();
-    let cpu_pct = cpu0.zip(process_cpu_seconds()).map(|(a, b)| 100.0 * (b - a) / wall);
-    Ok(Measurement { fps: steps as f64 / wall, cpu_pct })
+    let cpu_pct = cpu0
+        .zip(process_cpu_seconds())
+        .map(|(a, b)| 100.0 * (b - a) / wall);
+    Ok(Measurement {
+        fps: steps as f64 / wall,
+        cpu_pct,
+    })
 }
 
 /// User + system CPU time of this process so far (Linux `/proc/self/stat`,
@@ -419,7 +452,13 @@ fn lifter_row(
             with[run].fps
         );
     }
-    Ok(Row::new(kind, Some(lifter.receptive_field()), lifter.params(), alone, with))
+    Ok(Row::new(
+        kind,
+        Some(lifter.receptive_field()),
+        lifter.params(),
+        alone,
+        with,
+    ))
 }
 
 /// Measure a row that has no adjusted variant.
@@ -434,7 +473,12 @@ fn single_row<'m>(
     for run in 0..args.runs {
         let step = make_step();
         runs.push(measure(stream, args.warmup, args.steps, step)?);
-        eprintln!("  {} run {}: {:.1} FPS", kind.label(), run + 1, runs[run].fps);
+        eprintln!(
+            "  {} run {}: {:.1} FPS",
+            kind.label(),
+            run + 1,
+            runs[run].fps
+        );
     }
     Ok(Row::new(kind, None, params, runs, Vec::new()))
 }
@@ -449,13 +493,23 @@ fn build_models(args: &Args, rows: &[RowKind]) -> Result<Models> {
     let want = |k: RowKind| rows.contains(&k);
     Ok(Models {
         videopose: want(RowKind::Videopose3d)
-            .then(|| VideoPose3d::random(VideoPose3dConfig::receptive_field_243().with_causal(causal), args.seed))
+            .then(|| {
+                VideoPose3d::random(
+                    VideoPose3dConfig::receptive_field_243().with_causal(causal),
+                    args.seed,
+                )
+            })
             .transpose()?,
         poseformer: want(RowKind::Poseformer)
             .then(|| PoseFormer::random(PoseFormerConfig::frames_81(), args.seed))
             .transpose()?,
         anatomy: (want(RowKind::Anatomy3d) || want(RowKind::AnatomyBoneLength))
-            .then(|| Anatomy3d::random(Anatomy3dConfig::receptive_field_243().with_causal(causal), args.seed))
+            .then(|| {
+                Anatomy3d::random(
+                    Anatomy3dConfig::receptive_field_243().with_causal(causal),
+                    args.seed,
+                )
+            })
             .transpose()?,
         gru: OnlineGruEngine::new(&weights, args.gru_threads)?,
     })
@@ -488,20 +542,39 @@ fn markdown(report: &Report) -> String {
             c.steps
         ));
     } else {
-        s.push_str(&format!("- {} steps per measurement (the paper: 10,000)\n", c.steps));
+        s.push_str(&format!(
+            "- {} steps per measurement (the paper: 10,000)\n",
+            c.steps
+        ));
     }
-    s.push_str(&format!("- median of {} runs, {} warm-up steps each; random weights\n", c.runs, c.warmup));
+    s.push_str(&format!(
+        "- median of {} runs, {} warm-up steps each; random weights\n",
+        c.runs, c.warmup
+    ));
     s.push_str(&format!(
         "- lifters: {} variants; adjustment = online GRU step + running mean + adjust_pose\n",
-        if c.causal_lifters { "causal (VideoPose3D, Anatomy3D)" } else { "centred" }
+        if c.causal_lifters {
+            "causal (VideoPose3D, Anatomy3D)"
+        } else {
+            "centred"
+        }
     ));
-    s.push_str(&format!("- CPU: {} ({} logical CPUs)\n", c.cpu, c.logical_cpus));
+    s.push_str(&format!(
+        "- CPU: {} ({} logical CPUs)\n",
+        c.cpu, c.logical_cpus
+    ));
     s.push_str(&format!(
         "- threads: lifters {} ({}), GRU engine {} ({}); GRU weights: {}\n",
         c.candle_threads, c.thread_env, c.gru_threads, c.gru_isa, c.gru_weights
     ));
-    s.push_str(&format!("- load average before: {}; after: {}\n", c.load_average_before, c.load_average_after));
-    s.push_str(&format!("- adjustment alone: {:.1} µs per frame\n", c.adjustment_alone_us));
+    s.push_str(&format!(
+        "- load average before: {}; after: {}\n",
+        c.load_average_before, c.load_average_after
+    ));
+    s.push_str(&format!(
+        "- adjustment alone: {:.1} µs per frame\n",
+        c.adjustment_alone_us
+    ));
     s.push_str("- CPU use: process CPU time / wall time during the timed steps (alone / with adjustment); ");
     s.push_str("below the thread count means the process waited for a CPU\n\n");
     s.push_str("| model | frames | params | FPS | FPS with adjustment | adjustment overhead | paper FPS | paper with adjustment | paper overhead | MPJPE (mm) | CPU use |\n");
@@ -511,7 +584,9 @@ fn markdown(report: &Report) -> String {
         s.push_str(&format!(
             "| {} | {} | {} | {:.1} | {} | {} | {:.0} | {} | {} | {} | {} |\n",
             r.model,
-            r.frames.map(|f| f.to_string()).unwrap_or_else(|| "-".into()),
+            r.frames
+                .map(|f| f.to_string())
+                .unwrap_or_else(|| "-".into()),
             thousands(r.params),
             r.fps,
             opt(r.fps_with_adjustment, &|v| format!("{v:.1}")),
@@ -519,7 +594,9 @@ fn markdown(report: &Report) -> String {
             r.paper_fps,
             opt(r.paper_fps_with_adjustment, &|v| format!("{v:.0}")),
             opt(r.paper_overhead_pct, &|v| format!("{v:.1} %")),
-            r.mpjpe_mm.map(|v| format!("{v:.1}")).unwrap_or_else(|| "—".into()),
+            r.mpjpe_mm
+                .map(|v| format!("{v:.1}"))
+                .unwrap_or_else(|| "—".into()),
             match (r.cpu_pct, r.cpu_pct_with_adjustment) {
                 (Some(a), Some(w)) => format!("{a:.0} / {w:.0} %"),
                 (Some(a), None) => format!("{a:.0} %"),
@@ -556,9 +633,18 @@ fn main() -> Result<()> {
         std::env::set_var("CANDLE_NUM_THREADS", n.to_string());
     }
     let thread_env = ["RAYON_NUM_THREADS", "CANDLE_NUM_THREADS"]
-        .map(|v| format!("{v}={}", std::env::var(v).unwrap_or_else(|_| "unset".into())))
+        .map(|v| {
+            format!(
+                "{v}={}",
+                std::env::var(v).unwrap_or_else(|_| "unset".into())
+            )
+        })
         .join(", ");
-    let rows: Vec<RowKind> = if args.only.is_empty() { RowKind::ALL.to_vec() } else { args.only.clone() };
+    let rows: Vec<RowKind> = if args.only.is_empty() {
+        RowKind::ALL.to_vec()
+    } else {
+        args.only.clone()
+    };
     let load_before = load_average();
     eprintln!("building models (random weights)...");
     let models = build_models(&args, &rows)?;
@@ -579,7 +665,11 @@ fn main() -> Result<()> {
                 lifter_row(&args, kind, m, Some(m), &models.gru, &stream)?
             }
             RowKind::AnatomyBoneLength => {
-                let branch = models.anatomy.as_ref().context("Anatomy3D not built")?.bone_length();
+                let branch = models
+                    .anatomy
+                    .as_ref()
+                    .context("Anatomy3D not built")?
+                    .bone_length();
                 single_row(
                     &args,
                     kind,
@@ -618,7 +708,9 @@ fn main() -> Result<()> {
             runs: args.runs,
             warmup: args.warmup,
             cpu: cpu_model(),
-            logical_cpus: std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
+            logical_cpus: std::thread::available_parallelism()
+                .map(|n| n.get())
+                .unwrap_or(1),
             candle_threads: candle_core::utils::get_num_threads(),
             thread_env,
             gru_threads: models.gru.threads(),

@@ -11,8 +11,8 @@ use std::time::Instant;
 use anyhow::{bail, Result};
 use blapose_model::reference::frames_tensor;
 use blapose_model::{
-    BoneLengthGru, Isa, LoadedWeights, ModelKind, OfflineBiGruEngine, OnlineGruEngine, INPUT_DIM,
-    OUTPUT_DIM, STATE_DIM,
+    BoneLengthGru, EngineOptions, Isa, LoadedWeights, ModelKind, OfflineBiGruEngine,
+    OnlineGruEngine, Precision, INPUT_DIM, OUTPUT_DIM, STATE_DIM,
 };
 use candle_core::{Device, Tensor};
 use clap::{Parser, ValueEnum};
@@ -50,6 +50,9 @@ struct Args {
     /// Instruction set of the fast path (scalar, avx2, avx512); default: best available.
     #[arg(long)]
     isa: Option<String>,
+    /// Storage precision of the fast path's GRU weights (f32 or f16).
+    #[arg(long, default_value = "f32")]
+    precision: String,
     /// Timed runs; the reported number is their median.
     #[arg(long, default_value_t = 1)]
     repeats: usize,
@@ -84,13 +87,18 @@ fn main() -> Result<()> {
         Some(s) => s.parse::<Isa>()?,
         None => Isa::detect(),
     };
+    let opts = EngineOptions {
+        threads: args.threads,
+        isa: Some(isa),
+        precision: args.precision.parse::<Precision>()?,
+    };
     let mut rates = Vec::with_capacity(args.repeats);
     for run in 0..args.repeats {
         let (frames, secs) = if args.offline {
-            offline(&args, isa)?
+            offline(&args, opts)?
         } else {
             match args.path {
-                PathKind::Fast => online_fast(&args, isa)?,
+                PathKind::Fast => online_fast(&args, opts)?,
                 PathKind::Reference => online_reference(&args)?,
             }
         };
@@ -102,25 +110,26 @@ fn main() -> Result<()> {
     let median = rates[rates.len() / 2];
     if args.offline {
         println!(
-            "mode=offline frames={} threads={} isa={isa} seconds={:.4}",
+            "mode=offline frames={} threads={} isa={isa} precision={} seconds={:.4}",
             args.frames,
             args.threads,
+            args.precision,
             args.frames as f64 / median
         );
     } else {
         let isa_s = if args.path == PathKind::Fast { isa.as_str() } else { "candle" };
         println!(
-            "mode=online path={:?} batch={} threads={} steps={} isa={isa_s}",
-            args.path, args.batch, args.threads, args.steps
+            "mode=online path={:?} batch={} threads={} steps={} isa={isa_s} precision={}",
+            args.path, args.batch, args.threads, args.steps, args.precision
         );
     }
     println!("frames_per_second={median:.0}");
     Ok(())
 }
 
-fn online_fast(args: &Args, isa: Isa) -> Result<(usize, f64)> {
+fn online_fast(args: &Args, opts: EngineOptions) -> Result<(usize, f64)> {
     let weights = LoadedWeights::random(ModelKind::Gru, args.seed)?;
-    let engine = OnlineGruEngine::with_isa(&weights, args.threads, isa)?;
+    let engine = OnlineGruEngine::with_options(&weights, opts)?;
     let b = args.batch;
     // a pool of distinct frames, cycled through so inputs vary per step
     let pool_steps = 64;
@@ -165,7 +174,7 @@ fn online_reference(args: &Args) -> Result<(usize, f64)> {
     Ok((args.steps * b, start.elapsed().as_secs_f64()))
 }
 
-fn offline(args: &Args, isa: Isa) -> Result<(usize, f64)> {
+fn offline(args: &Args, opts: EngineOptions) -> Result<(usize, f64)> {
     let weights = LoadedWeights::random(ModelKind::BiGru, args.seed)?;
     if args.path == PathKind::Reference {
         let model = blapose_model::BoneLengthBiGru::new(weights.var_builder())?;
@@ -175,7 +184,7 @@ fn offline(args: &Args, isa: Isa) -> Result<(usize, f64)> {
         std::hint::black_box(model.forward(&x, false)?.flatten_all()?.to_vec1::<f32>()?);
         return Ok((args.frames, start.elapsed().as_secs_f64()));
     }
-    let engine = OfflineBiGruEngine::with_isa(&weights, args.threads, isa)?;
+    let engine = OfflineBiGruEngine::with_options(&weights, opts)?;
     let frames = random_inputs(args.frames * INPUT_DIM, args.seed + 2);
     engine.predict(&frames[..INPUT_DIM * args.frames.min(64)])?; // warm up
     let start = Instant::now();

@@ -107,7 +107,7 @@ fn check_finite(pose: &Pose) -> Result<(), BoneError> {
 }
 
 fn check_output(pose: Pose) -> Result<Pose, BoneError> {
-    if true {
+    if pose.iter().flatten().all(|v| v.is_finite()) {
         Ok(pose)
     } else {
         Err(BoneError::Overflow)

@@ -37,7 +37,10 @@ pub(crate) fn expect_dims(
 ) -> Result<()> {
     let got = t.dims();
     let ok = got.len() == expected.len()
-        && got.iter().zip(expected).all(|(g, e)| e.is_none_or(|e| e == *g));
+        && got
+            .iter()
+            .zip(expected)
+            .all(|(g, e)| e.is_none_or(|e| e == *g));
     if ok {
         return Ok(());
     }

@@ -29,14 +29,20 @@ pub struct RandomInit {
 impl RandomInit {
     /// Weights as PyTorch would initialize them (constants stay constant).
     pub fn new(seed: u64) -> Self {
-        Self { seed, perturb_constants: false }
+        Self {
+            seed,
+            perturb_constants: false,
+        }
     }
 
     /// Like [`RandomInit::new`], but constant hints `c` become
     /// `U(c - 0.25, c + 0.25)`: batch-norm variances stay positive
     /// (`[0.75, 1.25]`), means, biases and embeddings become non-zero.
     pub fn perturbed(seed: u64) -> Self {
-        Self { seed, perturb_constants: true }
+        Self {
+            seed,
+            perturb_constants: true,
+        }
     }
 
     /// A `VarBuilder` over this backend (f32, CPU).
@@ -52,7 +58,11 @@ impl RandomInit {
             Init::Const(c) => (0..n).map(|_| rng.uniform(c - 0.25, c + 0.25)).collect(),
             Init::Uniform { lo, up } => (0..n).map(|_| rng.uniform(lo, up)).collect(),
             Init::Randn { mean, stdev } => (0..n).map(|_| rng.normal(mean, stdev)).collect(),
-            Init::Kaiming { dist, fan, non_linearity } => {
+            Init::Kaiming {
+                dist,
+                fan,
+                non_linearity,
+            } => {
                 let std = non_linearity.gain() / (fan.for_shape(shape).max(1) as f64).sqrt();
                 match dist {
                     candle_nn::init::NormalOrUniform::Uniform => {
@@ -78,7 +88,9 @@ impl SimpleBackend for RandomInit {
         dev: &Device,
     ) -> candle_core::Result<Tensor> {
         let values = self.values(&s, name, h);
-        Tensor::from_vec(values, s, &Device::Cpu)?.to_dtype(dtype)?.to_device(dev)
+        Tensor::from_vec(values, s, &Device::Cpu)?
+            .to_dtype(dtype)?
+            .to_device(dev)
     }
 
     fn get_unchecked(&self, name: &str, _: DType, _: &Device) -> candle_core::Result<Tensor> {
@@ -98,7 +110,9 @@ pub(crate) fn torch_default(fan_in: usize) -> Init {
 }
 
 fn fnv1a(s: &str) -> u64 {
-    s.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| (h ^ b as u64).wrapping_mul(0x0100_0000_01b3))
+    s.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| {
+        (h ^ b as u64).wrapping_mul(0x0100_0000_01b3)
+    })
 }
 
 /// SplitMix64: tiny, fast and good enough for initial weights.
@@ -152,13 +166,25 @@ mod tests {
         assert_ne!(a, draw(RandomInit::new(2), "a.weight", u), "seed matters");
         assert!(a.iter().all(|v| (-0.5..0.5).contains(v)));
         assert!(a.iter().any(|v| *v > 0.4) && a.iter().any(|v| *v < -0.4));
-        assert!(draw(r, "bn.running_var", Init::Const(1.0)).iter().all(|v| *v == 1.0));
+        assert!(draw(r, "bn.running_var", Init::Const(1.0))
+            .iter()
+            .all(|v| *v == 1.0));
         let p = draw(RandomInit::perturbed(1), "bn.running_var", Init::Const(1.0));
         assert!(p.iter().all(|v| (0.75..1.25).contains(v)));
         assert!(p.iter().any(|v| *v != 1.0));
-        let n = draw(r, "pos", Init::Randn { mean: 0.0, stdev: 2.0 });
+        let n = draw(
+            r,
+            "pos",
+            Init::Randn {
+                mean: 0.0,
+                stdev: 2.0,
+            },
+        );
         let mean = n.iter().sum::<f32>() / n.len() as f32;
         let var = n.iter().map(|v| (v - mean).powi(2)).sum::<f32>() / n.len() as f32;
-        assert!(mean.abs() < 0.3 && (var.sqrt() - 2.0).abs() < 0.3, "mean {mean} var {var}");
+        assert!(
+            mean.abs() < 0.3 && (var.sqrt() - 2.0).abs() < 0.3,
+            "mean {mean} var {var}"
+        );
     }
 }

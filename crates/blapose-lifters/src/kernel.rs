@@ -41,10 +41,14 @@ impl Isa {
     fn detect() -> Self {
         #[cfg(target_arch = "x86_64")]
         {
-            if std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("fma") {
+            if std::arch::is_x86_feature_detected!("avx512f")
+                && std::arch::is_x86_feature_detected!("fma")
+            {
                 return Isa::Avx512;
             }
-            if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+            if std::arch::is_x86_feature_detected!("avx2")
+                && std::arch::is_x86_feature_detected!("fma")
+            {
                 return Isa::Avx2;
             }
         }
@@ -64,7 +68,12 @@ pub(crate) struct PackedMatrix {
 impl PackedMatrix {
     /// Pack a row-major `k x n` matrix.
     pub(crate) fn new(w: &[f32], k: usize, n: usize) -> Self {
-        assert_eq!(w.len(), k * n, "packing a {k} x {n} matrix from {} values", w.len());
+        assert_eq!(
+            w.len(),
+            k * n,
+            "packing a {k} x {n} matrix from {} values",
+            w.len()
+        );
         let count = n.div_ceil(NR);
         let mut panels = vec![0.0; count * k * NR];
         for (p, panel) in panels.chunks_exact_mut(k * NR).enumerate() {
@@ -74,7 +83,12 @@ impl PackedMatrix {
                 dst[..width].copy_from_slice(&w[row * n + c0..row * n + c0 + width]);
             }
         }
-        Self { k, n, panels, isa: Isa::detect() }
+        Self {
+            k,
+            n,
+            panels,
+            isa: Isa::detect(),
+        }
     }
 
     /// Rows of the matrix (the product's inner dimension).
@@ -91,9 +105,13 @@ impl PackedMatrix {
     /// `n`) if given: `m x n`, row-major.
     pub(crate) fn matmul(&self, x: &[f32], bias: Option<&[f32]>) -> Vec<f32> {
         let (k, n) = (self.k, self.n);
-        assert_eq!(x.len() % k.max(1), 0, "input is not a whole number of {k}-wide rows");
+        assert_eq!(
+            x.len() % k.max(1),
+            0,
+            "input is not a whole number of {k}-wide rows"
+        );
         assert!(bias.is_none_or(|b| b.len() == n), "bias length");
-        let m = if k == 0 { 0 } else { x.len() / k };
+        let m = x.len().checked_div(k).unwrap_or(0);
         let count = n.div_ceil(NR);
         // Panel-major result: panel p holds columns p*NR.. of every row.
         let mut by_panel = vec![0.0f32; count * m * NR];
@@ -151,7 +169,13 @@ unsafe fn panel_avx2(x: &[f32], k: usize, panel: &[f32], bias: &[f32; NR], out: 
 /// All rows in blocks of `R`, then the remaining rows as one smaller block
 /// (so every row block streams the panel once).
 #[inline(always)]
-fn panel_rows<const FMA: bool, const R: usize>(x: &[f32], k: usize, panel: &[f32], bias: &[f32; NR], out: &mut [f32]) {
+fn panel_rows<const FMA: bool, const R: usize>(
+    x: &[f32],
+    k: usize,
+    panel: &[f32],
+    bias: &[f32; NR],
+    out: &mut [f32],
+) {
     let m = out.len() / NR;
     let mut row = 0;
     while row + R <= m {
@@ -176,7 +200,14 @@ fn panel_rows<const FMA: bool, const R: usize>(x: &[f32], k: usize, panel: &[f32
 
 /// Rows `row .. row + R` into `out`.
 #[inline(always)]
-fn rows<const FMA: bool, const R: usize>(x: &[f32], k: usize, panel: &[f32], bias: &[f32; NR], out: &mut [f32], row: usize) {
+fn rows<const FMA: bool, const R: usize>(
+    x: &[f32],
+    k: usize,
+    panel: &[f32],
+    bias: &[f32; NR],
+    out: &mut [f32],
+    row: usize,
+) {
     let xs: [&[f32]; R] = std::array::from_fn(|r| &x[(row + r) * k..(row + r + 1) * k]);
     let acc = block::<FMA, R>(xs, k, panel, bias);
     for (r, a) in acc.iter().enumerate() {
@@ -186,17 +217,26 @@ fn rows<const FMA: bool, const R: usize>(x: &[f32], k: usize, panel: &[f32], bia
 
 /// `R` rows times one panel: `R x NR` accumulators kept in registers.
 #[inline(always)]
-fn block<const FMA: bool, const R: usize>(xs: [&[f32]; R], k: usize, panel: &[f32], bias: &[f32; NR]) -> [[f32; NR]; R] {
+fn block<const FMA: bool, const R: usize>(
+    xs: [&[f32]; R],
+    k: usize,
+    panel: &[f32],
+    bias: &[f32; NR],
+) -> [[f32; NR]; R] {
     let mut acc = [*bias; R];
     let panel = &panel[..k * NR];
-    for r in 0..R {
-        assert!(xs[r].len() >= k);
+    for xr in &xs {
+        assert!(xr.len() >= k);
     }
     for (kk, w) in panel.chunks_exact(NR).enumerate() {
         for r in 0..R {
             let xv = xs[r][kk];
             for j in 0..NR {
-                acc[r][j] = if FMA { xv.mul_add(w[j], acc[r][j]) } else { acc[r][j] + xv * w[j] };
+                acc[r][j] = if FMA {
+                    xv.mul_add(w[j], acc[r][j])
+                } else {
+                    acc[r][j] + xv * w[j]
+                };
             }
         }
     }
@@ -223,18 +263,39 @@ mod tests {
 
     #[test]
     fn packed_product_matches_naive_for_awkward_shapes() {
-        for (m, k, n) in [(1, 1, 1), (7, 5, 3), (13, 33, 130), (1, 300, 64), (27, 96, 200), (6, 64, 65), (200, 70, 90)] {
-            let x: Vec<f32> = (0..m * k).map(|i| ((i * 7 % 13) as f32 - 6.0) / 7.0).collect();
-            let w: Vec<f32> = (0..k * n).map(|i| ((i * 5 % 11) as f32 - 5.0) / 9.0).collect();
+        for (m, k, n) in [
+            (1, 1, 1),
+            (7, 5, 3),
+            (13, 33, 130),
+            (1, 300, 64),
+            (27, 96, 200),
+            (6, 64, 65),
+            (200, 70, 90),
+        ] {
+            let x: Vec<f32> = (0..m * k)
+                .map(|i| ((i * 7 % 13) as f32 - 6.0) / 7.0)
+                .collect();
+            let w: Vec<f32> = (0..k * n)
+                .map(|i| ((i * 5 % 11) as f32 - 5.0) / 9.0)
+                .collect();
             let b: Vec<f32> = (0..n).map(|i| i as f32 * 0.01).collect();
             let packed = PackedMatrix::new(&w, k, n);
             assert_eq!((packed.k(), packed.n()), (k, n));
             let want = naive(&x, &w, &b, m, k, n);
             let got = packed.matmul(&x, Some(&b));
-            let err = want.iter().zip(&got).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+            let err = want
+                .iter()
+                .zip(&got)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0f32, f32::max);
             assert!(err < 1e-4, "{m}x{k}x{n}: max error {err}");
             let nob = packed.matmul(&x, None);
-            let err = nob.iter().zip(&got).enumerate().map(|(i, (a, c))| (a + b[i % n] - c).abs()).fold(0.0, f32::max);
+            let err = nob
+                .iter()
+                .zip(&got)
+                .enumerate()
+                .map(|(i, (a, c))| (a + b[i % n] - c).abs())
+                .fold(0.0, f32::max);
             assert!(err < 1e-5);
         }
         // All three instruction-set paths agree (where the CPU has them).
@@ -245,30 +306,11 @@ mod tests {
         let best = packed.matmul(&x, None);
         packed.isa = Isa::Portable;
         let portable = packed.matmul(&x, None);
-        let err = best.iter().zip(&portable).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+        let err = best
+            .iter()
+            .zip(&portable)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
         assert!(err < 1e-4, "{err}");
-    }
-}
-
-#[cfg(test)]
-mod speed {
-    use super::*;
-    #[test]
-    #[ignore]
-    fn kernel_speed() {
-        for (m, k, n) in [(27usize, 3072usize, 1024usize), (9, 3072, 1024), (1, 3072, 1024), (81, 102, 1024), (27, 1024, 1024)] {
-            let x: Vec<f32> = (0..m * k).map(|i| (i as f32 * 0.37).sin()).collect();
-            let w: Vec<f32> = (0..k * n).map(|i| (i as f32 * 0.11).cos()).collect();
-            let mut p = PackedMatrix::new(&w, k, n);
-            for isa in [Isa::detect(), Isa::Portable] {
-                p.isa = isa;
-                for _ in 0..3 { std::hint::black_box(p.matmul(&x, None)); }
-                let t = std::time::Instant::now();
-                let it = 20;
-                for _ in 0..it { std::hint::black_box(p.matmul(&x, None)); }
-                let d = t.elapsed().as_secs_f64() / it as f64;
-                println!("{isa:?} {m}x{k}x{n}: {:.3} ms {:.1} GF/s", d * 1e3, 2.0 * (m * k * n) as f64 / d / 1e9);
-            }
-        }
     }
 }

@@ -32,10 +32,20 @@ pub(crate) struct RawAffine {
 
 impl RawAffine {
     /// Load `Conv1d(c_in, c_out, k, bias)` under `l`.
-    pub(crate) fn conv1d(l: &ParamLoader, c_in: usize, c_out: usize, k: usize, bias: bool) -> Result<Self> {
+    pub(crate) fn conv1d(
+        l: &ParamLoader,
+        c_in: usize,
+        c_out: usize,
+        k: usize,
+        bias: bool,
+    ) -> Result<Self> {
         let init = torch_default(c_in * k);
         let weight = l.param(&[c_out, c_in, k], "weight", init)?;
-        let bias = if bias { Some(l.param(&[c_out], "bias", init)?) } else { None };
+        let bias = if bias {
+            Some(l.param(&[c_out], "bias", init)?)
+        } else {
+            None
+        };
         Ok(Self { weight, bias })
     }
 
@@ -43,8 +53,15 @@ impl RawAffine {
     pub(crate) fn linear(l: &ParamLoader, c_in: usize, c_out: usize, bias: bool) -> Result<Self> {
         let init = torch_default(c_in);
         let weight = l.param(&[c_out, c_in], "weight", init)?;
-        let bias = if bias { Some(l.param(&[c_out], "bias", init)?) } else { None };
-        Ok(Self { weight: weight.unsqueeze(2)?, bias })
+        let bias = if bias {
+            Some(l.param(&[c_out], "bias", init)?)
+        } else {
+            None
+        };
+        Ok(Self {
+            weight: weight.unsqueeze(2)?,
+            bias,
+        })
     }
 
     /// Fold a following batch norm into the weights.
@@ -55,7 +72,10 @@ impl RawAffine {
             Some(b) => b.mul(&bn.scale)?.add(&bn.shift)?,
             None => bn.shift.clone(),
         };
-        Ok(Self { weight, bias: Some(bias) })
+        Ok(Self {
+            weight,
+            bias: Some(bias),
+        })
     }
 
     /// Build the temporal convolution this layer is.
@@ -63,13 +83,20 @@ impl RawAffine {
         let (c_out, c_in, k) = self.weight.dims3()?;
         // (out, in, k) -> (k, in, out) -> (k·in, out): row `j·in + c` holds
         // tap `j` of input channel `c`, matching the time-major im2col.
-        let w = self.weight.permute((2, 1, 0))?.flatten_all()?.to_vec1::<f32>()?;
+        let w = self
+            .weight
+            .permute((2, 1, 0))?
+            .flatten_all()?
+            .to_vec1::<f32>()?;
         let b = match self.bias {
             Some(b) => Some(b.to_dtype(DType::F32)?.to_vec1::<f32>()?),
             None => None,
         };
         let w = PackedMatrix::new(&w, k * c_in, c_out);
-        Ok(TemporalConv { kernel: k, dense: Dense { w, b } })
+        Ok(TemporalConv {
+            kernel: k,
+            dense: Dense { w, b },
+        })
     }
 
     /// Build the dense layer this (kernel-1) layer is.
@@ -110,13 +137,19 @@ impl Dense {
         let (k, n) = (self.w.k(), self.w.n());
         let mut dims = x.dims().to_vec();
         if dims.last() != Some(&k) {
-            return Err(LifterError::Shape { what: "dense input", expected: format!("(..., {k})"), got: dims });
+            return Err(LifterError::Shape {
+                what: "dense input",
+                expected: format!("(..., {k})"),
+                got: dims,
+            });
         }
         let x = x.to_dtype(DType::F32)?.contiguous()?;
         let y = {
             let (storage, layout) = x.storage_and_layout();
             let Storage::Cpu(cpu) = &*storage else {
-                return Err(LifterError::Config("the lifters run on the CPU only".into()));
+                return Err(LifterError::Config(
+                    "the lifters run on the CPU only".into(),
+                ));
             };
             let start = layout.start_offset();
             let values = &cpu.as_slice::<f32>()?[start..start + x.elem_count()];
@@ -147,7 +180,9 @@ impl TemporalConv {
                 self.kernel
             )));
         }
-        let cols = x.contiguous()?.reshape((b, t / self.kernel, self.kernel * c))?;
+        let cols = x
+            .contiguous()?
+            .reshape((b, t / self.kernel, self.kernel * c))?;
         self.dense.forward(&cols)
     }
 
@@ -157,7 +192,10 @@ impl TemporalConv {
         let t = x.dim(1)?;
         let span = (self.kernel - 1) * dilation;
         if t <= span {
-            return Err(LifterError::Config(format!("dilated conv: {t} frames do not cover the span {}", span + 1)));
+            return Err(LifterError::Config(format!(
+                "dilated conv: {t} frames do not cover the span {}",
+                span + 1
+            )));
         }
         let out = t - span;
         if self.kernel == 1 {
@@ -174,7 +212,9 @@ impl TemporalConv {
 /// (`T` a multiple of `k`): the residual that survives a strided layer.
 pub(crate) fn every_kth(x: &Tensor, k: usize, offset: usize) -> Result<Tensor> {
     let (b, t, c) = x.dims3()?;
-    Ok(x.reshape((b, t / k, k, c))?.narrow(2, offset, 1)?.squeeze(2)?)
+    Ok(x.reshape((b, t / k, k, c))?
+        .narrow(2, offset, 1)?
+        .squeeze(2)?)
 }
 
 /// The residual block of VideoPose3D (reused by Anatomy3D): a wide
@@ -211,7 +251,12 @@ impl ResidualBlock {
         let point = RawAffine::conv1d(&convs.pp(2 * i + 1), c_out, c_out, 1, false)?
             .with_bn(&BatchNorm::load(&bns.pp(2 * i + 1), c_out)?)?
             .into_dense()?;
-        Ok(Self { wide, point, width, c_out })
+        Ok(Self {
+            wide,
+            point,
+            width,
+            c_out,
+        })
     }
 
     /// Residual offset of the tap an output frame is aligned with, in
@@ -265,7 +310,12 @@ impl LayerNorm {
     }
 
     pub(crate) fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        Ok(candle_nn::ops::layer_norm(&x.contiguous()?, &self.weight, &self.bias, self.eps)?)
+        Ok(candle_nn::ops::layer_norm(
+            &x.contiguous()?,
+            &self.weight,
+            &self.bias,
+            self.eps,
+        )?)
     }
 }
 
@@ -280,17 +330,21 @@ mod tests {
     }
 
     fn max_diff(a: &Tensor, b: &Tensor) -> f32 {
-        a.sub(b).unwrap().abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar().unwrap()
+        a.sub(b)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .max(0)
+            .unwrap()
+            .to_scalar()
+            .unwrap()
     }
 
     /// Reference: candle's own conv1d in `(B, C, T)` layout, then the
     /// batch norm written out.
-    fn reference(
-        l: &ParamLoader,
-        x_bct: &Tensor,
-        stride: usize,
-        dilation: usize,
-    ) -> Tensor {
+    fn reference(l: &ParamLoader, x_bct: &Tensor, stride: usize, dilation: usize) -> Tensor {
         use candle_nn::init::{ONE, ZERO};
         let conv = l.pp("conv");
         let w = conv.param(&[6, 4, 3], "weight", torch_default(12)).unwrap();
@@ -301,10 +355,19 @@ mod tests {
         let mean = bn.buffer(&[6], "running_mean", ZERO).unwrap();
         let var = bn.buffer(&[6], "running_var", ONE).unwrap();
         let col = |t: &Tensor| t.reshape((1, 6, 1)).unwrap();
-        let y = x_bct.conv1d(&w, 0, stride, dilation, 1).unwrap().broadcast_add(&col(&bias)).unwrap();
+        let y = x_bct
+            .conv1d(&w, 0, stride, dilation, 1)
+            .unwrap()
+            .broadcast_add(&col(&bias))
+            .unwrap();
         let y = y.broadcast_sub(&col(&mean)).unwrap();
-        let y = y.broadcast_div(&col(&var.affine(1.0, BN_EPS).unwrap().sqrt().unwrap())).unwrap();
-        y.broadcast_mul(&col(&g)).unwrap().broadcast_add(&col(&beta)).unwrap()
+        let y = y
+            .broadcast_div(&col(&var.affine(1.0, BN_EPS).unwrap().sqrt().unwrap()))
+            .unwrap();
+        y.broadcast_mul(&col(&g))
+            .unwrap()
+            .broadcast_add(&col(&beta))
+            .unwrap()
     }
 
     #[test]
@@ -316,11 +379,19 @@ mod tests {
             .unwrap()
             .into_conv()
             .unwrap();
-        assert_eq!(l.total(), 6 * 4 * 3 + 6 + 2 * 6, "running stats are not parameters");
+        assert_eq!(
+            l.total(),
+            6 * 4 * 3 + 6 + 2 * 6,
+            "running stats are not parameters"
+        );
         let x = input(2, 4, 27);
         let x_btc = x.transpose(1, 2).unwrap().contiguous().unwrap();
         for dilation in [1, 3, 9] {
-            let ours = conv.dilated(&x_btc, dilation).unwrap().transpose(1, 2).unwrap();
+            let ours = conv
+                .dilated(&x_btc, dilation)
+                .unwrap()
+                .transpose(1, 2)
+                .unwrap();
             let theirs = reference(&l, &x, 1, dilation);
             assert_eq!(ours.dims(), theirs.dims());
             assert!(max_diff(&ours, &theirs) < 1e-5, "dilation {dilation}");
@@ -334,7 +405,10 @@ mod tests {
     #[test]
     fn dense_matches_linear_and_every_kth_picks_frames() {
         let l = ParamLoader::new(RandomInit::new(5).var_builder());
-        let dense = RawAffine::linear(&l, 5, 7, true).unwrap().into_dense().unwrap();
+        let dense = RawAffine::linear(&l, 5, 7, true)
+            .unwrap()
+            .into_dense()
+            .unwrap();
         let w = l.param(&[7, 5], "weight", torch_default(5)).unwrap();
         let b = l.param(&[7], "bias", torch_default(5)).unwrap();
         let x = Tensor::rand(-1f32, 1f32, (2, 3, 5), &Device::Cpu).unwrap();
@@ -342,8 +416,20 @@ mod tests {
         let theirs = candle_nn::Module::forward(&theirs, &x).unwrap();
         assert!(max_diff(&dense.forward(&x).unwrap(), &theirs) < 1e-6);
 
-        let x = Tensor::arange(0f32, 12.0, &Device::Cpu).unwrap().reshape((1, 6, 2)).unwrap();
+        let x = Tensor::arange(0f32, 12.0, &Device::Cpu)
+            .unwrap()
+            .reshape((1, 6, 2))
+            .unwrap();
         let picked = every_kth(&x, 3, 2).unwrap();
-        assert_eq!(picked.i((0, .., 0)).unwrap().to_dtype(DType::F32).unwrap().to_vec1::<f32>().unwrap(), [4.0, 10.0]);
+        assert_eq!(
+            picked
+                .i((0, .., 0))
+                .unwrap()
+                .to_dtype(DType::F32)
+                .unwrap()
+                .to_vec1::<f32>()
+                .unwrap(),
+            [4.0, 10.0]
+        );
     }
 }

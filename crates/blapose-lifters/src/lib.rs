@@ -78,20 +78,28 @@ pub enum LifterKind {
 
 impl LifterKind {
     /// All kinds, in the order of the paper's table.
-    pub const ALL: [LifterKind; 3] = [LifterKind::VideoPose3d, LifterKind::Anatomy3d, LifterKind::PoseFormer];
+    pub const ALL: [LifterKind; 3] = [
+        LifterKind::VideoPose3d,
+        LifterKind::Anatomy3d,
+        LifterKind::PoseFormer,
+    ];
 
     /// The reference model of this kind with random weights. `causal`
     /// selects the causal variant where the model has one (VideoPose3D,
     /// Anatomy3D); PoseFormer has none and always outputs the centre frame.
     pub fn random(self, causal: bool, seed: u64) -> Result<Box<dyn Lifter>> {
         Ok(match self {
-            LifterKind::VideoPose3d => {
-                Box::new(VideoPose3d::random(VideoPose3dConfig::receptive_field_243().with_causal(causal), seed)?)
+            LifterKind::VideoPose3d => Box::new(VideoPose3d::random(
+                VideoPose3dConfig::receptive_field_243().with_causal(causal),
+                seed,
+            )?),
+            LifterKind::PoseFormer => {
+                Box::new(PoseFormer::random(PoseFormerConfig::frames_81(), seed)?)
             }
-            LifterKind::PoseFormer => Box::new(PoseFormer::random(PoseFormerConfig::frames_81(), seed)?),
-            LifterKind::Anatomy3d => {
-                Box::new(Anatomy3d::random(Anatomy3dConfig::receptive_field_243().with_causal(causal), seed)?)
-            }
+            LifterKind::Anatomy3d => Box::new(Anatomy3d::random(
+                Anatomy3dConfig::receptive_field_243().with_causal(causal),
+                seed,
+            )?),
         })
     }
 }

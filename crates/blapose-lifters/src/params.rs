@@ -25,12 +25,18 @@ pub(crate) struct ParamLoader<'a> {
 
 impl<'a> ParamLoader<'a> {
     pub(crate) fn new(vb: VarBuilder<'a>) -> Self {
-        Self { vb, count: Rc::new(Cell::new(0)) }
+        Self {
+            vb,
+            count: Rc::new(Cell::new(0)),
+        }
     }
 
     /// The loader for the sub-module `name` (shares the count).
     pub(crate) fn pp(&self, name: impl ToString) -> Self {
-        Self { vb: self.vb.pp(name), count: Rc::clone(&self.count) }
+        Self {
+            vb: self.vb.pp(name),
+            count: Rc::clone(&self.count),
+        }
     }
 
     /// A trainable parameter (counted).

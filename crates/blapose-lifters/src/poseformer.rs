@@ -64,15 +64,25 @@ pub struct PoseFormerConfig {
 impl PoseFormerConfig {
     /// The paper's 81-frame model.
     pub fn frames_81() -> Self {
-        Self { frames: 81, embed_dim_ratio: 32, depth: 4, num_heads: 8, mlp_ratio: 2.0 }
+        Self {
+            frames: 81,
+            embed_dim_ratio: 32,
+            depth: 4,
+            num_heads: 8,
+            mlp_ratio: 2.0,
+        }
     }
 
     fn validate(&self) -> Result<()> {
         let temporal = self.embed_dim_ratio * NUM_JOINTS;
         if self.frames == 0 || self.depth == 0 || self.num_heads == 0 {
-            return Err(LifterError::Config(format!("PoseFormer needs frames, depth and heads > 0: {self:?}")));
+            return Err(LifterError::Config(format!(
+                "PoseFormer needs frames, depth and heads > 0: {self:?}"
+            )));
         }
-        if self.embed_dim_ratio % self.num_heads != 0 || temporal % self.num_heads != 0 {
+        if !self.embed_dim_ratio.is_multiple_of(self.num_heads)
+            || !temporal.is_multiple_of(self.num_heads)
+        {
             return Err(LifterError::Config(format!(
                 "PoseFormer widths {} and {temporal} must be multiples of {} heads",
                 self.embed_dim_ratio, self.num_heads
@@ -168,15 +178,21 @@ impl PoseFormer {
         let zero = candle_nn::init::ZERO;
         let head = l.pp("head");
         Ok(Self {
-            patch: RawAffine::linear(&l.pp("Spatial_patch_to_embedding"), INPUT_FEATURES, ratio, true)?
-                .into_dense()?,
+            patch: RawAffine::linear(
+                &l.pp("Spatial_patch_to_embedding"),
+                INPUT_FEATURES,
+                ratio,
+                true,
+            )?
+            .into_dense()?,
             spatial_pos: l.param(&[1, NUM_JOINTS, ratio], "Spatial_pos_embed", zero)?,
             temporal_pos: l.param(&[1, f, dim], "Temporal_pos_embed", zero)?,
             spatial_blocks: blocks("Spatial_blocks", ratio)?,
             temporal_blocks: blocks("blocks", dim)?,
             spatial_norm: LayerNorm::load(&l.pp("Spatial_norm"), ratio, BLOCK_NORM_EPS)?,
             temporal_norm: LayerNorm::load(&l.pp("Temporal_norm"), dim, BLOCK_NORM_EPS)?,
-            weighted_mean: RawAffine::conv1d(&l.pp("weighted_mean"), f, 1, 1, true)?.into_dense()?,
+            weighted_mean: RawAffine::conv1d(&l.pp("weighted_mean"), f, 1, 1, true)?
+                .into_dense()?,
             head_norm: LayerNorm::load(&head.pp(0), dim, HEAD_NORM_EPS)?,
             head: RawAffine::linear(&head.pp(1), dim, NUM_JOINTS * 3, true)?.into_dense()?,
             params: l.total(),
@@ -197,7 +213,11 @@ impl PoseFormer {
     /// The pose of the centre frame of `(B, F, 17, 2)` keypoints, `(B, 17, 3)`.
     pub fn forward_window(&self, window: &Tensor) -> Result<Tensor> {
         let f = self.config.frames;
-        expect_dims(window, "PoseFormer window", &[None, Some(f), Some(NUM_JOINTS), Some(INPUT_FEATURES)])?;
+        expect_dims(
+            window,
+            "PoseFormer window",
+            &[None, Some(f), Some(NUM_JOINTS), Some(INPUT_FEATURES)],
+        )?;
         let b = window.dim(0)?;
         let ratio = self.config.embed_dim_ratio;
         // Spatial transformer: (B·F, 17, ratio) joint tokens.
@@ -210,13 +230,18 @@ impl PoseFormer {
         }
         let x = self.spatial_norm.forward(&x)?;
         // Temporal transformer: (B, F, 17·ratio) frame tokens.
-        let mut x = x.reshape((b, f, NUM_JOINTS * ratio))?.broadcast_add(&self.temporal_pos)?;
+        let mut x = x
+            .reshape((b, f, NUM_JOINTS * ratio))?
+            .broadcast_add(&self.temporal_pos)?;
         for block in &self.temporal_blocks {
             x = block.forward(&x)?;
         }
         let x = self.temporal_norm.forward(&x)?;
         // Weighted mean over frames: (B, C, F) · (F, 1).
-        let x = self.weighted_mean.forward(&x.transpose(1, 2)?)?.squeeze(D::Minus1)?;
+        let x = self
+            .weighted_mean
+            .forward(&x.transpose(1, 2)?)?
+            .squeeze(D::Minus1)?;
         let x = self.head.forward(&self.head_norm.forward(&x)?)?;
         Ok(x.reshape((b, NUM_JOINTS, 3))?)
     }

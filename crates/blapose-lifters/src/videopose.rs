@@ -53,7 +53,11 @@ pub struct VideoPose3dConfig {
 impl VideoPose3dConfig {
     /// The paper's model: widths `3,3,3,3,3`, 1024 channels, 243 frames.
     pub fn receptive_field_243() -> Self {
-        Self { filter_widths: vec![3; 5], channels: 1024, causal: false }
+        Self {
+            filter_widths: vec![3; 5],
+            channels: 1024,
+            causal: false,
+        }
     }
 
     /// The same configuration with causal convolutions on or off.
@@ -104,17 +108,30 @@ impl VideoPose3d {
         let l = ParamLoader::new(vb);
         let c = config.channels;
         let in_dim = NUM_JOINTS * INPUT_FEATURES;
-        let expand = RawAffine::conv1d(&l.pp("expand_conv"), in_dim, c, config.filter_widths[0], false)?
-            .with_bn(&BatchNorm::load(&l.pp("expand_bn"), c)?)?
-            .into_conv()?;
+        let expand = RawAffine::conv1d(
+            &l.pp("expand_conv"),
+            in_dim,
+            c,
+            config.filter_widths[0],
+            false,
+        )?
+        .with_bn(&BatchNorm::load(&l.pp("expand_bn"), c)?)?
+        .into_conv()?;
         let (convs, bns) = (l.pp("layers_conv"), l.pp("layers_bn"));
         let blocks = config.filter_widths[1..]
             .iter()
             .enumerate()
             .map(|(i, &w)| ResidualBlock::load(&convs, &bns, i, c, c, w))
             .collect::<Result<_>>()?;
-        let shrink = RawAffine::conv1d(&l.pp("shrink"), c, NUM_JOINTS * 3, 1, true)?.into_dense()?;
-        Ok(Self { config, expand, blocks, shrink, params: l.total() })
+        let shrink =
+            RawAffine::conv1d(&l.pp("shrink"), c, NUM_JOINTS * 3, 1, true)?.into_dense()?;
+        Ok(Self {
+            config,
+            expand,
+            blocks,
+            shrink,
+            params: l.total(),
+        })
     }
 
     /// Build with PyTorch-style random weights (for timing and tests).
@@ -132,9 +149,16 @@ impl VideoPose3d {
     /// centre frame, or with the last frame in the causal variant.
     pub fn forward_window(&self, window: &Tensor) -> Result<Tensor> {
         let rf = self.config.receptive_field();
-        expect_dims(window, "VideoPose3D window", &[None, Some(rf), Some(NUM_JOINTS), Some(INPUT_FEATURES)])?;
+        expect_dims(
+            window,
+            "VideoPose3D window",
+            &[None, Some(rf), Some(NUM_JOINTS), Some(INPUT_FEATURES)],
+        )?;
         let b = window.dim(0)?;
-        let mut x = self.expand.strided(&window.reshape((b, rf, NUM_JOINTS * INPUT_FEATURES))?)?.relu()?;
+        let mut x = self
+            .expand
+            .strided(&window.reshape((b, rf, NUM_JOINTS * INPUT_FEATURES))?)?
+            .relu()?;
         for block in &self.blocks {
             x = block.strided(&x, self.config.causal)?;
         }
@@ -145,7 +169,11 @@ impl VideoPose3d {
     /// `(B, T, 17, 2)` -> `(B, T - RF + 1, 17, 3)`; output `i` comes from
     /// input frames `i .. i + RF`.
     pub fn forward_sequence(&self, seq: &Tensor) -> Result<Tensor> {
-        expect_dims(seq, "VideoPose3D sequence", &[None, None, Some(NUM_JOINTS), Some(INPUT_FEATURES)])?;
+        expect_dims(
+            seq,
+            "VideoPose3D sequence",
+            &[None, None, Some(NUM_JOINTS), Some(INPUT_FEATURES)],
+        )?;
         let (b, t) = (seq.dim(0)?, seq.dim(1)?);
         let rf = self.config.receptive_field();
         if t < rf {
@@ -155,7 +183,10 @@ impl VideoPose3d {
                 got: seq.dims().to_vec(),
             });
         }
-        let mut x = self.expand.dilated(&seq.reshape((b, t, NUM_JOINTS * INPUT_FEATURES))?, 1)?.relu()?;
+        let mut x = self
+            .expand
+            .dilated(&seq.reshape((b, t, NUM_JOINTS * INPUT_FEATURES))?, 1)?
+            .relu()?;
         let mut dilation = self.config.filter_widths[0];
         for (block, &w) in self.blocks.iter().zip(&self.config.filter_widths[1..]) {
             x = block.dilated(&x, dilation, self.config.causal)?;
@@ -170,9 +201,17 @@ impl VideoPose3d {
     /// front for the causal variant), then run through the dilated form.
     /// `(B, T, 17, 2)` -> `(B, T, 17, 3)`.
     pub fn predict_sequence(&self, seq: &Tensor) -> Result<Tensor> {
-        expect_dims(seq, "VideoPose3D sequence", &[None, None, Some(NUM_JOINTS), Some(INPUT_FEATURES)])?;
+        expect_dims(
+            seq,
+            "VideoPose3D sequence",
+            &[None, None, Some(NUM_JOINTS), Some(INPUT_FEATURES)],
+        )?;
         let pad = (self.config.receptive_field() - 1) / 2;
-        let (front, back) = if self.config.causal { (2 * pad, 0) } else { (pad, pad) };
+        let (front, back) = if self.config.causal {
+            (2 * pad, 0)
+        } else {
+            (pad, pad)
+        };
         self.forward_sequence(&pad_edges(seq, front, back)?)
     }
 }
@@ -182,7 +221,11 @@ impl VideoPose3d {
 pub(crate) fn pad_edges(seq: &Tensor, front: usize, back: usize) -> Result<Tensor> {
     let t = seq.dim(1)?;
     if t == 0 {
-        return Err(LifterError::Shape { what: "sequence", expected: "(B, T > 0, ...)".into(), got: seq.dims().to_vec() });
+        return Err(LifterError::Shape {
+            what: "sequence",
+            expected: "(B, T > 0, ...)".into(),
+            got: seq.dims().to_vec(),
+        });
     }
     let repeat = |frame: Tensor, n: usize| -> candle_core::Result<Tensor> {
         let mut dims = frame.dims().to_vec();

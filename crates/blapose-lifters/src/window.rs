@@ -28,7 +28,11 @@ impl SlidingWindow {
     /// An empty window of `frames` frames (at least 1).
     pub fn new(frames: usize) -> Self {
         let frames = frames.max(1);
-        Self { frames, buf: VecDeque::with_capacity(frames), flat: Vec::with_capacity(frames * NUM_JOINTS * 2) }
+        Self {
+            frames,
+            buf: VecDeque::with_capacity(frames),
+            flat: Vec::with_capacity(frames * NUM_JOINTS * 2),
+        }
     }
 
     /// Frames the window holds when full.
@@ -67,7 +71,11 @@ impl SlidingWindow {
         for frame in &self.buf {
             self.flat.extend(frame.iter().flatten());
         }
-        let t = Tensor::from_slice(&self.flat, (1, self.frames, NUM_JOINTS, INPUT_FEATURES), &Device::Cpu)?;
+        let t = Tensor::from_slice(
+            &self.flat,
+            (1, self.frames, NUM_JOINTS, INPUT_FEATURES),
+            &Device::Cpu,
+        )?;
         Ok(Some(t))
     }
 }
@@ -75,7 +83,11 @@ impl SlidingWindow {
 /// Stack 2D frames into a `(1, T, 17, 2)` tensor.
 pub fn keypoints_tensor(frames: &[Keypoints2d]) -> Result<Tensor> {
     let flat: Vec<f32> = frames.iter().flatten().flatten().copied().collect();
-    Ok(Tensor::from_vec(flat, (1, frames.len(), NUM_JOINTS, INPUT_FEATURES), &Device::Cpu)?)
+    Ok(Tensor::from_vec(
+        flat,
+        (1, frames.len(), NUM_JOINTS, INPUT_FEATURES),
+        &Device::Cpu,
+    )?)
 }
 
 /// Read `(B, 17, 3)` lifter output as poses.

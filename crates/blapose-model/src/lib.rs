@@ -23,7 +23,7 @@ pub mod symmetry;
 pub mod weights;
 
 pub use error::ModelError;
-pub use fast::{Isa, OfflineBiGruEngine, OnlineGruEngine, StepScratch};
+pub use fast::{EngineOptions, Isa, OfflineBiGruEngine, OnlineGruEngine, Precision, StepScratch};
 pub use reference::{BoneLengthBiGru, BoneLengthGru};
 pub use weights::{LoadedWeights, WeightsMetadata};
 

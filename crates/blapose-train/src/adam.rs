@@ -25,7 +25,13 @@ pub struct AdamConfig {
 
 impl Default for AdamConfig {
     fn default() -> Self {
-        Self { lr: 1e-4, beta1: 0.9, beta2: 0.999, eps: 1e-8, clip_norm: Some(5.0) }
+        Self {
+            lr: 1e-4,
+            beta1: 0.9,
+            beta2: 0.999,
+            eps: 1e-8,
+            clip_norm: Some(5.0),
+        }
     }
 }
 
@@ -45,7 +51,12 @@ pub struct Adam {
 impl Adam {
     /// Fresh state for `n` parameters.
     pub fn new(n: usize, config: AdamConfig) -> Self {
-        Self { config, m: vec![0.0; n], v: vec![0.0; n], t: 0 }
+        Self {
+            config,
+            m: vec![0.0; n],
+            v: vec![0.0; n],
+            t: 0,
+        }
     }
 
     /// Apply one update to `params` from `grad`; returns the global gradient
@@ -54,7 +65,11 @@ impl Adam {
     pub fn step(&mut self, params: &mut [f32], grad: &[f32]) -> Option<f64> {
         assert_eq!(params.len(), self.m.len(), "parameter count changed");
         assert_eq!(grad.len(), self.m.len(), "gradient size mismatch");
-        let norm = grad.iter().map(|&g| f64::from(g) * f64::from(g)).sum::<f64>().sqrt();
+        let norm = grad
+            .iter()
+            .map(|&g| f64::from(g) * f64::from(g))
+            .sum::<f64>()
+            .sqrt();
         if !norm.is_finite() {
             return None;
         }
@@ -86,7 +101,14 @@ mod tests {
     #[test]
     fn minimizes_a_quadratic() {
         let mut x = vec![3.0f32, -2.0];
-        let mut opt = Adam::new(2, AdamConfig { lr: 0.1, clip_norm: None, ..Default::default() });
+        let mut opt = Adam::new(
+            2,
+            AdamConfig {
+                lr: 0.1,
+                clip_norm: None,
+                ..Default::default()
+            },
+        );
         for _ in 0..300 {
             let g: Vec<f32> = x.iter().map(|v| 2.0 * v).collect();
             opt.step(&mut x, &g).unwrap();
@@ -98,7 +120,14 @@ mod tests {
     #[test]
     fn clipping_and_non_finite_gradients() {
         let mut x = vec![0.0f32];
-        let mut opt = Adam::new(1, AdamConfig { lr: 1.0, clip_norm: Some(1.0), ..Default::default() });
+        let mut opt = Adam::new(
+            1,
+            AdamConfig {
+                lr: 1.0,
+                clip_norm: Some(1.0),
+                ..Default::default()
+            },
+        );
         let norm = opt.step(&mut x, &[1000.0]).unwrap();
         assert!((norm - 1000.0).abs() < 1e-3);
         assert!((x[0] + 1.0).abs() < 1e-3, "{x:?}");

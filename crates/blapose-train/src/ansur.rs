@@ -98,7 +98,10 @@ pub fn required_columns() -> Vec<&'static str> {
 /// through `get` (millimetres). Errors name the missing column or the bone
 /// whose landmarks give a non-positive length.
 pub fn raw_lengths(get: impl Fn(&str) -> Option<f64>) -> Result<BoneLengths, TrainError> {
-    let col = |name: &str| get(name).ok_or_else(|| TrainError::Ansur(format!("missing or non-numeric column {name:?}")));
+    let col = |name: &str| {
+        get(name)
+            .ok_or_else(|| TrainError::Ansur(format!("missing or non-numeric column {name:?}")))
+    };
     let mut out = [0.0f32; NUM_BONES];
     for (b, m) in BONE_MAPPING.iter().enumerate() {
         let mm = match *m {
@@ -129,7 +132,10 @@ impl AnsurPopulation {
     /// Calibrate raw people ([`raw_lengths`]) to the training subjects:
     /// `scale[b] = train_mean[b] / raw_mean[b]`; bones fixed across the
     /// training subjects are set to their training value.
-    pub fn calibrate(raw: &[BoneLengths], training: &TrainingLengthStats) -> Result<Self, TrainError> {
+    pub fn calibrate(
+        raw: &[BoneLengths],
+        training: &TrainingLengthStats,
+    ) -> Result<Self, TrainError> {
         if raw.is_empty() {
             return Err(TrainError::Ansur("no ANSUR people".into()));
         }
@@ -142,7 +148,13 @@ impl AnsurPopulation {
         let people = raw
             .iter()
             .map(|p| {
-                std::array::from_fn(|b| if training.is_fixed(b) { training.mean[b] } else { p[b] * scale[b] })
+                std::array::from_fn(|b| {
+                    if training.is_fixed(b) {
+                        training.mean[b]
+                    } else {
+                        p[b] * scale[b]
+                    }
+                })
             })
             .collect();
         Ok(Self { people, scale })
@@ -175,7 +187,12 @@ impl AnsurPopulation {
         let mut std = [0.0f32; NUM_BONES];
         for b in 0..NUM_BONES {
             let m = self.people.iter().map(|p| f64::from(p[b])).sum::<f64>() / n;
-            let v = self.people.iter().map(|p| (f64::from(p[b]) - m).powi(2)).sum::<f64>() / n;
+            let v = self
+                .people
+                .iter()
+                .map(|p| (f64::from(p[b]) - m).powi(2))
+                .sum::<f64>()
+                / n;
             mean[b] = m as f32;
             std[b] = v.sqrt() as f32;
         }
@@ -185,7 +202,9 @@ impl AnsurPopulation {
 
 /// Raw lengths of every person of a loaded ANSUR table; people whose
 /// landmarks give a non-positive bone are skipped (returned count).
-pub fn raw_population(table: &blapose_data::ansur::AnsurTable) -> Result<(Vec<BoneLengths>, usize), TrainError> {
+pub fn raw_population(
+    table: &blapose_data::ansur::AnsurTable,
+) -> Result<(Vec<BoneLengths>, usize), TrainError> {
     for c in required_columns() {
         if table.column_index(c).is_none() {
             return Err(TrainError::Ansur(format!("the survey has no column {c:?}")));
@@ -204,7 +223,10 @@ pub fn raw_population(table: &blapose_data::ansur::AnsurTable) -> Result<(Vec<Bo
 
 /// Load both ANSUR II CSVs under `root` and calibrate them to the training
 /// subjects' statistics.
-pub fn load_population(root: &std::path::Path, training: &TrainingLengthStats) -> Result<AnsurPopulation, TrainError> {
+pub fn load_population(
+    root: &std::path::Path,
+    training: &TrainingLengthStats,
+) -> Result<AnsurPopulation, TrainError> {
     let table = blapose_data::ansur::load_ansur(root)?;
     let (raw, _) = raw_population(&table)?;
     AnsurPopulation::calibrate(&raw, training)
@@ -250,14 +272,22 @@ mod tests {
         for &(r, l) in &SYMMETRIC_BONE_PAIRS {
             assert_eq!(raw[r], raw[l]);
         }
-        let missing = raw_lengths(|c| if c == "stature" { None } else { p.get(c).copied() });
+        let missing = raw_lengths(|c| {
+            if c == "stature" {
+                None
+            } else {
+                p.get(c).copied()
+            }
+        });
         assert!(matches!(missing, Err(TrainError::Ansur(m)) if m.contains("stature")));
     }
 
     #[test]
     fn calibration_matches_training_mean_and_keeps_ratios() {
-        let raw: Vec<BoneLengths> =
-            [0.9, 1.0, 1.1].iter().map(|&s| raw_lengths(|c| person(s).get(c).copied()).unwrap()).collect();
+        let raw: Vec<BoneLengths> = [0.9, 1.0, 1.1]
+            .iter()
+            .map(|&s| raw_lengths(|c| person(s).get(c).copied()).unwrap())
+            .collect();
         let t = training(0.2);
         let pop = AnsurPopulation::calibrate(&raw, &t).unwrap();
         let (mean, _) = pop.moments();

@@ -49,7 +49,9 @@ impl std::str::FromStr for InputKind {
         match s {
             "sh" => Ok(Self::Sh),
             "gt" => Ok(Self::Gt),
-            _ => Err(TrainError::InvalidArgument(format!("unknown input {s:?} (sh|gt)"))),
+            _ => Err(TrainError::InvalidArgument(format!(
+                "unknown input {s:?} (sh|gt)"
+            ))),
         }
     }
 }
@@ -89,7 +91,10 @@ pub fn subject_lengths(h36m: &H36m) -> BTreeMap<String, BoneLengths> {
 }
 
 /// SH16 pixel detections to H36M-17 normalized screen coordinates.
-pub fn sh_to_normalized(frames: &[ShKeypoints], camera: &Camera) -> Result<Vec<Keypoints2d>, TrainError> {
+pub fn sh_to_normalized(
+    frames: &[ShKeypoints],
+    camera: &Camera,
+) -> Result<Vec<Keypoints2d>, TrainError> {
     frames
         .iter()
         .map(|f| {
@@ -123,26 +128,40 @@ impl TrainingSet {
     /// Build from already loaded data; every subject not in
     /// [`TRAIN_SUBJECTS`] is ignored.
     pub fn from_h36m(h36m: &H36m) -> Result<Self, TrainError> {
-        let lengths: BTreeMap<String, BoneLengths> =
-            subject_lengths(h36m).into_iter().filter(|(s, _)| TRAIN_SUBJECTS.contains(&s.as_str())).collect();
-        let keys: Vec<(&str, &str, &[Pose])> =
-            h36m.sequences().filter(|(s, _, p)| TRAIN_SUBJECTS.contains(s) && p.len() >= 2).collect();
+        let lengths: BTreeMap<String, BoneLengths> = subject_lengths(h36m)
+            .into_iter()
+            .filter(|(s, _)| TRAIN_SUBJECTS.contains(&s.as_str()))
+            .collect();
+        let keys: Vec<(&str, &str, &[Pose])> = h36m
+            .sequences()
+            .filter(|(s, _, p)| TRAIN_SUBJECTS.contains(s) && p.len() >= 2)
+            .collect();
         if keys.is_empty() {
             return Err(TrainError::Data("no training sequences found".into()));
         }
         let mut cams_by_subject: BTreeMap<&str, Arc<Vec<Camera>>> = BTreeMap::new();
         for (s, _, _) in &keys {
             if !cams_by_subject.contains_key(s) {
-                let cams = h36m.cameras.subject(s).ok_or_else(|| TrainError::Data(format!("no cameras for {s}")))?;
+                let cams = h36m
+                    .cameras
+                    .subject(s)
+                    .ok_or_else(|| TrainError::Data(format!("no cameras for {s}")))?;
                 cams_by_subject.insert(s, Arc::new(cams.to_vec()));
             }
         }
-        type Built = (MotionSequence, Vec<Option<Vec<MetricResidual>>>, Vec<EvalSequence>);
+        type Built = (
+            MotionSequence,
+            Vec<Option<Vec<MetricResidual>>>,
+            Vec<EvalSequence>,
+        );
         let built: Vec<Built> = keys
             .par_iter()
             .map(|&(s, a, poses)| -> Result<Built, TrainError> {
                 let cameras = cams_by_subject[s].clone();
-                let subject_len = lengths.get(s).copied().ok_or_else(|| TrainError::Data(format!("no lengths for {s}")))?;
+                let subject_len = lengths
+                    .get(s)
+                    .copied()
+                    .ok_or_else(|| TrainError::Data(format!("no lengths for {s}")))?;
                 let motion = decompose_sequence(s, a, poses, subject_len, cameras.clone())?;
                 let mut tracks = Vec::with_capacity(cameras.len());
                 let mut real = Vec::new();
@@ -172,7 +191,12 @@ impl TrainingSet {
             tracks.push(t);
             real_sh.extend(r);
         }
-        Ok(Self { sequences, subject_lengths: lengths, residuals: ResidualBank::new(tracks), real_sh })
+        Ok(Self {
+            sequences,
+            subject_lengths: lengths,
+            residuals: ResidualBank::new(tracks),
+            real_sh,
+        })
     }
 
     /// The training subjects' lengths as a list (for the statistics).
@@ -198,11 +222,22 @@ pub fn decompose_sequence(
             Ok((_, d)) => dirs.push(d),
             Err(e) => match dirs.last() {
                 Some(&prev) => dirs.push(prev),
-                None => return Err(TrainError::Data(format!("{subject}/{action} frame {t}: {e}"))),
+                None => {
+                    return Err(TrainError::Data(format!(
+                        "{subject}/{action} frame {t}: {e}"
+                    )))
+                }
             },
         }
     }
-    Ok(MotionSequence { subject: subject.into(), action: action.into(), roots, dirs, lengths, cameras })
+    Ok(MotionSequence {
+        subject: subject.into(),
+        action: action.into(),
+        roots,
+        dirs,
+        lengths,
+        cameras,
+    })
 }
 
 /// Metric residuals of one sequence and camera (see [`crate::noise`]); the
@@ -236,11 +271,19 @@ pub fn eval_sequences(
         if !subjects.contains(&s) {
             continue;
         }
-        let gt = *lengths.get(s).ok_or_else(|| TrainError::Data(format!("no lengths for {s}")))?;
-        let cams = h36m.cameras.subject(s).ok_or_else(|| TrainError::Data(format!("no cameras for {s}")))?;
+        let gt = *lengths
+            .get(s)
+            .ok_or_else(|| TrainError::Data(format!("no lengths for {s}")))?;
+        let cams = h36m
+            .cameras
+            .subject(s)
+            .ok_or_else(|| TrainError::Data(format!("no cameras for {s}")))?;
         for cam in cams {
             let kp: Vec<Keypoints2d> = match input {
-                InputKind::Gt => poses.iter().map(|p| cam.project_world_pose_normalized(p)).collect(),
+                InputKind::Gt => poses
+                    .iter()
+                    .map(|p| cam.project_world_pose_normalized(p))
+                    .collect(),
                 InputKind::Sh => match h36m.detections(s, a, &cam.id) {
                     Some(det) => sh_to_normalized(det, cam)?,
                     None => continue,

@@ -67,7 +67,10 @@ pub struct BiGruEstimator {
 impl BiGruEstimator {
     /// From Bi-GRU weights; `chunk = 0` reads each sequence in one pass.
     pub fn new(weights: &LoadedWeights, chunk: usize) -> Result<Self, TrainError> {
-        Ok(Self { engine: OfflineBiGruEngine::new(weights, 1)?, chunk })
+        Ok(Self {
+            engine: OfflineBiGruEngine::new(weights, 1)?,
+            chunk,
+        })
     }
 }
 
@@ -88,16 +91,25 @@ impl LengthEstimator for BiGruEstimator {
             .par_iter()
             .map(|t| {
                 let n = t.frames();
-                let len = if self.chunk == 0 { n } else { self.chunk.min(n) };
+                let len = if self.chunk == 0 {
+                    n
+                } else {
+                    self.chunk.min(n)
+                };
                 let starts = chunk_starts(n, self.chunk);
                 let mut acc = [0.0f32; NUM_BONES];
                 for &s in &starts {
-                    let p = self.engine.predict(&t.input[s * FRAME_DIM..(s + len) * FRAME_DIM])?;
+                    let p = self
+                        .engine
+                        .predict(&t.input[s * FRAME_DIM..(s + len) * FRAME_DIM])?;
                     for (a, v) in acc.iter_mut().zip(p) {
                         *a += v;
                     }
                 }
-                Ok(Estimate { lengths: acc.map(|v| v / starts.len() as f32), curve: Vec::new() })
+                Ok(Estimate {
+                    lengths: acc.map(|v| v / starts.len() as f32),
+                    curve: Vec::new(),
+                })
             })
             .collect()
     }
@@ -111,7 +123,9 @@ pub struct GruEstimator {
 impl GruEstimator {
     /// From GRU weights.
     pub fn new(weights: &LoadedWeights) -> Result<Self, TrainError> {
-        Ok(Self { engine: OnlineGruEngine::new(weights, 1)? })
+        Ok(Self {
+            engine: OnlineGruEngine::new(weights, 1)?,
+        })
     }
 
     /// Step a group of trials in lockstep; finished trials are fed their
@@ -128,9 +142,11 @@ impl GruEstimator {
         for t in 0..longest {
             for (i, tr) in group.iter().enumerate() {
                 let f = t.min(tr.frames() - 1);
-                input[i * FRAME_DIM..(i + 1) * FRAME_DIM].copy_from_slice(&tr.input[f * FRAME_DIM..(f + 1) * FRAME_DIM]);
+                input[i * FRAME_DIM..(i + 1) * FRAME_DIM]
+                    .copy_from_slice(&tr.input[f * FRAME_DIM..(f + 1) * FRAME_DIM]);
             }
-            self.engine.step(&input, &mut hidden, &mut out, &mut scratch)?;
+            self.engine
+                .step(&input, &mut hidden, &mut out, &mut scratch)?;
             for (i, tr) in group.iter().enumerate() {
                 if t >= tr.frames() {
                     continue;
@@ -150,7 +166,10 @@ impl GruEstimator {
         Ok((0..b)
             .map(|i| {
                 let n = group[i].frames() as f64;
-                Estimate { lengths: std::array::from_fn(|j| (sums[i][j] / n) as f32), curve: curves[i].clone() }
+                Estimate {
+                    lengths: std::array::from_fn(|j| (sums[i][j] / n) as f32),
+                    curve: curves[i].clone(),
+                }
             })
             .collect())
     }
@@ -159,7 +178,9 @@ impl GruEstimator {
 impl LengthEstimator for GruEstimator {
     fn estimate(&self, trials: &[EvalSequence]) -> Result<Vec<Estimate>, TrainError> {
         // Group trials of similar length so lockstep wastes little.
-        let mut order: Vec<usize> = (0..trials.len()).filter(|&i| trials[i].frames() > 0).collect();
+        let mut order: Vec<usize> = (0..trials.len())
+            .filter(|&i| trials[i].frames() > 0)
+            .collect();
         order.sort_by_key(|&i| trials[i].frames());
         let groups: Vec<Vec<usize>> = order.chunks(ONLINE_GROUP).map(|c| c.to_vec()).collect();
         let results: Vec<Vec<(usize, Estimate)>> = groups
@@ -197,13 +218,22 @@ pub struct Summary {
 
 /// Mean absolute error over the 16 bones, mm.
 pub fn trial_error_mm(pred: &BoneLengths, gt: &BoneLengths) -> f64 {
-    pred.iter().zip(gt).map(|(p, g)| f64::from((p - g).abs())).sum::<f64>() * 1000.0 / NUM_BONES as f64
+    pred.iter()
+        .zip(gt)
+        .map(|(p, g)| f64::from((p - g).abs()))
+        .sum::<f64>()
+        * 1000.0
+        / NUM_BONES as f64
 }
 
 /// Aggregate predictions `pred[i]` for `trials[i]` (see the module docs).
 pub fn summarize(trials: &[EvalSequence], pred: &[BoneLengths]) -> Result<Summary, TrainError> {
     if trials.len() != pred.len() || trials.is_empty() {
-        return Err(TrainError::InvalidArgument(format!("{} trials but {} predictions", trials.len(), pred.len())));
+        return Err(TrainError::InvalidArgument(format!(
+            "{} trials but {} predictions",
+            trials.len(),
+            pred.len()
+        )));
     }
     let mut actions = ActionAggregator::new();
     let mut subj: BTreeMap<String, (f64, usize)> = BTreeMap::new();
@@ -224,7 +254,10 @@ pub fn summarize(trials: &[EvalSequence], pred: &[BoneLengths]) -> Result<Summar
     Ok(Summary {
         mean_bone_error_mm: actions.mean_over_actions().unwrap_or(f64::NAN),
         mean_over_trials_mm: total / n,
-        per_subject_mm: subj.into_iter().map(|(k, (s, c))| (k, s / c as f64)).collect(),
+        per_subject_mm: subj
+            .into_iter()
+            .map(|(k, (s, c))| (k, s / c as f64))
+            .collect(),
         per_bone_mm: per_bone.iter().map(|v| v / n).collect(),
         per_action_mm: actions.per_action().into_iter().collect(),
     })
@@ -295,14 +328,21 @@ pub fn evaluate(
     let summary = summarize(trials, &pred)?;
     let mut base = BTreeMap::new();
     for (name, l) in baselines {
-        base.insert(name.to_string(), summarize(trials, &vec![*l; trials.len()])?);
+        base.insert(
+            name.to_string(),
+            summarize(trials, &vec![*l; trials.len()])?,
+        );
     }
     let mut curve = Vec::new();
     if est.iter().all(|e| e.curve.len() == CURVE_FRAMES.len()) && !est.is_empty() {
         for (k, &n) in CURVE_FRAMES.iter().enumerate() {
             let p: Vec<BoneLengths> = est.iter().map(|e| e.curve[k]).collect();
             let s = summarize(trials, &p)?;
-            curve.push(CurvePoint { frames: n, mean_bone_error_mm: s.mean_bone_error_mm, mean_over_trials_mm: s.mean_over_trials_mm });
+            curve.push(CurvePoint {
+                frames: n,
+                mean_bone_error_mm: s.mean_bone_error_mm,
+                mean_over_trials_mm: s.mean_over_trials_mm,
+            });
         }
     }
     Ok(EvalReport {
@@ -348,13 +388,21 @@ pub fn markdown(r: &EvalReport) -> String {
     }
     s.push('\n');
     let row = |s: &mut String, label: &str, f: &dyn Fn(&Summary) -> Option<f64>| {
-        s.push_str(&format!("| {label} | {} |", f(&r.summary).map_or("-".into(), |v| format!("{v:.2}"))));
+        s.push_str(&format!(
+            "| {label} | {} |",
+            f(&r.summary).map_or("-".into(), |v| format!("{v:.2}"))
+        ));
         for n in &names {
-            s.push_str(&format!(" {} |", f(&r.baselines[*n]).map_or("-".into(), |v| format!("{v:.2}"))));
+            s.push_str(&format!(
+                " {} |",
+                f(&r.baselines[*n]).map_or("-".into(), |v| format!("{v:.2}"))
+            ));
         }
         s.push('\n');
     };
-    row(&mut s, "**mean over actions (headline)**", &|x| Some(x.mean_bone_error_mm));
+    row(&mut s, "**mean over actions (headline)**", &|x| {
+        Some(x.mean_bone_error_mm)
+    });
     row(&mut s, "mean over trials", &|x| Some(x.mean_over_trials_mm));
     for subj in r.summary.per_subject_mm.keys() {
         row(&mut s, subj, &|x| x.per_subject_mm.get(subj).copied());

@@ -37,8 +37,22 @@ use crate::error::TrainError;
 /// mean the stored matrix is the transpose (`A` stored `k x m`, `B` stored
 /// `n x k`).
 #[allow(clippy::too_many_arguments)]
-pub fn matmul(c: &mut [f32], a: &[f32], b: &[f32], m: usize, k: usize, n: usize, ta: bool, tb: bool, accumulate: bool, threads: usize) {
-    assert!(c.len() >= m * n && a.len() >= m * k && b.len() >= k * n, "matmul: buffers too small");
+pub fn matmul(
+    c: &mut [f32],
+    a: &[f32],
+    b: &[f32],
+    m: usize,
+    k: usize,
+    n: usize,
+    ta: bool,
+    tb: bool,
+    accumulate: bool,
+    threads: usize,
+) {
+    assert!(
+        c.len() >= m * n && a.len() >= m * k && b.len() >= k * n,
+        "matmul: buffers too small"
+    );
     if m == 0 || n == 0 {
         return;
     }
@@ -50,7 +64,11 @@ pub fn matmul(c: &mut [f32], a: &[f32], b: &[f32], m: usize, k: usize, n: usize,
     }
     let (a_rs, a_cs) = if ta { (1, m as isize) } else { (k as isize, 1) };
     let (b_rs, b_cs) = if tb { (1, k as isize) } else { (n as isize, 1) };
-    let par = if threads > 1 { Parallelism::Rayon(threads) } else { Parallelism::None };
+    let par = if threads > 1 {
+        Parallelism::Rayon(threads)
+    } else {
+        Parallelism::None
+    };
     // SAFETY: the asserts above bound every index gemm touches: A is read at
     // i*a_rs + l*a_cs < m*k, B at l*b_rs + j*b_cs < k*n, C written at
     // i*n + j < m*n; the three buffers are distinct borrows.
@@ -139,14 +157,29 @@ impl Layout {
         let g0 = gru();
         let g1 = gru();
         let fc_w = take(NUM_BONES * FEATURES);
-        Self { kind, embed_w, embed_b, gru: [g0, g1], fc_w, len: at }
+        Self {
+            kind,
+            embed_w,
+            embed_b,
+            gru: [g0, g1],
+            fc_w,
+            len: at,
+        }
     }
 
     /// `(tensor name, range, shape)` of every tensor.
     pub fn tensors(&self) -> Vec<(String, Range<usize>, Vec<usize>)> {
         let mut out = vec![
-            (EMBED_WEIGHT.to_string(), self.embed_w.clone(), vec![EMBED_DIM, INPUT_DIM]),
-            (EMBED_BIAS.to_string(), self.embed_b.clone(), vec![EMBED_DIM]),
+            (
+                EMBED_WEIGHT.to_string(),
+                self.embed_w.clone(),
+                vec![EMBED_DIM, INPUT_DIM],
+            ),
+            (
+                EMBED_BIAS.to_string(),
+                self.embed_b.clone(),
+                vec![EMBED_DIM],
+            ),
         ];
         for (g, names) in self.gru.iter().zip(GruNames::for_kind(self.kind)) {
             out.push((names.weight_ih, g.w_ih.clone(), vec![GATES, EMBED_DIM]));
@@ -154,7 +187,11 @@ impl Layout {
             out.push((names.bias_ih, g.b_ih.clone(), vec![GATES]));
             out.push((names.bias_hh, g.b_hh.clone(), vec![GATES]));
         }
-        out.push((FC_WEIGHT.to_string(), self.fc_w.clone(), vec![NUM_BONES, FEATURES]));
+        out.push((
+            FC_WEIGHT.to_string(),
+            self.fc_w.clone(),
+            vec![NUM_BONES, FEATURES],
+        ));
         out
     }
 }
@@ -171,7 +208,10 @@ pub struct LossConfig {
 
 impl Default for LossConfig {
     fn default() -> Self {
-        Self { running_mean_weight: 0.0, dropout: DROPOUT }
+        Self {
+            running_mean_weight: 0.0,
+            dropout: DROPOUT,
+        }
     }
 }
 
@@ -213,18 +253,30 @@ pub struct StepResult {
 impl FastNet {
     /// A network of `kind` from named tensors (e.g.
     /// [`blapose_model::LoadedWeights::tensors`]).
-    pub fn from_tensors(kind: ModelKind, tensors: &HashMap<String, Tensor>) -> Result<Self, TrainError> {
+    pub fn from_tensors(
+        kind: ModelKind,
+        tensors: &HashMap<String, Tensor>,
+    ) -> Result<Self, TrainError> {
         let layout = Layout::new(kind);
         let mut params = vec![0.0f32; layout.len];
         for (name, range, shape) in layout.tensors() {
-            let t = tensors.get(&name).ok_or_else(|| TrainError::Data(format!("missing tensor {name}")))?;
+            let t = tensors
+                .get(&name)
+                .ok_or_else(|| TrainError::Data(format!("missing tensor {name}")))?;
             if t.dims() != shape.as_slice() {
-                return Err(TrainError::Data(format!("tensor {name} has shape {:?}, expected {shape:?}", t.dims())));
+                return Err(TrainError::Data(format!(
+                    "tensor {name} has shape {:?}, expected {shape:?}",
+                    t.dims()
+                )));
             }
             let v: Vec<f32> = t.flatten_all()?.to_vec1()?;
             params[range].copy_from_slice(&v);
         }
-        Ok(Self { layout, params, sym: averaging_matrix() })
+        Ok(Self {
+            layout,
+            params,
+            sym: averaging_matrix(),
+        })
     }
 
     /// Start the output layer at `mean` lengths: with the fresh GRU states
@@ -247,7 +299,10 @@ impl FastNet {
     pub fn to_tensors(&self) -> Result<HashMap<String, Tensor>, TrainError> {
         let mut out = HashMap::new();
         for (name, range, shape) in self.layout.tensors() {
-            out.insert(name, Tensor::from_slice(&self.params[range], shape, &Device::Cpu)?);
+            out.insert(
+                name,
+                Tensor::from_slice(&self.params[range], shape, &Device::Cpu)?,
+            );
         }
         Ok(out)
     }
@@ -349,7 +404,8 @@ impl FastNet {
             dh_ext_a = vec![0.0f32; steps * batch * HIDDEN];
             dh_ext_b = vec![0.0f32; steps * batch * HIDDEN];
             for row in 0..bt {
-                dh_ext_a[row * HIDDEN..(row + 1) * HIDDEN].copy_from_slice(&df[row * FEATURES..row * FEATURES + HIDDEN]);
+                dh_ext_a[row * HIDDEN..(row + 1) * HIDDEN]
+                    .copy_from_slice(&df[row * FEATURES..row * FEATURES + HIDDEN]);
                 dh_ext_b[row * HIDDEN..(row + 1) * HIDDEN]
                     .copy_from_slice(&df[row * FEATURES + HIDDEN..(row + 1) * FEATURES]);
             }
@@ -377,7 +433,8 @@ impl FastNet {
                 ModelKind::BiGru => (&mut dh_ext_b, &mut dh_ext_a),
             };
             for b in 0..batch {
-                first[off + b * HIDDEN..off + (b + 1) * HIDDEN].copy_from_slice(&df[b * FEATURES..b * FEATURES + HIDDEN]);
+                first[off + b * HIDDEN..off + (b + 1) * HIDDEN]
+                    .copy_from_slice(&df[b * FEATURES..b * FEATURES + HIDDEN]);
                 second[off + b * HIDDEN..off + (b + 1) * HIDDEN]
                     .copy_from_slice(&df[b * FEATURES + HIDDEN..(b + 1) * FEATURES]);
             }
@@ -403,16 +460,22 @@ impl FastNet {
             de[i] *= fw.mask[i]; // dropout scale (0 or 1/(1-p)) and ReLU gate folded in
         }
         let (gw, gb_) = {
-            let (w, rest) = grad[self.layout.embed_w.start..].split_at_mut(self.layout.embed_w.len());
+            let (w, rest) =
+                grad[self.layout.embed_w.start..].split_at_mut(self.layout.embed_w.len());
             (w, &mut rest[..self.layout.embed_b.len()])
         };
-        matmul(gw, &de, &fw.x, EMBED_DIM, rows, INPUT_DIM, true, false, false, 2);
+        matmul(
+            gw, &de, &fw.x, EMBED_DIM, rows, INPUT_DIM, true, false, false, 2,
+        );
         for r in 0..rows {
             for (g, d) in gb_.iter_mut().zip(&de[r * EMBED_DIM..(r + 1) * EMBED_DIM]) {
                 *g += d;
             }
         }
-        StepResult { loss: total, final_l1 }
+        StepResult {
+            loss: total,
+            final_l1,
+        }
     }
 
     fn split_gru_grads<'a>(&self, grad: &'a mut [f32]) -> (&'a mut [f32], &'a mut [f32]) {
@@ -426,8 +489,18 @@ impl FastNet {
     }
 
     /// Forward pass. `dropout`: `Some((p, rng))` in training.
-    fn forward<R: Rng + ?Sized>(&self, x: &[f32], batch: usize, steps: usize, dropout: Option<(f32, &mut R)>) -> Forward {
-        assert_eq!(x.len(), batch * steps * INPUT_DIM, "input must be B x T x 34");
+    fn forward<R: Rng + ?Sized>(
+        &self,
+        x: &[f32],
+        batch: usize,
+        steps: usize,
+        dropout: Option<(f32, &mut R)>,
+    ) -> Forward {
+        assert_eq!(
+            x.len(),
+            batch * steps * INPUT_DIM,
+            "input must be B x T x 34"
+        );
         let rows = batch * steps;
         // Time-major copy of the input: row t*B + b.
         let mut xt = vec![0.0f32; rows * INPUT_DIM];
@@ -440,7 +513,18 @@ impl FastNet {
         }
         let p = &self.params;
         let mut e = vec![0.0f32; rows * EMBED_DIM];
-        matmul(&mut e, &xt, &p[self.layout.embed_w.clone()], rows, INPUT_DIM, EMBED_DIM, false, true, false, 2);
+        matmul(
+            &mut e,
+            &xt,
+            &p[self.layout.embed_w.clone()],
+            rows,
+            INPUT_DIM,
+            EMBED_DIM,
+            false,
+            true,
+            false,
+            2,
+        );
         let bias = &p[self.layout.embed_b.clone()];
         let mut mask = vec![1.0f32; rows * EMBED_DIM];
         let (prob, mut rng) = match dropout {
@@ -469,15 +553,38 @@ impl FastNet {
             || self.gru_forward(0, &e, batch, steps, false),
             || self.gru_forward(1, &e, batch, steps, reverse_b),
         );
-        Forward { x: xt, e, mask, gru: [ca, cb] }
+        Forward {
+            x: xt,
+            e,
+            mask,
+            gru: [ca, cb],
+        }
     }
 
-    fn gru_forward(&self, g: usize, e: &[f32], batch: usize, steps: usize, reverse: bool) -> GruCache {
+    fn gru_forward(
+        &self,
+        g: usize,
+        e: &[f32],
+        batch: usize,
+        steps: usize,
+        reverse: bool,
+    ) -> GruCache {
         let lay = &self.layout.gru[g];
         let p = &self.params;
         let rows = batch * steps;
         let mut gi = vec![0.0f32; rows * GATES];
-        matmul(&mut gi, e, &p[lay.w_ih.clone()], rows, EMBED_DIM, GATES, false, true, false, 1);
+        matmul(
+            &mut gi,
+            e,
+            &p[lay.w_ih.clone()],
+            rows,
+            EMBED_DIM,
+            GATES,
+            false,
+            true,
+            false,
+            1,
+        );
         let b_ih = &p[lay.b_ih.clone()];
         for r in 0..rows {
             for (v, b) in gi[r * GATES..(r + 1) * GATES].iter_mut().zip(b_ih) {
@@ -500,7 +607,9 @@ impl FastNet {
             let t = if reverse { steps - 1 - s } else { s };
             let (done, next) = c.hs.split_at_mut((s + 1) * bh);
             let h = &done[s * bh..];
-            matmul(&mut gh, h, w_hh, batch, HIDDEN, GATES, false, true, false, 1);
+            matmul(
+                &mut gh, h, w_hh, batch, HIDDEN, GATES, false, true, false, 1,
+            );
             let h_next = &mut next[..bh];
             for b in 0..batch {
                 let gi_row = &c.gi[(t * batch + b) * GATES..(t * batch + b + 1) * GATES];
@@ -578,7 +687,18 @@ impl FastNet {
                 }
             }
             // dh_prev += dGH_s W_hh   ([B,1536] x [1536,512])
-            matmul(&mut dh_prev, &dgh[s * batch * GATES..(s + 1) * batch * GATES], w_hh, batch, GATES, HIDDEN, false, false, true, 1);
+            matmul(
+                &mut dh_prev,
+                &dgh[s * batch * GATES..(s + 1) * batch * GATES],
+                w_hh,
+                batch,
+                GATES,
+                HIDDEN,
+                false,
+                false,
+                true,
+                1,
+            );
             std::mem::swap(&mut dh, &mut dh_prev);
         }
         let n_ih = lay.w_ih.len();
@@ -588,7 +708,18 @@ impl FastNet {
         let (g_bih, g_bhh) = rest.split_at_mut(GATES);
         // dW_ih = dGI^T E ; dW_hh = dGH^T H_prev (states before each step).
         matmul(g_ih, &dgi, e, GATES, rows, EMBED_DIM, true, false, false, 1);
-        matmul(g_hh, &dgh, &c.hs[..steps * bh], GATES, rows, HIDDEN, true, false, false, 1);
+        matmul(
+            g_hh,
+            &dgh,
+            &c.hs[..steps * bh],
+            GATES,
+            rows,
+            HIDDEN,
+            true,
+            false,
+            false,
+            1,
+        );
         for r in 0..rows {
             for k in 0..GATES {
                 g_bih[k] += dgi[r * GATES + k];
@@ -596,7 +727,9 @@ impl FastNet {
             }
         }
         let mut de = vec![0.0f32; rows * EMBED_DIM];
-        matmul(&mut de, &dgi, w_ih, rows, GATES, EMBED_DIM, false, false, false, 1);
+        matmul(
+            &mut de, &dgi, w_ih, rows, GATES, EMBED_DIM, false, false, false, 1,
+        );
         de
     }
 
@@ -611,8 +744,10 @@ impl FastNet {
         };
         let mut f = vec![0.0f32; batch * FEATURES];
         for b in 0..batch {
-            f[b * FEATURES..b * FEATURES + HIDDEN].copy_from_slice(&first[b * HIDDEN..(b + 1) * HIDDEN]);
-            f[b * FEATURES + HIDDEN..(b + 1) * FEATURES].copy_from_slice(&second[b * HIDDEN..(b + 1) * HIDDEN]);
+            f[b * FEATURES..b * FEATURES + HIDDEN]
+                .copy_from_slice(&first[b * HIDDEN..(b + 1) * HIDDEN]);
+            f[b * FEATURES + HIDDEN..(b + 1) * FEATURES]
+                .copy_from_slice(&second[b * HIDDEN..(b + 1) * HIDDEN]);
         }
         f
     }
@@ -635,11 +770,24 @@ impl FastNet {
     fn head_forward(&self, feats: &[f32], rows: usize) -> (Vec<f32>, Vec<f32>) {
         let act: Vec<f32> = feats.iter().map(|&v| sigmoid(v)).collect();
         let mut p = vec![0.0f32; rows * NUM_BONES];
-        matmul(&mut p, &act, &self.params[self.layout.fc_w.clone()], rows, FEATURES, NUM_BONES, false, true, false, 1);
+        matmul(
+            &mut p,
+            &act,
+            &self.params[self.layout.fc_w.clone()],
+            rows,
+            FEATURES,
+            NUM_BONES,
+            false,
+            true,
+            false,
+            1,
+        );
         let mut y = vec![0.0f32; rows * NUM_BONES];
         for r in 0..rows {
             for j in 0..NUM_BONES {
-                y[r * NUM_BONES + j] = (0..NUM_BONES).map(|i| p[r * NUM_BONES + i] * self.sym[i][j]).sum();
+                y[r * NUM_BONES + j] = (0..NUM_BONES)
+                    .map(|i| p[r * NUM_BONES + i] * self.sym[i][j])
+                    .sum();
             }
         }
         (act, y)
@@ -650,12 +798,36 @@ impl FastNet {
         let mut dp = vec![0.0f32; rows * NUM_BONES];
         for r in 0..rows {
             for i in 0..NUM_BONES {
-                dp[r * NUM_BONES + i] = (0..NUM_BONES).map(|j| dy[r * NUM_BONES + j] * self.sym[i][j]).sum();
+                dp[r * NUM_BONES + i] = (0..NUM_BONES)
+                    .map(|j| dy[r * NUM_BONES + j] * self.sym[i][j])
+                    .sum();
             }
         }
-        matmul(&mut grad[self.layout.fc_w.clone()], &dp, act, NUM_BONES, rows, FEATURES, true, false, true, 2);
+        matmul(
+            &mut grad[self.layout.fc_w.clone()],
+            &dp,
+            act,
+            NUM_BONES,
+            rows,
+            FEATURES,
+            true,
+            false,
+            true,
+            2,
+        );
         let mut df = vec![0.0f32; rows * FEATURES];
-        matmul(&mut df, &dp, &self.params[self.layout.fc_w.clone()], rows, NUM_BONES, FEATURES, false, false, false, 2);
+        matmul(
+            &mut df,
+            &dp,
+            &self.params[self.layout.fc_w.clone()],
+            rows,
+            NUM_BONES,
+            FEATURES,
+            false,
+            false,
+            false,
+            2,
+        );
         for (d, a) in df.iter_mut().zip(act) {
             *d *= a * (1.0 - a);
         }

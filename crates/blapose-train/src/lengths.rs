@@ -75,7 +75,11 @@ impl std::str::FromStr for LengthStrategy {
         Self::ALL
             .into_iter()
             .find(|k| k.name() == s)
-            .ok_or_else(|| TrainError::InvalidArgument(format!("unknown length strategy {s:?} (true|uniform|normal|ansur)")))
+            .ok_or_else(|| {
+                TrainError::InvalidArgument(format!(
+                    "unknown length strategy {s:?} (true|uniform|normal|ansur)"
+                ))
+            })
     }
 }
 
@@ -95,16 +99,24 @@ impl TrainingLengthStats {
     /// Callers pass the training subjects only; see the module docs.
     pub fn from_training(subject_lengths: &[BoneLengths]) -> Result<Self, TrainError> {
         if subject_lengths.is_empty() {
-            return Err(TrainError::InvalidArgument("no training subjects' lengths".into()));
+            return Err(TrainError::InvalidArgument(
+                "no training subjects' lengths".into(),
+            ));
         }
         let n = subject_lengths.len() as f64;
         let mut mean = [0.0f32; NUM_BONES];
         let mut std = [0.0f32; NUM_BONES];
         for b in 0..NUM_BONES {
             let m = subject_lengths.iter().map(|l| f64::from(l[b])).sum::<f64>() / n;
-            let v = subject_lengths.iter().map(|l| (f64::from(l[b]) - m).powi(2)).sum::<f64>() / n;
+            let v = subject_lengths
+                .iter()
+                .map(|l| (f64::from(l[b]) - m).powi(2))
+                .sum::<f64>()
+                / n;
             if !m.is_finite() || m <= 0.0 {
-                return Err(TrainError::InvalidArgument(format!("training mean of bone {b} is {m}")));
+                return Err(TrainError::InvalidArgument(format!(
+                    "training mean of bone {b} is {m}"
+                )));
             }
             mean[b] = m as f32;
             std[b] = v.sqrt() as f32;
@@ -113,7 +125,11 @@ impl TrainingLengthStats {
         // them exactly equal so every strategy is exactly symmetric.
         average_symmetric_pairs(&mut mean);
         average_symmetric_pairs(&mut std);
-        Ok(Self { mean, std, count: subject_lengths.len() })
+        Ok(Self {
+            mean,
+            std,
+            count: subject_lengths.len(),
+        })
     }
 
     /// True when the training subjects all share this bone's length.
@@ -133,7 +149,10 @@ pub struct LengthSampler {
 /// For each bone, the bone whose draw it shares: the right bone of a
 /// symmetric pair for its left partner, itself otherwise.
 fn draw_owner(bone: usize) -> usize {
-    SYMMETRIC_BONE_PAIRS.iter().find(|&&(_, l)| l == bone).map_or(bone, |&(r, _)| r)
+    SYMMETRIC_BONE_PAIRS
+        .iter()
+        .find(|&&(_, l)| l == bone)
+        .map_or(bone, |&(r, _)| r)
 }
 
 impl LengthSampler {
@@ -145,9 +164,15 @@ impl LengthSampler {
         ansur: Option<AnsurPopulation>,
     ) -> Result<Self, TrainError> {
         if strategy == LengthStrategy::Ansur && ansur.as_ref().is_none_or(|a| a.is_empty()) {
-            return Err(TrainError::InvalidArgument("the ansur strategy needs a calibrated ANSUR population".into()));
+            return Err(TrainError::InvalidArgument(
+                "the ansur strategy needs a calibrated ANSUR population".into(),
+            ));
         }
-        Ok(Self { strategy, stats, ansur })
+        Ok(Self {
+            strategy,
+            stats,
+            ansur,
+        })
     }
 
     /// The strategy.
@@ -174,7 +199,8 @@ impl LengthSampler {
                 // One draw per bone, then each left bone takes its right
                 // partner's draw (draws first: a left bone may precede its
                 // partner in bone order).
-                let draw: [f32; NUM_BONES] = std::array::from_fn(|_| rng.random_range(0.7f32..1.3f32));
+                let draw: [f32; NUM_BONES] =
+                    std::array::from_fn(|_| rng.random_range(0.7f32..1.3f32));
                 std::array::from_fn(|b| mean[b] * draw[draw_owner(b)])
             }
             LengthStrategy::Normal => {
@@ -203,7 +229,9 @@ impl LengthSampler {
 /// A standard normal draw for callers that need one without naming
 /// rand_distr (used by the synthesizer for the 3D shift).
 pub fn normal_f32<R: Rng + ?Sized>(rng: &mut R, std: f32) -> f32 {
-    Normal::new(0.0f32, std.max(0.0)).map(|n| n.sample(rng)).unwrap_or(0.0)
+    Normal::new(0.0f32, std.max(0.0))
+        .map(|n| n.sample(rng))
+        .unwrap_or(0.0)
 }
 
 #[cfg(test)]
@@ -213,7 +241,8 @@ mod tests {
 
     fn stats() -> TrainingLengthStats {
         let a: BoneLengths = [
-            0.13, 0.44, 0.45, 0.13, 0.44, 0.45, 0.23, 0.25, 0.12, 0.115, 0.15, 0.28, 0.25, 0.15, 0.28, 0.25,
+            0.13, 0.44, 0.45, 0.13, 0.44, 0.45, 0.23, 0.25, 0.12, 0.115, 0.15, 0.28, 0.25, 0.15,
+            0.28, 0.25,
         ];
         let mut b = a.map(|v| v * 1.05);
         b[9] = 0.115;
@@ -223,7 +252,11 @@ mod tests {
     #[test]
     fn strategies_are_symmetric_and_bounded() {
         let s = stats();
-        for strategy in [LengthStrategy::True, LengthStrategy::Uniform, LengthStrategy::Normal] {
+        for strategy in [
+            LengthStrategy::True,
+            LengthStrategy::Uniform,
+            LengthStrategy::Normal,
+        ] {
             let sampler = LengthSampler::new(strategy, s.clone(), None).unwrap();
             let mut rng = rand::rngs::StdRng::seed_from_u64(7);
             for _ in 0..500 {
@@ -232,7 +265,11 @@ mod tests {
                     assert_eq!(l[r], l[le], "{strategy}");
                 }
                 for b in 0..NUM_BONES {
-                    assert!(l[b] >= 0.3 * s.mean[b] && l[b] <= 1.3 * s.mean[b] + 1e-6, "{strategy} bone {b}: {}", l[b]);
+                    assert!(
+                        l[b] >= 0.3 * s.mean[b] && l[b] <= 1.3 * s.mean[b] + 1e-6,
+                        "{strategy} bone {b}: {}",
+                        l[b]
+                    );
                 }
                 if strategy != LengthStrategy::Uniform {
                     assert_eq!(l[9], 0.115, "fixed bone stays fixed");
@@ -246,7 +283,9 @@ mod tests {
         let s = stats();
         let sampler = LengthSampler::new(LengthStrategy::Uniform, s.clone(), None).unwrap();
         let mut rng = rand::rngs::StdRng::seed_from_u64(1);
-        let ratios: Vec<f32> = (0..2000).map(|_| sampler.sample(&s.mean, &mut rng)[1] / s.mean[1]).collect();
+        let ratios: Vec<f32> = (0..2000)
+            .map(|_| sampler.sample(&s.mean, &mut rng)[1] / s.mean[1])
+            .collect();
         let lo = ratios.iter().cloned().fold(f32::MAX, f32::min);
         let hi = ratios.iter().cloned().fold(f32::MIN, f32::max);
         assert!(lo >= 0.7 && lo < 0.72, "{lo}");
@@ -257,6 +296,9 @@ mod tests {
     fn ansur_needs_a_population() {
         assert!(LengthSampler::new(LengthStrategy::Ansur, stats(), None).is_err());
         assert!("bogus".parse::<LengthStrategy>().is_err());
-        assert_eq!("ansur".parse::<LengthStrategy>().unwrap(), LengthStrategy::Ansur);
+        assert_eq!(
+            "ansur".parse::<LengthStrategy>().unwrap(),
+            LengthStrategy::Ansur
+        );
     }
 }

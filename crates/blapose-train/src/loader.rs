@@ -42,7 +42,10 @@ impl Prefetcher {
                 }
             })
             .ok();
-        Self { rx: Some(rx), handle }
+        Self {
+            rx: Some(rx),
+            handle,
+        }
     }
 
     /// The next batch and its step; `None` when the range is exhausted or

@@ -16,7 +16,11 @@ use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 
 #[derive(Parser)]
-#[command(name = "blapose", version, about = "Train and evaluate the BLAPose bone-length models")]
+#[command(
+    name = "blapose",
+    version,
+    about = "Train and evaluate the BLAPose bone-length models"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -174,9 +178,13 @@ fn main() -> Result<()> {
         Command::DataReport { data } => data_report(data),
         Command::Train(args) => train(*args),
         Command::Eval(args) => eval(*args),
-        Command::BenchTrain { model, batch, seq_len, steps, per_frame_weight } => {
-            bench_train(&model, batch, seq_len, steps, per_frame_weight)
-        }
+        Command::BenchTrain {
+            model,
+            batch,
+            seq_len,
+            steps,
+            per_frame_weight,
+        } => bench_train(&model, batch, seq_len, steps, per_frame_weight),
     }
 }
 
@@ -184,7 +192,11 @@ fn data_report(data: Option<PathBuf>) -> Result<()> {
     let root = blapose_data::data_root(data);
     let t0 = Instant::now();
     let set = TrainingSet::load(&root)?;
-    println!("loaded {} training sequences in {:.1}s", set.sequences.len(), t0.elapsed().as_secs_f64());
+    println!(
+        "loaded {} training sequences in {:.1}s",
+        set.sequences.len(),
+        t0.elapsed().as_secs_f64()
+    );
     let stats = TrainingLengthStats::from_training(&set.lengths_list())?;
     let pop: AnsurPopulation = load_population(&root, &stats)?;
     let (pm, ps) = pop.moments();
@@ -202,7 +214,10 @@ fn data_report(data: Option<PathBuf>) -> Result<()> {
         );
     }
     let bank = &set.residuals;
-    println!("residual bank: {} frames; per-joint std (mm at subject) x/y and mean:", bank.frames());
+    println!(
+        "residual bank: {} frames; per-joint std (mm at subject) x/y and mean:",
+        bank.frames()
+    );
     for j in 0..17 {
         println!(
             "  {:>10}: std {:5.1} {:5.1}  mean {:6.1} {:6.1}",
@@ -214,7 +229,11 @@ fn data_report(data: Option<PathBuf>) -> Result<()> {
         );
     }
     let sampler = LengthSampler::new(LengthStrategy::Ansur, stats, Some(pop))?;
-    let source = Arc::new(SynthSource::new(set.sequences.clone(), set.residuals.clone(), sampler)?);
+    let source = Arc::new(SynthSource::new(
+        set.sequences.clone(),
+        set.residuals.clone(),
+        sampler,
+    )?);
     let cfg = SynthConfig::default();
     let t0 = Instant::now();
     let n = 20;
@@ -223,7 +242,11 @@ fn data_report(data: Option<PathBuf>) -> Result<()> {
         std::hint::black_box(b);
     }
     let dt = t0.elapsed().as_secs_f64();
-    println!("synthesis: {:.0} frames/s (batch 64 x T {})", (n as usize * 64 * cfg.seq_len) as f64 / dt, cfg.seq_len);
+    println!(
+        "synthesis: {:.0} frames/s (batch 64 x T {})",
+        (n as usize * 64 * cfg.seq_len) as f64 / dt,
+        cfg.seq_len
+    );
     Ok(())
 }
 
@@ -233,7 +256,10 @@ fn train(a: TrainArgs) -> Result<()> {
     let cfg = TrainConfig {
         kind: a.model.parse::<blapose_model::ModelKind>()?.to_string(),
         lengths: strategy.to_string(),
-        noise: a.noise.parse::<blapose_train::noise::NoiseKind>()?.to_string(),
+        noise: a
+            .noise
+            .parse::<blapose_train::noise::NoiseKind>()?
+            .to_string(),
         seq_len: a.seq_len,
         stride_min: a.stride_min,
         stride_max: a.stride_max,
@@ -256,9 +282,17 @@ fn train(a: TrainArgs) -> Result<()> {
     let t0 = Instant::now();
     let set = TrainingSet::load(&root)?;
     let stats = TrainingLengthStats::from_training(&set.lengths_list())?;
-    let pop = if strategy == LengthStrategy::Ansur { Some(load_population(&root, &stats)?) } else { None };
+    let pop = if strategy == LengthStrategy::Ansur {
+        Some(load_population(&root, &stats)?)
+    } else {
+        None
+    };
     let sampler = LengthSampler::new(strategy, stats, pop)?;
-    let source = Arc::new(SynthSource::new(set.sequences.clone(), set.residuals.clone(), sampler)?);
+    let source = Arc::new(SynthSource::new(
+        set.sequences.clone(),
+        set.residuals.clone(),
+        sampler,
+    )?);
     eprintln!(
         "data: {} training sequences, {} real SH validation streams, loaded in {:.1}s",
         set.sequences.len(),
@@ -278,7 +312,15 @@ fn train(a: TrainArgs) -> Result<()> {
         pb.set_position(step);
         pb.set_message(format!("loss {loss:.2} mm, {fps:.0} frames/s"));
     };
-    let outcome = blapose_train::train::train(&cfg, source, &set.real_sh, &a.out, a.resume, &training_data, &mut progress)?;
+    let outcome = blapose_train::train::train(
+        &cfg,
+        source,
+        &set.real_sh,
+        &a.out,
+        a.resume,
+        &training_data,
+        &mut progress,
+    )?;
     pb.finish();
     let curve = a.out.join("curve.svg");
     blapose_train::plot::training_curve(&a.out.join(blapose_train::train::LOG_FILE), &curve)?;
@@ -300,25 +342,44 @@ fn train(a: TrainArgs) -> Result<()> {
     Ok(())
 }
 
-fn bench_train(model: &str, batch: usize, seq_len: usize, steps: usize, per_frame_weight: f32) -> Result<()> {
+fn bench_train(
+    model: &str,
+    batch: usize,
+    seq_len: usize,
+    steps: usize,
+    per_frame_weight: f32,
+) -> Result<()> {
     use blapose_train::fastnet::{FastNet, LossConfig};
     use rand::{Rng, SeedableRng};
     let kind: blapose_model::ModelKind = model.parse()?;
     let w = blapose_model::LoadedWeights::random(kind, 0)?;
     let net = FastNet::from_tensors(kind, w.tensors())?;
     let mut rng = rand::rngs::StdRng::seed_from_u64(0);
-    let x: Vec<f32> = (0..batch * seq_len * 34).map(|_| rng.random_range(-1.0f32..1.0)).collect();
-    let y: Vec<f32> = (0..batch * 16).map(|_| rng.random_range(0.1f32..0.5)).collect();
+    let x: Vec<f32> = (0..batch * seq_len * 34)
+        .map(|_| rng.random_range(-1.0f32..1.0))
+        .collect();
+    let y: Vec<f32> = (0..batch * 16)
+        .map(|_| rng.random_range(0.1f32..0.5))
+        .collect();
     let mut grad = vec![0.0f32; net.params.len()];
-    let cfg = LossConfig { running_mean_weight: per_frame_weight, ..Default::default() };
+    let cfg = LossConfig {
+        running_mean_weight: per_frame_weight,
+        ..Default::default()
+    };
     net.train_step(&x, &y, batch, seq_len, cfg, &mut rng, &mut grad);
     let t0 = Instant::now();
     for _ in 0..steps {
         net.train_step(&x, &y, batch, seq_len, cfg, &mut rng, &mut grad);
     }
     let dt = t0.elapsed().as_secs_f64();
-    println!("{model} batch {batch} seq_len {seq_len}: {:.3} s/step", dt / steps as f64);
-    println!("frames_per_second={:.0}", (batch * seq_len * steps) as f64 / dt);
+    println!(
+        "{model} batch {batch} seq_len {seq_len}: {:.3} s/step",
+        dt / steps as f64
+    );
+    println!(
+        "frames_per_second={:.0}",
+        (batch * seq_len * steps) as f64 / dt
+    );
     Ok(())
 }
 
@@ -337,7 +398,11 @@ fn eval(a: EvalArgs) -> Result<()> {
     let t0 = Instant::now();
     let all = H36m::load(&root, &ALL_SUBJECTS, Parts::POSES)?;
     let lengths = subject_lengths(&all);
-    let parts = if input == InputKind::Sh { Parts::ALL } else { Parts::POSES };
+    let parts = if input == InputKind::Sh {
+        Parts::ALL
+    } else {
+        Parts::POSES
+    };
     let h36m = H36m::load(&root, &subjects, parts)?;
     let mut trials = eval_sequences(&h36m, &subjects, input, &lengths)?;
     if a.every > 1 {
@@ -346,13 +411,22 @@ fn eval(a: EvalArgs) -> Result<()> {
     if trials.is_empty() {
         anyhow::bail!("no trials for subjects {}", a.subjects.join(","));
     }
-    eprintln!("loaded {} trials in {:.1}s", trials.len(), t0.elapsed().as_secs_f64());
+    eprintln!(
+        "loaded {} trials in {:.1}s",
+        trials.len(),
+        t0.elapsed().as_secs_f64()
+    );
     let mean_of = |names: &[&str]| -> Result<BoneLengths> {
         let ls: Vec<&BoneLengths> = names.iter().filter_map(|s| lengths.get(*s)).collect();
         anyhow::ensure!(ls.len() == names.len(), "missing subject lengths");
-        Ok(std::array::from_fn(|b| ls.iter().map(|l| l[b]).sum::<f32>() / ls.len() as f32))
+        Ok(std::array::from_fn(|b| {
+            ls.iter().map(|l| l[b]).sum::<f32>() / ls.len() as f32
+        }))
     };
-    let baselines = [("training_mean", mean_of(&TRAIN_SUBJECTS)?), ("all_subjects_mean", mean_of(&ALL_SUBJECTS)?)];
+    let baselines = [
+        ("training_mean", mean_of(&TRAIN_SUBJECTS)?),
+        ("all_subjects_mean", mean_of(&ALL_SUBJECTS)?),
+    ];
     let estimator: Box<dyn LengthEstimator> = match kind {
         blapose_model::ModelKind::BiGru => Box::new(BiGruEstimator::new(&weights, a.chunk)?),
         blapose_model::ModelKind::Gru => Box::new(GruEstimator::new(&weights)?),

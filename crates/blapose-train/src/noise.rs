@@ -65,7 +65,9 @@ impl std::str::FromStr for NoiseKind {
             "none" => Ok(Self::None),
             "gaussian" => Ok(Self::Gaussian),
             "residual" => Ok(Self::Residual),
-            _ => Err(TrainError::InvalidArgument(format!("unknown noise model {s:?} (none|gaussian|residual)"))),
+            _ => Err(TrainError::InvalidArgument(format!(
+                "unknown noise model {s:?} (none|gaussian|residual)"
+            ))),
         }
     }
 }
@@ -76,7 +78,12 @@ pub type MetricResidual = [[f32; 2]; NUM_JOINTS];
 /// The residual of one frame in metric units: `(sh - gt) * depth / focal`,
 /// clamped to [`MAX_RESIDUAL_M`] per joint. `None` if anything is not finite
 /// or the depth is not positive.
-pub fn metric_residual(sh: &Keypoints2d, gt: &Keypoints2d, root_depth: f32, focal: [f32; 2]) -> Option<MetricResidual> {
+pub fn metric_residual(
+    sh: &Keypoints2d,
+    gt: &Keypoints2d,
+    root_depth: f32,
+    focal: [f32; 2],
+) -> Option<MetricResidual> {
     if !(root_depth > 0.0) || !(focal[0] > 0.0 && focal[1] > 0.0) {
         return None;
     }
@@ -141,7 +148,12 @@ impl ResidualBank {
                 }
             }
         }
-        Self { tracks, std, mean, frames: n }
+        Self {
+            tracks,
+            std,
+            mean,
+            frames: n,
+        }
     }
 
     /// Number of residual frames in the bank.
@@ -167,8 +179,13 @@ impl ResidualBank {
     /// Any non-empty track, chosen at random (for samples whose own camera
     /// has no detections).
     pub fn random_track<R: Rng + ?Sized>(&self, rng: &mut R) -> Option<&[MetricResidual]> {
-        let all: Vec<&[MetricResidual]> =
-            self.tracks.iter().flatten().filter_map(|t| t.as_deref()).filter(|t| !t.is_empty()).collect();
+        let all: Vec<&[MetricResidual]> = self
+            .tracks
+            .iter()
+            .flatten()
+            .filter_map(|t| t.as_deref())
+            .filter(|t| !t.is_empty())
+            .collect();
         if all.is_empty() {
             None
         } else {
@@ -195,7 +212,9 @@ pub fn residual_at(track: &[MetricResidual], u: f32) -> MetricResidual {
     let i = (u.floor() as usize).min(last);
     let k = (i + 1).min(last);
     let a = u - i as f32;
-    std::array::from_fn(|j| std::array::from_fn(|c| track[i][j][c] * (1.0 - a) + track[k][j][c] * a))
+    std::array::from_fn(|j| {
+        std::array::from_fn(|c| track[i][j][c] * (1.0 - a) + track[k][j][c] * a)
+    })
 }
 
 /// Add a metric residual to normalized keypoints at root depth `depth`

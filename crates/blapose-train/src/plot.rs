@@ -21,7 +21,10 @@ pub fn line_chart(
     series: &[(String, Vec<(f64, f64)>)],
     log_x: bool,
 ) -> Result<(), TrainError> {
-    let pts = series.iter().flat_map(|(_, p)| p.iter()).filter(|(x, y)| x.is_finite() && y.is_finite());
+    let pts = series
+        .iter()
+        .flat_map(|(_, p)| p.iter())
+        .filter(|(x, y)| x.is_finite() && y.is_finite());
     let (mut x0, mut x1, mut y1) = (f64::MAX, f64::MIN, 0.0f64);
     for &(x, y) in pts {
         x0 = x0.min(x);
@@ -41,24 +44,44 @@ pub fn line_chart(
     macro_rules! draw {
         ($chart:expr) => {{
             let mut chart = $chart;
-            chart.configure_mesh().x_desc(x_label).y_desc(y_label).draw().map_err(plot_err)?;
+            chart
+                .configure_mesh()
+                .x_desc(x_label)
+                .y_desc(y_label)
+                .draw()
+                .map_err(plot_err)?;
             for (i, (label, p)) in series.iter().enumerate() {
                 let c = colors[i % colors.len()];
                 chart
                     .draw_series(LineSeries::new(p.iter().copied(), c.stroke_width(2)))
                     .map_err(plot_err)?
                     .label(label.as_str())
-                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
+                    .legend(move |(x, y)| {
+                        PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2))
+                    });
             }
-            chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw().map_err(plot_err)?;
+            chart
+                .configure_series_labels()
+                .background_style(WHITE.mix(0.8))
+                .border_style(BLACK)
+                .draw()
+                .map_err(plot_err)?;
         }};
     }
     let mut builder = ChartBuilder::on(&root);
-    builder.caption(title, ("sans-serif", 22)).margin(12).x_label_area_size(40).y_label_area_size(60);
+    builder
+        .caption(title, ("sans-serif", 22))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(60);
     if log_x {
-        draw!(builder.build_cartesian_2d((x0.max(1e-3)..x1).log_scale(), y_range).map_err(plot_err)?);
+        draw!(builder
+            .build_cartesian_2d((x0.max(1e-3)..x1).log_scale(), y_range)
+            .map_err(plot_err)?);
     } else {
-        draw!(builder.build_cartesian_2d(x0..x1, y_range).map_err(plot_err)?);
+        draw!(builder
+            .build_cartesian_2d(x0..x1, y_range)
+            .map_err(plot_err)?);
     }
     root.present().map_err(plot_err)?;
     Ok(())
@@ -72,24 +95,54 @@ pub fn training_curve(log: &Path, out: &Path) -> Result<(), TrainError> {
         ("train_loss_mm", "training loss (synthetic)"),
         ("val_synth_mm", "validation, synthetic"),
         ("val_real_sh_mm", "validation, real SH (training subjects)"),
-        ("val_real_sh_running_mm", "validation, real SH, running mean"),
+        (
+            "val_real_sh_running_mm",
+            "validation, real SH, running mean",
+        ),
     ] {
         let p = read_log_column(log, col)?;
         if !p.is_empty() {
             series.push((label.to_string(), p));
         }
     }
-    line_chart(out, "bone-length training", "step", "mean bone-length error (mm)", &series, false)
+    line_chart(
+        out,
+        "bone-length training",
+        "step",
+        "mean bone-length error (mm)",
+        &series,
+        false,
+    )
 }
 
 /// The online model's error against frames seen (log x), with the naive
 /// baselines as flat lines.
 pub fn error_curve(report: &crate::eval::EvalReport, out: &Path) -> Result<(), TrainError> {
-    let pts: Vec<(f64, f64)> = report.curve.iter().map(|c| (c.frames as f64, c.mean_bone_error_mm)).collect();
-    let (x0, x1) = (pts.first().map_or(1.0, |p| p.0), pts.last().map_or(1.0, |p| p.0));
-    let mut series = vec![(format!("{} ({} input), running mean", report.model, report.input), pts)];
+    let pts: Vec<(f64, f64)> = report
+        .curve
+        .iter()
+        .map(|c| (c.frames as f64, c.mean_bone_error_mm))
+        .collect();
+    let (x0, x1) = (
+        pts.first().map_or(1.0, |p| p.0),
+        pts.last().map_or(1.0, |p| p.0),
+    );
+    let mut series = vec![(
+        format!("{} ({} input), running mean", report.model, report.input),
+        pts,
+    )];
     for (name, s) in &report.baselines {
-        series.push((format!("baseline: {name}"), vec![(x0, s.mean_bone_error_mm), (x1, s.mean_bone_error_mm)]));
+        series.push((
+            format!("baseline: {name}"),
+            vec![(x0, s.mean_bone_error_mm), (x1, s.mean_bone_error_mm)],
+        ));
     }
-    line_chart(out, "bone-length error vs frames seen", "frames seen", "mean bone-length error (mm)", &series, true)
+    line_chart(
+        out,
+        "bone-length error vs frames seen",
+        "frames seen",
+        "mean bone-length error (mm)",
+        &series,
+        true,
+    )
 }

@@ -139,7 +139,10 @@ impl SynthConfig {
         if self.seq_len == 0 {
             return bad("seq_len must be positive");
         }
-        if !(self.stride_min > 0.0 && self.stride_max >= self.stride_min && self.stride_max.is_finite()) {
+        if !(self.stride_min > 0.0
+            && self.stride_max >= self.stride_min
+            && self.stride_max.is_finite())
+        {
             return bad("need 0 < stride_min <= stride_max");
         }
         if !(self.shift_std >= 0.0 && self.shift_std.is_finite()) {
@@ -217,12 +220,21 @@ pub fn sample_rng(seed: u64, step: u64, index: u64) -> StdRng {
 impl SynthSource {
     /// A source over `sequences` (training subjects only), with a residual
     /// bank aligned to them (`bank.track(seq, cam)`) and a length sampler.
-    pub fn new(sequences: Vec<MotionSequence>, residuals: ResidualBank, sampler: LengthSampler) -> Result<Self, TrainError> {
+    pub fn new(
+        sequences: Vec<MotionSequence>,
+        residuals: ResidualBank,
+        sampler: LengthSampler,
+    ) -> Result<Self, TrainError> {
         if sequences.iter().all(|s| s.len() < 2) {
-            return Err(TrainError::Data("no training sequence with at least 2 frames".into()));
+            return Err(TrainError::Data(
+                "no training sequence with at least 2 frames".into(),
+            ));
         }
         if let Some(s) = sequences.iter().find(|s| s.cameras.is_empty()) {
-            return Err(TrainError::Data(format!("{}/{} has no camera", s.subject, s.action)));
+            return Err(TrainError::Data(format!(
+                "{}/{} has no camera",
+                s.subject, s.action
+            )));
         }
         let mut acc = 0u64;
         let cumulative = sequences
@@ -232,7 +244,12 @@ impl SynthSource {
                 acc
             })
             .collect();
-        Ok(Self { sequences, cumulative, residuals, sampler })
+        Ok(Self {
+            sequences,
+            cumulative,
+            residuals,
+            sampler,
+        })
     }
 
     /// The sequences.
@@ -253,7 +270,9 @@ impl SynthSource {
     fn pick_sequence<R: Rng + ?Sized>(&self, rng: &mut R) -> usize {
         let total = *self.cumulative.last().unwrap_or(&0);
         let x = rng.random_range(0..total.max(1));
-        self.cumulative.partition_point(|&c| c <= x).min(self.sequences.len() - 1)
+        self.cumulative
+            .partition_point(|&c| c <= x)
+            .min(self.sequences.len() - 1)
     }
 
     /// Synthesize one sample with `rng`.
@@ -275,7 +294,11 @@ impl SynthSource {
             stride = span_avail / (t_len.saturating_sub(1)).max(1) as f32;
         }
         let span = (t_len.saturating_sub(1)) as f32 * stride;
-        let start = if span_avail > span { rng.random_range(0.0..(span_avail - span)) } else { 0.0 };
+        let start = if span_avail > span {
+            rng.random_range(0.0..(span_avail - span))
+        } else {
+            0.0
+        };
 
         let lengths = self.sampler.sample(&seq.lengths, rng);
         let cam_idx = rng.random_range(0..seq.cameras.len());
@@ -296,7 +319,11 @@ impl SynthSource {
         let mut shift = [0.0f32; 3];
         if cfg.shift_std > 0.0 {
             for _ in 0..MAX_SHIFT_TRIES {
-                let s = [normal_f32(rng, cfg.shift_std), normal_f32(rng, cfg.shift_std), normal_f32(rng, cfg.shift_std)];
+                let s = [
+                    normal_f32(rng, cfg.shift_std),
+                    normal_f32(rng, cfg.shift_std),
+                    normal_f32(rng, cfg.shift_std),
+                ];
                 let ok = cam_poses.iter().all(|p| {
                     let r = [p[0][0] + s[0], p[0][1] + s[1], p[0][2] + s[2]];
                     if r[2] < cfg.min_depth {
@@ -313,9 +340,11 @@ impl SynthSource {
         }
 
         let track = match cfg.noise {
-            NoiseKind::Residual => {
-                self.residuals.track(seq_idx, cam_idx).filter(|t| !t.is_empty()).or_else(|| self.residuals.random_track(rng))
-            }
+            NoiseKind::Residual => self
+                .residuals
+                .track(seq_idx, cam_idx)
+                .filter(|t| !t.is_empty())
+                .or_else(|| self.residuals.random_track(rng)),
             _ => None,
         };
         // Always drawn, so the flip probability does not shift later draws.
@@ -347,7 +376,14 @@ impl SynthSource {
             }
             input.extend(kp.iter().flatten());
         }
-        Sample { input, target: lengths, sequence: seq_idx, camera: cam_idx, stride, flipped }
+        Sample {
+            input,
+            target: lengths,
+            sequence: seq_idx,
+            camera: cam_idx,
+            stride,
+            flipped,
+        }
     }
 
     /// Synthesize batch `step` (samples `0..batch`, each with
@@ -363,7 +399,12 @@ impl SynthSource {
             inputs.extend_from_slice(&s.input);
             targets.extend_from_slice(&s.target);
         }
-        Batch { batch, seq_len: cfg.seq_len, inputs, targets }
+        Batch {
+            batch,
+            seq_len: cfg.seq_len,
+            inputs,
+            targets,
+        }
     }
 }
 

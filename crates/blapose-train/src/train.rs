@@ -156,7 +156,13 @@ pub struct Validation {
 }
 
 /// The fixed synthetic validation set (independent of the training stream).
-pub fn validation_batches(source: &SynthSource, cfg: &SynthConfig, seed: u64, samples: usize, batch: usize) -> Vec<Batch> {
+pub fn validation_batches(
+    source: &SynthSource,
+    cfg: &SynthConfig,
+    seed: u64,
+    samples: usize,
+    batch: usize,
+) -> Vec<Batch> {
     let mut out = Vec::new();
     let mut i = 0;
     while i < samples {
@@ -164,11 +170,19 @@ pub fn validation_batches(source: &SynthSource, cfg: &SynthConfig, seed: u64, sa
         let mut inputs = Vec::with_capacity(n * cfg.seq_len * FRAME_DIM);
         let mut targets = Vec::with_capacity(n * NUM_BONES);
         for k in 0..n {
-            let s = source.sample(cfg, &mut sample_rng(seed ^ VAL_SEED_SALT, u64::MAX, (i + k) as u64));
+            let s = source.sample(
+                cfg,
+                &mut sample_rng(seed ^ VAL_SEED_SALT, u64::MAX, (i + k) as u64),
+            );
             inputs.extend_from_slice(&s.input);
             targets.extend_from_slice(&s.target);
         }
-        out.push(Batch { batch: n, seq_len: cfg.seq_len, inputs, targets });
+        out.push(Batch {
+            batch: n,
+            seq_len: cfg.seq_len,
+            inputs,
+            targets,
+        });
         i += n;
     }
     out
@@ -183,7 +197,10 @@ pub fn real_validation_batches(real: &[EvalSequence], frames: usize, batch: usiz
         .filter(|s| s.frames() >= frames)
         .map(|s| {
             let start = (s.frames() - frames) / 2;
-            (&s.input[start * FRAME_DIM..(start + frames) * FRAME_DIM], &s.gt[..])
+            (
+                &s.input[start * FRAME_DIM..(start + frames) * FRAME_DIM],
+                &s.gt[..],
+            )
         })
         .collect();
     windows
@@ -198,12 +215,19 @@ pub fn real_validation_batches(real: &[EvalSequence], frames: usize, batch: usiz
 }
 
 fn l1_mm(pred: &[f32], target: &[f32]) -> f64 {
-    pred.iter().zip(target).map(|(a, b)| f64::from((a - b).abs())).sum::<f64>() * 1000.0
+    pred.iter()
+        .zip(target)
+        .map(|(a, b)| f64::from((a - b).abs()))
+        .sum::<f64>()
+        * 1000.0
 }
 
 /// Run the validation sets through `net` (eval mode).
 pub fn validate(net: &FastNet, synth: &[Batch], real: &[Batch]) -> Validation {
-    let mut v = Validation { real_sh_running_mm: f64::NAN, ..Default::default() };
+    let mut v = Validation {
+        real_sh_running_mm: f64::NAN,
+        ..Default::default()
+    };
     let (mut s, mut n) = (0.0, 0usize);
     for b in synth {
         s += l1_mm(&net.predict(&b.inputs, b.batch, b.seq_len), &b.targets);
@@ -221,7 +245,10 @@ pub fn validate(net: &FastNet, synth: &[Batch], real: &[Batch]) -> Validation {
                     let rows = &per[i * b.seq_len * NUM_BONES..(i + 1) * b.seq_len * NUM_BONES];
                     last.extend_from_slice(&rows[(b.seq_len - 1) * NUM_BONES..]);
                     for j in 0..NUM_BONES {
-                        run.push(rows.chunks_exact(NUM_BONES).map(|r| r[j]).sum::<f32>() / b.seq_len as f32);
+                        run.push(
+                            rows.chunks_exact(NUM_BONES).map(|r| r[j]).sum::<f32>()
+                                / b.seq_len as f32,
+                        );
                     }
                 }
                 s += l1_mm(&last, &b.targets);
@@ -258,22 +285,48 @@ struct CheckpointMeta {
     config: TrainConfig,
 }
 
-fn save_checkpoint(path: &Path, net: &FastNet, opt: &Adam, meta: &CheckpointMeta) -> Result<(), TrainError> {
+fn save_checkpoint(
+    path: &Path,
+    net: &FastNet,
+    opt: &Adam,
+    meta: &CheckpointMeta,
+) -> Result<(), TrainError> {
     let mut tensors: BTreeMap<&str, Tensor> = BTreeMap::new();
-    tensors.insert("params", Tensor::from_slice(&net.params, net.params.len(), &Device::Cpu)?);
-    tensors.insert("adam_m", Tensor::from_slice(&opt.m, opt.m.len(), &Device::Cpu)?);
-    tensors.insert("adam_v", Tensor::from_slice(&opt.v, opt.v.len(), &Device::Cpu)?);
+    tensors.insert(
+        "params",
+        Tensor::from_slice(&net.params, net.params.len(), &Device::Cpu)?,
+    );
+    tensors.insert(
+        "adam_m",
+        Tensor::from_slice(&opt.m, opt.m.len(), &Device::Cpu)?,
+    );
+    tensors.insert(
+        "adam_v",
+        Tensor::from_slice(&opt.v, opt.v.len(), &Device::Cpu)?,
+    );
     let mut header = HashMap::new();
-    header.insert("blapose_checkpoint".to_string(), serde_json::to_string(meta)?);
+    header.insert(
+        "blapose_checkpoint".to_string(),
+        serde_json::to_string(meta)?,
+    );
     let bytes = safetensors::serialize(tensors.iter().map(|(k, v)| (*k, v)), Some(header))
-        .map_err(|e| TrainError::Checkpoint { path: path.into(), msg: e.to_string() })?;
+        .map_err(|e| TrainError::Checkpoint {
+            path: path.into(),
+            msg: e.to_string(),
+        })?;
     write_atomic(path, &bytes)
 }
 
-fn load_checkpoint(path: &Path) -> Result<(CheckpointMeta, BTreeMap<String, Vec<f32>>), TrainError> {
-    let bad = |msg: String| TrainError::Checkpoint { path: path.into(), msg };
+fn load_checkpoint(
+    path: &Path,
+) -> Result<(CheckpointMeta, BTreeMap<String, Vec<f32>>), TrainError> {
+    let bad = |msg: String| TrainError::Checkpoint {
+        path: path.into(),
+        msg,
+    };
     let bytes = std::fs::read(path).map_err(|e| TrainError::io(path, e))?;
-    let (_, header) = safetensors::SafeTensors::read_metadata(&bytes).map_err(|e| bad(e.to_string()))?;
+    let (_, header) =
+        safetensors::SafeTensors::read_metadata(&bytes).map_err(|e| bad(e.to_string()))?;
     let meta_json = header
         .metadata()
         .as_ref()
@@ -291,11 +344,19 @@ fn load_checkpoint(path: &Path) -> Result<(CheckpointMeta, BTreeMap<String, Vec<
 
 /// Keep the log's header and the rows up to `step` (for a resumed run).
 fn truncate_log(path: &Path, step: u64) -> Result<(), TrainError> {
-    let Ok(text) = std::fs::read_to_string(path) else { return Ok(()) };
+    let Ok(text) = std::fs::read_to_string(path) else {
+        return Ok(());
+    };
     let kept: Vec<&str> = text
         .lines()
         .enumerate()
-        .filter(|(i, l)| *i == 0 || l.split(',').next().and_then(|s| s.parse::<u64>().ok()).is_some_and(|s| s <= step))
+        .filter(|(i, l)| {
+            *i == 0
+                || l.split(',')
+                    .next()
+                    .and_then(|s| s.parse::<u64>().ok())
+                    .is_some_and(|s| s <= step)
+        })
         .map(|(_, l)| l)
         .collect();
     std::fs::write(path, kept.join("\n") + "\n").map_err(|e| TrainError::io(path, e))
@@ -332,7 +393,9 @@ pub fn train(
     progress: Progress,
 ) -> Result<TrainOutcome, TrainError> {
     if cfg.batch == 0 || cfg.steps == 0 {
-        return Err(TrainError::InvalidArgument("batch and steps must be positive".into()));
+        return Err(TrainError::InvalidArgument(
+            "batch and steps must be positive".into(),
+        ));
     }
     let kind = cfg.model_kind()?;
     let synth = cfg.synth()?;
@@ -346,18 +409,32 @@ pub fn train(
         net.init_output_at(&source.sampler().stats().mean, 0.05);
     }
     let clip = (cfg.clip_norm > 0.0).then_some(cfg.clip_norm);
-    let mut opt = Adam::new(net.params.len(), AdamConfig { lr: cfg.lr, clip_norm: clip, ..Default::default() });
+    let mut opt = Adam::new(
+        net.params.len(),
+        AdamConfig {
+            lr: cfg.lr,
+            clip_norm: clip,
+            ..Default::default()
+        },
+    );
 
     let mut start_step = 0u64;
     let mut elapsed_before = 0.0;
     if resume && ckpt_path.exists() {
         let (meta, mut tensors) = load_checkpoint(&ckpt_path)?;
-        cfg.compatible(&meta.config).map_err(|msg| TrainError::Checkpoint { path: ckpt_path.clone(), msg })?;
+        cfg.compatible(&meta.config)
+            .map_err(|msg| TrainError::Checkpoint {
+                path: ckpt_path.clone(),
+                msg,
+            })?;
         let n = net.params.len();
         let mut take = |name: &str| -> Result<Vec<f32>, TrainError> {
             match tensors.remove(name) {
                 Some(v) if v.len() == n => Ok(v),
-                _ => Err(TrainError::Checkpoint { path: ckpt_path.clone(), msg: format!("missing or misshaped {name}") }),
+                _ => Err(TrainError::Checkpoint {
+                    path: ckpt_path.clone(),
+                    msg: format!("missing or misshaped {name}"),
+                }),
             }
         };
         net.params = take("params")?;
@@ -368,11 +445,19 @@ pub fn train(
         elapsed_before = meta.elapsed_s;
         truncate_log(&log_path, start_step)?;
     } else {
-        std::fs::write(&log_path, format!("{LOG_HEADER}\n")).map_err(|e| TrainError::io(&log_path, e))?;
+        std::fs::write(&log_path, format!("{LOG_HEADER}\n"))
+            .map_err(|e| TrainError::io(&log_path, e))?;
     }
-    std::fs::write(out.join("config.json"), serde_json::to_string_pretty(cfg)?).map_err(|e| TrainError::io(out, e))?;
+    std::fs::write(out.join("config.json"), serde_json::to_string_pretty(cfg)?)
+        .map_err(|e| TrainError::io(out, e))?;
 
-    let val_synth = validation_batches(&source, &synth, cfg.seed, cfg.val_samples, cfg.batch.min(64));
+    let val_synth = validation_batches(
+        &source,
+        &synth,
+        cfg.seed,
+        cfg.val_samples,
+        cfg.batch.min(64),
+    );
     let val_real = real_validation_batches(real_val, cfg.val_frames, 64);
 
     let t_start = Instant::now();
@@ -381,13 +466,31 @@ pub fn train(
     let mut validation = Validation::default();
     let mut frames_total = 0usize;
     let mut grad = vec![0.0f32; net.params.len()];
-    let mut loader = Prefetcher::spawn(source.clone(), synth, cfg.seed, cfg.batch, start_step..cfg.steps, 2);
+    let mut loader = Prefetcher::spawn(
+        source.clone(),
+        synth,
+        cfg.seed,
+        cfg.batch,
+        start_step..cfg.steps,
+        2,
+    );
     let mut step = start_step;
     while let Some((s, batch)) = loader.next_batch() {
         opt.config.lr = cfg.lr_at(s);
-        let loss_cfg = LossConfig { running_mean_weight: cfg.per_frame_weight, dropout: DROPOUT };
+        let loss_cfg = LossConfig {
+            running_mean_weight: cfg.per_frame_weight,
+            dropout: DROPOUT,
+        };
         let mut drop_rng = sample_rng(cfg.seed ^ DROPOUT_SEED_SALT, s, 0);
-        let res = net.train_step(&batch.inputs, &batch.targets, batch.batch, batch.seq_len, loss_cfg, &mut drop_rng, &mut grad);
+        let res = net.train_step(
+            &batch.inputs,
+            &batch.targets,
+            batch.batch,
+            batch.seq_len,
+            loss_cfg,
+            &mut drop_rng,
+            &mut grad,
+        );
         let mm = res.final_l1 * 1000.0;
         if !res.loss.is_finite() {
             return Err(TrainError::Data(format!("non-finite loss at step {s}")));
@@ -421,8 +524,12 @@ pub fn train(
                 validation.real_sh_running_mm,
                 elapsed_before + t_start.elapsed().as_secs_f64()
             );
-            let mut f = std::fs::OpenOptions::new().append(true).open(&log_path).map_err(|e| TrainError::io(&log_path, e))?;
-            f.write_all(row.as_bytes()).map_err(|e| TrainError::io(&log_path, e))?;
+            let mut f = std::fs::OpenOptions::new()
+                .append(true)
+                .open(&log_path)
+                .map_err(|e| TrainError::io(&log_path, e))?;
+            f.write_all(row.as_bytes())
+                .map_err(|e| TrainError::io(&log_path, e))?;
             window = (0.0, 0, 0.0, Instant::now(), 0);
         }
         if at_end || last_ckpt.elapsed().as_secs() >= cfg.checkpoint_secs {
@@ -441,9 +548,13 @@ pub fn train(
     let mut meta = WeightsMetadata::new(kind);
     meta.training_data = training_data.to_string();
     meta.version = format!("blapose-train {}", env!("CARGO_PKG_VERSION"));
-    meta.extra.insert("train_config".into(), serde_json::to_string(cfg)?);
+    meta.extra
+        .insert("train_config".into(), serde_json::to_string(cfg)?);
     meta.extra.insert("train_steps".into(), step.to_string());
-    meta.extra.insert("train_wall_clock_s".into(), format!("{:.0}", elapsed_before + elapsed));
+    meta.extra.insert(
+        "train_wall_clock_s".into(),
+        format!("{:.0}", elapsed_before + elapsed),
+    );
     let weights_path = out.join(WEIGHTS_FILE);
     let bytes = weights::to_bytes(&net.to_tensors()?, &meta)?;
     write_atomic(&weights_path, &bytes)?;

@@ -4,7 +4,9 @@
 use blapose_core::BoneLengths;
 use blapose_model::{LoadedWeights, ModelKind};
 use blapose_train::dataset::EvalSequence;
-use blapose_train::eval::{evaluate, summarize, Estimate, GruEstimator, LengthEstimator, CURVE_FRAMES};
+use blapose_train::eval::{
+    evaluate, summarize, Estimate, GruEstimator, LengthEstimator, CURVE_FRAMES,
+};
 use blapose_train::fastnet::FastNet;
 use blapose_train::TrainError;
 use rand::{Rng, SeedableRng};
@@ -12,14 +14,26 @@ use rand::{Rng, SeedableRng};
 fn trial(subject: &str, sequence: &str, gt: f32, frames: usize, marker: f32) -> EvalSequence {
     let mut input = vec![0.0f32; frames * 34];
     input[0] = marker;
-    EvalSequence { subject: subject.into(), sequence: sequence.into(), camera: "c".into(), input, gt: [gt; 16] }
+    EvalSequence {
+        subject: subject.into(),
+        sequence: sequence.into(),
+        camera: "c".into(),
+        input,
+        gt: [gt; 16],
+    }
 }
 
 /// Predicts `marker` (the first input value) for every bone.
 struct MarkerEstimator;
 impl LengthEstimator for MarkerEstimator {
     fn estimate(&self, trials: &[EvalSequence]) -> Result<Vec<Estimate>, TrainError> {
-        Ok(trials.iter().map(|t| Estimate { lengths: [t.input[0]; 16], curve: Vec::new() }).collect())
+        Ok(trials
+            .iter()
+            .map(|t| Estimate {
+                lengths: [t.input[0]; 16],
+                curve: Vec::new(),
+            })
+            .collect())
     }
 }
 
@@ -36,8 +50,21 @@ fn aggregation_matches_hand_computation() {
     ];
     let base: BoneLengths = [0.25; 16];
     let subjects = vec!["S9".to_string(), "S11".to_string()];
-    let r = evaluate(&MarkerEstimator, &trials, &[("flat", base)], "bigru", "sh", "w", &subjects).unwrap();
-    assert!((r.mean_bone_error_mm - 70.0 / 3.0).abs() < 1e-3, "{}", r.mean_bone_error_mm);
+    let r = evaluate(
+        &MarkerEstimator,
+        &trials,
+        &[("flat", base)],
+        "bigru",
+        "sh",
+        "w",
+        &subjects,
+    )
+    .unwrap();
+    assert!(
+        (r.mean_bone_error_mm - 70.0 / 3.0).abs() < 1e-3,
+        "{}",
+        r.mean_bone_error_mm
+    );
     assert!((r.summary.mean_over_trials_mm - 25.0).abs() < 1e-3);
     assert!((r.per_action_mm["Walking"] - 80.0 / 3.0).abs() < 1e-3);
     assert!((r.per_action_mm["Eating"] - 20.0).abs() < 1e-3);
@@ -49,8 +76,15 @@ fn aggregation_matches_hand_computation() {
     assert_eq!(r.frames, 20);
     assert!(r.curve.is_empty());
     let json = serde_json::to_value(&r).unwrap();
-    assert!(json["mean_bone_error_mm"].is_f64() && json["per_bone_mm"].is_array() && json["per_action_mm"].is_object());
-    assert!(summarize(&trials, &[base]).is_err(), "length mismatch is an error");
+    assert!(
+        json["mean_bone_error_mm"].is_f64()
+            && json["per_bone_mm"].is_array()
+            && json["per_action_mm"].is_object()
+    );
+    assert!(
+        summarize(&trials, &[base]).is_err(),
+        "length mismatch is an error"
+    );
 }
 
 #[test]
@@ -66,7 +100,9 @@ fn online_estimate_is_the_running_mean_of_the_reference_network() {
             subject: "S9".into(),
             sequence: "Walking 1".into(),
             camera: "c".into(),
-            input: (0..n * 34).map(|_| rng.random_range(-0.8f32..0.8)).collect(),
+            input: (0..n * 34)
+                .map(|_| rng.random_range(-0.8f32..0.8))
+                .collect(),
             gt: [0.2; 16],
         })
         .collect();
@@ -74,10 +110,17 @@ fn online_estimate_is_the_running_mean_of_the_reference_network() {
     for (t, e) in trials.iter().zip(&out) {
         let n = t.frames();
         let per = net.predict_per_frame(&t.input, 1, n);
-        let mean = |k: usize| -> Vec<f32> { (0..16).map(|j| (0..k).map(|f| per[f * 16 + j]).sum::<f32>() / k as f32).collect() };
+        let mean = |k: usize| -> Vec<f32> {
+            (0..16)
+                .map(|j| (0..k).map(|f| per[f * 16 + j]).sum::<f32>() / k as f32)
+                .collect()
+        };
         let full = mean(n);
         for j in 0..16 {
-            assert!((e.lengths[j] - full[j]).abs() < 1e-4, "final estimate differs");
+            assert!(
+                (e.lengths[j] - full[j]).abs() < 1e-4,
+                "final estimate differs"
+            );
         }
         assert_eq!(e.curve.len(), CURVE_FRAMES.len());
         for (k, &f) in CURVE_FRAMES.iter().enumerate() {

@@ -14,7 +14,9 @@ const T: usize = 6;
 
 fn inputs(seed: u64) -> (Vec<f32>, Vec<f32>) {
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-    let x: Vec<f32> = (0..B * T * 34).map(|_| rng.random_range(-1.0f32..1.0)).collect();
+    let x: Vec<f32> = (0..B * T * 34)
+        .map(|_| rng.random_range(-1.0f32..1.0))
+        .collect();
     let y: Vec<f32> = (0..B * 16).map(|_| rng.random_range(0.0f32..0.6)).collect();
     (x, y)
 }
@@ -31,11 +33,28 @@ fn check(kind: ModelKind, running_weight: f32) {
             let m = BoneLengthGru::new(vb).unwrap();
             let per = m.forward_per_frame_with(&xt, false).unwrap();
             let last = per.narrow(1, T - 1, 1).unwrap().squeeze(1).unwrap();
-            let mut loss = last.broadcast_sub(&yt).unwrap().abs().unwrap().mean_all().unwrap();
+            let mut loss = last
+                .broadcast_sub(&yt)
+                .unwrap()
+                .abs()
+                .unwrap()
+                .mean_all()
+                .unwrap();
             if running_weight > 0.0 {
-                let counts = Tensor::from_vec((1..=T).map(|i| i as f32).collect::<Vec<_>>(), (1, T, 1), &Device::Cpu).unwrap();
+                let counts = Tensor::from_vec(
+                    (1..=T).map(|i| i as f32).collect::<Vec<_>>(),
+                    (1, T, 1),
+                    &Device::Cpu,
+                )
+                .unwrap();
                 let run = per.cumsum(1).unwrap().broadcast_div(&counts).unwrap();
-                let l2 = run.broadcast_sub(&yt.unsqueeze(1).unwrap()).unwrap().abs().unwrap().mean_all().unwrap();
+                let l2 = run
+                    .broadcast_sub(&yt.unsqueeze(1).unwrap())
+                    .unwrap()
+                    .abs()
+                    .unwrap()
+                    .mean_all()
+                    .unwrap();
                 loss = (loss + (l2 * running_weight as f64).unwrap()).unwrap();
             }
             (last, loss)
@@ -43,7 +62,13 @@ fn check(kind: ModelKind, running_weight: f32) {
         ModelKind::BiGru => {
             let m = BoneLengthBiGru::new(vb).unwrap();
             let p = m.forward(&xt, false).unwrap();
-            let loss = p.broadcast_sub(&yt).unwrap().abs().unwrap().mean_all().unwrap();
+            let loss = p
+                .broadcast_sub(&yt)
+                .unwrap()
+                .abs()
+                .unwrap()
+                .mean_all()
+                .unwrap();
             (p, loss)
         }
     };
@@ -56,17 +81,36 @@ fn check(kind: ModelKind, running_weight: f32) {
     }
     let mut grad = vec![0.0f32; net.params.len()];
     let mut rng = rand::rngs::StdRng::seed_from_u64(0);
-    let cfg = LossConfig { running_mean_weight: running_weight, dropout: 0.0 };
+    let cfg = LossConfig {
+        running_mean_weight: running_weight,
+        dropout: 0.0,
+    };
     let res = net.train_step(&x, &y, B, T, cfg, &mut rng, &mut grad);
     let l: f32 = loss.to_scalar().unwrap();
-    assert!((res.loss as f32 - l).abs() < 1e-5, "{kind}: loss {} vs {l}", res.loss);
+    assert!(
+        (res.loss as f32 - l).abs() < 1e-5,
+        "{kind}: loss {} vs {l}",
+        res.loss
+    );
     let data = varmap.data().lock().unwrap();
     for (name, range, _) in net.layout.tensors() {
         let var = &data[&name];
-        let g: Vec<f32> = grads.get(var.as_tensor()).unwrap().flatten_all().unwrap().to_vec1().unwrap();
+        let g: Vec<f32> = grads
+            .get(var.as_tensor())
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
         let scale = g.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-6);
-        let worst = g.iter().zip(&grad[range]).fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
-        assert!(worst <= 2e-3 * scale + 1e-7, "{kind} (running {running_weight}): gradient of {name} off by {worst} (scale {scale})");
+        let worst = g
+            .iter()
+            .zip(&grad[range])
+            .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+        assert!(
+            worst <= 2e-3 * scale + 1e-7,
+            "{kind} (running {running_weight}): gradient of {name} off by {worst} (scale {scale})"
+        );
     }
 }
 

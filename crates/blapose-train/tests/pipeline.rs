@@ -29,7 +29,12 @@ fn fixture() -> Option<&'static Fixture> {
         let set = TrainingSet::load(&root).expect("training set loads");
         let stats = TrainingLengthStats::from_training(&set.lengths_list()).unwrap();
         let pop = load_population(&root, &stats).unwrap();
-        Some(Fixture { root, set, stats, pop })
+        Some(Fixture {
+            root,
+            set,
+            stats,
+            pop,
+        })
     })
     .as_ref()
 }
@@ -45,8 +50,16 @@ fn training_set_holds_training_subjects_only() {
     let Some(f) = fixture() else { return };
     let subjects: Vec<&str> = f.set.subject_lengths.keys().map(String::as_str).collect();
     assert_eq!(subjects, ["S1", "S5", "S6", "S7", "S8"]);
-    assert!(f.set.sequences.iter().all(|s| !["S9", "S11"].contains(&s.subject.as_str())));
-    assert!(f.set.real_sh.iter().all(|s| !["S9", "S11"].contains(&s.subject.as_str())));
+    assert!(f
+        .set
+        .sequences
+        .iter()
+        .all(|s| !["S9", "S11"].contains(&s.subject.as_str())));
+    assert!(f
+        .set
+        .real_sh
+        .iter()
+        .all(|s| !["S9", "S11"].contains(&s.subject.as_str())));
     assert!(f.set.residuals.frames() > 100_000);
 }
 
@@ -64,10 +77,17 @@ fn sampled_lengths_are_symmetric_and_human() {
             }
             for b in 0..NUM_BONES {
                 let ratio = l[b] / f.stats.mean[b];
-                assert!((0.5..=1.6).contains(&ratio), "{strategy}: bone {b} is {} m ({ratio:.2} x mean)", l[b]);
+                assert!(
+                    (0.5..=1.6).contains(&ratio),
+                    "{strategy}: bone {b} is {} m ({ratio:.2} x mean)",
+                    l[b]
+                );
             }
             // Absolute sanity: thigh 0.25-0.7 m, forearm 0.15-0.4 m.
-            assert!((0.25..0.7).contains(&l[1]) && (0.15..0.4).contains(&l[12]), "{strategy}: {l:?}");
+            assert!(
+                (0.25..0.7).contains(&l[1]) && (0.15..0.4).contains(&l[12]),
+                "{strategy}: {l:?}"
+            );
         }
     }
 }
@@ -77,7 +97,10 @@ fn ansur_population_is_aligned_and_correlated() {
     let Some(f) = fixture() else { return };
     let (mean, std) = f.pop.moments();
     for b in 0..NUM_BONES {
-        assert!((mean[b] - f.stats.mean[b]).abs() < 1e-4, "bone {b} mean not aligned");
+        assert!(
+            (mean[b] - f.stats.mean[b]).abs() < 1e-4,
+            "bone {b} mean not aligned"
+        );
     }
     assert!(f.pop.len() > 6000);
     assert!(std[1] > 0.01, "thigh varies");
@@ -85,7 +108,11 @@ fn ansur_population_is_aligned_and_correlated() {
     let p = f.pop.people();
     let n = p.len() as f64;
     let (mx, my) = (mean[1] as f64, mean[12] as f64);
-    let cov = p.iter().map(|l| (l[1] as f64 - mx) * (l[12] as f64 - my)).sum::<f64>() / n;
+    let cov = p
+        .iter()
+        .map(|l| (l[1] as f64 - mx) * (l[12] as f64 - my))
+        .sum::<f64>()
+        / n;
     let corr = cov / (std[1] as f64 * std[12] as f64);
     assert!(corr > 0.3, "thigh/forearm correlation {corr}");
 }
@@ -120,7 +147,10 @@ fn calibration_sees_training_subjects_only() {
     scale(&mut h, "S1");
     let (s2, p2) = build(&h);
     assert_ne!(s2, s0, "changing S1 must change the statistics");
-    assert_ne!(p2.scale, p0.scale, "changing S1 must change the calibration");
+    assert_ne!(
+        p2.scale, p0.scale,
+        "changing S1 must change the calibration"
+    );
 }
 
 #[test]
@@ -128,13 +158,37 @@ fn flip_is_consistent() {
     let Some(f) = fixture() else { return };
     let src = source(f, LengthStrategy::Ansur);
     for noise in [NoiseKind::None, NoiseKind::Gaussian, NoiseKind::Residual] {
-        let base = SynthConfig { seq_len: 16, noise, ..Default::default() };
-        let plain = src.sample(&SynthConfig { flip_prob: 0.0, ..base }, &mut sample_rng(5, 6, 7));
-        let flipped = src.sample(&SynthConfig { flip_prob: 1.0, ..base }, &mut sample_rng(5, 6, 7));
+        let base = SynthConfig {
+            seq_len: 16,
+            noise,
+            ..Default::default()
+        };
+        let plain = src.sample(
+            &SynthConfig {
+                flip_prob: 0.0,
+                ..base
+            },
+            &mut sample_rng(5, 6, 7),
+        );
+        let flipped = src.sample(
+            &SynthConfig {
+                flip_prob: 1.0,
+                ..base
+            },
+            &mut sample_rng(5, 6, 7),
+        );
         assert!(!plain.flipped && flipped.flipped);
         assert_eq!(plain.target, flipped.target, "a flip keeps the targets");
-        assert_eq!(flip_input(&plain.input), flipped.input, "{noise}: flipped sample is the mirrored sample");
-        assert_eq!(flip_input(&flip_input(&plain.input)), plain.input, "flip twice is the identity");
+        assert_eq!(
+            flip_input(&plain.input),
+            flipped.input,
+            "{noise}: flipped sample is the mirrored sample"
+        );
+        assert_eq!(
+            flip_input(&flip_input(&plain.input)),
+            plain.input,
+            "flip twice is the identity"
+        );
     }
 }
 
@@ -142,19 +196,36 @@ fn flip_is_consistent() {
 fn samples_are_plausible_and_deterministic() {
     let Some(f) = fixture() else { return };
     let src = Arc::new(source(f, LengthStrategy::Uniform));
-    let cfg = SynthConfig { seq_len: 32, ..Default::default() };
-    let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
-    let two = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+    let cfg = SynthConfig {
+        seq_len: 32,
+        ..Default::default()
+    };
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap();
+    let two = rayon::ThreadPoolBuilder::new()
+        .num_threads(2)
+        .build()
+        .unwrap();
     let a = one.install(|| src.batch(&cfg, 9, 4, 24));
     let b = two.install(|| src.batch(&cfg, 9, 4, 24));
     assert_eq!(a, b, "batches do not depend on the thread count");
     assert_ne!(a, src.batch(&cfg, 9, 5, 24), "different steps differ");
     // In (or near) the image: normalized x within about [-1, 1].
-    let inside = a.inputs.chunks_exact(2).filter(|p| p[0].abs() <= 1.1 && p[1].abs() <= 1.1).count();
+    let inside = a
+        .inputs
+        .chunks_exact(2)
+        .filter(|p| p[0].abs() <= 1.1 && p[1].abs() <= 1.1)
+        .count();
     assert!(inside as f64 > 0.99 * (a.inputs.len() / 2) as f64);
     // Strides cover 25-60 fps.
     let mut rng = sample_rng(1, 1, 1);
-    let strides: Vec<f32> = (0..200).map(|_| src.sample(&cfg, &mut rng).stride).collect();
-    assert!(strides.iter().all(|&s| (50.0 / 60.0 - 1e-6..=2.0).contains(&s)));
+    let strides: Vec<f32> = (0..200)
+        .map(|_| src.sample(&cfg, &mut rng).stride)
+        .collect();
+    assert!(strides
+        .iter()
+        .all(|&s| (50.0 / 60.0 - 1e-6..=2.0).contains(&s)));
     assert!(strides.iter().any(|&s| s < 1.0) && strides.iter().any(|&s| s > 1.8));
 }

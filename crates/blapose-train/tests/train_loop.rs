@@ -16,18 +16,33 @@ fn loss_falls_on_a_tiny_synthetic_set() {
     for kind in [ModelKind::Gru, ModelKind::BiGru] {
         let (b, t) = (4, 8);
         let mut rng = rand::rngs::StdRng::seed_from_u64(4);
-        let x: Vec<f32> = (0..b * t * 34).map(|_| rng.random_range(-1.0f32..1.0)).collect();
+        let x: Vec<f32> = (0..b * t * 34)
+            .map(|_| rng.random_range(-1.0f32..1.0))
+            .collect();
         let y: Vec<f32> = (0..b * 16).map(|_| rng.random_range(0.1f32..0.5)).collect();
         let w = LoadedWeights::random(kind, 1).unwrap();
         let mut net = FastNet::from_tensors(kind, w.tensors()).unwrap();
-        let mut opt = Adam::new(net.params.len(), AdamConfig { lr: 1e-3, ..Default::default() });
+        let mut opt = Adam::new(
+            net.params.len(),
+            AdamConfig {
+                lr: 1e-3,
+                ..Default::default()
+            },
+        );
         let mut grad = vec![0.0f32; net.params.len()];
-        let cfg = LossConfig { running_mean_weight: 0.5, dropout: 0.0 };
-        let first = net.train_step(&x, &y, b, t, cfg, &mut rng, &mut grad).final_l1;
+        let cfg = LossConfig {
+            running_mean_weight: 0.5,
+            dropout: 0.0,
+        };
+        let first = net
+            .train_step(&x, &y, b, t, cfg, &mut rng, &mut grad)
+            .final_l1;
         opt.step(&mut net.params, &grad).unwrap();
         let mut last = first;
         for _ in 0..60 {
-            last = net.train_step(&x, &y, b, t, cfg, &mut rng, &mut grad).final_l1;
+            last = net
+                .train_step(&x, &y, b, t, cfg, &mut rng, &mut grad)
+                .final_l1;
             opt.step(&mut net.params, &grad).unwrap();
         }
         assert!(last < 0.3 * first, "{kind}: loss {first} -> {last}");
@@ -62,26 +77,62 @@ fn config(steps: u64) -> TrainConfig {
 
 #[test]
 fn resume_continues_exactly() {
-    let Some(root) = blapose_data::test_data_root("h36m/poses_3d.npz", "resume test") else { return };
+    let Some(root) = blapose_data::test_data_root("h36m/poses_3d.npz", "resume test") else {
+        return;
+    };
     let set = TrainingSet::load(&root).unwrap();
     let stats = TrainingLengthStats::from_training(&set.lengths_list()).unwrap();
     let sampler = LengthSampler::new(LengthStrategy::Normal, stats, None).unwrap();
-    let source = Arc::new(SynthSource::new(set.sequences.clone(), set.residuals.clone(), sampler).unwrap());
+    let source =
+        Arc::new(SynthSource::new(set.sequences.clone(), set.residuals.clone(), sampler).unwrap());
     let real = &set.real_sh[..20];
     let dir = std::env::temp_dir().join(format!("blapose-train-resume-{}", std::process::id()));
     let (straight, split) = (dir.join("straight"), dir.join("split"));
     let mut quiet = |_: u64, _: u64, _: f64, _: f64| {};
-    let a = train(&config(4), source.clone(), real, &straight, false, "test", &mut quiet).unwrap();
+    let a = train(
+        &config(4),
+        source.clone(),
+        real,
+        &straight,
+        false,
+        "test",
+        &mut quiet,
+    )
+    .unwrap();
     assert_eq!(a.steps_run, 4);
-    let b1 = train(&config(2), source.clone(), real, &split, false, "test", &mut quiet).unwrap();
+    let b1 = train(
+        &config(2),
+        source.clone(),
+        real,
+        &split,
+        false,
+        "test",
+        &mut quiet,
+    )
+    .unwrap();
     assert_eq!(b1.steps_run, 2);
-    let b2 = train(&config(4), source.clone(), real, &split, true, "test", &mut quiet).unwrap();
+    let b2 = train(
+        &config(4),
+        source.clone(),
+        real,
+        &split,
+        true,
+        "test",
+        &mut quiet,
+    )
+    .unwrap();
     assert_eq!(b2.steps_run, 2, "resumed at step 2");
     let wa = blapose_model::weights::load(straight.join(WEIGHTS_FILE), ModelKind::Gru).unwrap();
     let wb = blapose_model::weights::load(split.join(WEIGHTS_FILE), ModelKind::Gru).unwrap();
     for (name, t) in wa.tensors() {
         let va: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
-        let vb: Vec<f32> = wb.tensor(name).unwrap().flatten_all().unwrap().to_vec1().unwrap();
+        let vb: Vec<f32> = wb
+            .tensor(name)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
         assert_eq!(va, vb, "tensor {name} differs after resume");
     }
     assert_eq!(a.validation, b2.validation);

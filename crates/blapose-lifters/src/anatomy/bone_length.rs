@@ -72,7 +72,12 @@ impl BoneLengthBranch {
     /// `layers_bnbone.{i}`, `boneatt`, `lengthlinear`, `lengthlinear_1/_2`);
     /// `pairs` residual pairs (the reference uses one per filter width
     /// after the first).
-    pub(crate) fn load(l: &ParamLoader, channels: usize, pairs: usize, temperature: f64) -> Result<Self> {
+    pub(crate) fn load(
+        l: &ParamLoader,
+        channels: usize,
+        pairs: usize,
+        temperature: f64,
+    ) -> Result<Self> {
         let before = l.total();
         let (lin, bns) = (l.pp("layers_convbone"), l.pp("layers_bnbone"));
         let layer = |i: usize, c_in: usize| -> Result<Dense> {
@@ -84,14 +89,20 @@ impl BoneLengthBranch {
         let blocks = (1..=pairs)
             .map(|i| Ok([layer(2 * i - 1, channels)?, layer(2 * i, channels)?]))
             .collect::<Result<_>>()?;
-        let joints = RawAffine::linear(&lin.pp(2 * pairs + 1), channels, NUM_JOINTS * 3, true)?.into_dense()?;
-        let attention = RawAffine::linear(&l.pp("boneatt"), NUM_JOINTS * 6, NUM_BONES, true)?.into_dense()?;
-        let length_embed = RawAffine::linear(&l.pp("lengthlinear"), NUM_BONES, channels, true)?.into_dense()?;
+        let joints = RawAffine::linear(&lin.pp(2 * pairs + 1), channels, NUM_JOINTS * 3, true)?
+            .into_dense()?;
+        let attention =
+            RawAffine::linear(&l.pp("boneatt"), NUM_JOINTS * 6, NUM_BONES, true)?.into_dense()?;
+        let length_embed =
+            RawAffine::linear(&l.pp("lengthlinear"), NUM_BONES, channels, true)?.into_dense()?;
         // Training-only embeddings: loaded so checkpoints match, then dropped.
         for aux in ["lengthlinear_1", "lengthlinear_2"] {
             RawAffine::linear(&l.pp(aux), NUM_BONES, channels, true)?;
         }
-        let (a, b): (Vec<u32>, Vec<u32>) = REFERENCE_BONES.iter().map(|&(a, b)| (a as u32, b as u32)).unzip();
+        let (a, b): (Vec<u32>, Vec<u32>) = REFERENCE_BONES
+            .iter()
+            .map(|&(a, b)| (a as u32, b as u32))
+            .unzip();
         Ok(Self {
             first,
             blocks,
@@ -114,17 +125,29 @@ impl BoneLengthBranch {
     /// each frame's lifted pose and their attention logits (temperature
     /// applied), both `(N, 16)` in [`REFERENCE_BONES`] order.
     pub fn frame_outputs(&self, keypoints: &Tensor) -> Result<(Tensor, Tensor)> {
-        expect_dims(keypoints, "bone-length frames", &[None, Some(NUM_JOINTS), Some(INPUT_FEATURES)])?;
+        expect_dims(
+            keypoints,
+            "bone-length frames",
+            &[None, Some(NUM_JOINTS), Some(INPUT_FEATURES)],
+        )?;
         let n = keypoints.dim(0)?;
-        let mut h = self.first.forward(&keypoints.reshape((n, NUM_JOINTS * INPUT_FEATURES))?)?.relu()?;
+        let mut h = self
+            .first
+            .forward(&keypoints.reshape((n, NUM_JOINTS * INPUT_FEATURES))?)?
+            .relu()?;
         for [a, b] in &self.blocks {
             let r = h.clone();
             h = b.forward(&a.forward(&h)?.relu()?)?.relu()?.add(&r)?;
         }
         let joints = self.joints.forward(&h)?;
-        let logits = (self.attention.forward(&Tensor::cat(&[&joints, &joints.abs()?], 1)?)? * self.temperature)?;
+        let logits = (self
+            .attention
+            .forward(&Tensor::cat(&[&joints, &joints.abs()?], 1)?)?
+            * self.temperature)?;
         let joints = joints.reshape((n, NUM_JOINTS, 3))?;
-        let bones = joints.index_select(&self.bone_a, 1)?.sub(&joints.index_select(&self.bone_b, 1)?)?;
+        let bones = joints
+            .index_select(&self.bone_a, 1)?
+            .sub(&joints.index_select(&self.bone_b, 1)?)?;
         let lengths = bones.sqr()?.sum(D::Minus1)?.sqrt()?;
         Ok((lengths, logits))
     }
@@ -132,9 +155,14 @@ impl BoneLengthBranch {
     /// Attention-weighted bone lengths over all frames of each sequence:
     /// `(B, N, 17, 2)` -> `(B, 16)`.
     pub fn predict_lengths(&self, keypoints: &Tensor) -> Result<Tensor> {
-        expect_dims(keypoints, "bone-length sequence", &[None, None, Some(NUM_JOINTS), Some(INPUT_FEATURES)])?;
+        expect_dims(
+            keypoints,
+            "bone-length sequence",
+            &[None, None, Some(NUM_JOINTS), Some(INPUT_FEATURES)],
+        )?;
         let (b, n) = (keypoints.dim(0)?, keypoints.dim(1)?);
-        let (lengths, logits) = self.frame_outputs(&keypoints.reshape((b * n, NUM_JOINTS, INPUT_FEATURES))?)?;
+        let (lengths, logits) =
+            self.frame_outputs(&keypoints.reshape((b * n, NUM_JOINTS, INPUT_FEATURES))?)?;
         let weights = candle_nn::ops::softmax(&logits.reshape((b, n, NUM_BONES))?, 1)?;
         Ok(lengths.reshape((b, n, NUM_BONES))?.mul(&weights)?.sum(1)?)
     }
@@ -207,7 +235,9 @@ impl OnlineBoneLengths {
 
     /// The current estimate, `None` before the first frame.
     pub fn lengths(&self) -> Option<BoneLengths> {
-        (self.frames > 0).then(|| std::array::from_fn(|b| (self.weighted_lengths[b] / self.weight_sum[b]) as f32))
+        (self.frames > 0).then(|| {
+            std::array::from_fn(|b| (self.weighted_lengths[b] / self.weight_sum[b]) as f32)
+        })
     }
 
     /// Frames folded in so far.

@@ -15,6 +15,7 @@
 //!   2. the last level's feature, repeated over the first level's frames,
 //!      is concatenated with each kept level in turn and run through a
 //!      second stack of residual blocks (all `2C -> C`).
+//!
 //!   The second stack's output gives 16 bone directions (`Conv1d(C -> 48)`,
 //!   each 3-vector normalized).
 //! * **Joints**: `shrink(directlinear(directions) * lengthlinear(lengths))`,
@@ -63,7 +64,12 @@ pub struct Anatomy3dConfig {
 impl Anatomy3dConfig {
     /// The paper's 243-frame model (`3,3,3,3,3`, 1024 channels).
     pub fn receptive_field_243() -> Self {
-        Self { filter_widths: vec![3; 5], channels: 1024, causal: false, temperature: 10.0 }
+        Self {
+            filter_widths: vec![3; 5],
+            channels: 1024,
+            causal: false,
+            temperature: 10.0,
+        }
     }
 
     /// The same configuration with causal alignment on or off.
@@ -78,7 +84,10 @@ impl Anatomy3dConfig {
     }
 
     fn validate(&self) -> Result<()> {
-        if self.filter_widths.len() < 2 || self.filter_widths.iter().any(|w| w % 2 == 0) || self.channels == 0 {
+        if self.filter_widths.len() < 2
+            || self.filter_widths.iter().any(|w| w % 2 == 0)
+            || self.channels == 0
+        {
             return Err(LifterError::Config(format!(
                 "Anatomy3D needs >= 2 odd filter widths and channels > 0; got {:?}, {}",
                 self.filter_widths, self.channels
@@ -117,23 +126,42 @@ impl Anatomy3d {
         let fw0 = config.filter_widths[0];
         let rest = &config.filter_widths[1..];
         let bone_length = BoneLengthBranch::load(&l, c, rest.len(), config.temperature)?;
-        let expand = RawAffine::conv1d(&l.pp("expand_conv"), NUM_JOINTS * INPUT_FEATURES, c, fw0, false)?
-            .with_bn(&BatchNorm::load(&l.pp("expand_bn"), c)?)?
-            .into_conv()?;
+        let expand = RawAffine::conv1d(
+            &l.pp("expand_conv"),
+            NUM_JOINTS * INPUT_FEATURES,
+            c,
+            fw0,
+            false,
+        )?
+        .with_bn(&BatchNorm::load(&l.pp("expand_bn"), c)?)?
+        .into_conv()?;
         let expand_score = RawAffine::conv1d(&l.pp("expand_convscore"), NUM_JOINTS, c, fw0, false)?
             .with_bn(&BatchNorm::load(&l.pp("expand_bnscore"), c)?)?
             .into_conv()?;
         // Residual stacks; `c_in(i)` is the input width of block `i`.
-        let stack = |convs: &str, bns: &str, c_in: &dyn Fn(usize) -> usize| -> Result<Vec<ResidualBlock>> {
-            let (convs, bns) = (l.pp(convs), l.pp(bns));
-            rest.iter().enumerate().map(|(i, &w)| ResidualBlock::load(&convs, &bns, i, c_in(i), c, w)).collect()
-        };
-        let first_stack = stack("layers_conv", "layers_bn", &|i| if i == 0 { 2 * c } else { c })?;
+        let stack =
+            |convs: &str, bns: &str, c_in: &dyn Fn(usize) -> usize| -> Result<Vec<ResidualBlock>> {
+                let (convs, bns) = (l.pp(convs), l.pp(bns));
+                rest.iter()
+                    .enumerate()
+                    .map(|(i, &w)| ResidualBlock::load(&convs, &bns, i, c_in(i), c, w))
+                    .collect()
+            };
+        let first_stack = stack("layers_conv", "layers_bn", &|i| {
+            if i == 0 {
+                2 * c
+            } else {
+                c
+            }
+        })?;
         let second_stack = stack("layers_conv1", "layers_bn1", &|_| 2 * c)?;
         let directions = NUM_BONES * 3;
-        let shrink_direction = RawAffine::conv1d(&l.pp("shrink_direct_2"), c, directions, 1, true)?.into_dense()?;
-        let direction_embed = RawAffine::conv1d(&l.pp("directlinear"), directions, c, 1, true)?.into_dense()?;
-        let shrink = RawAffine::conv1d(&l.pp("shrink"), c, NUM_JOINTS * 3, 1, true)?.into_dense()?;
+        let shrink_direction =
+            RawAffine::conv1d(&l.pp("shrink_direct_2"), c, directions, 1, true)?.into_dense()?;
+        let direction_embed =
+            RawAffine::conv1d(&l.pp("directlinear"), directions, c, 1, true)?.into_dense()?;
+        let shrink =
+            RawAffine::conv1d(&l.pp("shrink"), c, NUM_JOINTS * 3, 1, true)?.into_dense()?;
         // Training-only heads: loaded so checkpoints match, then dropped.
         let joint_shifts = 3 * (NUM_JOINTS * (NUM_JOINTS + 1) / 2 - NUM_BONES);
         RawAffine::conv1d(&l.pp("shrink_direct_1"), c, directions, 1, true)?;
@@ -177,17 +205,28 @@ impl Anatomy3d {
     /// when causal); `scores` `(B, RF, 17)` default to 1.
     pub fn bone_directions(&self, window: &Tensor, scores: Option<&Tensor>) -> Result<Tensor> {
         let rf = self.config.receptive_field();
-        expect_dims(window, "Anatomy3D window", &[None, Some(rf), Some(NUM_JOINTS), Some(INPUT_FEATURES)])?;
+        expect_dims(
+            window,
+            "Anatomy3D window",
+            &[None, Some(rf), Some(NUM_JOINTS), Some(INPUT_FEATURES)],
+        )?;
         let b = window.dim(0)?;
         let scores = match scores {
             Some(s) => {
-                expect_dims(s, "Anatomy3D scores", &[Some(b), Some(rf), Some(NUM_JOINTS)])?;
+                expect_dims(
+                    s,
+                    "Anatomy3D scores",
+                    &[Some(b), Some(rf), Some(NUM_JOINTS)],
+                )?;
                 s.clone()
             }
             None => Tensor::ones((b, rf, NUM_JOINTS), window.dtype(), &Device::Cpu)?,
         };
         let causal = self.config.causal;
-        let x0 = self.expand.strided(&window.reshape((b, rf, NUM_JOINTS * INPUT_FEATURES))?)?.relu()?;
+        let x0 = self
+            .expand
+            .strided(&window.reshape((b, rf, NUM_JOINTS * INPUT_FEATURES))?)?
+            .relu()?;
         let s0 = self.expand_score.strided(&scores)?.relu()?;
         let mut levels = vec![x0.clone()];
         let mut x = Tensor::cat(&[&x0, &s0.mul(&x0)?], D::Minus1)?;
@@ -201,19 +240,39 @@ impl Anatomy3d {
         for (block, level) in self.second_stack.iter().zip(&levels) {
             x = block.strided(&Tensor::cat(&[&x, level], D::Minus1)?, causal)?;
         }
-        let d = self.shrink_direction.forward(&x)?.reshape((b, NUM_BONES, 3))?;
+        let d = self
+            .shrink_direction
+            .forward(&x)?
+            .reshape((b, NUM_BONES, 3))?;
         Ok(d.broadcast_div(&d.sqr()?.sum_keepdim(D::Minus1)?.sqrt()?)?)
     }
 
     /// The pose `(B, 17, 3)` for a `(B, RF, 17, 2)` window, given bone
     /// lengths `(B, 16)` in [`REFERENCE_BONES`] order (e.g. from
     /// [`BoneLengthBranch::step`] on a stream) and optional scores.
-    pub fn predict_frame_with(&self, window: &Tensor, scores: Option<&Tensor>, lengths: &Tensor) -> Result<Tensor> {
+    pub fn predict_frame_with(
+        &self,
+        window: &Tensor,
+        scores: Option<&Tensor>,
+        lengths: &Tensor,
+    ) -> Result<Tensor> {
         let b = window.dim(0)?;
-        expect_dims(lengths, "Anatomy3D bone lengths", &[Some(b), Some(NUM_BONES)])?;
-        let directions = self.bone_directions(window, scores)?.reshape((b, NUM_BONES * 3))?;
-        let features = self.direction_embed.forward(&directions)?.mul(&self.bone_length.embed(lengths)?)?;
-        Ok(self.shrink.forward(&features)?.reshape((b, NUM_JOINTS, 3))?)
+        expect_dims(
+            lengths,
+            "Anatomy3D bone lengths",
+            &[Some(b), Some(NUM_BONES)],
+        )?;
+        let directions = self
+            .bone_directions(window, scores)?
+            .reshape((b, NUM_BONES * 3))?;
+        let features = self
+            .direction_embed
+            .forward(&directions)?
+            .mul(&self.bone_length.embed(lengths)?)?;
+        Ok(self
+            .shrink
+            .forward(&features)?
+            .reshape((b, NUM_JOINTS, 3))?)
     }
 }
 

@@ -19,8 +19,44 @@ pub(crate) mod pack;
 pub use isa::Isa;
 pub use offline::OfflineBiGruEngine;
 pub use online::{OnlineGruEngine, StepScratch};
+pub use pack::Precision;
 
 use crate::ModelError;
+
+/// How a fast engine runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct EngineOptions {
+    /// Worker threads (1: run on the caller's thread).
+    pub threads: usize,
+    /// Instruction set; `None` picks the best this CPU supports.
+    pub isa: Option<Isa>,
+    /// Storage precision of the GRU weights.
+    pub precision: Precision,
+}
+
+impl Default for EngineOptions {
+    fn default() -> Self {
+        Self {
+            threads: 1,
+            isa: None,
+            precision: Precision::F32,
+        }
+    }
+}
+
+impl EngineOptions {
+    /// Default options with `threads` worker threads.
+    pub fn threads(threads: usize) -> Self {
+        Self {
+            threads,
+            ..Self::default()
+        }
+    }
+
+    fn resolved_isa(&self) -> Result<Isa, ModelError> {
+        self.isa.unwrap_or_else(Isa::detect).require()
+    }
+}
 
 /// A dedicated rayon pool for `threads > 1` (None: run on the caller).
 fn build_pool(threads: usize, name: &'static str) -> Result<Option<rayon::ThreadPool>, ModelError> {

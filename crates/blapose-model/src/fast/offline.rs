@@ -14,7 +14,7 @@
 use super::kernel::{self, TileArgs};
 use super::linalg::matmul;
 use super::pack::{PackedEmbed, PackedGru, PackedHead, LANES, PANELS, ROW};
-use super::{build_pool, check_finite, Isa};
+use super::{build_pool, check_finite, EngineOptions, Isa};
 use crate::names::{GruNames, EMBED_BIAS, EMBED_WEIGHT, FC_WEIGHT};
 use crate::{LoadedWeights, ModelError, ModelKind, EMBED_DIM, GATES, HIDDEN, INPUT_DIM, OUTPUT_DIM};
 
@@ -52,20 +52,33 @@ fn panel_column(row: usize) -> usize {
 
 impl OfflineBiGruEngine {
     /// Build from offline (`bigru`) weights; `threads >= 2` runs the two
-    /// directions in parallel. Uses the best instruction set of this CPU.
+    /// directions in parallel. f32 weights, best instruction set of this CPU.
     pub fn new(weights: &LoadedWeights, threads: usize) -> Result<Self, ModelError> {
-        Self::with_isa(weights, threads, Isa::detect())
+        Self::with_options(weights, EngineOptions::threads(threads))
     }
 
     /// As [`Self::new`] with an explicit instruction set.
     pub fn with_isa(weights: &LoadedWeights, threads: usize, isa: Isa) -> Result<Self, ModelError> {
+        Self::with_options(
+            weights,
+            EngineOptions {
+                isa: Some(isa),
+                ..EngineOptions::threads(threads)
+            },
+        )
+    }
+
+    /// Build with explicit [`EngineOptions`] (the precision applies to the
+    /// recurrent weights; the batched input projection stays f32).
+    pub fn with_options(weights: &LoadedWeights, opts: EngineOptions) -> Result<Self, ModelError> {
         if weights.kind() != ModelKind::BiGru {
             return Err(ModelError::WrongKind {
                 expected: ModelKind::BiGru,
                 found: weights.kind(),
             });
         }
-        let isa = isa.require()?;
+        let isa = opts.resolved_isa()?;
+        let threads = opts.threads;
         let names = GruNames::for_kind(ModelKind::BiGru);
         let mut proj = [Vec::new(), Vec::new()];
         let mut proj_bias = [Vec::new(), Vec::new()];
@@ -90,6 +103,7 @@ impl OfflineBiGruEngine {
                 &b_ih,
                 &weights.values(&n.bias_hh)?,
                 false,
+                opts.precision,
             ));
         }
         let [fwd, bwd]: [PackedGru; 2] = grus
@@ -201,10 +215,11 @@ impl OfflineBiGruEngine {
             for s in 0..n {
                 let t = if d == 0 { s } else { n - 1 - s };
                 let pre_t = &pre[t * GATES..(t + 1) * GATES];
-                reverse = !reverse;
+                reverse = !reverse && std::env::var_os("NOREV").is_none();
                 let mut run_panel = |p: usize| {
                     let args = TileArgs {
-                        w: gru.panel(p).as_ptr(),
+                        w: gru.panel_ptr(p),
+                        half: gru.is_half(),
                         k_in: 0,
                         bias: gru.bias(p).as_ptr(),
                         x: h.as_ptr(),

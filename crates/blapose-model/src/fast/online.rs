@@ -27,7 +27,7 @@ use std::ops::Range;
 
 use super::kernel::{self, TileArgs};
 use super::pack::{AlignedBuf, PackedEmbed, PackedGru, PackedHead, LANES, PANELS};
-use super::{build_pool, check_finite, Isa};
+use super::{build_pool, check_finite, EngineOptions, Isa, Precision};
 use crate::names::{GruNames, EMBED_BIAS, EMBED_WEIGHT, FC_WEIGHT};
 use crate::{
     LoadedWeights, ModelError, ModelKind, EMBED_DIM, HIDDEN, INPUT_DIM, OUTPUT_DIM, STATE_DIM,
@@ -108,20 +108,32 @@ struct StepCtx<'a> {
 
 impl OnlineGruEngine {
     /// Build from online (`gru`) weights with `threads` worker threads,
-    /// using the best instruction set of this CPU.
+    /// f32 weights and the best instruction set of this CPU.
     pub fn new(weights: &LoadedWeights, threads: usize) -> Result<Self, ModelError> {
-        Self::with_isa(weights, threads, Isa::detect())
+        Self::with_options(weights, EngineOptions::threads(threads))
     }
 
     /// As [`Self::new`] with an explicit instruction set (tests, benchmarks).
     pub fn with_isa(weights: &LoadedWeights, threads: usize, isa: Isa) -> Result<Self, ModelError> {
+        Self::with_options(
+            weights,
+            EngineOptions {
+                isa: Some(isa),
+                ..EngineOptions::threads(threads)
+            },
+        )
+    }
+
+    /// Build with explicit [`EngineOptions`].
+    pub fn with_options(weights: &LoadedWeights, opts: EngineOptions) -> Result<Self, ModelError> {
         if weights.kind() != ModelKind::Gru {
             return Err(ModelError::WrongKind {
                 expected: ModelKind::Gru,
                 found: weights.kind(),
             });
         }
-        let isa = isa.require()?;
+        let isa = opts.resolved_isa()?;
+        let threads = opts.threads;
         let pack = |n: &GruNames| -> Result<PackedGru, ModelError> {
             Ok(PackedGru::new(
                 &weights.values(&n.weight_ih)?,
@@ -129,6 +141,7 @@ impl OnlineGruEngine {
                 &weights.values(&n.bias_ih)?,
                 &weights.values(&n.bias_hh)?,
                 true,
+                opts.precision,
             ))
         };
         let [na, nb] = GruNames::for_kind(ModelKind::Gru);
@@ -145,6 +158,15 @@ impl OnlineGruEngine {
     /// The instruction set in use.
     pub fn isa(&self) -> Isa {
         self.isa
+    }
+
+    /// The storage precision of the GRU weights.
+    pub fn precision(&self) -> Precision {
+        if self.grus[0].is_half() {
+            Precision::F16
+        } else {
+            Precision::F32
+        }
     }
 
     /// Worker threads per step.
@@ -304,7 +326,8 @@ impl OnlineGruEngine {
             let gru = &self.grus[g];
             let out = &mut new_state[(i - first) * batch * LANES..(i - first + 1) * batch * LANES];
             let args = TileArgs {
-                w: gru.panel(p).as_ptr(),
+                w: gru.panel_ptr(p),
+                half: gru.is_half(),
                 k_in: gru.k_in,
                 bias: gru.bias(p).as_ptr(),
                 x: ctx.packed[g].as_ptr(),

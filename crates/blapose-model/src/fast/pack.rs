@@ -64,13 +64,74 @@ impl AlignedBuf {
     }
 }
 
+#[derive(Clone, Copy)]
+#[repr(C, align(64))]
+struct Line16([u16; 32]);
+
+/// A zero-initialized, 64-byte aligned buffer of f16 bit patterns.
+#[derive(Clone)]
+pub(crate) struct AlignedBuf16 {
+    lines: Vec<Line16>,
+    len: usize,
+}
+
+impl AlignedBuf16 {
+    fn from_f32(values: &[f32]) -> Self {
+        let mut lines = vec![Line16([0; 32]); values.len().div_ceil(32)];
+        for (i, v) in values.iter().enumerate() {
+            lines[i / 32].0[i % 32] = half::f16::from_f32(*v).to_bits();
+        }
+        Self {
+            lines,
+            len: values.len(),
+        }
+    }
+
+    pub(crate) fn as_slice(&self) -> &[u16] {
+        // SAFETY: `Line16` is `repr(C)` over `[u16; 32]`: a contiguous run of
+        // `32 * lines.len() >= len` initialized values.
+        unsafe { std::slice::from_raw_parts(self.lines.as_ptr().cast::<u16>(), self.len) }
+    }
+}
+
+/// Storage type of the panel weights.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum Precision {
+    /// f32 weights: agrees with the reference to ~1e-6.
+    #[default]
+    F32,
+    /// f16 weights, f32 arithmetic: half the memory traffic (the batch-1
+    /// step is bound by it) at ~1e-3 relative error per weight.
+    F16,
+}
+
+impl std::str::FromStr for Precision {
+    type Err = crate::ModelError;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "f32" => Ok(Precision::F32),
+            "f16" => Ok(Precision::F16),
+            _ => Err(crate::ModelError::Config(format!(
+                "unknown precision {s:?} (expected f32 or f16)"
+            ))),
+        }
+    }
+}
+
+#[derive(Clone)]
+enum PanelWeights {
+    F32(AlignedBuf),
+    F16(AlignedBuf16),
+}
+
 /// One GRU direction in panel layout.
 #[derive(Clone)]
 pub(crate) struct PackedGru {
     /// Input width inside each panel: 256 (online) or 0 (input part
     /// precomputed by the caller, offline).
     pub k_in: usize,
-    w: AlignedBuf,
+    w: PanelWeights,
     bias: AlignedBuf,
 }
 
@@ -90,6 +151,7 @@ impl PackedGru {
         b_ih: &[f32],
         b_hh: &[f32],
         with_input: bool,
+        precision: Precision,
     ) -> Self {
         assert_eq!(w_ih.len(), GATES * EMBED_DIM);
         assert_eq!(w_hh.len(), GATES * HIDDEN);
@@ -124,14 +186,27 @@ impl PackedGru {
                 }
             }
         }
+        let w = match precision {
+            Precision::F32 => PanelWeights::F32(w),
+            Precision::F16 => PanelWeights::F16(AlignedBuf16::from_f32(w.as_slice())),
+        };
         Self { k_in, w, bias }
     }
 
-    /// Weights of panel `p`.
+    /// Whether the panels hold f16 weights.
+    pub(crate) fn is_half(&self) -> bool {
+        matches!(self.w, PanelWeights::F16(_))
+    }
+
+    /// Start of panel `p`'s weights (f32 or f16 values, see [`Self::is_half`]);
+    /// the panel holds [`Self::panel_len`] values.
     #[inline]
-    pub(crate) fn panel(&self, p: usize) -> &[f32] {
+    pub(crate) fn panel_ptr(&self, p: usize) -> *const u8 {
         let n = self.panel_len();
-        &self.w.as_slice()[p * n..(p + 1) * n]
+        match &self.w {
+            PanelWeights::F32(w) => w.as_slice()[p * n..(p + 1) * n].as_ptr().cast(),
+            PanelWeights::F16(w) => w.as_slice()[p * n..(p + 1) * n].as_ptr().cast(),
+        }
     }
 
     /// Combined biases of panel `p`.

@@ -16,29 +16,45 @@ use crate::{HIDDEN, OUTPUT_DIM};
 /// # Safety
 /// See the [`TileArgs`] contract; AVX2 and FMA must be available.
 pub(crate) unsafe fn tile(rows: usize, a: &TileArgs) {
-    match rows {
-        1 => tile1(a),
-        2 => tile2(a),
+    match (rows, a.half) {
+        (1, false) => tile1(a),
+        (2, false) => tile2(a),
+        (1, true) => tile1_h(a),
+        (2, true) => tile2_h(a),
         _ => unreachable!("tile of {rows} rows"),
     }
+}
+
+/// 8 f32 weights.
+macro_rules! ld_f32 {
+    ($p:expr) => {
+        _mm256_load_ps($p)
+    };
+}
+
+/// 8 f16 weights, widened to f32.
+macro_rules! ld_f16 {
+    ($p:expr) => {
+        _mm256_cvtph_ps(_mm_load_si128($p as *const __m128i))
+    };
 }
 
 /// Accumulate `len` values of `k` into the named per-"slot" accumulators;
 /// each slot is `(r_lo, r_hi, z_lo, z_hi, n_lo, n_hi, x offset, w offset)`.
 /// `x` advances by `$xstep` and `w` by `$wstep` rows per iteration.
 macro_rules! accumulate {
-    ($w:ident, $x:ident, $len:expr, $xstep:expr, $wstep:expr,
+    ($ld:ident, $w:ident, $x:ident, $len:expr, $xstep:expr, $wstep:expr,
      $(($rl:ident, $rh:ident, $zl:ident, $zh:ident, $nl:ident, $nh:ident, $xo:expr, $wo:expr)),+) => {
         for _ in 0..$len {
             $(
                 let xv = _mm256_set1_ps(*$x.add($xo));
                 let wp = $w.add($wo * ROW);
-                $rl = _mm256_fmadd_ps(_mm256_load_ps(wp), xv, $rl);
-                $rh = _mm256_fmadd_ps(_mm256_load_ps(wp.add(8)), xv, $rh);
-                $zl = _mm256_fmadd_ps(_mm256_load_ps(wp.add(LANES)), xv, $zl);
-                $zh = _mm256_fmadd_ps(_mm256_load_ps(wp.add(LANES + 8)), xv, $zh);
-                $nl = _mm256_fmadd_ps(_mm256_load_ps(wp.add(2 * LANES)), xv, $nl);
-                $nh = _mm256_fmadd_ps(_mm256_load_ps(wp.add(2 * LANES + 8)), xv, $nh);
+                $rl = _mm256_fmadd_ps($ld!(wp), xv, $rl);
+                $rh = _mm256_fmadd_ps($ld!(wp.add(8)), xv, $rh);
+                $zl = _mm256_fmadd_ps($ld!(wp.add(LANES)), xv, $zl);
+                $zh = _mm256_fmadd_ps($ld!(wp.add(LANES + 8)), xv, $zh);
+                $nl = _mm256_fmadd_ps($ld!(wp.add(2 * LANES)), xv, $nl);
+                $nh = _mm256_fmadd_ps($ld!(wp.add(2 * LANES + 8)), xv, $nh);
             )+
             $w = $w.add($wstep * ROW);
             $x = $x.add($xstep);
@@ -47,58 +63,75 @@ macro_rules! accumulate {
 }
 
 /// Two rows, one `k` per iteration.
-#[target_feature(enable = "avx2,fma")]
-unsafe fn tile2(a: &TileArgs) {
-    let zero = _mm256_setzero_ps();
-    let (mut ar0, mut br0, mut az0, mut bz0, mut an0, mut bn0) = (zero, zero, zero, zero, zero, zero);
-    let (mut ar1, mut br1, mut az1, mut bz1, mut an1, mut bn1) = (zero, zero, zero, zero, zero, zero);
-    let mut w = a.w;
-    let mut x = a.x;
-    accumulate!(w, x, a.k_in, 2, 1,
-        (ar0, br0, az0, bz0, an0, bn0, 0, 0),
-        (ar1, br1, az1, bz1, an1, bn1, 1, 0));
-    let ni = [[an0, bn0], [an1, bn1]];
-    (an0, bn0, an1, bn1) = (zero, zero, zero, zero);
-    accumulate!(w, x, HIDDEN, 2, 1,
-        (ar0, br0, az0, bz0, an0, bn0, 0, 0),
-        (ar1, br1, az1, bz1, an1, bn1, 1, 0));
-    let acc = [
-        [[ar0, br0], [az0, bz0], [an0, bn0]],
-        [[ar1, br1], [az1, bz1], [an1, bn1]],
-    ];
-    epilogue(a, &acc, &ni);
+macro_rules! tile2_fn {
+    ($name:ident, $ld:ident, $ty:ty) => {
+        #[target_feature(enable = "avx2,fma,f16c")]
+        unsafe fn $name(a: &TileArgs) {
+            let zero = _mm256_setzero_ps();
+            let (mut ar0, mut br0, mut az0, mut bz0, mut an0, mut bn0) =
+                (zero, zero, zero, zero, zero, zero);
+            let (mut ar1, mut br1, mut az1, mut bz1, mut an1, mut bn1) =
+                (zero, zero, zero, zero, zero, zero);
+            let mut w = a.w as *const $ty;
+            let mut x = a.x;
+            accumulate!($ld, w, x, a.k_in, 2, 1,
+                (ar0, br0, az0, bz0, an0, bn0, 0, 0),
+                (ar1, br1, az1, bz1, an1, bn1, 1, 0));
+            let ni = [[an0, bn0], [an1, bn1]];
+            (an0, bn0, an1, bn1) = (zero, zero, zero, zero);
+            accumulate!($ld, w, x, HIDDEN, 2, 1,
+                (ar0, br0, az0, bz0, an0, bn0, 0, 0),
+                (ar1, br1, az1, bz1, an1, bn1, 1, 0));
+            let acc = [
+                [[ar0, br0], [az0, bz0], [an0, bn0]],
+                [[ar1, br1], [az1, bz1], [an1, bn1]],
+            ];
+            epilogue(a, &acc, &ni);
+        }
+    };
 }
 
 /// One row, `k` unrolled twice (12 independent accumulators).
-#[target_feature(enable = "avx2,fma")]
-unsafe fn tile1(a: &TileArgs) {
-    let zero = _mm256_setzero_ps();
-    let (mut ar0, mut br0, mut az0, mut bz0, mut an0, mut bn0) = (zero, zero, zero, zero, zero, zero);
-    let (mut ar1, mut br1, mut az1, mut bz1, mut an1, mut bn1) = (zero, zero, zero, zero, zero, zero);
-    let mut w = a.w;
-    let mut x = a.x;
-    // k_in and HIDDEN are even
-    accumulate!(w, x, a.k_in / 2, 2, 2,
-        (ar0, br0, az0, bz0, an0, bn0, 0, 0),
-        (ar1, br1, az1, bz1, an1, bn1, 1, 1));
-    let ni = [[_mm256_add_ps(an0, an1), _mm256_add_ps(bn0, bn1)]];
-    (an0, bn0, an1, bn1) = (zero, zero, zero, zero);
-    accumulate!(w, x, HIDDEN / 2, 2, 2,
-        (ar0, br0, az0, bz0, an0, bn0, 0, 0),
-        (ar1, br1, az1, bz1, an1, bn1, 1, 1));
-    let acc = [[
-        [_mm256_add_ps(ar0, ar1), _mm256_add_ps(br0, br1)],
-        [_mm256_add_ps(az0, az1), _mm256_add_ps(bz0, bz1)],
-        [_mm256_add_ps(an0, an1), _mm256_add_ps(bn0, bn1)],
-    ]];
-    epilogue(a, &acc, &ni);
+macro_rules! tile1_fn {
+    ($name:ident, $ld:ident, $ty:ty) => {
+        #[target_feature(enable = "avx2,fma,f16c")]
+        unsafe fn $name(a: &TileArgs) {
+            let zero = _mm256_setzero_ps();
+            let (mut ar0, mut br0, mut az0, mut bz0, mut an0, mut bn0) =
+                (zero, zero, zero, zero, zero, zero);
+            let (mut ar1, mut br1, mut az1, mut bz1, mut an1, mut bn1) =
+                (zero, zero, zero, zero, zero, zero);
+            let mut w = a.w as *const $ty;
+            let mut x = a.x;
+            // k_in and HIDDEN are even
+            accumulate!($ld, w, x, a.k_in / 2, 2, 2,
+                (ar0, br0, az0, bz0, an0, bn0, 0, 0),
+                (ar1, br1, az1, bz1, an1, bn1, 1, 1));
+            let ni = [[_mm256_add_ps(an0, an1), _mm256_add_ps(bn0, bn1)]];
+            (an0, bn0, an1, bn1) = (zero, zero, zero, zero);
+            accumulate!($ld, w, x, HIDDEN / 2, 2, 2,
+                (ar0, br0, az0, bz0, an0, bn0, 0, 0),
+                (ar1, br1, az1, bz1, an1, bn1, 1, 1));
+            let acc = [[
+                [_mm256_add_ps(ar0, ar1), _mm256_add_ps(br0, br1)],
+                [_mm256_add_ps(az0, az1), _mm256_add_ps(bz0, bz1)],
+                [_mm256_add_ps(an0, an1), _mm256_add_ps(bn0, bn1)],
+            ]];
+            epilogue(a, &acc, &ni);
+        }
+    };
 }
+
+tile2_fn!(tile2, ld_f32, f32);
+tile2_fn!(tile2_h, ld_f16, u16);
+tile1_fn!(tile1, ld_f32, f32);
+tile1_fn!(tile1_h, ld_f16, u16);
 
 /// Gates -> new states (and output contributions) for each row:
 /// `acc[b][gate][half]` pre-activations without biases (`gate` 2 is the
 /// recurrent part of `n`), `ni[b][half]` the input part of `n`.
 #[inline]
-#[target_feature(enable = "avx2,fma")]
+#[target_feature(enable = "avx2,fma,f16c")]
 unsafe fn epilogue<const BT: usize>(
     a: &TileArgs,
     acc: &[[[__m256; 2]; 3]; BT],

@@ -20,33 +20,55 @@ use crate::{HIDDEN, OUTPUT_DIM};
 /// # Safety
 /// See the [`TileArgs`] contract; AVX-512F must be available.
 pub(crate) unsafe fn tile(rows: usize, a: &TileArgs) {
-    match rows {
-        1 => tile1(a),
-        2 => tile2(a),
-        3 => tile3(a),
-        4 => tile4(a),
-        5 => tile5(a),
-        6 => tile6(a),
-        7 => tile7(a),
-        8 => tile8(a),
+    match (rows, a.half) {
+        (1, false) => tile1(a),
+        (2, false) => tile2(a),
+        (3, false) => tile3(a),
+        (4, false) => tile4(a),
+        (5, false) => tile5(a),
+        (6, false) => tile6(a),
+        (7, false) => tile7(a),
+        (8, false) => tile8(a),
+        (1, true) => tile1_h(a),
+        (2, true) => tile2_h(a),
+        (3, true) => tile3_h(a),
+        (4, true) => tile4_h(a),
+        (5, true) => tile5_h(a),
+        (6, true) => tile6_h(a),
+        (7, true) => tile7_h(a),
+        (8, true) => tile8_h(a),
         _ => unreachable!("tile of {rows} rows"),
     }
+}
+
+/// 16 f32 weights.
+macro_rules! ld_f32 {
+    ($p:expr) => {
+        _mm512_load_ps($p)
+    };
+}
+
+/// 16 f16 weights, widened to f32.
+macro_rules! ld_f16 {
+    ($p:expr) => {
+        _mm512_cvtph_ps(_mm256_load_si256($p as *const __m256i))
+    };
 }
 
 /// A kernel for a fixed number of rows; each `(r, z, n, offset)` names one
 /// row's accumulators and its offset in the packed `[k][row]` inputs.
 macro_rules! tile_fn {
-    ($name:ident, $rows:expr, $(($r:ident, $z:ident, $n:ident, $b:expr)),+) => {
+    ($name:ident, $ld:ident, $ty:ty, $rows:expr, $(($r:ident, $z:ident, $n:ident, $b:expr)),+) => {
         #[target_feature(enable = "avx512f,avx2,fma")]
         unsafe fn $name(a: &TileArgs) {
             let zero = _mm512_setzero_ps();
             $(let mut $r = zero; let mut $z = zero; let mut $n = zero;)+
-            let mut w = a.w;
+            let mut w = a.w as *const $ty;
             let mut x = a.x;
             for _ in 0..a.k_in {
-                let wr = _mm512_load_ps(w);
-                let wz = _mm512_load_ps(w.add(LANES));
-                let wn = _mm512_load_ps(w.add(2 * LANES));
+                let wr = $ld!(w);
+                let wz = $ld!(w.add(LANES));
+                let wn = $ld!(w.add(2 * LANES));
                 $(
                     let xv = _mm512_set1_ps(*x.add($b));
                     $r = _mm512_fmadd_ps(wr, xv, $r);
@@ -59,9 +81,9 @@ macro_rules! tile_fn {
             let ni = [$($n),+];
             $($n = zero;)+
             for _ in 0..HIDDEN {
-                let wr = _mm512_load_ps(w);
-                let wz = _mm512_load_ps(w.add(LANES));
-                let wn = _mm512_load_ps(w.add(2 * LANES));
+                let wr = $ld!(w);
+                let wz = $ld!(w.add(LANES));
+                let wn = $ld!(w.add(2 * LANES));
                 $(
                     let xv = _mm512_set1_ps(*x.add($b));
                     $r = _mm512_fmadd_ps(wr, xv, $r);
@@ -76,11 +98,20 @@ macro_rules! tile_fn {
     };
 }
 
-tile_fn!(tile2, 2, (r0, z0, n0, 0), (r1, z1, n1, 1));
-tile_fn!(tile3, 3, (r0, z0, n0, 0), (r1, z1, n1, 1), (r2, z2, n2, 2));
-tile_fn!(tile4, 4, (r0, z0, n0, 0), (r1, z1, n1, 1), (r2, z2, n2, 2), (r3, z3, n3, 3));
-tile_fn!(
+/// The f32 and f16 kernels for one tile size.
+macro_rules! tile_fns {
+    ($f32:ident, $f16:ident, $rows:expr, $(($r:ident, $z:ident, $n:ident, $b:expr)),+) => {
+        tile_fn!($f32, ld_f32, f32, $rows, $(($r, $z, $n, $b)),+);
+        tile_fn!($f16, ld_f16, u16, $rows, $(($r, $z, $n, $b)),+);
+    };
+}
+
+tile_fns!(tile2, tile2_h, 2, (r0, z0, n0, 0), (r1, z1, n1, 1));
+tile_fns!(tile3, tile3_h, 3, (r0, z0, n0, 0), (r1, z1, n1, 1), (r2, z2, n2, 2));
+tile_fns!(tile4, tile4_h, 4, (r0, z0, n0, 0), (r1, z1, n1, 1), (r2, z2, n2, 2), (r3, z3, n3, 3));
+tile_fns!(
     tile5,
+    tile5_h,
     5,
     (r0, z0, n0, 0),
     (r1, z1, n1, 1),
@@ -88,8 +119,9 @@ tile_fn!(
     (r3, z3, n3, 3),
     (r4, z4, n4, 4)
 );
-tile_fn!(
+tile_fns!(
     tile6,
+    tile6_h,
     6,
     (r0, z0, n0, 0),
     (r1, z1, n1, 1),
@@ -98,8 +130,9 @@ tile_fn!(
     (r4, z4, n4, 4),
     (r5, z5, n5, 5)
 );
-tile_fn!(
+tile_fns!(
     tile7,
+    tile7_h,
     7,
     (r0, z0, n0, 0),
     (r1, z1, n1, 1),
@@ -109,8 +142,9 @@ tile_fn!(
     (r5, z5, n5, 5),
     (r6, z6, n6, 6)
 );
-tile_fn!(
+tile_fns!(
     tile8,
+    tile8_h,
     8,
     (r0, z0, n0, 0),
     (r1, z1, n1, 1),
@@ -123,52 +157,59 @@ tile_fn!(
 );
 
 /// One row, `k` unrolled four ways (12 independent accumulators).
-#[target_feature(enable = "avx512f,avx2,fma")]
-unsafe fn tile1(a: &TileArgs) {
-    let zero = _mm512_setzero_ps();
-    let mut acc = [[zero; 3]; 4];
-    let mut w = a.w;
-    let mut x = a.x;
-    let mut ni = zero;
-    for (phase, len) in [a.k_in, HIDDEN].into_iter().enumerate() {
-        let (mut r0, mut z0, mut n0) = (acc[0][0], acc[0][1], acc[0][2]);
-        let (mut r1, mut z1, mut n1) = (acc[1][0], acc[1][1], acc[1][2]);
-        let (mut r2, mut z2, mut n2) = (acc[2][0], acc[2][1], acc[2][2]);
-        let (mut r3, mut z3, mut n3) = (acc[3][0], acc[3][1], acc[3][2]);
-        macro_rules! k_step {
-            ($r:ident, $z:ident, $n:ident, $u:expr) => {
-                let xv = _mm512_set1_ps(*x.add($u));
-                let wu = w.add($u * ROW);
-                $r = _mm512_fmadd_ps(_mm512_load_ps(wu), xv, $r);
-                $z = _mm512_fmadd_ps(_mm512_load_ps(wu.add(LANES)), xv, $z);
-                $n = _mm512_fmadd_ps(_mm512_load_ps(wu.add(2 * LANES)), xv, $n);
-            };
-        }
-        // k_in and HIDDEN are multiples of 4
-        for _ in 0..len / 4 {
-            k_step!(r0, z0, n0, 0);
-            k_step!(r1, z1, n1, 1);
-            k_step!(r2, z2, n2, 2);
-            k_step!(r3, z3, n3, 3);
-            w = w.add(4 * ROW);
-            x = x.add(4);
-        }
-        acc = [[r0, z0, n0], [r1, z1, n1], [r2, z2, n2], [r3, z3, n3]];
-        if phase == 0 {
-            for part in &mut acc {
-                ni = _mm512_add_ps(ni, part[2]);
-                part[2] = zero;
+macro_rules! tile1_fn {
+    ($name:ident, $ld:ident, $ty:ty) => {
+        #[target_feature(enable = "avx512f,avx2,fma")]
+        unsafe fn $name(a: &TileArgs) {
+            let zero = _mm512_setzero_ps();
+            let mut acc = [[zero; 3]; 4];
+            let mut w = a.w as *const $ty;
+            let mut x = a.x;
+            let mut ni = zero;
+            for (phase, len) in [a.k_in, HIDDEN].into_iter().enumerate() {
+                let (mut r0, mut z0, mut n0) = (acc[0][0], acc[0][1], acc[0][2]);
+                let (mut r1, mut z1, mut n1) = (acc[1][0], acc[1][1], acc[1][2]);
+                let (mut r2, mut z2, mut n2) = (acc[2][0], acc[2][1], acc[2][2]);
+                let (mut r3, mut z3, mut n3) = (acc[3][0], acc[3][1], acc[3][2]);
+                macro_rules! k_step {
+                    ($r:ident, $z:ident, $n:ident, $u:expr) => {
+                        let xv = _mm512_set1_ps(*x.add($u));
+                        let wu = w.add($u * ROW);
+                        $r = _mm512_fmadd_ps($ld!(wu), xv, $r);
+                        $z = _mm512_fmadd_ps($ld!(wu.add(LANES)), xv, $z);
+                        $n = _mm512_fmadd_ps($ld!(wu.add(2 * LANES)), xv, $n);
+                    };
+                }
+                // k_in and HIDDEN are multiples of 4
+                for _ in 0..len / 4 {
+                    k_step!(r0, z0, n0, 0);
+                    k_step!(r1, z1, n1, 1);
+                    k_step!(r2, z2, n2, 2);
+                    k_step!(r3, z3, n3, 3);
+                    w = w.add(4 * ROW);
+                    x = x.add(4);
+                }
+                acc = [[r0, z0, n0], [r1, z1, n1], [r2, z2, n2], [r3, z3, n3]];
+                if phase == 0 {
+                    for part in &mut acc {
+                        ni = _mm512_add_ps(ni, part[2]);
+                        part[2] = zero;
+                    }
+                }
             }
+            let mut g = acc[0];
+            for part in &acc[1..] {
+                for (gi, pi) in g.iter_mut().zip(part) {
+                    *gi = _mm512_add_ps(*gi, *pi);
+                }
+            }
+            epilogue(a, &[g], &[ni]);
         }
-    }
-    let mut g = acc[0];
-    for part in &acc[1..] {
-        for (gi, pi) in g.iter_mut().zip(part) {
-            *gi = _mm512_add_ps(*gi, *pi);
-        }
-    }
-    epilogue(a, &[g], &[ni]);
+    };
 }
+
+tile1_fn!(tile1, ld_f32, f32);
+tile1_fn!(tile1_h, ld_f16, u16);
 
 /// Gates -> new states (and output contributions) for each row of a tile:
 /// `acc[b] = [r, z, n_h]` pre-activations without biases, `ni[b]` the

@@ -23,7 +23,8 @@ use crate::HIDDEN;
 /// `ptr + b * stride`.
 ///
 /// Contract (checked by the callers, relied on by the kernels): `w` points
-/// to a full 64-byte aligned panel of `(k_in + 512) * 48` floats; `bias` to
+/// to a full 64-byte aligned panel of `(k_in + 512) * 48` values, f32 or
+/// (when `half`) f16 bit patterns; `bias` to
 /// 64 floats; `x` to the rows' inputs packed by [`pack_rows`] (`k_in`
 /// input values then the 512 previous state values, `[k][row]` per tile);
 /// `h` rows hold 512 floats (the previous state of this GRU direction) and
@@ -34,7 +35,8 @@ use crate::HIDDEN;
 /// input.
 #[derive(Clone, Copy)]
 pub(crate) struct TileArgs {
-    pub w: *const f32,
+    pub w: *const u8,
+    pub half: bool,
     pub k_in: usize,
     pub bias: *const f32,
     pub x: *const f32,

@@ -9,6 +9,16 @@ use crate::{HIDDEN, OUTPUT_DIM};
 
 const MAX_ROWS: usize = 4;
 
+/// Weight `i` of the panel, widened from f16 when the panel is half precision.
+#[inline]
+unsafe fn weight(a: &TileArgs, i: usize) -> f32 {
+    if a.half {
+        half::f16::from_bits(*a.w.cast::<u16>().add(i)).to_f32()
+    } else {
+        *a.w.cast::<f32>().add(i)
+    }
+}
+
 /// Kernel for `rows <= 4` rows.
 ///
 /// # Safety
@@ -20,7 +30,7 @@ pub(crate) unsafe fn tile(rows: usize, a: &TileArgs) {
     // input part (k < k_in), then recurrent part
     for (phase, (k0, len)) in [(0, a.k_in), (a.k_in, HIDDEN)].into_iter().enumerate() {
         for k in k0..k0 + len {
-            let w = std::slice::from_raw_parts(a.w.add(k * ROW), ROW);
+            let w: [f32; ROW] = std::array::from_fn(|i| weight(a, k * ROW + i));
             for (b, acc_b) in acc.iter_mut().enumerate().take(rows) {
                 let xv = *a.x.add(k * rows + b);
                 for (g, acc_g) in acc_b.iter_mut().enumerate() {

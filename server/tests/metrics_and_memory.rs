@@ -1,0 +1,185 @@
+//! Process-global concerns, each in this separate test binary: the
+//! Prometheus exporter (one recorder per process) and the memory an idle
+//! session costs (measured from the process's resident set).
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use blapose_core::layouts::KeypointLayout;
+use blapose_proto::v1 as pb;
+use blapose_server::backend::{Backend, BackendError, SequenceBackend, OUTPUT_DIM, STATE_DIM};
+use blapose_server::session::{Coordinates, InputSpec, SessionConfig, SessionStore};
+use blapose_server::{ModelProvider, ServerConfig};
+use pb::stream_request::Kind as Req;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio_stream::wrappers::ReceiverStream;
+
+struct Constant;
+
+impl Backend for Constant {
+    fn step(
+        &mut self,
+        _: &[f32],
+        hidden: &mut [f32],
+        out: &mut [f32],
+        batch: usize,
+    ) -> Result<(), BackendError> {
+        assert_eq!(hidden.len(), batch * STATE_DIM);
+        out.fill(0.25);
+        assert_eq!(out.len(), batch * OUTPUT_DIM);
+        Ok(())
+    }
+}
+
+impl SequenceBackend for Constant {
+    fn predict(&mut self, _: &[f32], _: usize) -> Result<[f32; 16], BackendError> {
+        Ok([0.25; 16])
+    }
+}
+
+impl ModelProvider for Constant {
+    fn online(&self) -> Result<Box<dyn Backend>, BackendError> {
+        Ok(Box::new(Constant))
+    }
+    fn offline(&self) -> Result<Box<dyn SequenceBackend>, BackendError> {
+        Ok(Box::new(Constant))
+    }
+    fn describe(&self) -> Vec<pb::ModelDescription> {
+        Vec::new()
+    }
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+async fn scrape(addr: std::net::SocketAddr) -> String {
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    s.write_all(b"GET /metrics HTTP/1.0\r\nHost: localhost\r\n\r\n")
+        .await
+        .unwrap();
+    let mut body = String::new();
+    s.read_to_string(&mut body).await.unwrap();
+    body
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn prometheus_endpoint_reports_traffic() {
+    let metrics_addr: std::net::SocketAddr = format!("127.0.0.1:{}", free_port()).parse().unwrap();
+    let config = ServerConfig {
+        metrics_addr: Some(metrics_addr),
+        ..ServerConfig::default()
+    };
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let server = blapose_server::spawn_with_provider(config, listener, Arc::new(Constant))
+        .await
+        .unwrap();
+    let before = scrape(metrics_addr).await;
+    assert!(before.contains("blapose_sessions 0"), "{before}");
+
+    let mut client = pb::pose_adjustment_client::PoseAdjustmentClient::connect(format!(
+        "http://{}",
+        server.local_addr()
+    ))
+    .await
+    .unwrap();
+    let (tx, rx) = tokio::sync::mpsc::channel(16);
+    let mut responses = client
+        .stream(ReceiverStream::new(rx))
+        .await
+        .unwrap()
+        .into_inner();
+    tx.send(pb::StreamRequest {
+        kind: Some(Req::Open(pb::OpenSession {
+            input_format: Some(pb::InputFormat {
+                layout: 1,
+                coordinates: Some(pb::input_format::Coordinates::Normalized(true)),
+            }),
+            ..Default::default()
+        })),
+    })
+    .await
+    .unwrap();
+    responses.message().await.unwrap();
+    let pose: Vec<f32> = (0..51).map(|i| (i as f32 * 0.37).sin()).collect();
+    for (i, keypoints) in [vec![0.1; 34], vec![0.1; 3]].into_iter().enumerate() {
+        tx.send(pb::StreamRequest {
+            kind: Some(Req::Frame(pb::Frame {
+                frame_index: i as u64,
+                keypoints_2d: keypoints,
+                confidence: vec![],
+                pose_3d: pose.clone(),
+            })),
+        })
+        .await
+        .unwrap();
+        responses.message().await.unwrap();
+    }
+    drop(tx);
+    while responses.message().await.unwrap().is_some() {}
+    tokio::time::sleep(Duration::from_millis(100)).await;
+
+    let after = scrape(metrics_addr).await;
+    for needle in [
+        "blapose_frames_total{outcome=\"ok\"} 1",
+        "blapose_frames_total{outcome=\"error\"} 1",
+        "blapose_errors_total{code=\"INVALID_ARGUMENT\",rpc=\"Stream\"} 1",
+        "blapose_session_events_total{event=\"opened\"} 1",
+        "blapose_sessions 1",
+        "blapose_streams_attached 0",
+        "blapose_batch_size_bucket",
+        "blapose_queue_latency_seconds_bucket",
+        "blapose_compute_latency_seconds_bucket",
+        "blapose_frame_latency_seconds_bucket",
+    ] {
+        assert!(after.contains(needle), "missing {needle:?} in:\n{after}");
+    }
+    server.shutdown().await.unwrap();
+}
+
+fn resident_bytes() -> Option<usize> {
+    let statm = std::fs::read_to_string("/proc/self/statm").ok()?;
+    let pages: usize = statm.split_whitespace().nth(1)?.parse().ok()?;
+    Some(pages * 4096)
+}
+
+#[tokio::test]
+async fn an_idle_session_costs_well_under_16_kib() {
+    let Some(start) = resident_bytes() else {
+        println!("skipping: /proc/self/statm not available");
+        return;
+    };
+    let n = 20_000;
+    let (store, _guard) = SessionStore::new(n, Duration::from_secs(600));
+    let config = SessionConfig {
+        input: InputSpec {
+            layout: KeypointLayout::Coco17,
+            coordinates: Coordinates::Pixels {
+                width: 1920,
+                height: 1080,
+            },
+        },
+        label: "camera-01".into(),
+    };
+    let mut attachments = Vec::with_capacity(n);
+    for _ in 0..n {
+        let a = store.open(config.clone()).unwrap();
+        // Touch the state as a served session would (pages really resident).
+        a.session.lock().hidden.fill(0.5);
+        store.detach(&a.session, a.epoch);
+        attachments.push(a.session.id());
+    }
+    let end = resident_bytes().unwrap();
+    let per_session = end.saturating_sub(start) / n;
+    println!("resident memory per idle session: {per_session} bytes");
+    assert_eq!(store.len(), n);
+    assert!(per_session < 8 * 1024, "{per_session} bytes per session");
+    assert!(
+        per_session >= 4 * 1024,
+        "{per_session} bytes: the 4 KiB state cannot be missing"
+    );
+}
