@@ -28,7 +28,9 @@
 //! vectors to f32 precision even for extreme magnitudes.
 
 use crate::pose::{BoneDirections, BoneLengths, Pose};
-use crate::skeleton::{bone_child, bone_parent, BONE_NAMES, JOINT_NAMES, NUM_BONES, SYMMETRIC_BONE_PAIRS};
+use crate::skeleton::{
+    bone_child, bone_parent, BONE_NAMES, JOINT_NAMES, NUM_BONES, SYMMETRIC_BONE_PAIRS,
+};
 
 /// Bones shorter than this (in the pose's units; 1 µm for metres) count as
 /// zero-length: their direction is undefined.
@@ -101,7 +103,10 @@ pub enum ZeroBonePolicy {
 
 fn check_finite(pose: &Pose) -> Result<(), BoneError> {
     match pose.iter().position(|p| !p.iter().all(|v| v.is_finite())) {
-        Some(joint) => Err(BoneError::NonFiniteJoint { joint, name: JOINT_NAMES[joint] }),
+        Some(joint) => Err(BoneError::NonFiniteJoint {
+            joint,
+            name: JOINT_NAMES[joint],
+        }),
         None => Ok(()),
     }
 }
@@ -117,7 +122,11 @@ fn check_output(pose: Pose) -> Result<Pose, BoneError> {
 /// Check that every target length is finite and non-negative.
 pub fn validate_lengths(lengths: &BoneLengths) -> Result<(), BoneError> {
     match lengths.iter().position(|l| !(l.is_finite() && *l >= 0.0)) {
-        Some(bone) => Err(BoneError::InvalidLength { bone, name: BONE_NAMES[bone], value: lengths[bone] }),
+        Some(bone) => Err(BoneError::InvalidLength {
+            bone,
+            name: BONE_NAMES[bone],
+            value: lengths[bone],
+        }),
         None => Ok(()),
     }
 }
@@ -156,7 +165,11 @@ pub fn decompose(pose: &Pose) -> Result<(BoneLengths, BoneDirections), BoneError
             return Err(BoneError::Overflow);
         }
         if len < MIN_BONE_LENGTH {
-            return Err(BoneError::ZeroLengthBone { bone: b, name: BONE_NAMES[b], length: len });
+            return Err(BoneError::ZeroLengthBone {
+                bone: b,
+                name: BONE_NAMES[b],
+                length: len,
+            });
         }
         lengths[b] = len;
         dirs[b] = [(v[0] / n) as f32, (v[1] / n) as f32, (v[2] / n) as f32];
@@ -199,7 +212,11 @@ pub fn adjust_pose_with(
         let offset = if (n as f32) < MIN_BONE_LENGTH {
             match policy {
                 ZeroBonePolicy::Error => {
-                    return Err(BoneError::ZeroLengthBone { bone: b, name: BONE_NAMES[b], length: n as f32 })
+                    return Err(BoneError::ZeroLengthBone {
+                        bone: b,
+                        name: BONE_NAMES[b],
+                        length: n as f32,
+                    })
                 }
                 ZeroBonePolicy::KeepInput => v,
             }
@@ -227,7 +244,10 @@ pub fn adjust_pose_lenient(pose: &Pose, lengths: &BoneLengths) -> Result<Pose, B
 }
 
 fn in_frame(frame: usize) -> impl FnOnce(BoneError) -> BoneError {
-    move |e| BoneError::InFrame { frame, source: Box::new(e) }
+    move |e| BoneError::InFrame {
+        frame,
+        source: Box::new(e),
+    }
 }
 
 /// Adjust every frame of a sequence to the same lengths (one person).
@@ -258,7 +278,10 @@ pub fn adjust_sequence_per_frame(
     policy: ZeroBonePolicy,
 ) -> Result<Vec<Pose>, BoneError> {
     if poses.len() != lengths.len() {
-        return Err(BoneError::SequenceLengthMismatch { poses: poses.len(), lengths: lengths.len() });
+        return Err(BoneError::SequenceLengthMismatch {
+            poses: poses.len(),
+            lengths: lengths.len(),
+        });
     }
     poses
         .iter()
@@ -355,11 +378,27 @@ mod tests {
         pose[13] = pose[12]; // l_forearm collapsed
         let target = bone_lengths(&t_pose());
         let err = adjust_pose(&pose, &target).unwrap_err();
-        assert!(matches!(err, BoneError::ZeroLengthBone { bone: 12, name: "l_forearm", .. }), "{err}");
+        assert!(
+            matches!(
+                err,
+                BoneError::ZeroLengthBone {
+                    bone: 12,
+                    name: "l_forearm",
+                    ..
+                }
+            ),
+            "{err}"
+        );
         assert!(err.to_string().contains("l_forearm"));
-        assert!(matches!(decompose(&pose), Err(BoneError::ZeroLengthBone { bone: 12, .. })));
+        assert!(matches!(
+            decompose(&pose),
+            Err(BoneError::ZeroLengthBone { bone: 12, .. })
+        ));
         let lenient = adjust_pose_lenient(&pose, &target).unwrap();
-        assert_eq!(lenient[13], lenient[12], "collapsed bone keeps its zero offset");
+        assert_eq!(
+            lenient[13], lenient[12],
+            "collapsed bone keeps its zero offset"
+        );
         assert!(lenient.iter().flatten().all(|v| v.is_finite()));
         // a bone below the threshold but non-zero counts as zero too
         pose[13][0] += 0.5e-6;
@@ -372,20 +411,42 @@ mod tests {
             let mut pose = t_pose();
             pose[15][1] = bad;
             let e = adjust_pose(&pose, &bone_lengths(&t_pose())).unwrap_err();
-            assert_eq!(e, BoneError::NonFiniteJoint { joint: 15, name: "r_elbow" });
+            assert_eq!(
+                e,
+                BoneError::NonFiniteJoint {
+                    joint: 15,
+                    name: "r_elbow"
+                }
+            );
             assert!(decompose(&pose).is_err());
             assert!(adjust_pose_lenient(&pose, &bone_lengths(&t_pose())).is_err());
             let mut l = bone_lengths(&t_pose());
             l[4] = bad;
             let e = adjust_pose(&t_pose(), &l).unwrap_err();
-            assert!(matches!(e, BoneError::InvalidLength { bone: 4, name: "l_thigh", .. }), "{e}");
+            assert!(
+                matches!(
+                    e,
+                    BoneError::InvalidLength {
+                        bone: 4,
+                        name: "l_thigh",
+                        ..
+                    }
+                ),
+                "{e}"
+            );
         }
         let mut l = bone_lengths(&t_pose());
         l[0] = -0.1;
-        assert!(matches!(adjust_pose(&t_pose(), &l), Err(BoneError::InvalidLength { bone: 0, .. })));
+        assert!(matches!(
+            adjust_pose(&t_pose(), &l),
+            Err(BoneError::InvalidLength { bone: 0, .. })
+        ));
         l[0] = 0.0;
         let z = adjust_pose(&t_pose(), &l).unwrap();
-        assert_eq!(z[1], z[0], "zero target length collapses the child onto its parent");
+        assert_eq!(
+            z[1], z[0],
+            "zero target length collapses the child onto its parent"
+        );
     }
 
     #[test]
@@ -403,12 +464,17 @@ mod tests {
         let mut seq = vec![t_pose(); 5];
         seq[3][7][2] = f32::NAN;
         let e = adjust_sequence(&seq, &bone_lengths(&t_pose())).unwrap_err();
-        assert!(matches!(&e, BoneError::InFrame { frame: 3, source } if matches!(**source, BoneError::NonFiniteJoint { joint: 7, .. })));
+        assert!(
+            matches!(&e, BoneError::InFrame { frame: 3, source } if matches!(**source, BoneError::NonFiniteJoint { joint: 7, .. }))
+        );
         assert!(e.to_string().starts_with("frame 3: joint 7 (spine)"), "{e}");
         let per = vec![bone_lengths(&t_pose()); 4];
         assert!(matches!(
             adjust_sequence_per_frame(&seq, &per, ZeroBonePolicy::Error),
-            Err(BoneError::SequenceLengthMismatch { poses: 5, lengths: 4 })
+            Err(BoneError::SequenceLengthMismatch {
+                poses: 5,
+                lengths: 4
+            })
         ));
         seq[3] = t_pose();
         let per: Vec<BoneLengths> = (0..5).map(|t| [0.1 + 0.01 * t as f32; NUM_BONES]).collect();

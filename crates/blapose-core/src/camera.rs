@@ -124,7 +124,10 @@ impl<T: Scalar> Intrinsics<T> {
         let s = radial + p1 * x + p2 * y;
         let xd = x * s + p1 * r2;
         let yd = y * s + p2 * r2;
-        [self.focal[0] * xd + self.principal[0], self.focal[1] * yd + self.principal[1]]
+        [
+            self.focal[0] * xd + self.principal[0],
+            self.focal[1] * yd + self.principal[1],
+        ]
     }
 
     /// The intrinsics of the image mirrored about the vertical line
@@ -146,9 +149,16 @@ impl Intrinsics<f32> {
     /// Measured on the development machine (one core of a shared 2-core VM,
     /// `cargo test --release -p blapose-core -- --nocapture
     /// projection_throughput`): roughly 2e8 points/s.
-    pub fn project_points(&self, cam_points: &[[f32; 3]], out: &mut [[f32; 2]]) -> Result<(), CameraError> {
+    pub fn project_points(
+        &self,
+        cam_points: &[[f32; 3]],
+        out: &mut [[f32; 2]],
+    ) -> Result<(), CameraError> {
         if cam_points.len() != out.len() {
-            return Err(CameraError::LengthMismatch { input: cam_points.len(), output: out.len() });
+            return Err(CameraError::LengthMismatch {
+                input: cam_points.len(),
+                output: out.len(),
+            });
         }
         let k = *self;
         for (p, o) in cam_points.iter().zip(out.iter_mut()) {
@@ -201,19 +211,32 @@ impl Camera {
         ];
         for (field, values) in fields {
             if !values.iter().all(|v| v.is_finite()) {
-                return Err(CameraError::NonFinite { camera: camera(), field });
+                return Err(CameraError::NonFinite {
+                    camera: camera(),
+                    field,
+                });
             }
         }
         if self.width == 0 || self.height == 0 {
-            return Err(CameraError::InvalidResolution { camera: camera(), width: self.width, height: self.height });
+            return Err(CameraError::InvalidResolution {
+                camera: camera(),
+                width: self.width,
+                height: self.height,
+            });
         }
         if !(self.focal[0] > 0.0 && self.focal[1] > 0.0) {
-            return Err(CameraError::InvalidFocal { camera: camera(), focal: self.focal });
+            return Err(CameraError::InvalidFocal {
+                camera: camera(),
+                focal: self.focal,
+            });
         }
         let r = nalgebra::Matrix3::from_fn(|i, j| self.rotation[i][j]);
         let deviation = (r * r.transpose() - nalgebra::Matrix3::identity()).amax();
         if deviation > 1e-6 {
-            return Err(CameraError::NotARotation { camera: camera(), deviation });
+            return Err(CameraError::NotARotation {
+                camera: camera(),
+                deviation,
+            });
         }
         Ok(())
     }
@@ -221,8 +244,13 @@ impl Camera {
     /// `R (p - center)`.
     #[inline]
     pub fn world_to_camera(&self, p: [f64; 3]) -> [f64; 3] {
-        let d = [p[0] - self.center[0], p[1] - self.center[1], p[2] - self.center[2]];
-        self.rotation.map(|row| row[0] * d[0] + row[1] * d[1] + row[2] * d[2])
+        let d = [
+            p[0] - self.center[0],
+            p[1] - self.center[1],
+            p[2] - self.center[2],
+        ];
+        self.rotation
+            .map(|row| row[0] * d[0] + row[1] * d[1] + row[2] * d[2])
     }
 
     /// `R^T p + center` (inverse of [`Camera::world_to_camera`]).
@@ -237,9 +265,16 @@ impl Camera {
     }
 
     /// Batched [`Camera::world_to_camera`] for `f32` points.
-    pub fn world_to_camera_points(&self, world: &[[f32; 3]], out: &mut [[f32; 3]]) -> Result<(), CameraError> {
+    pub fn world_to_camera_points(
+        &self,
+        world: &[[f32; 3]],
+        out: &mut [[f32; 3]],
+    ) -> Result<(), CameraError> {
         if world.len() != out.len() {
-            return Err(CameraError::LengthMismatch { input: world.len(), output: out.len() });
+            return Err(CameraError::LengthMismatch {
+                input: world.len(),
+                output: out.len(),
+            });
         }
         let r = self.rotation.map(|row| row.map(|v| v as f32));
         let c = self.center.map(|v| v as f32);
@@ -252,7 +287,12 @@ impl Camera {
 
     /// Intrinsics in pixels.
     pub fn pixel_intrinsics(&self) -> Intrinsics<f64> {
-        Intrinsics { focal: self.focal, principal: self.principal, radial: self.radial, tangential: self.tangential }
+        Intrinsics {
+            focal: self.focal,
+            principal: self.principal,
+            radial: self.radial,
+            tangential: self.tangential,
+        }
     }
 
     /// Intrinsics in normalized screen units: projecting with them gives
@@ -262,7 +302,11 @@ impl Camera {
         let h = self.height as f64;
         Intrinsics {
             focal: [self.focal[0] / w * 2.0, self.focal[1] / w * 2.0].map(|v| v as f32),
-            principal: [self.principal[0] / w * 2.0 - 1.0, self.principal[1] / w * 2.0 - h / w].map(|v| v as f32),
+            principal: [
+                self.principal[0] / w * 2.0 - 1.0,
+                self.principal[1] / w * 2.0 - h / w,
+            ]
+            .map(|v| v as f32),
             radial: self.radial.map(|v| v as f32),
             tangential: self.tangential.map(|v| v as f32),
         }
@@ -283,7 +327,10 @@ impl Camera {
     /// Project a world-space pose to pixels (computed in f64).
     pub fn project_world_pose_to_pixels(&self, pose: &Pose) -> Keypoints2d {
         let k = self.pixel_intrinsics();
-        pose.map(|p| k.project(self.world_to_camera(p.map(f64::from))).map(|v| v as f32))
+        pose.map(|p| {
+            k.project(self.world_to_camera(p.map(f64::from)))
+                .map(|v| v as f32)
+        })
     }
 
     /// Project a world-space pose straight to normalized screen coordinates.
@@ -356,7 +403,11 @@ pub(crate) mod tests {
             rotation: [
                 [-0.9033486204435297, 0.4269119782787646, 0.04132109321984796],
                 [0.04153061098352977, 0.182951140059007, -0.9822444139329296],
-                [-0.4268916470184284, -0.8855930460167476, -0.18299857527497945],
+                [
+                    -0.4268916470184284,
+                    -0.8855930460167476,
+                    -0.18299857527497945,
+                ],
             ],
             center: [2.04445852504166, 4.935117279847931, 1.48122752752863],
             focal: [1145.04940458804, 1143.78109572365],
@@ -379,12 +430,19 @@ pub(crate) mod tests {
         let px = s9_cam().project_camera_to_pixels([0.3, -0.2, 4.0]);
         let x: [f64; 2] = [0.075, -0.05];
         let r2: f64 = x[0] * x[0] + x[1] * x[1];
-        let radial = 1.0 - 0.207098910824901 * r2 + 0.247775183068982 * r2 * r2 - 0.00307515035078854 * r2 * r2 * r2;
+        let radial = 1.0 - 0.207098910824901 * r2 + 0.247775183068982 * r2 * r2
+            - 0.00307515035078854 * r2 * r2 * r2;
         let tan = -0.000975698859470499 * x[0] - 0.00142447157470321 * x[1];
         let xd0 = x[0] * (radial + tan) - 0.000975698859470499 * r2;
         let xd1 = x[1] * (radial + tan) - 0.00142447157470321 * r2;
-        let expect = [1145.04940458804 * xd0 + 512.541504956548, 1143.78109572365 * xd1 + 515.4514869776];
-        assert!((px[0] - expect[0]).abs() < 1e-9 && (px[1] - expect[1]).abs() < 1e-9, "{px:?} vs {expect:?}");
+        let expect = [
+            1145.04940458804 * xd0 + 512.541504956548,
+            1143.78109572365 * xd1 + 515.4514869776,
+        ];
+        assert!(
+            (px[0] - expect[0]).abs() < 1e-9 && (px[1] - expect[1]).abs() < 1e-9,
+            "{px:?} vs {expect:?}"
+        );
         assert!((px[0] - 598.2678633828624).abs() < 1e-9, "{px:?}");
         assert!((px[1] - 458.34460145227933).abs() < 1e-9, "{px:?}");
     }
@@ -400,16 +458,28 @@ pub(crate) mod tests {
         }
         let mut bad = cam.clone();
         bad.focal[1] = f64::NAN;
-        assert!(matches!(bad.validate(), Err(CameraError::NonFinite { field: "focal", .. })));
+        assert!(matches!(
+            bad.validate(),
+            Err(CameraError::NonFinite { field: "focal", .. })
+        ));
         let mut bad = cam.clone();
         bad.rotation[0][0] *= 1.1;
-        assert!(matches!(bad.validate(), Err(CameraError::NotARotation { .. })));
+        assert!(matches!(
+            bad.validate(),
+            Err(CameraError::NotARotation { .. })
+        ));
         let mut bad = cam.clone();
         bad.width = 0;
-        assert!(matches!(bad.validate(), Err(CameraError::InvalidResolution { .. })));
+        assert!(matches!(
+            bad.validate(),
+            Err(CameraError::InvalidResolution { .. })
+        ));
         let mut bad = cam;
         bad.focal[0] = -1.0;
-        assert!(matches!(bad.validate(), Err(CameraError::InvalidFocal { .. })));
+        assert!(matches!(
+            bad.validate(),
+            Err(CameraError::InvalidFocal { .. })
+        ));
     }
 
     #[test]
@@ -420,7 +490,10 @@ pub(crate) mod tests {
             let px = cam.project_camera_to_pixels(p.map(f64::from));
             let n = normalize_screen(px.map(|v| v as f32), cam.width, cam.height);
             let direct = kn.project(p);
-            assert!((n[0] - direct[0]).abs() < 1e-5 && (n[1] - direct[1]).abs() < 1e-5, "{n:?} {direct:?}");
+            assert!(
+                (n[0] - direct[0]).abs() < 1e-5 && (n[1] - direct[1]).abs() < 1e-5,
+                "{n:?} {direct:?}"
+            );
             let back = denormalize_screen(direct, cam.width, cam.height);
             assert!((back[0] as f64 - px[0]).abs() < 5e-3 && (back[1] as f64 - px[1]).abs() < 5e-3);
         }
@@ -432,14 +505,28 @@ pub(crate) mod tests {
     #[test]
     fn batched_projection_matches_single() {
         let k = s9_cam().normalized_intrinsics();
-        let pts: Vec<[f32; 3]> = (0..100).map(|i| [i as f32 * 0.01 - 0.5, 0.3 - i as f32 * 0.005, 3.0 + i as f32 * 0.02]).collect();
+        let pts: Vec<[f32; 3]> = (0..100)
+            .map(|i| {
+                [
+                    i as f32 * 0.01 - 0.5,
+                    0.3 - i as f32 * 0.005,
+                    3.0 + i as f32 * 0.02,
+                ]
+            })
+            .collect();
         let mut out = vec![[0.0; 2]; 100];
         k.project_points(&pts, &mut out).unwrap();
         for (p, o) in pts.iter().zip(&out) {
             assert_eq!(*o, k.project(*p));
         }
         let mut short = vec![[0.0; 2]; 99];
-        assert_eq!(k.project_points(&pts, &mut short), Err(CameraError::LengthMismatch { input: 100, output: 99 }));
+        assert_eq!(
+            k.project_points(&pts, &mut short),
+            Err(CameraError::LengthMismatch {
+                input: 100,
+                output: 99
+            })
+        );
     }
 
     #[test]
@@ -448,24 +535,31 @@ pub(crate) mod tests {
         let flipped = cam.flipped();
         assert_eq!(flipped.flipped(), cam);
         // a world pose in front of the camera
-        let pose: Pose = std::array::from_fn(|j| [0.1 * (j as f32 % 5.0) - 0.2, 0.05 * j as f32 - 0.3, 0.9 + 0.04 * j as f32]);
+        let pose: Pose = std::array::from_fn(|j| {
+            [
+                0.1 * (j as f32 % 5.0) - 0.2,
+                0.05 * j as f32 - 0.3,
+                0.9 + 0.04 * j as f32,
+            ]
+        });
         let px = cam.project_world_pose_to_pixels(&pose);
         // world pose seen by the flipped camera, left/right relabelled
         let via_camera = flipped.project_world_pose_to_pixels(&pose);
         let mirrored = flip_keypoints_pixels(&px, cam.width);
-        for j in 0..NUM_JOINTS {
-            let fj = crate::skeleton::flipped_joint(j);
-            for i in 0..2 {
-                assert!((via_camera[j][i] - mirrored[fj][i]).abs() < 1e-3, "joint {j}");
-            }
+        for (j, v) in via_camera.iter().enumerate() {
+            let m = mirrored[crate::skeleton::flipped_joint(j)];
+            assert!(
+                (v[0] - m[0]).abs() < 1e-3 && (v[1] - m[1]).abs() < 1e-3,
+                "joint {j}"
+            );
         }
         // camera-space flip + flipped intrinsics == mirrored pixels
         let cam_pose = cam.world_to_camera_pose(&pose);
         let fk = cam.pixel_intrinsics().mirrored(cam.width as f64 / 2.0);
         let fp = flip_pose(&cam_pose);
-        for j in 0..NUM_JOINTS {
-            let p = fk.project(fp[j].map(f64::from));
-            assert!((p[0] as f32 - mirrored[j][0]).abs() < 1e-3 && (p[1] as f32 - mirrored[j][1]).abs() < 1e-3);
+        for (q, m) in fp.iter().zip(&mirrored) {
+            let p = fk.project(q.map(f64::from));
+            assert!((p[0] as f32 - m[0]).abs() < 1e-3 && (p[1] as f32 - m[1]).abs() < 1e-3);
         }
         // and in normalized units the mirror axis is x = 0
         let kn = cam.normalized_intrinsics();
@@ -478,13 +572,25 @@ pub(crate) mod tests {
     fn projection_throughput() {
         let k = s9_cam().normalized_intrinsics();
         let n = 4_000_000;
-        let pts: Vec<[f32; 3]> = (0..n).map(|i| [(i % 1000) as f32 * 1e-3 - 0.5, (i % 777) as f32 * 1e-3 - 0.4, 4.0 + (i % 13) as f32 * 0.01]).collect();
+        let pts: Vec<[f32; 3]> = (0..n)
+            .map(|i| {
+                [
+                    (i % 1000) as f32 * 1e-3 - 0.5,
+                    (i % 777) as f32 * 1e-3 - 0.4,
+                    4.0 + (i % 13) as f32 * 0.01,
+                ]
+            })
+            .collect();
         let mut out = vec![[0.0f32; 2]; n];
         let t = std::time::Instant::now();
         k.project_points(&pts, &mut out).unwrap();
         let dt = t.elapsed().as_secs_f64();
         let rate = n as f64 / dt;
-        println!("normalized projection: {n} points in {:.1} ms = {:.3e} points/s", dt * 1e3, rate);
+        println!(
+            "normalized projection: {n} points in {:.1} ms = {:.3e} points/s",
+            dt * 1e3,
+            rate
+        );
         assert!(out.iter().all(|p| p[0].is_finite()));
         // "millions of points per second" even on a loaded debug-ish build
         assert!(rate > 2e6, "projection too slow: {rate:.3e} points/s");

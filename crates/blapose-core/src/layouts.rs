@@ -201,10 +201,21 @@ impl KeypointLayout {
 
     fn validate(&self, points: &[[f32; 2]]) -> Result<(), LayoutError> {
         if points.len() != self.num_joints() {
-            return Err(LayoutError::WrongJointCount { layout: *self, expected: self.num_joints(), got: points.len() });
+            return Err(LayoutError::WrongJointCount {
+                layout: *self,
+                expected: self.num_joints(),
+                got: points.len(),
+            });
         }
-        if let Some(joint) = points.iter().position(|p| !(p[0].is_finite() && p[1].is_finite())) {
-            return Err(LayoutError::NonFinite { layout: *self, joint, name: self.joint_names()[joint] });
+        if let Some(joint) = points
+            .iter()
+            .position(|p| !(p[0].is_finite() && p[1].is_finite()))
+        {
+            return Err(LayoutError::NonFinite {
+                layout: *self,
+                joint,
+                name: self.joint_names()[joint],
+            });
         }
         Ok(())
     }
@@ -223,8 +234,12 @@ impl KeypointLayout {
     /// Convert a flat buffer of frames (`T * num_joints * 2` values).
     pub fn sequence_to_h36m17(&self, flat: &[f32]) -> Result<Vec<Keypoints2d>, LayoutError> {
         let per_frame = self.num_joints() * 2;
-        if flat.len() % per_frame != 0 {
-            return Err(LayoutError::RaggedBuffer { layout: *self, len: flat.len(), per_frame });
+        if !flat.len().is_multiple_of(per_frame) {
+            return Err(LayoutError::RaggedBuffer {
+                layout: *self,
+                len: flat.len(),
+                per_frame,
+            });
         }
         let mut frame = vec![[0.0f32; 2]; self.num_joints()];
         flat.chunks_exact(per_frame)
@@ -249,7 +264,10 @@ fn h(name: &str) -> usize {
 }
 
 fn by_name(names: &[&str], points: &[[f32; 2]], name: &str) -> [f32; 2] {
-    names.iter().position(|n| *n == name).map_or([0.0; 2], |i| points[i])
+    names
+        .iter()
+        .position(|n| *n == name)
+        .map_or([0.0; 2], |i| points[i])
 }
 
 fn sh16_to_h36m(points: &[[f32; 2]]) -> Keypoints2d {
@@ -275,7 +293,11 @@ fn coco17_to_h36m(points: &[[f32; 2]]) -> Keypoints2d {
     }
     let c = |n| by_name(&COCO17_JOINTS, points, n);
     let pelvis = lerp(c("r_hip"), c("l_hip"), 0.5);
-    let thorax = lerp(lerp(c("r_shoulder"), c("l_shoulder"), 0.5), c("nose"), COCO_THORAX_FRACTION);
+    let thorax = lerp(
+        lerp(c("r_shoulder"), c("l_shoulder"), 0.5),
+        c("nose"),
+        COCO_THORAX_FRACTION,
+    );
     out[h("pelvis")] = pelvis;
     out[h("thorax")] = thorax;
     out[h("spine")] = lerp(pelvis, thorax, COCO_SPINE_FRACTION);
@@ -315,9 +337,18 @@ mod tests {
             assert_eq!(l.name().parse::<KeypointLayout>().unwrap(), l);
             assert_eq!(l.to_string(), l.name());
         }
-        assert_eq!("SH_16".parse::<KeypointLayout>().unwrap(), KeypointLayout::Sh16);
-        assert_eq!("coco-17".parse::<KeypointLayout>().unwrap(), KeypointLayout::Coco17);
-        assert!(matches!("openpose25".parse::<KeypointLayout>(), Err(LayoutError::Unknown(_))));
+        assert_eq!(
+            "SH_16".parse::<KeypointLayout>().unwrap(),
+            KeypointLayout::Sh16
+        );
+        assert_eq!(
+            "coco-17".parse::<KeypointLayout>().unwrap(),
+            KeypointLayout::Coco17
+        );
+        assert!(matches!(
+            "openpose25".parse::<KeypointLayout>(),
+            Err(LayoutError::Unknown(_))
+        ));
         assert_eq!(KeypointLayout::Sh16.num_joints(), 16);
         assert_eq!(KeypointLayout::Coco17.num_joints(), 17);
     }
@@ -332,7 +363,10 @@ mod tests {
         let hd = out[h("head")];
         assert!((hd[0] - (8.0 + SH16_HEAD_FRACTION)).abs() < 1e-5, "{hd:?}");
         let sp = out[h("spine")];
-        assert!((sp[0] - (6.0 + 2.0 * SH16_SPINE_FRACTION)).abs() < 1e-5, "{sp:?}");
+        assert!(
+            (sp[0] - (6.0 + 2.0 * SH16_SPINE_FRACTION)).abs() < 1e-5,
+            "{sp:?}"
+        );
         assert_eq!(out[h("r_wrist")], [10.0, 110.0]);
         assert_eq!(out[h("l_shoulder")], [13.0, 113.0]);
         let nn = out[h("neck_nose")];
@@ -342,32 +376,61 @@ mod tests {
         let out = KeypointLayout::Coco17.to_h36m17(&coco).unwrap();
         assert_eq!(out[h("pelvis")], [11.5, -11.5]);
         let th = out[h("thorax")];
-        assert!((th[0] - 5.5 * (1.0 - COCO_THORAX_FRACTION)).abs() < 1e-5, "{th:?}");
+        assert!(
+            (th[0] - 5.5 * (1.0 - COCO_THORAX_FRACTION)).abs() < 1e-5,
+            "{th:?}"
+        );
         assert_eq!(out[h("neck_nose")], [0.0, 0.0]);
         assert_eq!(out[h("l_wrist")], [9.0, -9.0]);
         assert_eq!(out[h("r_ankle")], [16.0, -16.0]);
         let sp = out[h("spine")];
         assert!((sp[0] - (11.5 + (th[0] - 11.5) * COCO_SPINE_FRACTION)).abs() < 1e-5);
         let hd = out[h("head")];
-        assert!((hd[0] - th[0] * (1.0 - COCO_HEAD_FACTOR)).abs() < 1e-4, "{hd:?}");
+        assert!(
+            (hd[0] - th[0] * (1.0 - COCO_HEAD_FACTOR)).abs() < 1e-4,
+            "{hd:?}"
+        );
 
         let native: Vec<[f32; 2]> = (0..17).map(|i| [i as f32, 1.0]).collect();
-        assert_eq!(KeypointLayout::H36m17.to_h36m17(&native).unwrap()[16], [16.0, 1.0]);
+        assert_eq!(
+            KeypointLayout::H36m17.to_h36m17(&native).unwrap()[16],
+            [16.0, 1.0]
+        );
     }
 
     #[test]
     fn bad_input_is_a_typed_error() {
         let e = KeypointLayout::Sh16.to_h36m17(&[[0.0; 2]; 17]).unwrap_err();
-        assert_eq!(e, LayoutError::WrongJointCount { layout: KeypointLayout::Sh16, expected: 16, got: 17 });
+        assert_eq!(
+            e,
+            LayoutError::WrongJointCount {
+                layout: KeypointLayout::Sh16,
+                expected: 16,
+                got: 17
+            }
+        );
         let mut pts = [[0.0f32; 2]; 17];
         pts[5][1] = f32::NAN;
         let e = KeypointLayout::Coco17.to_h36m17(&pts).unwrap_err();
-        assert_eq!(e, LayoutError::NonFinite { layout: KeypointLayout::Coco17, joint: 5, name: "l_shoulder" });
+        assert_eq!(
+            e,
+            LayoutError::NonFinite {
+                layout: KeypointLayout::Coco17,
+                joint: 5,
+                name: "l_shoulder"
+            }
+        );
         assert!(e.to_string().contains("l_shoulder"));
         assert!(matches!(
             KeypointLayout::Sh16.sequence_to_h36m17(&[0.0; 33]),
             Err(LayoutError::RaggedBuffer { per_frame: 32, .. })
         ));
-        assert_eq!(KeypointLayout::Sh16.sequence_to_h36m17(&[1.0; 64]).unwrap().len(), 2);
+        assert_eq!(
+            KeypointLayout::Sh16
+                .sequence_to_h36m17(&[1.0; 64])
+                .unwrap()
+                .len(),
+            2
+        );
     }
 }

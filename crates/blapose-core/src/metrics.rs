@@ -59,10 +59,16 @@ pub enum MetricError {
 
 fn check_pair<A, B>(pred: &[A], gt: &[B], needed: usize) -> Result<(), MetricError> {
     if pred.len() != gt.len() {
-        return Err(MetricError::LengthMismatch { pred: pred.len(), gt: gt.len() });
+        return Err(MetricError::LengthMismatch {
+            pred: pred.len(),
+            gt: gt.len(),
+        });
     }
     if pred.len() < needed {
-        return Err(MetricError::TooShort { needed, got: pred.len() });
+        return Err(MetricError::TooShort {
+            needed,
+            got: pred.len(),
+        });
     }
     Ok(())
 }
@@ -82,12 +88,20 @@ fn mean_dist(pred: &[[f64; 3]; NUM_JOINTS], gt: &Pose) -> f64 {
 }
 
 /// Mean of a per-frame quantity over a sequence.
-fn mean_over<F: Fn(&Pose, &Pose) -> f64>(pred: &[Pose], gt: &[Pose], f: F) -> Result<f64, MetricError> {
+fn mean_over<F: Fn(&Pose, &Pose) -> f64>(
+    pred: &[Pose],
+    gt: &[Pose],
+    f: F,
+) -> Result<f64, MetricError> {
     check_pair(pred, gt, 1)?;
     Ok(pred.iter().zip(gt).map(|(p, g)| f(p, g)).sum::<f64>() / pred.len() as f64)
 }
 
-fn per_frame<F: Fn(&Pose, &Pose) -> f64>(pred: &[Pose], gt: &[Pose], f: F) -> Result<Vec<f64>, MetricError> {
+fn per_frame<F: Fn(&Pose, &Pose) -> f64>(
+    pred: &[Pose],
+    gt: &[Pose],
+    f: F,
+) -> Result<Vec<f64>, MetricError> {
     check_pair(pred, gt, 0)?;
     Ok(pred.iter().zip(gt).map(|(p, g)| f(p, g)).collect())
 }
@@ -121,7 +135,9 @@ pub fn procrustes_align(pred: &Pose, gt: &Pose) -> [[f64; 3]; NUM_JOINTS] {
     let x = to_f64(gt);
     let y = to_f64(pred);
     let centroid = |p: &[[f64; 3]; NUM_JOINTS]| {
-        p.iter().fold(Vector3::zeros(), |s, j| s + Vector3::from(*j)) / NUM_JOINTS as f64
+        p.iter()
+            .fold(Vector3::zeros(), |s, j| s + Vector3::from(*j))
+            / NUM_JOINTS as f64
     };
     let mu_x = centroid(&x);
     let mu_y = centroid(&y);
@@ -204,7 +220,8 @@ pub fn mpjve(pred: &[Pose], gt: &[Pose]) -> Result<f64, MetricError> {
     for t in 1..pred.len() {
         for j in 0..NUM_JOINTS {
             let d: [f64; 3] = std::array::from_fn(|i| {
-                (pred[t][j][i] as f64 - pred[t - 1][j][i] as f64) - (gt[t][j][i] as f64 - gt[t - 1][j][i] as f64)
+                (pred[t][j][i] as f64 - pred[t - 1][j][i] as f64)
+                    - (gt[t][j][i] as f64 - gt[t - 1][j][i] as f64)
             });
             sum += (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
         }
@@ -224,13 +241,19 @@ pub struct BoneLengthError {
 impl BoneLengthError {
     /// The same error scaled (e.g. by [`MM_PER_M`]).
     pub fn scaled(&self, factor: f64) -> Self {
-        Self { per_bone: self.per_bone.map(|v| v * factor), mean: self.mean * factor }
+        Self {
+            per_bone: self.per_bone.map(|v| v * factor),
+            mean: self.mean * factor,
+        }
     }
 }
 
 /// Bone-length error between paired length sets (e.g. a model's prediction
 /// per sequence vs the subject's true lengths).
-pub fn bone_length_error(pred: &[BoneLengths], gt: &[BoneLengths]) -> Result<BoneLengthError, MetricError> {
+pub fn bone_length_error(
+    pred: &[BoneLengths],
+    gt: &[BoneLengths],
+) -> Result<BoneLengthError, MetricError> {
     check_pair(pred, gt, 1)?;
     let mut per_bone = [0.0f64; NUM_BONES];
     for (p, g) in pred.iter().zip(gt) {
@@ -239,7 +262,10 @@ pub fn bone_length_error(pred: &[BoneLengths], gt: &[BoneLengths]) -> Result<Bon
         }
     }
     let per_bone = per_bone.map(|s| s / pred.len() as f64);
-    Ok(BoneLengthError { per_bone, mean: per_bone.iter().sum::<f64>() / NUM_BONES as f64 })
+    Ok(BoneLengthError {
+        per_bone,
+        mean: per_bone.iter().sum::<f64>() / NUM_BONES as f64,
+    })
 }
 
 /// Bone-length error of predicted poses against ground-truth poses, frame
@@ -282,14 +308,20 @@ impl ActionAggregator {
     /// Add a sequence's per-frame errors under its sequence name (the take
     /// number is stripped with [`action_name`]).
     pub fn add_frames(&mut self, sequence: &str, errors: &[f64]) {
-        let e = self.sums.entry(action_name(sequence).to_owned()).or_insert((0.0, 0));
+        let e = self
+            .sums
+            .entry(action_name(sequence).to_owned())
+            .or_insert((0.0, 0));
         e.0 += errors.iter().sum::<f64>();
         e.1 += errors.len();
     }
 
     /// Add a sequence's mean error over `frames` frames.
     pub fn add_mean(&mut self, sequence: &str, mean: f64, frames: usize) {
-        let e = self.sums.entry(action_name(sequence).to_owned()).or_insert((0.0, 0));
+        let e = self
+            .sums
+            .entry(action_name(sequence).to_owned())
+            .or_insert((0.0, 0));
         e.0 += mean * frames as f64;
         e.1 += frames;
     }

@@ -69,7 +69,7 @@ pub fn poses_as_flat(poses: &[Pose]) -> &[f32] {
 /// the length is not a multiple of 51.
 pub fn poses_from_flat(flat: &[f32]) -> Option<Vec<Pose>> {
     const N: usize = NUM_JOINTS * 3;
-    if flat.len() % N != 0 {
+    if !flat.len().is_multiple_of(N) {
         return None;
     }
     Some(
@@ -83,7 +83,7 @@ pub fn poses_from_flat(flat: &[f32]) -> Option<Vec<Pose>> {
 /// `None` when the length is not a multiple of 34.
 pub fn keypoints_from_flat(flat: &[f32]) -> Option<Vec<Keypoints2d>> {
     const N: usize = NUM_JOINTS * 2;
-    if flat.len() % N != 0 {
+    if !flat.len().is_multiple_of(N) {
         return None;
     }
     Some(

@@ -5,8 +5,8 @@
 //! Umeyama's closed form). The numbers below are that script's output.
 
 use blapose_core::metrics::{
-    action_name, bone_length_error, mpjpe, mpjve, n_mpjpe, p_mpjpe, pose_bone_length_error, ActionAggregator,
-    BoneLengthError, MetricError, MM_PER_M,
+    action_name, bone_length_error, mpjpe, mpjve, n_mpjpe, p_mpjpe, pose_bone_length_error,
+    ActionAggregator, BoneLengthError, MetricError, MM_PER_M,
 };
 use blapose_core::Pose;
 
@@ -21,8 +21,16 @@ fn fixture() -> (Vec<Pose>, Vec<Pose>) {
         let mut p: Pose = [[0.0; 3]; 17];
         for j in 0..17 {
             let jf = j as f64;
-            let gj = [(0.7 * jf + 0.3 * tf).sin() * 0.4, (1.3 * jf + 0.2 * tf).cos() * 0.5, 0.1 * jf - 0.05 * tf];
-            let noise = [0.02 * (3.0 * jf + tf).sin(), -0.03 * (2.0 * jf - tf).cos(), 0.015 * (jf * tf + 1.0).sin()];
+            let gj = [
+                (0.7 * jf + 0.3 * tf).sin() * 0.4,
+                (1.3 * jf + 0.2 * tf).cos() * 0.5,
+                0.1 * jf - 0.05 * tf,
+            ];
+            let noise = [
+                0.02 * (3.0 * jf + tf).sin(),
+                -0.03 * (2.0 * jf - tf).cos(),
+                0.015 * (jf * tf + 1.0).sin(),
+            ];
             let mut pj: [f64; 3] = std::array::from_fn(|i| gj[i] + noise[i]);
             if t == 2 {
                 pj[0] = -pj[0];
@@ -40,7 +48,10 @@ fn fixture() -> (Vec<Pose>, Vec<Pose>) {
 }
 
 fn close(a: f64, b: f64) {
-    assert!((a - b).abs() < 1e-6 * b.abs().max(1e-3), "{a} vs reference {b}");
+    assert!(
+        (a - b).abs() < 1e-6 * b.abs().max(1e-3),
+        "{a} vs reference {b}"
+    );
 }
 
 #[test]
@@ -84,13 +95,18 @@ fn near(a: f64, b: f64) {
 #[test]
 fn hand_computed_small_cases() {
     // Every joint off by (3, 4, 0) mm: MPJPE 5 mm, P-MPJPE 0 (translation).
-    let gt: Pose = std::array::from_fn(|j| [j as f32 * 0.1, (j % 3) as f32 * 0.2, (j % 5) as f32 * 0.05]);
+    let gt: Pose =
+        std::array::from_fn(|j| [j as f32 * 0.1, (j % 3) as f32 * 0.2, (j % 5) as f32 * 0.05]);
     let pred = gt.map(|p| [p[0] + 0.003, p[1] + 0.004, p[2]]);
     near(mpjpe(&[pred], &[gt]).unwrap(), 0.005);
     assert!(p_mpjpe(&[pred], &[gt]).unwrap() < 1e-6);
     // Constant velocities that differ by (0, 0, 0.01) per frame: MPJVE 0.01.
     let seq_gt = [gt, gt, gt];
-    let seq_pred = [gt, gt.map(|p| [p[0], p[1], p[2] + 0.01]), gt.map(|p| [p[0], p[1], p[2] + 0.02])];
+    let seq_pred = [
+        gt,
+        gt.map(|p| [p[0], p[1], p[2] + 0.01]),
+        gt.map(|p| [p[0], p[1], p[2] + 0.02]),
+    ];
     near(mpjve(&seq_pred, &seq_gt).unwrap(), 0.01);
     // Bone lengths: one bone 2 cm long, one 1 cm short, the rest exact.
     let mut l = [0.3f32; 16];
@@ -105,9 +121,18 @@ fn hand_computed_small_cases() {
 #[test]
 fn bad_lengths_are_typed_errors() {
     let (pred, gt) = fixture();
-    assert_eq!(mpjpe(&pred[..3], &gt), Err(MetricError::LengthMismatch { pred: 3, gt: 4 }));
-    assert_eq!(p_mpjpe(&[], &[]), Err(MetricError::TooShort { needed: 1, got: 0 }));
-    assert_eq!(mpjve(&pred[..1], &gt[..1]), Err(MetricError::TooShort { needed: 2, got: 1 }));
+    assert_eq!(
+        mpjpe(&pred[..3], &gt),
+        Err(MetricError::LengthMismatch { pred: 3, gt: 4 })
+    );
+    assert_eq!(
+        p_mpjpe(&[], &[]),
+        Err(MetricError::TooShort { needed: 1, got: 0 })
+    );
+    assert_eq!(
+        mpjve(&pred[..1], &gt[..1]),
+        Err(MetricError::TooShort { needed: 2, got: 1 })
+    );
     assert!(bone_length_error(&[], &[]).is_err());
 }
 
@@ -119,7 +144,10 @@ fn degenerate_procrustes_is_defined() {
     assert!(e.is_finite() && e > 0.0);
     // a collapsed ground truth: everything aligns to the point
     assert!(p_mpjpe(&[gt], &[collapsed]).unwrap() < 1e-6);
-    assert_eq!(n_mpjpe(&[[[0.0; 3]; 17]], &[gt]).unwrap(), mpjpe(&[[[0.0; 3]; 17]], &[gt]).unwrap());
+    assert_eq!(
+        n_mpjpe(&[[[0.0; 3]; 17]], &[gt]).unwrap(),
+        mpjpe(&[[[0.0; 3]; 17]], &[gt]).unwrap()
+    );
 }
 
 #[test]
@@ -135,7 +163,10 @@ fn action_aggregation_averages_per_action_then_over_actions() {
     agg.add_frames("Walking", &[5.0]); // 1 frame at 5 -> Walking = 8/4 = 2
     agg.add_mean("Eating 2", 4.0, 10); // Eating = 4
     agg.add_frames("Posing", &[]); // no frames: left out
-    assert_eq!(agg.per_action(), vec![("Eating".to_owned(), 4.0), ("Walking".to_owned(), 2.0)]);
+    assert_eq!(
+        agg.per_action(),
+        vec![("Eating".to_owned(), 4.0), ("Walking".to_owned(), 2.0)]
+    );
     assert_eq!(agg.mean_over_actions(), Some(3.0));
     assert_eq!(ActionAggregator::new().mean_over_actions(), None);
 }

@@ -20,7 +20,9 @@ fn any_pose() -> impl Strategy<Value = Pose> {
 
 fn unit_dir() -> impl Strategy<Value = [f32; 3]> {
     prop::array::uniform3(-1.0f32..1.0)
-        .prop_filter("non-degenerate direction", |v| v.iter().map(|x| x * x).sum::<f32>() > 0.01)
+        .prop_filter("non-degenerate direction", |v| {
+            v.iter().map(|x| x * x).sum::<f32>() > 0.01
+        })
         .prop_map(|v| {
             let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
             v.map(|x| x / n)
@@ -34,7 +36,11 @@ fn lengths(lo: f32, hi: f32) -> impl Strategy<Value = BoneLengths> {
 /// A pose built from a root, directions and lengths: bones are never
 /// degenerate, like real skeletons.
 fn skeleton_pose() -> impl Strategy<Value = (Pose, BoneDirections, BoneLengths)> {
-    (prop::array::uniform3(coord()), prop::array::uniform16(unit_dir()), lengths(0.05, 0.6))
+    (
+        prop::array::uniform3(coord()),
+        prop::array::uniform16(unit_dir()),
+        lengths(0.05, 0.6),
+    )
         .prop_map(|(root, dirs, l)| (rebuild(root, &dirs, &l), dirs, l))
 }
 
@@ -55,7 +61,11 @@ fn special() -> impl Strategy<Value = f32> {
 }
 
 fn max_diff(a: &Pose, b: &Pose) -> f32 {
-    a.iter().flatten().zip(b.iter().flatten()).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+    a.iter()
+        .flatten()
+        .zip(b.iter().flatten())
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
 }
 
 proptest! {
@@ -269,7 +279,13 @@ fn p_mpjpe_can_exceed_mpjpe_with_an_outlier() {
     // error Procrustes minimises, not for the mean distance: one joint off
     // by 1 m and 16 exact joints give MPJPE = 1/17 m, but the least-squares
     // alignment spreads the error over all joints.
-    let gt: Pose = std::array::from_fn(|j| [(j as f32 * 0.37).sin(), (j as f32 * 0.71).cos(), j as f32 * 0.05]);
+    let gt: Pose = std::array::from_fn(|j| {
+        [
+            (j as f32 * 0.37).sin(),
+            (j as f32 * 0.71).cos(),
+            j as f32 * 0.05,
+        ]
+    });
     let mut pred = gt;
     pred[16][0] += 1.0;
     let m = mpjpe(&[pred], &[gt]).unwrap();

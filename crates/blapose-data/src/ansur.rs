@@ -130,36 +130,62 @@ fn latin1(bytes: &[u8]) -> String {
 /// Parse one ANSUR II CSV (latin-1 bytes). `source_name` labels errors.
 pub fn parse_ansur_csv(bytes: &[u8], source_name: &str) -> Result<AnsurTable, AnsurError> {
     let text = latin1(bytes);
-    let csv_err = |source| AnsurError::Csv { source_name: source_name.to_owned(), source };
-    let mut reader = csv::ReaderBuilder::new().has_headers(true).from_reader(text.as_bytes());
+    let csv_err = |source| AnsurError::Csv {
+        source_name: source_name.to_owned(),
+        source,
+    };
+    let mut reader = csv::ReaderBuilder::new()
+        .has_headers(true)
+        .from_reader(text.as_bytes());
     let header = reader.headers().map_err(csv_err)?.clone();
-    let missing = |column| AnsurError::MissingColumn { source_name: source_name.to_owned(), column };
-    let id_col = header.iter().position(|h| h.eq_ignore_ascii_case("subjectid")).ok_or_else(|| missing("subjectid"))?;
-    let sex_col = header.iter().position(|h| h == "Gender").ok_or_else(|| missing("Gender"))?;
+    let missing = |column| AnsurError::MissingColumn {
+        source_name: source_name.to_owned(),
+        column,
+    };
+    let id_col = header
+        .iter()
+        .position(|h| h.eq_ignore_ascii_case("subjectid"))
+        .ok_or_else(|| missing("subjectid"))?;
+    let sex_col = header
+        .iter()
+        .position(|h| h == "Gender")
+        .ok_or_else(|| missing("Gender"))?;
     if sex_col <= id_col {
         return Err(missing("measurements between subjectid and Gender"));
     }
-    let columns: Vec<String> = header.iter().skip(id_col + 1).take(sex_col - id_col - 1).map(str::to_owned).collect();
+    let columns: Vec<String> = header
+        .iter()
+        .skip(id_col + 1)
+        .take(sex_col - id_col - 1)
+        .map(str::to_owned)
+        .collect();
     let mut records = Vec::new();
     for row in reader.records() {
         let row = row.map_err(csv_err)?;
         let line = row.position().map_or(0, |p| p.line());
         let number = |i: usize| -> Result<f32, AnsurError> {
             let cell = row.get(i).unwrap_or("");
-            cell.trim().parse::<f32>().ok().filter(|v| v.is_finite()).ok_or_else(|| AnsurError::BadNumber {
-                source_name: source_name.to_owned(),
-                line,
-                column: header.get(i).unwrap_or("?").to_owned(),
-                value: cell.to_owned(),
-            })
+            cell.trim()
+                .parse::<f32>()
+                .ok()
+                .filter(|v| v.is_finite())
+                .ok_or_else(|| AnsurError::BadNumber {
+                    source_name: source_name.to_owned(),
+                    line,
+                    column: header.get(i).unwrap_or("?").to_owned(),
+                    value: cell.to_owned(),
+                })
         };
         let id_cell = row.get(id_col).unwrap_or("");
-        let subject_id = id_cell.trim().parse::<u64>().map_err(|_| AnsurError::BadNumber {
-            source_name: source_name.to_owned(),
-            line,
-            column: header.get(id_col).unwrap_or("subjectid").to_owned(),
-            value: id_cell.to_owned(),
-        })?;
+        let subject_id = id_cell
+            .trim()
+            .parse::<u64>()
+            .map_err(|_| AnsurError::BadNumber {
+                source_name: source_name.to_owned(),
+                line,
+                column: header.get(id_col).unwrap_or("subjectid").to_owned(),
+                value: id_cell.to_owned(),
+            })?;
         let sex = match row.get(sex_col).map(str::trim) {
             Some("Male") => Sex::Male,
             Some("Female") => Sex::Female,
@@ -171,15 +197,24 @@ pub fn parse_ansur_csv(bytes: &[u8], source_name: &str) -> Result<AnsurTable, An
                 })
             }
         };
-        let values = (id_col + 1..sex_col).map(number).collect::<Result<Vec<_>, _>>()?;
-        records.push(AnsurRecord { subject_id, sex, values });
+        let values = (id_col + 1..sex_col)
+            .map(number)
+            .collect::<Result<Vec<_>, _>>()?;
+        records.push(AnsurRecord {
+            subject_id,
+            sex,
+            values,
+        });
     }
     Ok(AnsurTable { columns, records })
 }
 
 /// Read one ANSUR II CSV file.
 pub fn read_ansur_csv(path: &Path) -> Result<AnsurTable, AnsurError> {
-    let bytes = std::fs::read(path).map_err(|source| AnsurError::Io { path: path.to_owned(), source })?;
+    let bytes = std::fs::read(path).map_err(|source| AnsurError::Io {
+        path: path.to_owned(),
+        source,
+    })?;
     parse_ansur_csv(&bytes, &path.display().to_string())
 }
 
@@ -219,17 +254,41 @@ mod tests {
     #[test]
     fn malformed_csv_is_a_typed_error() {
         let e = parse_ansur_csv(b"SubjectId,stature,Gender\n1,17x6,Male\n", "f.csv").unwrap_err();
-        assert!(matches!(&e, AnsurError::BadNumber { line: 2, column, value, .. } if column == "stature" && value == "17x6"), "{e}");
+        assert!(
+            matches!(&e, AnsurError::BadNumber { line: 2, column, value, .. } if column == "stature" && value == "17x6"),
+            "{e}"
+        );
         let e = parse_ansur_csv(b"SubjectId,stature,Gender\n1,1776\n", "f.csv").unwrap_err();
         assert!(matches!(e, AnsurError::Csv { .. }), "{e}");
         let e = parse_ansur_csv(b"id,stature,Gender\n1,1776,Male\n", "f.csv").unwrap_err();
-        assert!(matches!(e, AnsurError::MissingColumn { column: "subjectid", .. }), "{e}");
+        assert!(
+            matches!(
+                e,
+                AnsurError::MissingColumn {
+                    column: "subjectid",
+                    ..
+                }
+            ),
+            "{e}"
+        );
         let e = parse_ansur_csv(b"SubjectId,stature\n1,1776\n", "f.csv").unwrap_err();
-        assert!(matches!(e, AnsurError::MissingColumn { column: "Gender", .. }), "{e}");
+        assert!(
+            matches!(
+                e,
+                AnsurError::MissingColumn {
+                    column: "Gender",
+                    ..
+                }
+            ),
+            "{e}"
+        );
         let e = parse_ansur_csv(b"SubjectId,stature,Gender\n1,1776,X\n", "f.csv").unwrap_err();
         assert!(matches!(e, AnsurError::BadSex { .. }), "{e}");
         let e = parse_ansur_csv(b"SubjectId,stature,Gender\n1,NaN,Male\n", "f.csv").unwrap_err();
         assert!(matches!(e, AnsurError::BadNumber { .. }), "{e}");
-        assert!(matches!(read_ansur_csv(Path::new("/nonexistent.csv")), Err(AnsurError::Io { .. })));
+        assert!(matches!(
+            read_ansur_csv(Path::new("/nonexistent.csv")),
+            Err(AnsurError::Io { .. })
+        ));
     }
 }

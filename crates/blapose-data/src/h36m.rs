@@ -40,7 +40,8 @@ pub type ShKeypoints = [[f32; 2]; 16];
 /// `subject -> action -> frames`.
 pub type PosesBySubject = BTreeMap<String, BTreeMap<String, Vec<Pose>>>;
 /// `subject -> action -> camera id -> frames`.
-pub type DetectionsBySubject = BTreeMap<String, BTreeMap<String, BTreeMap<String, Vec<ShKeypoints>>>>;
+pub type DetectionsBySubject =
+    BTreeMap<String, BTreeMap<String, BTreeMap<String, Vec<ShKeypoints>>>>;
 
 /// Why Human3.6M data could not be loaded.
 #[derive(Debug, thiserror::Error)]
@@ -142,16 +143,30 @@ impl CameraSet {
 /// Parse the text of `cameras.json` (validating every camera and the joint
 /// orders). `path` is only used in error messages.
 pub fn parse_cameras(json: &str, path: &Path) -> Result<CameraSet, H36mError> {
-    let raw: RawCameraFile =
-        serde_json::from_str(json).map_err(|source| H36mError::Json { path: path.to_owned(), source })?;
+    let raw: RawCameraFile = serde_json::from_str(json).map_err(|source| H36mError::Json {
+        path: path.to_owned(),
+        source,
+    })?;
     let expect = |list, found: &Vec<String>, expected: &[&'static str]| {
-        if found.iter().map(String::as_str).eq(expected.iter().copied()) {
+        if found
+            .iter()
+            .map(String::as_str)
+            .eq(expected.iter().copied())
+        {
             Ok(())
         } else {
-            Err(H36mError::JointOrder { list, found: found.clone(), expected: expected.to_vec() })
+            Err(H36mError::JointOrder {
+                list,
+                found: found.clone(),
+                expected: expected.to_vec(),
+            })
         }
     };
-    expect("joints_17", &raw.joints_17, &blapose_core::skeleton::JOINT_NAMES)?;
+    expect(
+        "joints_17",
+        &raw.joints_17,
+        &blapose_core::skeleton::JOINT_NAMES,
+    )?;
     expect("sh_16", &raw.sh_16, &blapose_core::layouts::SH16_JOINTS)?;
     let mut by_subject = BTreeMap::new();
     for (subject, cams) in raw.cameras {
@@ -168,18 +183,27 @@ pub fn parse_cameras(json: &str, path: &Path) -> Result<CameraSet, H36mError> {
                 width: c.res[0],
                 height: c.res[1],
             };
-            cam.validate().map_err(|source| H36mError::Camera { subject: subject.clone(), source })?;
+            cam.validate().map_err(|source| H36mError::Camera {
+                subject: subject.clone(),
+                source,
+            })?;
             list.push(cam);
         }
         by_subject.insert(subject, list);
     }
-    Ok(CameraSet { fps: raw.fps, by_subject })
+    Ok(CameraSet {
+        fps: raw.fps,
+        by_subject,
+    })
 }
 
 /// Load `h36m/cameras.json` under the data root.
 pub fn load_cameras(root: &Path) -> Result<CameraSet, H36mError> {
     let path = root.join(CAMERAS_FILE);
-    let text = std::fs::read_to_string(&path).map_err(|source| H36mError::Io { path: path.clone(), source })?;
+    let text = std::fs::read_to_string(&path).map_err(|source| H36mError::Io {
+        path: path.clone(),
+        source,
+    })?;
     parse_cameras(&text, &path)
 }
 
@@ -193,11 +217,20 @@ pub fn load_poses(root: &Path, subjects: &[&str]) -> Result<PosesBySubject, H36m
     let npz = read_npz_filtered(root.join(POSES_FILE), |k| subjects.contains(&subject_of(k)))?;
     let mut out = PosesBySubject::new();
     for (key, _) in npz.iter() {
-        let Some((subject, action)) = key.split_once('/').filter(|(_, a)| !a.is_empty() && !a.contains('/')) else {
-            return Err(H36mError::BadKey { file: POSES_FILE, key: key.to_owned(), expected: "S{n}/{action}" });
+        let Some((subject, action)) = key
+            .split_once('/')
+            .filter(|(_, a)| !a.is_empty() && !a.contains('/'))
+        else {
+            return Err(H36mError::BadKey {
+                file: POSES_FILE,
+                key: key.to_owned(),
+                expected: "S{n}/{action}",
+            });
         };
         let poses = npz.poses(key)?;
-        out.entry(subject.to_owned()).or_default().insert(action.to_owned(), poses);
+        out.entry(subject.to_owned())
+            .or_default()
+            .insert(action.to_owned(), poses);
     }
     Ok(out)
 }
@@ -205,12 +238,18 @@ pub fn load_poses(root: &Path, subjects: &[&str]) -> Result<PosesBySubject, H36m
 /// Load the Stacked Hourglass detections of `subjects` from
 /// `h36m/detections_sh.npz` under the data root.
 pub fn load_detections(root: &Path, subjects: &[&str]) -> Result<DetectionsBySubject, H36mError> {
-    let npz = read_npz_filtered(root.join(DETECTIONS_FILE), |k| subjects.contains(&subject_of(k)))?;
+    let npz = read_npz_filtered(root.join(DETECTIONS_FILE), |k| {
+        subjects.contains(&subject_of(k))
+    })?;
     let mut out = DetectionsBySubject::new();
     for (key, _) in npz.iter() {
         let parts: Vec<&str> = key.split('/').collect();
         let [subject, action, camera] = parts[..] else {
-            return Err(H36mError::BadKey { file: DETECTIONS_FILE, key: key.to_owned(), expected: "S{n}/{action}/{camera}" });
+            return Err(H36mError::BadKey {
+                file: DETECTIONS_FILE,
+                key: key.to_owned(),
+                expected: "S{n}/{action}/{camera}",
+            });
         };
         let frames = npz.frames::<16, 2>(key)?;
         out.entry(subject.to_owned())
@@ -233,9 +272,15 @@ pub struct Parts {
 
 impl Parts {
     /// Poses and detections.
-    pub const ALL: Parts = Parts { poses: true, detections: true };
+    pub const ALL: Parts = Parts {
+        poses: true,
+        detections: true,
+    };
     /// Poses only.
-    pub const POSES: Parts = Parts { poses: true, detections: false };
+    pub const POSES: Parts = Parts {
+        poses: true,
+        detections: false,
+    };
 }
 
 /// Human3.6M for a set of subjects: cameras, 3D sequences, detections.
@@ -253,16 +298,29 @@ impl H36m {
     /// Load the cameras and the requested parts for `subjects`.
     pub fn load(root: &Path, subjects: &[&str], parts: Parts) -> Result<Self, H36mError> {
         let cameras = load_cameras(root)?;
-        let poses = if parts.poses { load_poses(root, subjects)? } else { PosesBySubject::new() };
-        let detections = if parts.detections { load_detections(root, subjects)? } else { DetectionsBySubject::new() };
-        Ok(Self { cameras, poses, detections })
+        let poses = if parts.poses {
+            load_poses(root, subjects)?
+        } else {
+            PosesBySubject::new()
+        };
+        let detections = if parts.detections {
+            load_detections(root, subjects)?
+        } else {
+            DetectionsBySubject::new()
+        };
+        Ok(Self {
+            cameras,
+            poses,
+            detections,
+        })
     }
 
     /// Every loaded 3D sequence as `(subject, action, frames)`.
     pub fn sequences(&self) -> impl Iterator<Item = (&str, &str, &[Pose])> {
-        self.poses
-            .iter()
-            .flat_map(|(s, acts)| acts.iter().map(move |(a, p)| (s.as_str(), a.as_str(), p.as_slice())))
+        self.poses.iter().flat_map(|(s, acts)| {
+            acts.iter()
+                .map(move |(a, p)| (s.as_str(), a.as_str(), p.as_slice()))
+        })
     }
 
     /// One 3D sequence.
@@ -272,7 +330,11 @@ impl H36m {
 
     /// Detections of one sequence seen by one camera.
     pub fn detections(&self, subject: &str, action: &str, camera: &str) -> Option<&[ShKeypoints]> {
-        self.detections.get(subject)?.get(action)?.get(camera).map(Vec::as_slice)
+        self.detections
+            .get(subject)?
+            .get(action)?
+            .get(camera)
+            .map(Vec::as_slice)
     }
 }
 
@@ -300,23 +362,56 @@ mod tests {
         let p = Path::new("cams.json");
         let e = parse_cameras("{\"joints_17\": [", p).unwrap_err();
         assert!(matches!(e, H36mError::Json { .. }), "{e}");
-        assert!(e.to_string().starts_with("cams.json: malformed cameras JSON"), "{e}");
+        assert!(
+            e.to_string()
+                .starts_with("cams.json: malformed cameras JSON"),
+            "{e}"
+        );
         let e = parse_cameras(&GOOD.replace("\"focal\": [1000,1000],", ""), p).unwrap_err();
         assert!(e.to_string().contains("missing field `focal`"), "{e}");
         let e = parse_cameras(&GOOD.replace("[1000,1000],", "[1000],"), p).unwrap_err();
         assert!(matches!(e, H36mError::Json { .. }), "{e}");
         let e = parse_cameras(&GOOD.replace("[0,0,1]]", "[0,0,2]]"), p).unwrap_err();
-        assert!(matches!(e, H36mError::Camera { source: CameraError::NotARotation { .. }, .. }), "{e}");
-        let e = parse_cameras(&GOOD.replace("\"res\": [1000,1000]", "\"res\": [0,1000]"), p).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                H36mError::Camera {
+                    source: CameraError::NotARotation { .. },
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        let e = parse_cameras(
+            &GOOD.replace("\"res\": [1000,1000]", "\"res\": [0,1000]"),
+            p,
+        )
+        .unwrap_err();
         assert!(matches!(e, H36mError::Camera { .. }), "{e}");
-        let e = parse_cameras(&GOOD.replace("\"r_hip\",\"r_knee\"", "\"r_knee\",\"r_hip\""), p).unwrap_err();
-        assert!(matches!(e, H36mError::JointOrder { list: "joints_17", .. }), "{e}");
+        let e = parse_cameras(
+            &GOOD.replace("\"r_hip\",\"r_knee\"", "\"r_knee\",\"r_hip\""),
+            p,
+        )
+        .unwrap_err();
+        assert!(
+            matches!(
+                e,
+                H36mError::JointOrder {
+                    list: "joints_17",
+                    ..
+                }
+            ),
+            "{e}"
+        );
     }
 
     #[test]
     fn missing_files_are_io_errors() {
         let root = Path::new("/nonexistent/blapose");
         assert!(matches!(load_cameras(root), Err(H36mError::Io { .. })));
-        assert!(matches!(load_poses(root, &["S9"]), Err(H36mError::Npz(NpzError::Io { .. }))));
+        assert!(matches!(
+            load_poses(root, &["S9"]),
+            Err(H36mError::Npz(NpzError::Io { .. }))
+        ));
     }
 }

@@ -109,19 +109,29 @@ impl Array {
     pub fn new(shape: Vec<usize>, data: Vec<f32>) -> Result<Self, NpzError> {
         match product(&shape) {
             Some(n) if n == data.len() => Ok(Self { shape, data }),
-            n => Err(NpzError::DataLength { shape, needed: n.unwrap_or(usize::MAX), got: data.len() }),
+            n => Err(NpzError::DataLength {
+                shape,
+                needed: n.unwrap_or(usize::MAX),
+                got: data.len(),
+            }),
         }
     }
 
     /// A `(T, 17, 3)` array of poses.
     pub fn from_poses(poses: &[Pose]) -> Self {
         let data = blapose_core::pose::poses_as_flat(poses).to_vec();
-        Self { shape: vec![poses.len(), blapose_core::NUM_JOINTS, 3], data }
+        Self {
+            shape: vec![poses.len(), blapose_core::NUM_JOINTS, 3],
+            data,
+        }
     }
 
     /// A `(T, J, D)` array of fixed-size frames (e.g. keypoints).
     pub fn from_frames<const J: usize, const D: usize>(frames: &[[[f32; D]; J]]) -> Self {
-        Self { shape: vec![frames.len(), J, D], data: frames.as_flattened().as_flattened().to_vec() }
+        Self {
+            shape: vec![frames.len(), J, D],
+            data: frames.as_flattened().as_flattened().to_vec(),
+        }
     }
 
     /// A `(T, 17, 2)` array of Human3.6M keypoints.
@@ -146,11 +156,19 @@ impl Array {
 
     /// Whether the shape matches `expected` (`None` = any size).
     pub fn has_shape(&self, expected: &[Option<usize>]) -> bool {
-        self.shape.len() == expected.len() && self.shape.iter().zip(expected).all(|(a, e)| e.is_none_or(|e| e == *a))
+        self.shape.len() == expected.len()
+            && self
+                .shape
+                .iter()
+                .zip(expected)
+                .all(|(a, e)| e.is_none_or(|e| e == *a))
     }
 
     /// Copy a `(T, J, D)` array into frames, checking the shape.
-    pub fn to_frames<const J: usize, const D: usize>(&self, key: &str) -> Result<Vec<[[f32; D]; J]>, NpzError> {
+    pub fn to_frames<const J: usize, const D: usize>(
+        &self,
+        key: &str,
+    ) -> Result<Vec<[[f32; D]; J]>, NpzError> {
         check_shape(key, self, &[None, Some(J), Some(D)])?;
         Ok(self
             .data
@@ -161,7 +179,10 @@ impl Array {
 }
 
 fn shape_pattern(expected: &[Option<usize>]) -> String {
-    let dims: Vec<String> = expected.iter().map(|d| d.map_or("_".to_owned(), |d| d.to_string())).collect();
+    let dims: Vec<String> = expected
+        .iter()
+        .map(|d| d.map_or("_".to_owned(), |d| d.to_string()))
+        .collect();
     format!("({})", dims.join(", "))
 }
 
@@ -169,7 +190,11 @@ fn check_shape(key: &str, a: &Array, expected: &[Option<usize>]) -> Result<(), N
     if a.has_shape(expected) {
         Ok(())
     } else {
-        Err(NpzError::Shape { key: key.to_owned(), expected: shape_pattern(expected), actual: a.shape.clone() })
+        Err(NpzError::Shape {
+            key: key.to_owned(),
+            expected: shape_pattern(expected),
+            actual: a.shape.clone(),
+        })
     }
 }
 
@@ -220,7 +245,10 @@ impl Npz {
         if self.len() > 8 {
             available.push("...");
         }
-        NpzError::MissingKey { key: key.to_owned(), available: available.join(", ") }
+        NpzError::MissingKey {
+            key: key.to_owned(),
+            available: available.join(", "),
+        }
     }
 
     /// The array named `key`.
@@ -250,7 +278,10 @@ impl Npz {
     }
 
     /// A `(T, J, D)` array as fixed-size frames.
-    pub fn frames<const J: usize, const D: usize>(&self, key: &str) -> Result<Vec<[[f32; D]; J]>, NpzError> {
+    pub fn frames<const J: usize, const D: usize>(
+        &self,
+        key: &str,
+    ) -> Result<Vec<[[f32; D]; J]>, NpzError> {
         self.get(key)?.to_frames(key)
     }
 
@@ -259,7 +290,11 @@ impl Npz {
         let a = self.get(key)?;
         match (a.shape.len(), a.data.as_slice()) {
             (0, [v]) | (1, [v]) => Ok(*v),
-            _ => Err(NpzError::Shape { key: key.to_owned(), expected: "() or (1,)".into(), actual: a.shape.clone() }),
+            _ => Err(NpzError::Shape {
+                key: key.to_owned(),
+                expected: "() or (1,)".into(),
+                actual: a.shape.clone(),
+            }),
         }
     }
 }
@@ -271,18 +306,30 @@ pub fn read_npz(path: impl AsRef<Path>) -> Result<Npz, NpzError> {
 
 /// Read the arrays whose key satisfies `keep` (e.g. one subject's
 /// sequences); entries are decompressed in parallel.
-pub fn read_npz_filtered(path: impl AsRef<Path>, keep: impl Fn(&str) -> bool + Sync) -> Result<Npz, NpzError> {
+pub fn read_npz_filtered(
+    path: impl AsRef<Path>,
+    keep: impl Fn(&str) -> bool + Sync,
+) -> Result<Npz, NpzError> {
     let path = path.as_ref();
-    let bytes = std::fs::read(path).map_err(|source| NpzError::Io { path: path.to_owned(), source })?;
+    let bytes = std::fs::read(path).map_err(|source| NpzError::Io {
+        path: path.to_owned(),
+        source,
+    })?;
     read_npz_bytes(&bytes, keep).map_err(|e| match e {
-        NpzError::Zip { source, .. } => NpzError::Zip { path: path.to_owned(), source },
+        NpzError::Zip { source, .. } => NpzError::Zip {
+            path: path.to_owned(),
+            source,
+        },
         e => e,
     })
 }
 
 /// Parse an in-memory npz archive (see [`read_npz_filtered`]).
 pub fn read_npz_bytes(bytes: &[u8], keep: impl Fn(&str) -> bool + Sync) -> Result<Npz, NpzError> {
-    let zip_err = |source| NpzError::Zip { path: PathBuf::from("<memory>"), source };
+    let zip_err = |source| NpzError::Zip {
+        path: PathBuf::from("<memory>"),
+        source,
+    };
     let archive = zip::ZipArchive::new(Cursor::new(bytes)).map_err(zip_err)?;
     let wanted: Vec<(usize, String)> = archive
         .file_names()
@@ -300,10 +347,12 @@ pub fn read_npz_bytes(bytes: &[u8], keep: impl Fn(&str) -> bool + Sync) -> Resul
         .map(|(index, key)| {
             let mut archive = archive.clone();
             let mut entry = archive.by_index(index).map_err(zip_err)?;
-            let mut raw = Vec::with_capacity(usize::try_from(entry.size()).unwrap_or(0).min(1 << 30));
-            entry
-                .read_to_end(&mut raw)
-                .map_err(|e| NpzError::BadNpy { key: key.clone(), reason: format!("decompression failed: {e}") })?;
+            let mut raw =
+                Vec::with_capacity(usize::try_from(entry.size()).unwrap_or(0).min(1 << 30));
+            entry.read_to_end(&mut raw).map_err(|e| NpzError::BadNpy {
+                key: key.clone(),
+                reason: format!("decompression failed: {e}"),
+            })?;
             let array = parse_npy(&key, &raw)?;
             Ok((key, array))
         })
@@ -313,13 +362,19 @@ pub fn read_npz_bytes(bytes: &[u8], keep: impl Fn(&str) -> bool + Sync) -> Resul
 
 /// Parse one `.npy` byte string.
 pub fn parse_npy(key: &str, raw: &[u8]) -> Result<Array, NpzError> {
-    let bad = |reason: &str| NpzError::BadNpy { key: key.to_owned(), reason: reason.to_owned() };
+    let bad = |reason: &str| NpzError::BadNpy {
+        key: key.to_owned(),
+        reason: reason.to_owned(),
+    };
     if raw.len() < 10 || &raw[..6] != b"\x93NUMPY" {
         return Err(bad("missing \\x93NUMPY magic"));
     }
     let (header_len, start) = match raw[6] {
         1 => (u16::from_le_bytes([raw[8], raw[9]]) as usize, 10),
-        2 | 3 if raw.len() >= 12 => (u32::from_le_bytes([raw[8], raw[9], raw[10], raw[11]]) as usize, 12),
+        2 | 3 if raw.len() >= 12 => (
+            u32::from_le_bytes([raw[8], raw[9], raw[10], raw[11]]) as usize,
+            12,
+        ),
         v => return Err(bad(&format!("unsupported format version {v}"))),
     };
     let header = raw
@@ -327,11 +382,18 @@ pub fn parse_npy(key: &str, raw: &[u8]) -> Result<Array, NpzError> {
         .ok_or_else(|| bad("truncated header"))
         .and_then(|h| std::str::from_utf8(h).map_err(|_| bad("header is not text")))?;
     let descr = header_value(header, "descr")
-        .and_then(|v| v.trim().strip_prefix('\'').and_then(|v| v.split('\'').next()))
+        .and_then(|v| {
+            v.trim()
+                .strip_prefix('\'')
+                .and_then(|v| v.split('\'').next())
+        })
         .ok_or_else(|| bad("header has no 'descr'"))?;
-    let fortran = header_value(header, "fortran_order").ok_or_else(|| bad("header has no 'fortran_order'"))?;
+    let fortran = header_value(header, "fortran_order")
+        .ok_or_else(|| bad("header has no 'fortran_order'"))?;
     if fortran.trim_start().starts_with("True") {
-        return Err(NpzError::FortranOrder { key: key.to_owned() });
+        return Err(NpzError::FortranOrder {
+            key: key.to_owned(),
+        });
     }
     let shape_text = header_value(header, "shape")
         .and_then(|v| v.trim_start().strip_prefix('('))
@@ -341,7 +403,11 @@ pub fn parse_npy(key: &str, raw: &[u8]) -> Result<Array, NpzError> {
         .split(',')
         .map(str::trim)
         .filter(|s| !s.is_empty())
-        .map(|s| s.trim_end_matches('L').parse::<usize>().map_err(|_| bad(&format!("bad shape entry {s:?}"))))
+        .map(|s| {
+            s.trim_end_matches('L')
+                .parse::<usize>()
+                .map_err(|_| bad(&format!("bad shape entry {s:?}")))
+        })
         .collect::<Result<Vec<_>, _>>()?;
     let n = product(&shape).ok_or_else(|| bad("shape overflows"))?;
     let body = &raw[start + header_len..];
@@ -349,22 +415,43 @@ pub fn parse_npy(key: &str, raw: &[u8]) -> Result<Array, NpzError> {
         "<f4" | "|f4" | ">f4" => {
             let need = n.checked_mul(4).ok_or_else(|| bad("shape overflows"))?;
             if body.len() != need {
-                return Err(bad(&format!("shape {shape:?} needs {need} bytes of data, found {}", body.len())));
+                return Err(bad(&format!(
+                    "shape {shape:?} needs {need} bytes of data, found {}",
+                    body.len()
+                )));
             }
-            let conv = if descr == ">f4" { f32::from_be_bytes } else { f32::from_le_bytes };
-            body.chunks_exact(4).map(|c| conv([c[0], c[1], c[2], c[3]])).collect()
+            let conv = if descr == ">f4" {
+                f32::from_be_bytes
+            } else {
+                f32::from_le_bytes
+            };
+            body.chunks_exact(4)
+                .map(|c| conv([c[0], c[1], c[2], c[3]]))
+                .collect()
         }
         "<f8" | ">f8" => {
             let need = n.checked_mul(8).ok_or_else(|| bad("shape overflows"))?;
             if body.len() != need {
-                return Err(bad(&format!("shape {shape:?} needs {need} bytes of data, found {}", body.len())));
+                return Err(bad(&format!(
+                    "shape {shape:?} needs {need} bytes of data, found {}",
+                    body.len()
+                )));
             }
-            let conv = if descr == ">f8" { f64::from_be_bytes } else { f64::from_le_bytes };
+            let conv = if descr == ">f8" {
+                f64::from_be_bytes
+            } else {
+                f64::from_le_bytes
+            };
             body.chunks_exact(8)
                 .map(|c| conv([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]) as f32)
                 .collect()
         }
-        other => return Err(NpzError::UnsupportedDtype { key: key.to_owned(), descr: other.to_owned() }),
+        other => {
+            return Err(NpzError::UnsupportedDtype {
+                key: key.to_owned(),
+                descr: other.to_owned(),
+            })
+        }
     };
     Ok(Array { shape, data })
 }
@@ -402,15 +489,26 @@ pub fn npy_bytes(array: &Array) -> Vec<u8> {
 /// Write arrays to a deflate-compressed npz (`numpy.load` reads it).
 pub fn write_npz(path: impl AsRef<Path>, npz: &Npz) -> Result<(), NpzError> {
     let path = path.as_ref();
-    let io = |source| NpzError::Io { path: path.to_owned(), source };
-    let zip_err = |source| NpzError::Zip { path: path.to_owned(), source };
+    let io = |source| NpzError::Io {
+        path: path.to_owned(),
+        source,
+    };
+    let zip_err = |source| NpzError::Zip {
+        path: path.to_owned(),
+        source,
+    };
     let file = File::create(path).map_err(io)?;
     let mut zip = zip::ZipWriter::new(BufWriter::new(file));
     let options = zip::write::SimpleFileOptions::default()
         .compression_method(zip::CompressionMethod::Deflated)
-        .large_file(npz.arrays.values().any(|a| a.data.len() * 4 > u32::MAX as usize / 2));
+        .large_file(
+            npz.arrays
+                .values()
+                .any(|a| a.data.len() * 4 > u32::MAX as usize / 2),
+        );
     for (key, array) in &npz.arrays {
-        zip.start_file(format!("{key}.npy"), options).map_err(zip_err)?;
+        zip.start_file(format!("{key}.npy"), options)
+            .map_err(zip_err)?;
         zip.write_all(&npy_bytes(array)).map_err(io)?;
     }
     let mut inner = zip.finish().map_err(zip_err)?;
@@ -428,7 +526,9 @@ mod tests {
     #[test]
     fn write_read_round_trip() {
         let mut npz = Npz::new();
-        let poses: Vec<Pose> = (0..4).map(|t| std::array::from_fn(|j| [t as f32, j as f32, -1.5])).collect();
+        let poses: Vec<Pose> = (0..4)
+            .map(|t| std::array::from_fn(|j| [t as f32, j as f32, -1.5]))
+            .collect();
         npz.insert("S9/Walking 1", Array::from_poses(&poses));
         npz.insert("scalar", Array::new(vec![], vec![2.5]).unwrap());
         npz.insert("vec", Array::new(vec![3], vec![1.0, 2.0, 3.0]).unwrap());
@@ -441,7 +541,30 @@ mod tests {
         assert_eq!(back.poses("S9/Walking 1").unwrap(), poses);
         assert_eq!(back.scalar("scalar").unwrap(), 2.5);
         assert_eq!(back.frames::<17, 2>("empty").unwrap().len(), 0);
-        assert_eq!(back.keys().collect::<Vec<_>>(), ["S9/Walking 1", "empty", "scalar", "vec"]);
+        assert_eq!(
+            back.keys().collect::<Vec<_>>(),
+            ["S9/Walking 1", "empty", "scalar", "vec"]
+        );
+    }
+
+    #[test]
+    fn reads_uncompressed_archives_like_numpy_savez() {
+        // numpy.savez stores entries uncompressed; savez_compressed deflates
+        // (the Human3.6M files). Both must read.
+        let mut buf = Cursor::new(Vec::new());
+        let mut zip = zip::ZipWriter::new(&mut buf);
+        let stored = zip::write::SimpleFileOptions::default()
+            .compression_method(zip::CompressionMethod::Stored);
+        zip.start_file("a.npy", stored).unwrap();
+        zip.write_all(&npy_bytes(&Array::new(vec![2], vec![1.0, 2.0]).unwrap()))
+            .unwrap();
+        zip.start_file("skip/me.npy", stored).unwrap();
+        zip.write_all(&npy_bytes(&Array::new(vec![1], vec![0.0]).unwrap()))
+            .unwrap();
+        zip.finish().unwrap();
+        let npz = read_npz_bytes(buf.get_ref(), |k| !k.starts_with("skip/")).unwrap();
+        assert_eq!(npz.keys().collect::<Vec<_>>(), ["a"]);
+        assert_eq!(npz.get("a").unwrap().data(), [1.0, 2.0]);
     }
 
     #[test]
@@ -451,14 +574,19 @@ mod tests {
         let hl = u16::from_le_bytes([b[8], b[9]]) as usize;
         assert_eq!((10 + hl) % 64, 0);
         assert_eq!(b[10 + hl - 1], b'\n');
-        assert!(std::str::from_utf8(&b[10..10 + hl]).unwrap().starts_with("{'descr': '<f4', 'fortran_order': False, 'shape': (2, 3), }"));
+        assert!(std::str::from_utf8(&b[10..10 + hl])
+            .unwrap()
+            .starts_with("{'descr': '<f4', 'fortran_order': False, 'shape': (2, 3), }"));
         assert_eq!(b.len(), 10 + hl + 24);
         let one = npy_bytes(&Array::new(vec![5], vec![0.0; 5]).unwrap());
-        assert!(std::str::from_utf8(&one[10..70]).unwrap().contains("'shape': (5,)"));
+        assert!(std::str::from_utf8(&one[10..70])
+            .unwrap()
+            .contains("'shape': (5,)"));
     }
 
     fn npy_with(descr: &str, shape: &str, fortran: &str, body: &[u8]) -> Vec<u8> {
-        let header = format!("{{'descr': '{descr}', 'fortran_order': {fortran}, 'shape': {shape}, }}\n");
+        let header =
+            format!("{{'descr': '{descr}', 'fortran_order': {fortran}, 'shape': {shape}, }}\n");
         let mut out = b"\x93NUMPY\x01\x00".to_vec();
         out.extend_from_slice(&(header.len() as u16).to_le_bytes());
         out.extend_from_slice(header.as_bytes());
@@ -468,7 +596,10 @@ mod tests {
 
     #[test]
     fn float64_and_big_endian_are_converted() {
-        let body: Vec<u8> = [1.5f64, -2.25].iter().flat_map(|v| v.to_le_bytes()).collect();
+        let body: Vec<u8> = [1.5f64, -2.25]
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
         let a = parse_npy("x", &npy_with("<f8", "(2,)", "False", &body)).unwrap();
         assert_eq!(a.data(), [1.5, -2.25]);
         let body: Vec<u8> = [3.0f32].iter().flat_map(|v| v.to_be_bytes()).collect();
@@ -478,9 +609,15 @@ mod tests {
 
     #[test]
     fn bad_npy_is_a_typed_error() {
-        assert!(matches!(parse_npy("k", b"not numpy at all"), Err(NpzError::BadNpy { .. })));
+        assert!(matches!(
+            parse_npy("k", b"not numpy at all"),
+            Err(NpzError::BadNpy { .. })
+        ));
         let e = parse_npy("k", &npy_with("<i8", "(1,)", "False", &[0; 8])).unwrap_err();
-        assert!(matches!(&e, NpzError::UnsupportedDtype { descr, .. } if descr == "<i8"), "{e}");
+        assert!(
+            matches!(&e, NpzError::UnsupportedDtype { descr, .. } if descr == "<i8"),
+            "{e}"
+        );
         let e = parse_npy("k", &npy_with("<f4", "(2,)", "True", &[0; 8])).unwrap_err();
         assert!(matches!(e, NpzError::FortranOrder { .. }));
         let e = parse_npy("k", &npy_with("<f4", "(3,)", "False", &[0; 8])).unwrap_err();
@@ -489,9 +626,21 @@ mod tests {
         assert!(matches!(e, NpzError::BadNpy { .. }), "{e}");
         let mut truncated = npy_with("<f4", "(1,)", "False", &[0; 4]);
         truncated.truncate(20);
-        assert!(matches!(parse_npy("k", &truncated), Err(NpzError::BadNpy { .. })));
+        assert!(matches!(
+            parse_npy("k", &truncated),
+            Err(NpzError::BadNpy { .. })
+        ));
         // a huge shape must not allocate or overflow
-        let e = parse_npy("k", &npy_with("<f4", "(99999999999, 99999999999, 99999999999)", "False", &[])).unwrap_err();
+        let e = parse_npy(
+            "k",
+            &npy_with(
+                "<f4",
+                "(99999999999, 99999999999, 99999999999)",
+                "False",
+                &[],
+            ),
+        )
+        .unwrap_err();
         assert!(matches!(e, NpzError::BadNpy { .. }), "{e}");
     }
 
@@ -503,10 +652,20 @@ mod tests {
         assert!(matches!(&e, NpzError::MissingKey { key, .. } if key == "b"));
         assert!(e.to_string().contains("available: a"), "{e}");
         let e = npz.poses("a").unwrap_err();
-        assert_eq!(e.to_string(), "array \"a\" has shape [2, 16, 2], expected (_, 17, 3)");
+        assert_eq!(
+            e.to_string(),
+            "array \"a\" has shape [2, 16, 2], expected (_, 17, 3)"
+        );
         assert!(npz.get_shaped("a", &[None, Some(16), Some(2)]).is_ok());
         assert!(npz.scalar("a").is_err());
-        assert!(matches!(Array::new(vec![2, 2], vec![0.0; 3]), Err(NpzError::DataLength { needed: 4, got: 3, .. })));
+        assert!(matches!(
+            Array::new(vec![2, 2], vec![0.0; 3]),
+            Err(NpzError::DataLength {
+                needed: 4,
+                got: 3,
+                ..
+            })
+        ));
         assert!(npz.remove("zz").is_err());
     }
 
@@ -517,6 +676,9 @@ mod tests {
         let e = read_npz(&path).unwrap_err();
         std::fs::remove_file(&path).ok();
         assert!(matches!(e, NpzError::Zip { .. }), "{e}");
-        assert!(matches!(read_npz(temp("absent.npz")), Err(NpzError::Io { .. })));
+        assert!(matches!(
+            read_npz(temp("absent.npz")),
+            Err(NpzError::Io { .. })
+        ));
     }
 }

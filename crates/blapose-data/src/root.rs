@@ -45,7 +45,10 @@ pub fn test_data_root(subpath: &str, what: &str) -> Option<PathBuf> {
     if wanted.exists() {
         Some(root)
     } else {
-        println!("skipping {what}: {} not found (set {DATA_ENV} to the data root)", wanted.display());
+        println!(
+            "skipping {what}: {} not found (set {DATA_ENV} to the data root)",
+            wanted.display()
+        );
         None
     }
 }
@@ -56,7 +59,10 @@ mod tests {
 
     #[test]
     fn flag_wins() {
-        assert_eq!(data_root(Some(PathBuf::from("/x/y"))), PathBuf::from("/x/y"));
+        assert_eq!(
+            data_root(Some(PathBuf::from("/x/y"))),
+            PathBuf::from("/x/y")
+        );
     }
 
     #[test]

@@ -7,14 +7,16 @@ use std::time::{Duration, Instant};
 use blapose_core::bones::bone_lengths;
 use blapose_core::camera::Camera;
 use blapose_core::layouts::{
-    KeypointLayout, COCO_HEAD_FACTOR, COCO_SPINE_FRACTION, COCO_THORAX_FRACTION, SH16_HEAD_FRACTION,
-    SH16_NECK_FRACTION, SH16_SPINE_FRACTION,
+    KeypointLayout, COCO_HEAD_FACTOR, COCO_SPINE_FRACTION, COCO_THORAX_FRACTION,
+    SH16_HEAD_FRACTION, SH16_NECK_FRACTION, SH16_SPINE_FRACTION,
 };
-use blapose_core::skeleton::{joint_index, BONE_NAMES, JOINT_NAMES, NUM_BONES, SYMMETRIC_BONE_PAIRS};
+use blapose_core::skeleton::{
+    joint_index, BONE_NAMES, JOINT_NAMES, NUM_BONES, SYMMETRIC_BONE_PAIRS,
+};
 use blapose_core::Keypoints2d;
 use blapose_data::h36m::{
-    load_cameras, load_detections, load_poses, CameraSet, DetectionsBySubject, PosesBySubject, ALL_SUBJECTS,
-    TEST_SUBJECTS, TRAIN_SUBJECTS,
+    load_cameras, load_detections, load_poses, CameraSet, DetectionsBySubject, PosesBySubject,
+    ALL_SUBJECTS, TEST_SUBJECTS, TRAIN_SUBJECTS,
 };
 
 struct AllPoses {
@@ -34,7 +36,10 @@ fn all_poses() -> Option<&'static AllPoses> {
         let root = blapose_data::test_data_root("h36m/poses_3d.npz", "Human3.6M pose tests")?;
         let start = Instant::now();
         let poses = load_poses(&root, &ALL_SUBJECTS).expect("load poses_3d.npz");
-        Some(AllPoses { poses, elapsed: start.elapsed() })
+        Some(AllPoses {
+            poses,
+            elapsed: start.elapsed(),
+        })
     })
     .as_ref()
 }
@@ -42,7 +47,8 @@ fn all_poses() -> Option<&'static AllPoses> {
 fn test_subjects() -> Option<&'static TestSubjects> {
     static DATA: OnceLock<Option<TestSubjects>> = OnceLock::new();
     DATA.get_or_init(|| {
-        let root = blapose_data::test_data_root("h36m/detections_sh.npz", "Human3.6M detection tests")?;
+        let root =
+            blapose_data::test_data_root("h36m/detections_sh.npz", "Human3.6M detection tests")?;
         Some(TestSubjects {
             poses: load_poses(&root, &TEST_SUBJECTS).expect("load poses"),
             detections: load_detections(&root, &TEST_SUBJECTS).expect("load detections"),
@@ -67,13 +73,21 @@ fn j(name: &str) -> usize {
 
 /// Visit every (subject, camera, detections frame, ground truth frame) of
 /// the test subjects, with the ground truth projected by `cam`.
-fn for_each_frame(data: &TestSubjects, mut f: impl FnMut(&str, &Camera, &[[f32; 2]; 16], &Keypoints2d)) {
+fn for_each_frame(
+    data: &TestSubjects,
+    mut f: impl FnMut(&str, &Camera, &[[f32; 2]; 16], &Keypoints2d),
+) {
     for (subject, actions) in &data.detections {
         for (action, by_camera) in actions {
             // Detections also exist for the sequences README lists as missing.
-            let Some(poses) = data.poses.get(subject).and_then(|a| a.get(action)) else { continue };
+            let Some(poses) = data.poses.get(subject).and_then(|a| a.get(action)) else {
+                continue;
+            };
             for (cam_id, frames) in by_camera {
-                let cam = data.cameras.get(subject, cam_id).expect("camera for detections");
+                let cam = data
+                    .cameras
+                    .get(subject, cam_id)
+                    .expect("camera for detections");
                 for (det, pose) in frames.iter().zip(poses) {
                     f(subject, cam, det, &cam.project_world_pose_to_pixels(pose));
                 }
@@ -86,13 +100,28 @@ fn for_each_frame(data: &TestSubjects, mut f: impl FnMut(&str, &Camera, &[[f32; 
 fn all_poses_load_in_seconds() {
     let Some(all) = all_poses() else { return };
     let n: usize = all.poses.values().map(|a| a.len()).sum();
-    let frames: usize = all.poses.values().flat_map(|a| a.values()).map(Vec::len).sum();
-    println!("loaded {n} sequences, {frames} frames of 3D poses in {:.2?}", all.elapsed);
+    let frames: usize = all
+        .poses
+        .values()
+        .flat_map(|a| a.values())
+        .map(Vec::len)
+        .sum();
+    println!(
+        "loaded {n} sequences, {frames} frames of 3D poses in {:.2?}",
+        all.elapsed
+    );
     assert_eq!(n, 205);
     assert_eq!(all.poses.len(), 7);
     assert!(all.poses["S9"].contains_key("Walking 1"));
-    assert!(!all.poses["S9"].contains_key("Discussion 1"), "README: S9 Discussion 1 is missing");
-    assert!(all.elapsed < Duration::from_secs(10), "loading took {:?}", all.elapsed);
+    assert!(
+        !all.poses["S9"].contains_key("Discussion 1"),
+        "README: S9 Discussion 1 is missing"
+    );
+    assert!(
+        all.elapsed < Duration::from_secs(10),
+        "loading took {:?}",
+        all.elapsed
+    );
 }
 
 #[test]
@@ -104,15 +133,36 @@ fn bone_lengths_are_constant_and_symmetric() {
         let mut mean = [0.0f64; NUM_BONES];
         for b in 0..NUM_BONES {
             mean[b] = lengths.iter().map(|l| l[b] as f64).sum::<f64>() / n;
-            let std = (lengths.iter().map(|l| (l[b] as f64 - mean[b]).powi(2)).sum::<f64>() / n).sqrt();
+            let std = (lengths
+                .iter()
+                .map(|l| (l[b] as f64 - mean[b]).powi(2))
+                .sum::<f64>()
+                / n)
+                .sqrt();
             // Measured: at most 0.06 mm (S7's spine); every other bone ~0.
-            assert!(std < 0.5e-3, "{subject} {}: std {:.3} mm", BONE_NAMES[b], std * 1e3);
-            assert!((0.09..0.55).contains(&mean[b]), "{subject} {}: {} m", BONE_NAMES[b], mean[b]);
+            assert!(
+                std < 0.5e-3,
+                "{subject} {}: std {:.3} mm",
+                BONE_NAMES[b],
+                std * 1e3
+            );
+            assert!(
+                (0.09..0.55).contains(&mean[b]),
+                "{subject} {}: {} m",
+                BONE_NAMES[b],
+                mean[b]
+            );
         }
         for &(r, l) in &SYMMETRIC_BONE_PAIRS {
             // Measured: |right - left| <= 0.01 mm for every subject and pair.
             let d = (mean[r] - mean[l]).abs();
-            assert!(d < 0.05e-3, "{subject} {} vs {}: {:.3} mm", BONE_NAMES[r], BONE_NAMES[l], d * 1e3);
+            assert!(
+                d < 0.05e-3,
+                "{subject} {} vs {}: {:.3} mm",
+                BONE_NAMES[r],
+                BONE_NAMES[l],
+                d * 1e3
+            );
         }
     }
 }
@@ -124,12 +174,20 @@ fn detections_are_frame_aligned_with_poses() {
     for (subject, actions) in &data.detections {
         for (action, by_camera) in actions {
             let Some(poses) = data.poses.get(subject).and_then(|a| a.get(action)) else {
-                assert_eq!((subject.as_str(), action.as_str()), ("S9", "Discussion 1"), "unexpected missing poses");
+                assert_eq!(
+                    (subject.as_str(), action.as_str()),
+                    ("S9", "Discussion 1"),
+                    "unexpected missing poses"
+                );
                 continue;
             };
             // Human3.6M's S11 "Directions" video from camera 54138969 is
             // corrupt, so that one sequence has only 3 cameras.
-            let cameras = if (subject.as_str(), action.as_str()) == ("S11", "Directions") { 3 } else { 4 };
+            let cameras = if (subject.as_str(), action.as_str()) == ("S11", "Directions") {
+                3
+            } else {
+                4
+            };
             assert_eq!(by_camera.len(), cameras, "{subject}/{action}");
             for (cam, frames) in by_camera {
                 assert_eq!(frames.len(), poses.len(), "{subject}/{action}/{cam}");
@@ -145,10 +203,15 @@ fn projected_ground_truth_lands_on_detections_for_every_camera() {
     let Some(data) = test_subjects() else { return };
     // ankles, knees, wrists, elbows in SH16 order and in H36M order
     let sh_limbs = [0, 1, 4, 5, 10, 11, 14, 15];
-    let h36m_limbs = ["r_ankle", "r_knee", "l_knee", "l_ankle", "r_wrist", "r_elbow", "l_elbow", "l_wrist"].map(j);
+    let h36m_limbs = [
+        "r_ankle", "r_knee", "l_knee", "l_ankle", "r_wrist", "r_elbow", "l_elbow", "l_wrist",
+    ]
+    .map(j);
     let mut per_camera: std::collections::BTreeMap<String, Vec<f32>> = Default::default();
     for_each_frame(data, |subject, cam, det, gt| {
-        let e = per_camera.entry(format!("{subject}/{}", cam.id)).or_default();
+        let e = per_camera
+            .entry(format!("{subject}/{}", cam.id))
+            .or_default();
         for (&s, &h) in sh_limbs.iter().zip(&h36m_limbs) {
             e.push(dist(det[s], gt[h]));
         }
@@ -156,7 +219,10 @@ fn projected_ground_truth_lands_on_detections_for_every_camera() {
     assert_eq!(per_camera.len(), 8, "2 subjects x 4 cameras");
     for (key, errors) in &mut per_camera {
         let m = median(errors);
-        println!("{key}: median limb-joint distance {m:.2} px over {} points", errors.len());
+        println!(
+            "{key}: median limb-joint distance {m:.2} px over {} points",
+            errors.len()
+        );
         assert!(m < 15.0, "{key}: median {m:.2} px");
     }
 
@@ -180,7 +246,9 @@ fn sh16_conversion_quality_on_test_subjects() {
     let Some(data) = test_subjects() else { return };
     let mut errors: Vec<Vec<f32>> = vec![Vec::new(); JOINT_NAMES.len()];
     for_each_frame(data, |_, _, det, gt| {
-        let conv = KeypointLayout::Sh16.to_h36m17(det).expect("finite detections");
+        let conv = KeypointLayout::Sh16
+            .to_h36m17(det)
+            .expect("finite detections");
         for (jj, e) in errors.iter_mut().enumerate() {
             e.push(dist(conv[jj], gt[jj]));
         }
@@ -199,7 +267,11 @@ fn sh16_conversion_quality_on_test_subjects() {
             "head" | "l_hip" => 12.0,
             _ => 10.0,
         };
-        assert!(m < bound, "{}: median {m:.2} px >= {bound}", JOINT_NAMES[jj]);
+        assert!(
+            m < bound,
+            "{}: median {m:.2} px >= {bound}",
+            JOINT_NAMES[jj]
+        );
     }
     let m = median(&mut all);
     println!("  all joints  {m:6.2}");
@@ -272,7 +344,10 @@ fn lerp(a: [f32; 2], b: [f32; 2], t: f32) -> [f32; 2] {
 #[test]
 #[ignore]
 fn calibrate_layout_constants() {
-    let Some(root) = blapose_data::test_data_root("h36m/detections_sh.npz", "layout calibration") else { return };
+    let Some(root) = blapose_data::test_data_root("h36m/detections_sh.npz", "layout calibration")
+    else {
+        return;
+    };
     let poses = load_poses(&root, &TRAIN_SUBJECTS).expect("poses");
     let detections = load_detections(&root, &TRAIN_SUBJECTS).expect("detections");
     let cameras = load_cameras(&root).expect("cameras");
@@ -280,7 +355,9 @@ fn calibrate_layout_constants() {
     let mut frames = Vec::new();
     for (subject, actions) in &detections {
         for (action, by_camera) in actions {
-            let Some(seq) = poses.get(subject).and_then(|a| a.get(action)) else { continue };
+            let Some(seq) = poses.get(subject).and_then(|a| a.get(action)) else {
+                continue;
+            };
             for (cam_id, dets) in by_camera {
                 let cam = cameras.get(subject, cam_id).expect("camera");
                 for (det, pose) in dets.iter().zip(seq).step_by(5) {
@@ -300,7 +377,11 @@ fn calibrate_layout_constants() {
     let [mut c_spine, mut c_head] = [(); 2].map(|_| LerpFit::default());
     for gt in &frames {
         let pelvis = lerp(gt[j("l_hip")], gt[j("r_hip")], 0.5);
-        let thorax = lerp(lerp(gt[j("l_shoulder")], gt[j("r_shoulder")], 0.5), gt[j("neck_nose")], t);
+        let thorax = lerp(
+            lerp(gt[j("l_shoulder")], gt[j("r_shoulder")], 0.5),
+            gt[j("neck_nose")],
+            t,
+        );
         c_spine.add(pelvis, thorax, gt[j("spine")]);
         c_head.add(thorax, gt[j("neck_nose")], gt[j("head")]);
     }
@@ -314,6 +395,9 @@ fn calibrate_layout_constants() {
     ];
     for (name, fit, constant) in fitted {
         println!("{name}: fitted {fit:.4}, constant {constant}");
-        assert!((fit - constant).abs() < 0.01, "{name}: fitted {fit:.4} but the constant is {constant}");
+        assert!(
+            (fit - constant).abs() < 0.01,
+            "{name}: fitted {fit:.4} but the constant is {constant}"
+        );
     }
 }

@@ -229,3 +229,42 @@ fn offline_refuses_bad_sequences() {
         Err(ModelError::NonFiniteInput { row: 5, col: 2 })
     ));
 }
+
+/// f16 weight storage is an opt-in speed option; its error is reported,
+/// and bounded loosely so a broken conversion still fails.
+#[test]
+fn half_precision_weights_stay_close() {
+    use blapose_model::{EngineOptions, Precision};
+    let weights = LoadedWeights::random(ModelKind::Gru, 11).unwrap();
+    let (batch, steps) = (3, 300);
+    let frames = random_frames(batch * steps, 77);
+    let exact = run_online(&OnlineGruEngine::new(&weights, 1).unwrap(), &frames, batch, steps);
+    for isa in Isa::ALL.into_iter().filter(|i| i.is_available()) {
+        let opts = EngineOptions {
+            isa: Some(isa),
+            precision: Precision::F16,
+            ..EngineOptions::threads(1)
+        };
+        let engine = OnlineGruEngine::with_options(&weights, opts).unwrap();
+        assert_eq!(engine.precision(), Precision::F16);
+        let got = run_online(&engine, &frames, batch, steps);
+        let err = max_abs_diff(&got, &exact);
+        let scale = exact.iter().fold(0f32, |m, v| m.max(v.abs()));
+        eprintln!("online f16 {isa}: max error {err:.3e} (outputs up to {scale:.3})");
+        assert!(err > 0.0 && err < 2e-3, "{isa}: {err}");
+    }
+    let weights = LoadedWeights::random(ModelKind::BiGru, 21).unwrap();
+    let frames = random_frames(500, 5);
+    let exact = OfflineBiGruEngine::new(&weights, 1).unwrap().predict(&frames).unwrap();
+    let opts = EngineOptions {
+        precision: Precision::F16,
+        ..EngineOptions::threads(2)
+    };
+    let got = OfflineBiGruEngine::with_options(&weights, opts)
+        .unwrap()
+        .predict(&frames)
+        .unwrap();
+    let err = max_abs_diff(&got, &exact);
+    eprintln!("offline f16: max error {err:.3e}");
+    assert!(err < 2e-3, "{err}");
+}

@@ -288,7 +288,7 @@ mod tests {
             .collect();
         let lo = ratios.iter().cloned().fold(f32::MAX, f32::min);
         let hi = ratios.iter().cloned().fold(f32::MIN, f32::max);
-        assert!(lo >= 0.7 && lo < 0.72, "{lo}");
+        assert!((0.7..0.72).contains(&lo), "{lo}");
         assert!(hi < 1.3 && hi > 1.28, "{hi}");
     }
 

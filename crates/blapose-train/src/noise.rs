@@ -84,7 +84,8 @@ pub fn metric_residual(
     root_depth: f32,
     focal: [f32; 2],
 ) -> Option<MetricResidual> {
-    if !(root_depth > 0.0) || !(focal[0] > 0.0 && focal[1] > 0.0) {
+    let usable = root_depth > 0.0 && focal[0] > 0.0 && focal[1] > 0.0; // false for NaN too
+    if !usable {
         return None;
     }
     let mut out = [[0.0f32; 2]; NUM_JOINTS];

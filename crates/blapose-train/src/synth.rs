@@ -148,7 +148,7 @@ impl SynthConfig {
         if !(self.shift_std >= 0.0 && self.shift_std.is_finite()) {
             return bad("shift_std must be finite and >= 0");
         }
-        if !(self.min_depth > 0.0) {
+        if self.min_depth.is_nan() || self.min_depth <= 0.0 {
             return bad("min_depth must be positive");
         }
         if !(0.0..=1.0).contains(&self.flip_prob) {

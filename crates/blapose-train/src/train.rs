@@ -46,7 +46,7 @@ pub const WEIGHTS_FILE: &str = "model.safetensors";
 pub const LOG_HEADER: &str =
     "step,epoch,lr,train_loss_mm,grad_norm,frames_per_s,val_synth_mm,val_real_sh_mm,val_real_sh_running_mm,elapsed_s";
 /// Seed offset of the fixed synthetic validation set.
-const VAL_SEED_SALT: u64 = 0x5EED_0F_7A11D;
+const VAL_SEED_SALT: u64 = 0x05EE_D0F7_A11D;
 /// Seed offset of the dropout masks.
 const DROPOUT_SEED_SALT: u64 = 0xD0_0D_0D_0D;
 
@@ -509,7 +509,7 @@ pub fn train(
         progress(step, cfg.steps, window.0 / window.1 as f64, fps);
 
         let at_end = step == cfg.steps;
-        let do_val = at_end || (cfg.val_every > 0 && step % cfg.val_every == 0);
+        let do_val = at_end || (cfg.val_every > 0 && step.is_multiple_of(cfg.val_every));
         if do_val {
             validation = validate(&net, &val_synth, &val_real);
             let row = format!(

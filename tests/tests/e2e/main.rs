@@ -8,12 +8,14 @@
 //! - [`sessions`]: TTL eviction, resume, takeover, guessed/foreign ids,
 //!   session limits;
 //! - [`errors`]: every status code the server defines, bad frames that do
-//!   not corrupt a session, authentication, message size limits;
+//!   not corrupt a session, message size limits;
+//! - [`security`]: the bearer token and TLS;
 //! - [`shutdown`]: graceful shutdown answers frames already received;
 //! - [`example`]: replaying the shipped example improves its accuracy.
 
 mod errors;
 mod example;
+mod security;
 mod sessions;
 mod shutdown;
 mod streaming;

@@ -215,7 +215,7 @@ impl OfflineBiGruEngine {
             for s in 0..n {
                 let t = if d == 0 { s } else { n - 1 - s };
                 let pre_t = &pre[t * GATES..(t + 1) * GATES];
-                reverse = !reverse && std::env::var_os("NOREV").is_none();
+                reverse = !reverse;
                 let mut run_panel = |p: usize| {
                     let args = TileArgs {
                         w: gru.panel_ptr(p),

@@ -1,14 +1,11 @@
-//! Process-global concerns, each in this separate test binary: the
-//! Prometheus exporter (one recorder per process) and the memory an idle
-//! session costs (measured from the process's resident set).
+//! The Prometheus exporter, in its own test binary because the recorder is
+//! process-global.
 
 use std::sync::Arc;
 use std::time::Duration;
 
-use blapose_core::layouts::KeypointLayout;
 use blapose_proto::v1 as pb;
 use blapose_server::backend::{Backend, BackendError, SequenceBackend, OUTPUT_DIM, STATE_DIM};
-use blapose_server::session::{Coordinates, InputSpec, SessionConfig, SessionStore};
 use blapose_server::{ModelProvider, ServerConfig};
 use pb::stream_request::Kind as Req;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -139,47 +136,4 @@ async fn prometheus_endpoint_reports_traffic() {
         assert!(after.contains(needle), "missing {needle:?} in:\n{after}");
     }
     server.shutdown().await.unwrap();
-}
-
-fn resident_bytes() -> Option<usize> {
-    let statm = std::fs::read_to_string("/proc/self/statm").ok()?;
-    let pages: usize = statm.split_whitespace().nth(1)?.parse().ok()?;
-    Some(pages * 4096)
-}
-
-#[tokio::test]
-async fn an_idle_session_costs_well_under_16_kib() {
-    let Some(start) = resident_bytes() else {
-        println!("skipping: /proc/self/statm not available");
-        return;
-    };
-    let n = 20_000;
-    let (store, _guard) = SessionStore::new(n, Duration::from_secs(600));
-    let config = SessionConfig {
-        input: InputSpec {
-            layout: KeypointLayout::Coco17,
-            coordinates: Coordinates::Pixels {
-                width: 1920,
-                height: 1080,
-            },
-        },
-        label: "camera-01".into(),
-    };
-    let mut attachments = Vec::with_capacity(n);
-    for _ in 0..n {
-        let a = store.open(config.clone()).unwrap();
-        // Touch the state as a served session would (pages really resident).
-        a.session.lock().hidden.fill(0.5);
-        store.detach(&a.session, a.epoch);
-        attachments.push(a.session.id());
-    }
-    let end = resident_bytes().unwrap();
-    let per_session = end.saturating_sub(start) / n;
-    println!("resident memory per idle session: {per_session} bytes");
-    assert_eq!(store.len(), n);
-    assert!(per_session < 8 * 1024, "{per_session} bytes per session");
-    assert!(
-        per_session >= 4 * 1024,
-        "{per_session} bytes: the 4 KiB state cannot be missing"
-    );
 }
