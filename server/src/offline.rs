@@ -2,7 +2,9 @@
 //!
 //! A request runs on tokio's blocking pool, never on an async worker, and at
 //! most `compute_threads` run at once (a semaphore) so offline work cannot
-//! starve the online batcher of CPU. Backends are pooled: building one
+//! starve the online batcher of CPU. At most [`MAX_WAITING`] more may wait
+//! for their turn; beyond that a request is refused with RESOURCE_EXHAUSTED
+//! instead of queueing without bound. Backends are pooled: building one
 //! re-lays-out the weights, which is worth doing once, not per request.
 
 use std::sync::{Arc, Mutex, PoisonError};
@@ -30,10 +32,14 @@ pub struct AdjustedSequence {
 
 type Pool<T> = Arc<Mutex<Vec<T>>>;
 
+/// Offline requests that may wait for a compute slot.
+pub const MAX_WAITING: usize = 64;
+
 /// Runs offline requests with bounded concurrency.
 pub struct OfflineRunner {
     provider: Arc<dyn ModelProvider>,
     permits: Arc<Semaphore>,
+    admission: Arc<Semaphore>,
     online: Pool<Box<dyn Backend>>,
     offline: Pool<Box<dyn crate::backend::SequenceBackend>>,
 }
@@ -66,6 +72,7 @@ impl OfflineRunner {
         Self {
             provider,
             permits: Arc::new(Semaphore::new(concurrency.max(1))),
+            admission: Arc::new(Semaphore::new(concurrency.max(1) + MAX_WAITING)),
             online: Arc::default(),
             offline: Arc::default(),
         }
@@ -73,6 +80,11 @@ impl OfflineRunner {
 
     /// Predict lengths for a validated sequence and adjust its poses.
     pub async fn adjust(&self, seq: ValidSequence) -> Result<AdjustedSequence, Status> {
+        let _admitted = self.admission.clone().try_acquire_owned().map_err(|_| {
+            Status::resource_exhausted(format!(
+                "server busy: {MAX_WAITING} offline requests are already waiting; retry later"
+            ))
+        })?;
         let _permit = self
             .permits
             .clone()
@@ -159,4 +171,107 @@ pub fn online_lengths(
         out.push(running.mean().unwrap_or(prediction));
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::backend::SequenceBackend;
+    use blapose_proto::v1 as pb;
+    use std::sync::Condvar;
+
+    /// Online fake: prediction = number of frames seen so far (from the
+    /// state), so running means are 1, 1.5, 2, ...
+    struct Counting;
+    impl Backend for Counting {
+        fn step(
+            &mut self,
+            _: &[f32],
+            h: &mut [f32],
+            y: &mut [f32],
+            _: usize,
+        ) -> Result<(), BackendError> {
+            h[0] += 1.0;
+            y.fill(h[0]);
+            Ok(())
+        }
+    }
+
+    /// Offline fake that blocks until the gate opens.
+    #[derive(Clone, Default)]
+    struct Gate(Arc<(Mutex<bool>, Condvar)>);
+    impl SequenceBackend for Gate {
+        fn predict(&mut self, _: &[f32], _: usize) -> Result<BoneLengths, BackendError> {
+            let (open, cv) = &*self.0;
+            let mut g = open.lock().unwrap();
+            while !*g {
+                g = cv.wait(g).unwrap();
+            }
+            Ok([0.3; 16])
+        }
+    }
+
+    struct Provider(Gate);
+    impl ModelProvider for Provider {
+        fn online(&self) -> Result<Box<dyn Backend>, BackendError> {
+            Ok(Box::new(Counting))
+        }
+        fn offline(&self) -> Result<Box<dyn crate::backend::SequenceBackend>, BackendError> {
+            Ok(Box::new(self.0.clone()))
+        }
+        fn describe(&self) -> Vec<pb::ModelDescription> {
+            Vec::new()
+        }
+    }
+
+    fn pose() -> Pose {
+        std::array::from_fn(|j| [0.1 * j as f32, (j * j) as f32 * 0.01, 3.0])
+    }
+
+    #[test]
+    fn online_lengths_are_running_means() {
+        let inputs = vec![0.0; 4 * INPUT_DIM];
+        let rows = online_lengths(&mut Counting, &inputs, 4).unwrap();
+        let firsts: Vec<f32> = rows.iter().map(|r| r[0]).collect();
+        assert_eq!(firsts, vec![1.0, 1.5, 2.0, 2.5]);
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn too_many_waiting_requests_are_refused_not_queued() {
+        let gate = Gate::default();
+        let runner = Arc::new(OfflineRunner::new(Arc::new(Provider(gate.clone())), 1));
+        let seq = ValidSequence {
+            model: OfflineModel::BiGru,
+            inputs: vec![0.0; INPUT_DIM],
+            poses: vec![pose()],
+        };
+        let mut tasks = Vec::new();
+        for _ in 0..(MAX_WAITING + 6) {
+            let (r, s) = (runner.clone(), seq.clone());
+            tasks.push(tokio::spawn(async move { r.adjust(s).await }));
+        }
+        // Give every task time to be admitted or refused, then open the gate.
+        tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+        {
+            let (open, cv) = &*gate.0;
+            *open.lock().unwrap() = true;
+            cv.notify_all();
+        }
+        let mut ok = 0;
+        let mut refused = 0;
+        for t in tasks {
+            match t.await.unwrap() {
+                Ok(done) => {
+                    assert_eq!(done.lengths, vec![[0.3; 16]]);
+                    ok += 1;
+                }
+                Err(s) => {
+                    assert_eq!(s.code(), tonic::Code::ResourceExhausted);
+                    refused += 1;
+                }
+            }
+        }
+        assert_eq!(ok, MAX_WAITING + 1);
+        assert_eq!(refused, 5);
+    }
 }

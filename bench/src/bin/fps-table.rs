@@ -611,7 +611,7 @@ fn thousands(n: usize) -> String {
     let digits = n.to_string();
     let mut out = String::new();
     for (i, ch) in digits.chars().enumerate() {
-        if i > 0 && (digits.len() - i) % 3 == 0 {
+        if i > 0 && (digits.len() - i).is_multiple_of(3) {
             out.push(',');
         }
         out.push(ch);
@@ -734,4 +734,102 @@ fn main() -> Result<()> {
         eprintln!("wrote {}", path.display());
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn m(fps: f64, cpu: Option<f64>) -> Measurement {
+        Measurement { fps, cpu_pct: cpu }
+    }
+
+    #[test]
+    fn medians_skip_missing_values() {
+        let runs = [m(3.0, Some(50.0)), m(1.0, None), m(2.0, Some(70.0))];
+        assert_eq!(median_of(&runs, |r| Some(r.fps)), Some(2.0));
+        assert_eq!(median_of(&runs, |r| r.cpu_pct), Some(60.0));
+        assert_eq!(median_of(&[], |r| Some(r.fps)), None);
+    }
+
+    #[test]
+    fn rows_compute_overheads_like_the_paper() {
+        let row = Row::new(
+            RowKind::Videopose3d,
+            Some(243),
+            16_952_371,
+            vec![m(100.0, None)],
+            vec![m(90.0, None)],
+        );
+        assert!((row.adjustment_overhead_pct.unwrap() - 10.0).abs() < 1e-9);
+        // 958 -> 435 FPS is the paper's 54.6 % loss.
+        assert!((row.paper_overhead_pct.unwrap() - 54.59).abs() < 0.01);
+        let gru = Row::new(
+            RowKind::Gru,
+            None,
+            2_390_784,
+            vec![m(3000.0, Some(99.0))],
+            Vec::new(),
+        );
+        assert_eq!((gru.fps_with_adjustment, gru.paper_fps), (None, 2097.0));
+    }
+
+    #[test]
+    fn measure_counts_steps_and_warmup() {
+        let stream = synthetic_stream(5);
+        let mut calls = 0;
+        let r = measure(&stream, 3, 10, |_| {
+            calls += 1;
+            Ok(())
+        })
+        .unwrap();
+        assert_eq!(calls, 13);
+        assert!(r.fps > 0.0);
+        assert!(measure(&stream, 0, 1, |_| bail!("boom")).is_err());
+    }
+
+    #[test]
+    fn stream_is_deterministic_and_in_normalized_range() {
+        let a = synthetic_stream(50);
+        assert_eq!(a, synthetic_stream(50));
+        assert_ne!(a[0], a[49]);
+        assert!(a.iter().flatten().flatten().all(|v| v.abs() < 1.0));
+    }
+
+    #[test]
+    fn markdown_flags_quick_runs_and_formats_numbers() {
+        assert_eq!(thousands(59_177_580), "59,177,580");
+        assert_eq!(thousands(715), "715");
+        let report = Report {
+            conditions: Conditions {
+                steps: 100,
+                runs: 1,
+                warmup: 0,
+                cpu: "cpu".into(),
+                logical_cpus: 2,
+                candle_threads: 2,
+                thread_env: String::new(),
+                gru_threads: 1,
+                gru_isa: "Avx512".into(),
+                gru_weights: "random".into(),
+                causal_lifters: true,
+                load_average_before: "0 0 0".into(),
+                load_average_after: "0 0 0".into(),
+                adjustment_alone_us: 400.0,
+            },
+            rows: vec![Row::new(
+                RowKind::Gru,
+                None,
+                2_390_784,
+                vec![m(2500.0, Some(100.0))],
+                Vec::new(),
+            )],
+        };
+        let md = markdown(&report);
+        assert!(md.contains("fewer than the paper's 10,000"));
+        assert!(md.contains("| BLAPose GRU (ours) | - | 2,390,784 | 2500.0 | - | - | 2097 |"));
+        let json = serde_json::to_value(&report).unwrap();
+        assert_eq!(json["rows"][0]["paper_fps"], 2097.0);
+        assert!(json["rows"][0]["frames"].is_null());
+    }
 }

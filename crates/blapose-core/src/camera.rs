@@ -34,7 +34,6 @@
 use std::ops::{Add, Div, Mul, Sub};
 
 use crate::pose::{Keypoints2d, Pose};
-use crate::skeleton::NUM_JOINTS;
 
 /// Why a camera or a projection request is invalid.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -148,7 +147,8 @@ impl Intrinsics<f32> {
     ///
     /// Measured on the development machine (one core of a shared 2-core VM,
     /// `cargo test --release -p blapose-core -- --nocapture
-    /// projection_throughput`): roughly 2e8 points/s.
+    /// projection_throughput`): 0.7e8 to 1.4e8 points/s on one thread, i.e. a
+    /// 243-frame, 17-joint window in about 40 µs.
     pub fn project_points(
         &self,
         cam_points: &[[f32; 3]],
@@ -388,7 +388,6 @@ pub fn normalize_points(points: &mut [[f32; 2]], width: u32, height: u32) {
     }
 }
 
-const _: () = assert!(NUM_JOINTS == 17);
 
 #[cfg(test)]
 pub(crate) mod tests {

@@ -8,6 +8,13 @@
 //! - `cameras.json`: per subject and camera id, the calibration used by
 //!   [`blapose_core::camera::Camera`].
 //!
+//! `detections_sh.npz` also holds the five sequences whose 3D poses are
+//! missing (S5 Discussion 2/3, S7 Discussion, S7 SittingDown 1, S9
+//! Discussion 1), and S11 Directions has no detections from camera 54138969
+//! (its video is corrupt in Human3.6M): pair the two by key, never by
+//! position. NaN or infinite values are rejected at load time
+//! ([`H36mError::NonFinite`]).
+//!
 //! Action names contain spaces (`Walking 1`), never `/`, so keys split on
 //! `/` unambiguously. Loaders take a subject list so a test or tool can load
 //! one subject without paying for all seven.
@@ -85,6 +92,16 @@ pub enum H36mError {
         found: Vec<String>,
         /// What blapose expects.
         expected: Vec<&'static str>,
+    },
+    /// An array holds NaN or infinite values.
+    #[error("{file}: array {key:?} has a non-finite value in frame {frame}")]
+    NonFinite {
+        /// The file.
+        file: &'static str,
+        /// The array's key.
+        key: String,
+        /// First frame with a non-finite value.
+        frame: usize,
     },
     /// A key does not have the `S{n}/{action}[/{camera}]` form.
     #[error("{file}: malformed key {key:?} (expected {expected})")]
@@ -211,6 +228,24 @@ fn subject_of(key: &str) -> &str {
     key.split('/').next().unwrap_or("")
 }
 
+fn check_finite<const J: usize, const D: usize>(
+    file: &'static str,
+    key: &str,
+    frames: &[[[f32; D]; J]],
+) -> Result<(), H36mError> {
+    match frames
+        .iter()
+        .position(|f| !f.as_flattened().iter().all(|v| v.is_finite()))
+    {
+        Some(frame) => Err(H36mError::NonFinite {
+            file,
+            key: key.to_owned(),
+            frame,
+        }),
+        None => Ok(()),
+    }
+}
+
 /// Load the 3D sequences of `subjects` (e.g. [`TRAIN_SUBJECTS`]) from
 /// `h36m/poses_3d.npz` under the data root.
 pub fn load_poses(root: &Path, subjects: &[&str]) -> Result<PosesBySubject, H36mError> {
@@ -228,6 +263,7 @@ pub fn load_poses(root: &Path, subjects: &[&str]) -> Result<PosesBySubject, H36m
             });
         };
         let poses = npz.poses(key)?;
+        check_finite(POSES_FILE, key, &poses)?;
         out.entry(subject.to_owned())
             .or_default()
             .insert(action.to_owned(), poses);
@@ -252,6 +288,7 @@ pub fn load_detections(root: &Path, subjects: &[&str]) -> Result<DetectionsBySub
             });
         };
         let frames = npz.frames::<16, 2>(key)?;
+        check_finite(DETECTIONS_FILE, key, &frames)?;
         out.entry(subject.to_owned())
             .or_default()
             .entry(action.to_owned())
@@ -403,6 +440,63 @@ mod tests {
             ),
             "{e}"
         );
+    }
+
+    fn temp_root(name: &str) -> std::path::PathBuf {
+        let root = std::env::temp_dir().join(format!("blapose-h36m-{}-{name}", std::process::id()));
+        std::fs::create_dir_all(root.join("h36m")).unwrap();
+        root
+    }
+
+    #[test]
+    fn bad_arrays_and_keys_are_typed_errors() {
+        use crate::npz::{write_npz, Array, Npz};
+        let root = temp_root("bad");
+        let mut pose: Pose = [[0.1; 3]; 17];
+        let write = |npz: &Npz| write_npz(root.join(POSES_FILE), npz).unwrap();
+
+        let mut npz = Npz::new();
+        npz.insert("S9/Walking 1", Array::from_poses(&[pose, pose]));
+        write(&npz);
+        assert_eq!(
+            load_poses(&root, &["S9"]).unwrap()["S9"]["Walking 1"].len(),
+            2
+        );
+        assert!(load_poses(&root, &["S1"]).unwrap().is_empty());
+
+        pose[3][1] = f32::NAN;
+        npz.insert("S9/Walking 1", Array::from_poses(&[[[0.0; 3]; 17], pose]));
+        write(&npz);
+        let e = load_poses(&root, &["S9"]).unwrap_err();
+        assert!(
+            matches!(&e, H36mError::NonFinite { frame: 1, key, .. } if key == "S9/Walking 1"),
+            "{e}"
+        );
+
+        let mut npz = Npz::new();
+        npz.insert(
+            "S9/Walking 1",
+            Array::new(vec![2, 16, 2], vec![0.0; 64]).unwrap(),
+        );
+        write(&npz);
+        let e = load_poses(&root, &["S9"]).unwrap_err();
+        assert!(e.to_string().contains("expected (_, 17, 3)"), "{e}");
+
+        let mut npz = Npz::new();
+        npz.insert("S9/Walking/extra", Array::from_poses(&[]));
+        write(&npz);
+        let e = load_poses(&root, &["S9"]).unwrap_err();
+        assert!(matches!(e, H36mError::BadKey { .. }), "{e}");
+
+        let mut npz = Npz::new();
+        npz.insert(
+            "S9/Walking 1",
+            Array::new(vec![1, 16, 2], vec![0.0; 32]).unwrap(),
+        );
+        write_npz(root.join(DETECTIONS_FILE), &npz).unwrap();
+        let e = load_detections(&root, &["S9"]).unwrap_err();
+        assert!(matches!(e, H36mError::BadKey { .. }), "{e}");
+        std::fs::remove_dir_all(&root).ok();
     }
 
     #[test]

@@ -1,6 +1,8 @@
 //! Evaluation arithmetic on a hand-made fixture, and the online estimator
 //! against an independent implementation of the same network.
 
+#![allow(clippy::needless_range_loop)]
+
 use blapose_core::BoneLengths;
 use blapose_model::{LoadedWeights, ModelKind};
 use blapose_train::dataset::EvalSequence;

@@ -2,6 +2,8 @@
 //! ../shared/data is absent): length strategies, the ANSUR calibration's
 //! isolation from test subjects, flips and determinism.
 
+#![allow(clippy::needless_range_loop)]
+
 use std::path::PathBuf;
 use std::sync::{Arc, OnceLock};
 

@@ -201,3 +201,29 @@ async fn model_info_and_health() {
     }
     server.shutdown().await;
 }
+
+/// `--fps` paces the sending side: 20 frames at 100 frames/s take at least
+/// 190 ms (the first frame goes at once), and still all arrive in order.
+#[tokio::test]
+async fn replay_paces_to_the_requested_frame_rate() {
+    let server = TestServer::start(test_config()).await;
+    let client = server.client().await;
+    let seq = synthetic_sequence(14, 20, KeypointLayout::H36m17);
+    let options = ReplayOptions {
+        fps: Some(100.0),
+        window: 4,
+        label: None,
+    };
+    let mut progress = Vec::new();
+    let result = replay(&client, &seq, &options, |n| progress.push(n))
+        .await
+        .expect("replay");
+    assert!(
+        result.elapsed >= std::time::Duration::from_millis(190),
+        "{:?}",
+        result.elapsed
+    );
+    assert_eq!(progress, (1..=20).collect::<Vec<_>>());
+    assert_eq!(result.adjusted.len(), 20);
+    server.shutdown().await;
+}

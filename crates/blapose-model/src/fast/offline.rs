@@ -13,7 +13,7 @@
 
 use super::kernel::{self, TileArgs};
 use super::linalg::matmul;
-use super::pack::{PackedEmbed, PackedGru, PackedHead, LANES, PANELS, ROW};
+use super::pack::{PackedEmbed, PackedGru, PackedHead, LANES, PANELS};
 use super::{build_pool, check_finite, EngineOptions, Isa};
 use crate::names::{GruNames, EMBED_BIAS, EMBED_WEIGHT, FC_WEIGHT};
 use crate::{LoadedWeights, ModelError, ModelKind, EMBED_DIM, GATES, HIDDEN, INPUT_DIM, OUTPUT_DIM};
@@ -27,9 +27,9 @@ pub struct OfflineBiGruEngine {
     threads: usize,
     pool: Option<rayon::ThreadPool>,
     embed: PackedEmbed,
-    /// Per direction: `W_ih^T` with columns in panel order, `[256][1536]`.
+    /// Per direction: `W_ih^T`, `[256][1536]`.
     proj: [Vec<f32>; 2],
-    /// Per direction: `b_ih` in panel order.
+    /// Per direction: `b_ih`.
     proj_bias: [Vec<f32>; 2],
     grus: [PackedGru; 2],
     head: PackedHead,
@@ -42,12 +42,6 @@ impl std::fmt::Debug for OfflineBiGruEngine {
             .field("threads", &self.threads)
             .finish_non_exhaustive()
     }
-}
-
-/// Panel-order column of PyTorch gate row `row` (`gate * 512 + unit`).
-fn panel_column(row: usize) -> usize {
-    let (gate, unit) = (row / HIDDEN, row % HIDDEN);
-    (unit / LANES) * ROW + gate * LANES + unit % LANES
 }
 
 impl OfflineBiGruEngine {
@@ -87,22 +81,17 @@ impl OfflineBiGruEngine {
             let w_ih = weights.values(&n.weight_ih)?;
             let b_ih = weights.values(&n.bias_ih)?;
             let mut wt = vec![0.0; EMBED_DIM * GATES];
-            let mut bt = vec![0.0; GATES];
             for row in 0..GATES {
-                let col = panel_column(row);
-                bt[col] = b_ih[row];
                 for k in 0..EMBED_DIM {
-                    wt[k * GATES + col] = w_ih[row * EMBED_DIM + k];
+                    wt[k * GATES + row] = w_ih[row * EMBED_DIM + k];
                 }
             }
             proj[d] = wt;
-            proj_bias[d] = bt;
+            proj_bias[d] = b_ih;
             grus.push(PackedGru::new(
-                &w_ih,
+                None,
                 &weights.values(&n.weight_hh)?,
-                &b_ih,
                 &weights.values(&n.bias_hh)?,
-                false,
                 opts.precision,
             ));
         }
@@ -226,17 +215,19 @@ impl OfflineBiGruEngine {
                         h: h.as_ptr(),
                         h_stride: HIDDEN,
                         unit0: p * LANES,
-                        pre: pre_t[p * ROW..].as_ptr(),
+                        pre: pre_t.as_ptr(),
                         pre_stride: GATES,
                         out: h_next[p * LANES..].as_mut_ptr(),
                         out_stride: HIDDEN,
+                        save: std::ptr::null_mut(),
+                        save_stride: 0,
                         fc: std::ptr::null(),
                         y: std::ptr::null_mut(),
                         y_stride: 0,
                     };
                     // SAFETY: one row: `h` holds 512 floats (for one row and
-                    // k_in = 0 it is its own packed form), `pre_t` from
-                    // `p * 48` holds this panel's 48 pre-activations, `out`
+                    // k_in = 0 it is its own packed form), `pre_t` holds the
+                    // 1536 pre-activations of this frame, `out`
                     // has 16 floats from `p * 16`; the panel holds
                     // `512 * 48` aligned floats (k_in = 0); no output layer.
                     unsafe { kernel::run(self.isa, 1, &args) };

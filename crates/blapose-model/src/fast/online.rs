@@ -136,11 +136,9 @@ impl OnlineGruEngine {
         let threads = opts.threads;
         let pack = |n: &GruNames| -> Result<PackedGru, ModelError> {
             Ok(PackedGru::new(
-                &weights.values(&n.weight_ih)?,
+                Some((&weights.values(&n.weight_ih)?, &weights.values(&n.bias_ih)?)),
                 &weights.values(&n.weight_hh)?,
-                &weights.values(&n.bias_ih)?,
                 &weights.values(&n.bias_hh)?,
-                true,
                 opts.precision,
             ))
         };
@@ -338,6 +336,8 @@ impl OnlineGruEngine {
                 pre_stride: 0,
                 out: out.as_mut_ptr(),
                 out_stride: LANES,
+                save: std::ptr::null_mut(),
+                save_stride: 0,
                 fc: self.head.panel(g, p).as_ptr(),
                 y: y.as_mut_ptr(),
                 y_stride: OUTPUT_DIM,

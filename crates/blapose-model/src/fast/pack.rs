@@ -141,23 +141,23 @@ impl PackedGru {
         (self.k_in + HIDDEN) * ROW
     }
 
-    /// Pack a PyTorch GRU direction. With `with_input` the panels contain
-    /// `W_ih` and the biases are `[b_ir+b_hr, b_iz+b_hz, b_in, b_hn]`;
-    /// without, only `W_hh` and `[b_hr, b_hz, 0, b_hn]` (the caller adds
-    /// `W_ih x + b_ih` itself).
+    /// Pack a PyTorch GRU direction. With `input = Some((W_ih, b_ih))` the
+    /// panels contain `W_ih` and the biases are `[b_ir+b_hr, b_iz+b_hz,
+    /// b_in, b_hn]`; with `None`, only `W_hh` and `[b_hr, b_hz, 0, b_hn]`
+    /// (the caller supplies `W_ih x + b_ih` as pre-activations).
     pub(crate) fn new(
-        w_ih: &[f32],
+        input: Option<(&[f32], &[f32])>,
         w_hh: &[f32],
-        b_ih: &[f32],
         b_hh: &[f32],
-        with_input: bool,
         precision: Precision,
     ) -> Self {
-        assert_eq!(w_ih.len(), GATES * EMBED_DIM);
         assert_eq!(w_hh.len(), GATES * HIDDEN);
-        assert_eq!(b_ih.len(), GATES);
         assert_eq!(b_hh.len(), GATES);
-        let k_in = if with_input { EMBED_DIM } else { 0 };
+        if let Some((w_ih, b_ih)) = input {
+            assert_eq!(w_ih.len(), GATES * EMBED_DIM);
+            assert_eq!(b_ih.len(), GATES);
+        }
+        let k_in = if input.is_some() { EMBED_DIM } else { 0 };
         let panel_len = (k_in + HIDDEN) * ROW;
         let mut w = AlignedBuf::zeros(PANELS * panel_len);
         let mut bias = AlignedBuf::zeros(PANELS * PANEL_BIAS);
@@ -168,14 +168,16 @@ impl PackedGru {
             for gate in 0..3 {
                 for lane in 0..LANES {
                     let row = gate * HIDDEN + p * LANES + lane;
-                    for k in 0..k_in {
-                        panel[k * ROW + gate * LANES + lane] = w_ih[row * EMBED_DIM + k];
+                    if let Some((w_ih, _)) = input {
+                        for k in 0..k_in {
+                            panel[k * ROW + gate * LANES + lane] = w_ih[row * EMBED_DIM + k];
+                        }
                     }
                     for k in 0..HIDDEN {
                         panel[(k_in + k) * ROW + gate * LANES + lane] = w_hh[row * HIDDEN + k];
                     }
                     let b = &mut bs[p * PANEL_BIAS..(p + 1) * PANEL_BIAS];
-                    let input_bias = if with_input { b_ih[row] } else { 0.0 };
+                    let input_bias = input.map_or(0.0, |(_, b_ih)| b_ih[row]);
                     match gate {
                         0 | 1 => b[gate * LANES + lane] = input_bias + b_hh[row],
                         _ => {

@@ -6,10 +6,11 @@
 //! copying: 64x64 frames trained at ~440 frames/s. This op runs the whole
 //! recurrence of both directions over all frames in one node:
 //!
-//! * forward: per frame one GEMM `h · W_hhᵀ` per direction plus fused,
-//!   vectorized gate math; the two directions are independent and run on
-//!   two threads. The gate activations `r, z, n, W_hn h + b_hn` are kept
-//!   for the backward pass (only when a gradient can flow).
+//! * forward: per frame the serving kernel (`crate::fast::kernel`: `h ·
+//!   W_hhᵀ` with the gate math fused into its epilogue) per direction; the
+//!   two directions are independent and run on two threads. The gate
+//!   activations `r, z, n, W_hn h + b_hn` are kept for the backward pass
+//!   (only when a gradient can flow).
 //! * backward (back-propagation through time): per frame one GEMM
 //!   `dgh · W_hh` per direction for the state gradient; the weight
 //!   gradient is a single large GEMM `dGHᵀ · H_prev` over all frames after
@@ -25,9 +26,10 @@ use std::sync::Mutex;
 
 use candle_core::{bail, CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
 
+use crate::fast::kernel::{self, TileArgs};
 use crate::fast::linalg::matmul_t;
-use crate::fast::math::{sigmoid_inplace, tanh_inplace};
-use crate::fast::Isa;
+use crate::fast::pack::{PackedGru, LANES, PANELS};
+use crate::fast::{Isa, Precision};
 use crate::{GATES, HIDDEN};
 
 /// Per direction, per frame and row: `[r | z | n | W_hn h + b_hn]`.
@@ -71,7 +73,8 @@ fn contiguous_f32<'a>(s: &'a CpuStorage, l: &Layout, what: &str) -> Result<&'a [
 }
 
 /// Forward of direction `d`: all states `(T, B, 512)` and, if `save`, the
-/// gate activations `(T, B, 2048)`.
+/// gate activations `(T, B, 2048)`. Runs the serving kernel (fused gates,
+/// weights packed once per call) with the input pre-activations `gi`.
 fn forward_direction(
     isa: Isa,
     dims: Dims,
@@ -82,14 +85,11 @@ fn forward_direction(
     save: bool,
 ) -> (Vec<f32>, Option<Vec<f32>>) {
     let Dims { steps, batch } = dims;
-    let threads = threads_per_direction();
+    let packed = PackedGru::new(None, w, b, Precision::F32);
     let mut states = vec![0.0f32; steps * batch * HIDDEN];
     let mut saved = save.then(|| vec![0.0f32; steps * batch * SAVED]);
     let zeros = vec![0.0f32; batch * HIDDEN];
-    let mut gh = vec![0.0f32; batch * GATES];
-    let mut rz = vec![0.0f32; batch * 2 * HIDDEN];
-    let mut n = vec![0.0f32; batch * HIDDEN];
-    let mut ghn = vec![0.0f32; batch * HIDDEN];
+    let mut x = vec![0.0f32; batch * HIDDEN];
     for t in 0..steps {
         let (done, rest) = states.split_at_mut(t * batch * HIDDEN);
         let h_prev: &[f32] = if t == 0 {
@@ -98,45 +98,37 @@ fn forward_direction(
             &done[(t - 1) * batch * HIDDEN..]
         };
         let h = &mut rest[..batch * HIDDEN];
-        // gh = h_prev · W_hhᵀ
-        matmul_t(&mut gh, (h_prev, false), (w, true), (batch, HIDDEN, GATES), false, threads);
+        kernel::pack_rows(isa, batch, 0, |_| &[], |row| &h_prev[row * HIDDEN..(row + 1) * HIDDEN], &mut x);
         let gi_t = &gi[(t * 2 + d) * batch * GATES..(t * 2 + d + 1) * batch * GATES];
-        for row in 0..batch {
-            let (gi_r, gh_r) = (&gi_t[row * GATES..], &gh[row * GATES..]);
-            let rz_r = &mut rz[row * 2 * HIDDEN..(row + 1) * 2 * HIDDEN];
-            for (j, v) in rz_r.iter_mut().enumerate() {
-                *v = gi_r[j] + gh_r[j] + b[j];
-            }
-            let ghn_r = &mut ghn[row * HIDDEN..(row + 1) * HIDDEN];
-            for (j, v) in ghn_r.iter_mut().enumerate() {
-                *v = gh_r[2 * HIDDEN + j] + b[2 * HIDDEN + j];
-            }
-        }
-        sigmoid_inplace(isa, &mut rz);
-        for row in 0..batch {
-            let gi_n = &gi_t[row * GATES + 2 * HIDDEN..(row + 1) * GATES];
-            let r = &rz[row * 2 * HIDDEN..row * 2 * HIDDEN + HIDDEN];
-            let ghn_r = &ghn[row * HIDDEN..(row + 1) * HIDDEN];
-            let n_r = &mut n[row * HIDDEN..(row + 1) * HIDDEN];
-            for j in 0..HIDDEN {
-                n_r[j] = gi_n[j] + r[j] * ghn_r[j];
-            }
-        }
-        tanh_inplace(isa, &mut n);
-        for row in 0..batch {
-            let z = &rz[row * 2 * HIDDEN + HIDDEN..(row + 1) * 2 * HIDDEN];
-            let n_r = &n[row * HIDDEN..(row + 1) * HIDDEN];
-            let hp = &h_prev[row * HIDDEN..(row + 1) * HIDDEN];
-            let h_r = &mut h[row * HIDDEN..(row + 1) * HIDDEN];
-            for j in 0..HIDDEN {
-                h_r[j] = n_r[j] + z[j] * (hp[j] - n_r[j]);
-            }
-            if let Some(saved) = saved.as_mut() {
-                let s = &mut saved[(t * batch + row) * SAVED..(t * batch + row + 1) * SAVED];
-                s[..2 * HIDDEN].copy_from_slice(&rz[row * 2 * HIDDEN..(row + 1) * 2 * HIDDEN]);
-                s[2 * HIDDEN..3 * HIDDEN].copy_from_slice(n_r);
-                s[3 * HIDDEN..].copy_from_slice(&ghn[row * HIDDEN..(row + 1) * HIDDEN]);
-            }
+        let save_t = saved
+            .as_mut()
+            .map_or(std::ptr::null_mut(), |s| s[t * batch * SAVED..].as_mut_ptr());
+        for p in 0..PANELS {
+            let args = TileArgs {
+                w: packed.panel_ptr(p),
+                half: false,
+                k_in: 0,
+                bias: packed.bias(p).as_ptr(),
+                x: x.as_ptr(),
+                h: h_prev.as_ptr(),
+                h_stride: HIDDEN,
+                unit0: p * LANES,
+                pre: gi_t.as_ptr(),
+                pre_stride: GATES,
+                out: h[p * LANES..].as_mut_ptr(),
+                out_stride: HIDDEN,
+                save: save_t,
+                save_stride: SAVED,
+                fc: std::ptr::null(),
+                y: std::ptr::null_mut(),
+                y_stride: 0,
+            };
+            // SAFETY: `batch` rows each: `x` packed from `h_prev` by
+            // `pack_rows` for `isa`, `h_prev`/`h` rows of 512, `gi_t` rows of
+            // 1536, `save_t` (if any) rows of 2048 inside `saved[t]`; the
+            // panel and biases come from `PackedGru` (k_in = 0); `isa` is
+            // what `Isa::detect` found.
+            unsafe { kernel::run(isa, batch, &args) };
         }
     }
     (states, saved)

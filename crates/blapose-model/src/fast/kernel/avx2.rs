@@ -147,10 +147,10 @@ unsafe fn epilogue<const BT: usize>(
             let mut pn = _mm256_add_ps(ni[b][half], _mm256_loadu_ps(a.bias.add(lane(2))));
             let nh = _mm256_add_ps(g[2], _mm256_loadu_ps(a.bias.add(lane(3))));
             if !a.pre.is_null() {
-                let pre = a.pre.add(b * a.pre_stride);
-                pr = _mm256_add_ps(pr, _mm256_loadu_ps(pre.add(lane(0))));
-                pz = _mm256_add_ps(pz, _mm256_loadu_ps(pre.add(lane(1))));
-                pn = _mm256_add_ps(pn, _mm256_loadu_ps(pre.add(lane(2))));
+                let pre = a.pre.add(b * a.pre_stride + a.unit0 + half * 8);
+                pr = _mm256_add_ps(pr, _mm256_loadu_ps(pre));
+                pz = _mm256_add_ps(pz, _mm256_loadu_ps(pre.add(HIDDEN)));
+                pn = _mm256_add_ps(pn, _mm256_loadu_ps(pre.add(2 * HIDDEN)));
             }
             let r = sigmoid(pr);
             let z = sigmoid(pz);
@@ -158,6 +158,13 @@ unsafe fn epilogue<const BT: usize>(
             let h_old = _mm256_loadu_ps(a.h.add(b * a.h_stride + a.unit0 + half * 8));
             h_new[half] = _mm256_fmadd_ps(z, _mm256_sub_ps(h_old, n), n);
             _mm256_storeu_ps(a.out.add(b * a.out_stride + half * 8), h_new[half]);
+            if !a.save.is_null() {
+                let s = a.save.add(b * a.save_stride + a.unit0 + half * 8);
+                _mm256_storeu_ps(s, r);
+                _mm256_storeu_ps(s.add(HIDDEN), z);
+                _mm256_storeu_ps(s.add(2 * HIDDEN), n);
+                _mm256_storeu_ps(s.add(3 * HIDDEN), nh);
+            }
         }
         if !a.fc.is_null() {
             let mut s = [0.0f32; LANES];

@@ -227,17 +227,25 @@ unsafe fn epilogue<const BT: usize>(a: &TileArgs, acc: &[[__m512; 3]; BT], ni: &
         let mut pz = _mm512_add_ps(g[1], b_z);
         let mut pn = _mm512_add_ps(ni[b], b_ni);
         if !a.pre.is_null() {
-            let pre = a.pre.add(b * a.pre_stride);
+            let pre = a.pre.add(b * a.pre_stride + a.unit0);
             pr = _mm512_add_ps(pr, _mm512_loadu_ps(pre));
-            pz = _mm512_add_ps(pz, _mm512_loadu_ps(pre.add(LANES)));
-            pn = _mm512_add_ps(pn, _mm512_loadu_ps(pre.add(2 * LANES)));
+            pz = _mm512_add_ps(pz, _mm512_loadu_ps(pre.add(HIDDEN)));
+            pn = _mm512_add_ps(pn, _mm512_loadu_ps(pre.add(2 * HIDDEN)));
         }
         let r = sigmoid(pr);
         let z = sigmoid(pz);
-        let n = tanh(_mm512_fmadd_ps(r, _mm512_add_ps(g[2], b_nh), pn));
+        let nh = _mm512_add_ps(g[2], b_nh);
+        let n = tanh(_mm512_fmadd_ps(r, nh, pn));
         let h_old = _mm512_loadu_ps(a.h.add(b * a.h_stride + a.unit0));
         let h_new = _mm512_fmadd_ps(z, _mm512_sub_ps(h_old, n), n);
         _mm512_storeu_ps(a.out.add(b * a.out_stride), h_new);
+        if !a.save.is_null() {
+            let s = a.save.add(b * a.save_stride + a.unit0);
+            _mm512_storeu_ps(s, r);
+            _mm512_storeu_ps(s.add(HIDDEN), z);
+            _mm512_storeu_ps(s.add(2 * HIDDEN), n);
+            _mm512_storeu_ps(s.add(3 * HIDDEN), nh);
+        }
         if !a.fc.is_null() {
             let mut s = [0.0f32; LANES];
             _mm512_storeu_ps(s.as_mut_ptr(), sigmoid(h_new));

@@ -28,8 +28,11 @@ use crate::HIDDEN;
 /// 64 floats; `x` to the rows' inputs packed by [`pack_rows`] (`k_in`
 /// input values then the 512 previous state values, `[k][row]` per tile);
 /// `h` rows hold 512 floats (the previous state of this GRU direction) and
-/// the panel's units start at `unit0`; `pre` is null or its rows hold 48
-/// floats `[r|z|n]`; `out` rows have room for 16 floats; `fc` is null or
+/// the panel's units start at `unit0`; `pre` is null or its rows hold 1536
+/// input pre-activations in PyTorch gate order (`[r|z|n]` x 512, the kernel
+/// reads the panel's units of each gate); `out` rows have room for 16
+/// floats; `save` is null or its rows hold 2048 floats `[r|z|n|W_hn h+b_hn]`
+/// x 512 of which the panel's units are written (for training); `fc` is null or
 /// holds 256 aligned floats `[unit][output]`, in which case `y` rows hold 16
 /// floats that are accumulated into. `out` and `y` must not overlap any
 /// input.
@@ -47,6 +50,8 @@ pub(crate) struct TileArgs {
     pub pre_stride: usize,
     pub out: *mut f32,
     pub out_stride: usize,
+    pub save: *mut f32,
+    pub save_stride: usize,
     pub fc: *const f32,
     pub y: *mut f32,
     pub y_stride: usize,
@@ -66,6 +71,11 @@ impl TileArgs {
                 self.pre.wrapping_add(rows * self.pre_stride)
             },
             out: self.out.wrapping_add(rows * self.out_stride),
+            save: if self.save.is_null() {
+                self.save
+            } else {
+                self.save.wrapping_add(rows * self.save_stride)
+            },
             y: if self.fc.is_null() {
                 self.y
             } else {

@@ -50,17 +50,24 @@ pub(crate) unsafe fn tile(rows: usize, a: &TileArgs) {
     let bias = std::slice::from_raw_parts(a.bias, 4 * LANES);
     for b in 0..rows {
         let pre = (!a.pre.is_null())
-            .then(|| std::slice::from_raw_parts(a.pre.add(b * a.pre_stride), ROW));
+            .then(|| std::slice::from_raw_parts(a.pre.add(b * a.pre_stride), 3 * HIDDEN));
+        let mut save = (!a.save.is_null())
+            .then(|| std::slice::from_raw_parts_mut(a.save.add(b * a.save_stride), 4 * HIDDEN));
         let h_old = std::slice::from_raw_parts(a.h.add(b * a.h_stride + a.unit0), LANES);
         let out = std::slice::from_raw_parts_mut(a.out.add(b * a.out_stride), LANES);
         let mut hnew = [0.0f32; LANES];
         for l in 0..LANES {
-            let p = |g: usize| pre.map_or(0.0, |p| p[g * LANES + l]);
+            let p = |g: usize| pre.map_or(0.0, |p| p[g * HIDDEN + a.unit0 + l]);
             let r = sigmoid(acc[b][0][l] + bias[l] + p(0));
             let z = sigmoid(acc[b][1][l] + bias[LANES + l] + p(1));
-            let n = tanh(ni[b][l] + bias[2 * LANES + l] + p(2)
-                + r * (acc[b][2][l] + bias[3 * LANES + l]));
+            let nh = acc[b][2][l] + bias[3 * LANES + l];
+            let n = tanh(ni[b][l] + bias[2 * LANES + l] + p(2) + r * nh);
             hnew[l] = n + z * (h_old[l] - n);
+            if let Some(s) = save.as_deref_mut() {
+                for (g, v) in [r, z, n, nh].into_iter().enumerate() {
+                    s[g * HIDDEN + a.unit0 + l] = v;
+                }
+            }
         }
         out.copy_from_slice(&hnew);
         if !a.fc.is_null() {
