@@ -21,8 +21,11 @@
 //! Weights are random (timing only; PyTorch-style initialization, so the
 //! arithmetic is the trained models'). Each row is measured `--runs` times,
 //! alternating "alone" and "with adjustment" so both see the same machine
-//! load, and the median is reported. The lifters' matrix products run on
-//! candle's CPU backend with its default thread count; the GRU engine uses
+//! load, and the median is reported, with the process's CPU use (CPU time
+//! over wall time) so that runs on a shared machine can be judged. The
+//! lifters run on the CPU (dense products in blapose-lifters' packed-weight
+//! kernel, everything else in candle), with rayon's and candle's default
+//! thread counts unless `--threads` is given; the GRU engine uses
 //! `--gru-threads`.
 
 use std::hint::black_box;

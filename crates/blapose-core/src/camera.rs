@@ -388,7 +388,6 @@ pub fn normalize_points(points: &mut [[f32; 2]], width: u32, height: u32) {
     }
 }
 
-
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;

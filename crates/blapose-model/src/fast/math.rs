@@ -35,8 +35,6 @@ const C4: f32 = 1.0 / 24.0;
 const C5: f32 = 1.0 / 120.0;
 const C6: f32 = 1.0 / 720.0;
 
-use super::Isa;
-
 /// 8-lane AVX2 + FMA versions.
 #[cfg(target_arch = "x86_64")]
 pub(crate) mod avx2 {
@@ -69,24 +67,6 @@ pub(crate) mod avx2 {
         ));
         _mm256_mul_ps(p, _mm256_castsi256_ps(bits))
     }
-
-    /// `v = sigmoid(v)` / `v = tanh(v)` in place, 8 lanes at a time.
-    macro_rules! slice_fn {
-        ($name:ident, $f:ident, $tail:path) => {
-            #[target_feature(enable = "avx2,fma")]
-            pub unsafe fn $name(v: &mut [f32]) {
-                let mut chunks = v.chunks_exact_mut(8);
-                for c in &mut chunks {
-                    _mm256_storeu_ps(c.as_mut_ptr(), $f(_mm256_loadu_ps(c.as_ptr())));
-                }
-                for x in chunks.into_remainder() {
-                    *x = $tail(*x);
-                }
-            }
-        };
-    }
-    slice_fn!(sigmoid_slice, sigmoid, scalar::sigmoid);
-    slice_fn!(tanh_slice, tanh, scalar::tanh);
 
     /// Logistic function per lane.
     #[inline]
@@ -135,24 +115,6 @@ pub(crate) mod avx512 {
         _mm512_scalef_ps(p, k)
     }
 
-    /// `v = sigmoid(v)` / `v = tanh(v)` in place, 16 lanes at a time.
-    macro_rules! slice_fn {
-        ($name:ident, $f:ident, $tail:path) => {
-            #[target_feature(enable = "avx512f")]
-            pub unsafe fn $name(v: &mut [f32]) {
-                let mut chunks = v.chunks_exact_mut(16);
-                for c in &mut chunks {
-                    _mm512_storeu_ps(c.as_mut_ptr(), $f(_mm512_loadu_ps(c.as_ptr())));
-                }
-                for x in chunks.into_remainder() {
-                    *x = $tail(*x);
-                }
-            }
-        };
-    }
-    slice_fn!(sigmoid_slice, sigmoid, scalar::sigmoid);
-    slice_fn!(tanh_slice, tanh, scalar::tanh);
-
     /// Logistic function per lane.
     #[inline]
     #[target_feature(enable = "avx512f")]
@@ -168,32 +130,6 @@ pub(crate) mod avx512 {
     pub fn tanh(x: __m512) -> __m512 {
         let two = _mm512_set1_ps(2.0);
         _mm512_fmsub_ps(two, sigmoid(_mm512_mul_ps(two, x)), _mm512_set1_ps(1.0))
-    }
-}
-
-/// `v = sigmoid(v)` element-wise, vectorized with `isa`.
-pub(crate) fn sigmoid_inplace(isa: Isa, v: &mut [f32]) {
-    match isa {
-        #[cfg(target_arch = "x86_64")]
-        // SAFETY: callers pass an `Isa` confirmed available by `Isa::require`/`detect`.
-        Isa::Avx512 => unsafe { avx512::sigmoid_slice(v) },
-        #[cfg(target_arch = "x86_64")]
-        // SAFETY: as above.
-        Isa::Avx2 => unsafe { avx2::sigmoid_slice(v) },
-        _ => v.iter_mut().for_each(|x| *x = scalar::sigmoid(*x)),
-    }
-}
-
-/// `v = tanh(v)` element-wise, vectorized with `isa`.
-pub(crate) fn tanh_inplace(isa: Isa, v: &mut [f32]) {
-    match isa {
-        #[cfg(target_arch = "x86_64")]
-        // SAFETY: callers pass an `Isa` confirmed available by `Isa::require`/`detect`.
-        Isa::Avx512 => unsafe { avx512::tanh_slice(v) },
-        #[cfg(target_arch = "x86_64")]
-        // SAFETY: as above.
-        Isa::Avx2 => unsafe { avx2::tanh_slice(v) },
-        _ => v.iter_mut().for_each(|x| *x = scalar::tanh(*x)),
     }
 }
 

@@ -1,0 +1,65 @@
+//! The shipped weights load and reproduce the model card's subset numbers.
+//!
+//! `models/subset_check.json` (written when the weights are shipped) holds
+//! `{"every": k, "bigru_sh_mm": x, "gru_sh_mm": y}`: the headline error of
+//! `blapose eval --model M --input sh --every k` on S9/S11. Skips when the
+//! data, the weights or that file are absent.
+
+use std::path::Path;
+
+use blapose_data::h36m::{H36m, Parts, ALL_SUBJECTS, TEST_SUBJECTS};
+use blapose_model::ModelKind;
+use blapose_train::dataset::{eval_sequences, subject_lengths, InputKind};
+use blapose_train::eval::{evaluate, BiGruEstimator, GruEstimator, LengthEstimator};
+
+#[test]
+fn shipped_weights_reproduce_the_model_card() {
+    let models = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models");
+    let check = models.join("subset_check.json");
+    let Ok(text) = std::fs::read_to_string(&check) else {
+        println!(
+            "skipping shipped-weights check: {} not found",
+            check.display()
+        );
+        return;
+    };
+    let Some(root) =
+        blapose_data::test_data_root("h36m/detections_sh.npz", "shipped-weights check")
+    else {
+        return;
+    };
+    let spec: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let every = spec["every"].as_u64().unwrap_or(20) as usize;
+    let all = H36m::load(&root, &ALL_SUBJECTS, Parts::POSES).unwrap();
+    let lengths = subject_lengths(&all);
+    let h = H36m::load(&root, &TEST_SUBJECTS, Parts::ALL).unwrap();
+    let trials: Vec<_> = eval_sequences(&h, &TEST_SUBJECTS, InputKind::Sh, &lengths)
+        .unwrap()
+        .into_iter()
+        .step_by(every)
+        .collect();
+    for (kind, file, key) in [
+        (
+            ModelKind::BiGru,
+            "bone_length_bigru.safetensors",
+            "bigru_sh_mm",
+        ),
+        (ModelKind::Gru, "bone_length_gru.safetensors", "gru_sh_mm"),
+    ] {
+        let Some(expected) = spec[key].as_f64() else {
+            continue;
+        };
+        let weights =
+            blapose_model::weights::load(models.join(file), kind).expect("shipped weights load");
+        let est: Box<dyn LengthEstimator> = match kind {
+            ModelKind::BiGru => Box::new(BiGruEstimator::new(&weights, 0).unwrap()),
+            ModelKind::Gru => Box::new(GruEstimator::new(&weights).unwrap()),
+        };
+        let r = evaluate(est.as_ref(), &trials, &[], kind.as_str(), "sh", file, &[]).unwrap();
+        assert!(
+            (r.mean_bone_error_mm - expected).abs() < 0.05,
+            "{file}: {:.3} mm on the subset, model card says {expected:.3}",
+            r.mean_bone_error_mm
+        );
+    }
+}
