@@ -137,6 +137,9 @@ struct Row {
     paper_fps_with_adjustment: Option<f64>,
     paper_overhead_pct: Option<f64>,
     mpjpe_mm: Option<f64>,
+    /// Median share of the with-adjustment step time spent in the
+    /// adjustment (timed inside the steps), %.
+    adjustment_share_pct: Option<f64>,
     /// Median CPU use (process CPU time / wall time, %) alone.
     cpu_pct: Option<f64>,
     /// Median CPU use with the adjustment.
@@ -167,6 +170,7 @@ impl Row {
             paper_fps_with_adjustment: paper_with,
             paper_overhead_pct: paper_with.map(|w| overhead_pct(paper, w)),
             mpjpe_mm: None,
+            adjustment_share_pct: median_of(&with, |m| m.adjustment_share_pct),
             cpu_pct: median_of(&alone, |m| m.cpu_pct),
             cpu_pct_with_adjustment: median_of(&with, |m| m.cpu_pct),
             runs: alone,
@@ -340,6 +344,10 @@ struct Measurement {
     /// throughout; below the thread count means the process waited for a
     /// CPU, i.e. the machine was shared).
     cpu_pct: Option<f64>,
+    /// With the adjustment: the share of the timed wall time spent in the
+    /// adjustment itself, in percent (timed inside the same steps, so it is
+    /// robust to load changes between runs).
+    adjustment_share_pct: Option<f64>,
 }
 
 /// Time `steps` calls of `step` after `warmup` untimed ones.
@@ -433,11 +441,20 @@ fn lifter_row(
         let measure_with = || -> Result<Measurement> {
             let mut s = LifterStream::new(lifter, anatomy);
             let mut adj = Adjuster::new(gru);
-            measure(stream, args.warmup, args.steps, |f| {
+            // Per-step time of the adjustment part; the last `steps` are the timed ones.
+            let mut adj_secs = Vec::with_capacity(args.warmup + args.steps);
+            let mut m = measure(stream, args.warmup, args.steps, |f| {
                 let pose = s.step(f)?;
+                let t = Instant::now();
                 black_box(adj.adjust(f, &pose)?);
+                adj_secs.push(t.elapsed().as_secs_f64());
                 Ok(())
-            })
+            })?;
+            let timed: f64 = adj_secs[adj_secs.len().saturating_sub(args.steps)..]
+                .iter()
+                .sum();
+            m.adjustment_share_pct = Some(100.0 * timed * m.fps / args.steps as f64);
+            Ok(m)
         };
         // Alternate the order so neither variant always runs first.
         if run % 2 == 0 {
@@ -578,14 +595,21 @@ fn markdown(report: &Report) -> String {
         "- adjustment alone: {:.1} µs per frame\n",
         c.adjustment_alone_us
     ));
+    s.push_str(
+        "- overhead (FPS) = 1 - FPS with adjustment / FPS (the paper's measure; separate runs, ",
+    );
+    s.push_str(
+        "so sensitive to load changes); overhead (in-step) = share of each adjusted step spent ",
+    );
+    s.push_str("in the adjustment, timed inside the same steps\n");
     s.push_str("- CPU use: process CPU time / wall time during the timed steps (alone / with adjustment); ");
     s.push_str("below the thread count means the process waited for a CPU\n\n");
-    s.push_str("| model | frames | params | FPS | FPS with adjustment | adjustment overhead | paper FPS | paper with adjustment | paper overhead | MPJPE (mm) | CPU use |\n");
-    s.push_str("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
+    s.push_str("| model | frames | params | FPS | FPS with adjustment | overhead (FPS) | overhead (in-step) | paper FPS | paper with adjustment | paper overhead | MPJPE (mm) | CPU use |\n");
+    s.push_str("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
     let opt = |v: Option<f64>, f: &dyn Fn(f64) -> String| v.map(f).unwrap_or_else(|| "-".into());
     for r in &report.rows {
         s.push_str(&format!(
-            "| {} | {} | {} | {:.1} | {} | {} | {:.0} | {} | {} | {} | {} |\n",
+            "| {} | {} | {} | {:.1} | {} | {} | {} | {:.0} | {} | {} | {} | {} |\n",
             r.model,
             r.frames
                 .map(|f| f.to_string())
@@ -594,6 +618,7 @@ fn markdown(report: &Report) -> String {
             r.fps,
             opt(r.fps_with_adjustment, &|v| format!("{v:.1}")),
             opt(r.adjustment_overhead_pct, &|v| format!("{v:.1} %")),
+            opt(r.adjustment_share_pct, &|v| format!("{v:.1} %")),
             r.paper_fps,
             opt(r.paper_fps_with_adjustment, &|v| format!("{v:.0}")),
             opt(r.paper_overhead_pct, &|v| format!("{v:.1} %")),
@@ -744,7 +769,11 @@ mod tests {
     use super::*;
 
     fn m(fps: f64, cpu: Option<f64>) -> Measurement {
-        Measurement { fps, cpu_pct: cpu }
+        Measurement {
+            fps,
+            cpu_pct: cpu,
+            adjustment_share_pct: None,
+        }
     }
 
     #[test]
@@ -830,7 +859,7 @@ mod tests {
         };
         let md = markdown(&report);
         assert!(md.contains("fewer than the paper's 10,000"));
-        assert!(md.contains("| BLAPose GRU (ours) | - | 2,390,784 | 2500.0 | - | - | 2097 |"));
+        assert!(md.contains("| BLAPose GRU (ours) | - | 2,390,784 | 2500.0 | - | - | - | 2097 |"));
         let json = serde_json::to_value(&report).unwrap();
         assert_eq!(json["rows"][0]["paper_fps"], 2097.0);
         assert!(json["rows"][0]["frames"].is_null());

@@ -17,8 +17,14 @@
 //! are those of the reference PyTorch state dict (a converted checkpoint
 //! loads unchanged; a `VarMap` gives a future trainer the same names), or
 //! with fast reproducible random weights ([`RandomInit`]) for timing.
+//! (Checkpoints saved from `nn.DataParallel`, as Anatomy3D's are, prefix
+//! every name with `module.`: pass `vb.pp("module")`.)
 //! Inference only: batch norm is folded into the layers when a model is
-//! built, dropout is the identity.
+//! built, dropout is the identity, and the dense products run in a CPU
+//! kernel with weights packed once at construction (see `kernel.rs`; candle's
+//! general matmul repacks the weights on every call, which dominates at the
+//! few rows of online lifting). A trainer would build its own autograd
+//! forward over the same tensor names.
 //!
 //! Conventions: inputs are normalized 2D keypoints `(B, F, 17, 2)` in
 //! Human3.6M joint order, outputs root-relative 3D poses `(B, 17, 3)` (in

@@ -1,7 +1,7 @@
 //! The fast engines against the reference candle models, and the SIMD
 //! kernels against the scalar one.
 
-use blapose_model::reference::frames_tensor;
+use blapose_model::reference::{frames_tensor, GruImpl};
 use blapose_model::{
     BoneLengthBiGru, BoneLengthGru, Isa, LoadedWeights, ModelError, ModelKind,
     OfflineBiGruEngine, OnlineGruEngine, INPUT_DIM, OUTPUT_DIM, STATE_DIM,
@@ -43,7 +43,10 @@ fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
 fn online_matches_reference(batch: usize, threads: usize) {
     let steps = 1000;
     let weights = LoadedWeights::random(ModelKind::Gru, 11).unwrap();
-    let model = BoneLengthGru::new(weights.var_builder()).unwrap();
+    // plain candle ops: independent of the kernels (the fused training op reuses them)
+    let model = BoneLengthGru::new(weights.var_builder())
+        .unwrap()
+        .with_gru_impl(GruImpl::Autograd);
     let frames = random_frames(batch * steps, 5 + batch as u64);
     let x = frames_tensor(&frames, batch, steps).unwrap();
     let expect: Vec<f32> = model
@@ -193,7 +196,9 @@ fn scratch_grows_for_larger_batches() {
 #[test]
 fn offline_agrees_with_reference() {
     let weights = LoadedWeights::random(ModelKind::BiGru, 21).unwrap();
-    let model = BoneLengthBiGru::new(weights.var_builder()).unwrap();
+    let model = BoneLengthBiGru::new(weights.var_builder())
+        .unwrap()
+        .with_gru_impl(GruImpl::Autograd);
     for (steps, threads) in [(1, 1), (37, 2), (600, 2), (300, 1)] {
         let frames = random_frames(steps, steps as u64);
         let expect: Vec<f32> = model

@@ -123,11 +123,14 @@ pub(crate) fn run_pair(
             all: keep_all.then_some(all),
         });
     }
-    let (w_hh_t, b_hh) = recurrent_params(a, b)?;
+    let rec = Recurrent::new(a, b)?;
+    // per-gate contiguous input pre-activations, so every step's element-wise
+    // ops run on contiguous tensors (candle's strided paths are slow)
+    let gi = split_gates(&gi)?;
     let mut h = Tensor::zeros((2, batch, HIDDEN), e.dtype(), e.device())?;
     let mut all = Vec::with_capacity(if keep_all { steps } else { 0 });
     for t in 0..steps {
-        h = cell(&gi.get(t)?, &h, &w_hh_t, &b_hh)?;
+        h = rec.cell([&gi[0].get(t)?, &gi[1].get(t)?, &gi[2].get(t)?], &h)?;
         if keep_all {
             all.push(h.clone());
         }
@@ -140,26 +143,38 @@ pub(crate) fn run_pair(
     Ok(PairRun { last: h, all })
 }
 
-/// `W_hh^T` of both directions `(2, 512, 1536)` and their `b_hh` `(2, 1, 1536)`.
-pub(crate) fn recurrent_params(a: &GruParams, b: &GruParams) -> Result<(Tensor, Tensor)> {
-    let w_hh_t = Tensor::stack(&[&a.weight_hh, &b.weight_hh], 0)?
-        .transpose(1, 2)?
-        .contiguous()?;
-    let b_hh = Tensor::stack(&[&a.bias_hh, &b.bias_hh], 0)?.unsqueeze(1)?;
-    Ok((w_hh_t, b_hh))
+/// The r, z, n blocks of the last dimension (1536) of `g`, each contiguous.
+pub(crate) fn split_gates(g: &Tensor) -> Result<[Tensor; 3]> {
+    let part = |i: usize| g.narrow(D::Minus1, i * HIDDEN, HIDDEN)?.contiguous();
+    Ok([part(0)?, part(1)?, part(2)?])
 }
 
-/// One step of both directions: input pre-activations `gi_t` `(2, B, 1536)`
-/// (including `b_ih`), states `h` `(2, B, 512)` -> new states.
-pub(crate) fn cell(gi_t: &Tensor, h: &Tensor, w_hh_t: &Tensor, b_hh: &Tensor) -> Result<Tensor> {
-    let gh = h.matmul(w_hh_t)?.broadcast_add(b_hh)?;
-    let rz = candle_nn::ops::sigmoid(
-        &(gi_t.narrow(D::Minus1, 0, 2 * HIDDEN)? + gh.narrow(D::Minus1, 0, 2 * HIDDEN)?)?,
-    )?;
-    let r = rz.narrow(D::Minus1, 0, HIDDEN)?;
-    let z = rz.narrow(D::Minus1, HIDDEN, HIDDEN)?;
-    let n = (gi_t.narrow(D::Minus1, 2 * HIDDEN, HIDDEN)?
-        + r.mul(&gh.narrow(D::Minus1, 2 * HIDDEN, HIDDEN)?)?)?
-    .tanh()?;
-    &n + z.mul(&(h - &n)?)?
+/// The recurrent weights of both directions, per gate: `W_h·ᵀ` `(2, 512,
+/// 512)` and `b_h·` `(2, 1, 512)`.
+pub(crate) struct Recurrent {
+    w_t: [Tensor; 3],
+    b: [Tensor; 3],
+}
+
+impl Recurrent {
+    pub(crate) fn new(a: &GruParams, b: &GruParams) -> Result<Self> {
+        let w_t = Tensor::stack(&[&a.weight_hh, &b.weight_hh], 0)?.transpose(1, 2)?; // (2, 512, 1536)
+        let bias = Tensor::stack(&[&a.bias_hh, &b.bias_hh], 0)?.unsqueeze(1)?; // (2, 1, 1536)
+        let [wr, wz, wn] = split_gates(&w_t)?;
+        let [br, bz, bn] = split_gates(&bias)?;
+        Ok(Self {
+            w_t: [wr, wz, wn],
+            b: [br, bz, bn],
+        })
+    }
+
+    /// One step of both directions: input pre-activations per gate
+    /// `(2, B, 512)` (including `b_ih`), states `h` `(2, B, 512)` -> new states.
+    pub(crate) fn cell(&self, gi: [&Tensor; 3], h: &Tensor) -> Result<Tensor> {
+        let gh = |g: usize| h.matmul(&self.w_t[g])?.broadcast_add(&self.b[g]);
+        let r = candle_nn::ops::sigmoid(&(gi[0] + gh(0)?)?)?;
+        let z = candle_nn::ops::sigmoid(&(gi[1] + gh(1)?)?)?;
+        let n = (gi[2] + r.mul(&gh(2)?)?)?.tanh()?;
+        &n + z.mul(&(h - &n)?)?
+    }
 }

@@ -142,12 +142,12 @@ impl BoneLengthGru {
         let e = self.shared.embed(&x.reshape((batch, 1, width))?, false)?;
         let [a, b] = &self.shared.grus;
         let gi = gru::input_projection(a, b, &e, false)?.get(0)?; // (2, B, 1536)
-        let (w_hh_t, b_hh) = gru::recurrent_params(a, b)?;
+        let [gr, gz, gn] = gru::split_gates(&gi)?;
         let h = state
             .reshape((batch, 2, HIDDEN))?
             .transpose(0, 1)?
             .contiguous()?;
-        let h = gru::cell(&gi, &h, &w_hh_t, &b_hh)?;
+        let h = gru::Recurrent::new(a, b)?.cell([&gr, &gz, &gn], &h)?;
         let features = h.transpose(0, 1)?.reshape((batch, 2 * HIDDEN))?;
         let y = self.shared.head(&features)?;
         Ok((features, y))
