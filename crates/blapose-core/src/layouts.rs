@@ -6,7 +6,7 @@
 //! synthesizes the ones it lacks from its neighbours. The synthesis
 //! coefficients were fitted, and the quality measured, on the real data in
 //! `../shared/data/h36m` (see "Measured quality" below and the
-//! `layout_quality` test in `blapose-data`).
+//! `*_quality_on_test_subjects` tests in `blapose-data/tests/h36m_real.rs`).
 //!
 //! # Layouts
 //!
