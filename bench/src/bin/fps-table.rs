@@ -373,6 +373,7 @@ fn measure(
     Ok(Measurement {
         fps: steps as f64 / wall,
         cpu_pct,
+        adjustment_share_pct: None,
     })
 }
 

@@ -80,7 +80,12 @@ fn random_inputs(n: usize, seed: u64) -> Vec<f32> {
 
 fn main() -> Result<()> {
     let args = Args::parse();
-    if args.batch == 0 || args.threads == 0 || args.steps == 0 || args.frames == 0 || args.repeats == 0 {
+    if args.batch == 0
+        || args.threads == 0
+        || args.steps == 0
+        || args.frames == 0
+        || args.repeats == 0
+    {
         bail!("--batch, --threads, --steps, --frames and --repeats must be positive");
     }
     let isa = match &args.isa {
@@ -128,7 +133,11 @@ fn main() -> Result<()> {
             args.frames as f64 / median
         );
     } else {
-        let isa_s = if args.path == PathKind::Fast { isa.as_str() } else { "candle" };
+        let isa_s = if args.path == PathKind::Fast {
+            isa.as_str()
+        } else {
+            "candle"
+        };
         println!(
             "mode=online path={:?} batch={} threads={} steps={} isa={isa_s} precision={}",
             args.path, args.batch, args.threads, args.steps, args.precision
@@ -148,7 +157,8 @@ fn online_fast(args: &Args, opts: EngineOptions) -> Result<(usize, f64)> {
     let mut hidden = vec![0.0; b * STATE_DIM];
     let mut out = vec![0.0; b * OUTPUT_DIM];
     let mut scratch = engine.scratch(b);
-    let frame = |t: usize| &inputs[(t % pool_steps) * b * INPUT_DIM..(t % pool_steps + 1) * b * INPUT_DIM];
+    let frame =
+        |t: usize| &inputs[(t % pool_steps) * b * INPUT_DIM..(t % pool_steps + 1) * b * INPUT_DIM];
     for t in 0..args.warmup {
         engine.step(frame(t), &mut hidden, &mut out, &mut scratch)?;
     }

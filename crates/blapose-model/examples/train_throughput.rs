@@ -10,7 +10,11 @@ use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
 
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().collect();
-    let kind: ModelKind = args.get(1).map(|s| s.parse()).transpose()?.unwrap_or(ModelKind::Gru);
+    let kind: ModelKind = args
+        .get(1)
+        .map(|s| s.parse())
+        .transpose()?
+        .unwrap_or(ModelKind::Gru);
     let batch: usize = args.get(2).map(|s| s.parse()).transpose()?.unwrap_or(64);
     let steps: usize = args.get(3).map(|s| s.parse()).transpose()?.unwrap_or(64);
     let iters: usize = args.get(4).map(|s| s.parse()).transpose()?.unwrap_or(5);
@@ -27,7 +31,13 @@ fn main() -> Result<()> {
             Box::new(move |x| m.forward(x, true))
         }
     };
-    let mut opt = AdamW::new(varmap.all_vars(), ParamsAdamW { lr: 1e-4, ..Default::default() })?;
+    let mut opt = AdamW::new(
+        varmap.all_vars(),
+        ParamsAdamW {
+            lr: 1e-4,
+            ..Default::default()
+        },
+    )?;
     let x = Tensor::rand(-1f32, 1f32, (batch, steps, INPUT_DIM), &dev)?;
     let target = Tensor::rand(0.1f32, 0.5f32, (batch, OUTPUT_DIM), &dev)?;
     let mut times = Vec::new();
@@ -38,7 +48,11 @@ fn main() -> Result<()> {
         let t1 = t0.elapsed();
         opt.backward_step(&loss)?;
         let dt = t0.elapsed().as_secs_f64();
-        eprintln!("iter {i}: fwd {:.3}s total {dt:.3}s loss {}", t1.as_secs_f64(), loss.to_scalar::<f32>()?);
+        eprintln!(
+            "iter {i}: fwd {:.3}s total {dt:.3}s loss {}",
+            t1.as_secs_f64(),
+            loss.to_scalar::<f32>()?
+        );
         if i > 0 {
             times.push(dt);
         }

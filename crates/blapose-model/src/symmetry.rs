@@ -46,8 +46,8 @@ mod tests {
             assert_eq!(y[r], 0.5 * (r + l) as f32);
         }
         // spine, thorax, neck, head are unpaired
-        for i in 6..10 {
-            assert_eq!(y[i], i as f32);
+        for (i, &v) in y.iter().enumerate().take(10).skip(6) {
+            assert_eq!(v, i as f32);
         }
     }
 

@@ -176,10 +176,12 @@ impl LoadedWeights {
         }
         let mut out = HashMap::with_capacity(specs.len());
         for (name, shape) in specs {
-            let t = tensors.get(&name).ok_or_else(|| ModelError::MissingTensor {
-                kind,
-                name: name.clone(),
-            })?;
+            let t = tensors
+                .get(&name)
+                .ok_or_else(|| ModelError::MissingTensor {
+                    kind,
+                    name: name.clone(),
+                })?;
             if t.dims() != shape.as_slice() {
                 return Err(ModelError::ShapeMismatch {
                     name,

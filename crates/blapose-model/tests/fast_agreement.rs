@@ -3,14 +3,16 @@
 
 use blapose_model::reference::{frames_tensor, GruImpl};
 use blapose_model::{
-    BoneLengthBiGru, BoneLengthGru, Isa, LoadedWeights, ModelError, ModelKind,
-    OfflineBiGruEngine, OnlineGruEngine, INPUT_DIM, OUTPUT_DIM, STATE_DIM,
+    BoneLengthBiGru, BoneLengthGru, Isa, LoadedWeights, ModelError, ModelKind, OfflineBiGruEngine,
+    OnlineGruEngine, INPUT_DIM, OUTPUT_DIM, STATE_DIM,
 };
 use rand::{rngs::StdRng, Rng, SeedableRng};
 
 fn random_frames(n: usize, seed: u64) -> Vec<f32> {
     let mut rng = StdRng::seed_from_u64(seed);
-    (0..n * INPUT_DIM).map(|_| rng.random_range(-1.0f32..1.0)).collect()
+    (0..n * INPUT_DIM)
+        .map(|_| rng.random_range(-1.0f32..1.0))
+        .collect()
 }
 
 /// Run `steps` online steps for `batch` sessions; frames are
@@ -37,7 +39,10 @@ fn run_online(engine: &OnlineGruEngine, frames: &[f32], batch: usize, steps: usi
 
 fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
     assert_eq!(a.len(), b.len());
-    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
 }
 
 fn online_matches_reference(batch: usize, threads: usize) {
@@ -59,13 +64,25 @@ fn online_matches_reference(batch: usize, threads: usize) {
     let engine = OnlineGruEngine::new(&weights, threads).unwrap();
     let got = run_online(&engine, &frames, batch, steps);
     let err = max_abs_diff(&got, &expect);
-    eprintln!("batch {batch}, {threads} threads, {}: max |fast - reference| = {err:.3e}", engine.isa());
+    eprintln!(
+        "batch {batch}, {threads} threads, {}: max |fast - reference| = {err:.3e}",
+        engine.isa()
+    );
     assert!(err < 1e-4, "max error {err}");
     // the final prediction equals the reference's final-state forward
-    let last: Vec<f32> = model.forward(&x, false).unwrap().flatten_all().unwrap().to_vec1().unwrap();
+    let last: Vec<f32> = model
+        .forward(&x, false)
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap();
     for b in 0..batch {
         let at = (b * steps + steps - 1) * OUTPUT_DIM;
-        let e = max_abs_diff(&got[at..at + OUTPUT_DIM], &last[b * OUTPUT_DIM..(b + 1) * OUTPUT_DIM]);
+        let e = max_abs_diff(
+            &got[at..at + OUTPUT_DIM],
+            &last[b * OUTPUT_DIM..(b + 1) * OUTPUT_DIM],
+        );
         assert!(e < 1e-4, "row {b}: {e}");
     }
 }
@@ -113,17 +130,30 @@ fn unavailable_or_mismatched_configs_are_refused() {
         OfflineBiGruEngine::new(&gru, 1),
         Err(ModelError::WrongKind { .. })
     ));
-    assert!(matches!(OnlineGruEngine::new(&gru, 0), Err(ModelError::Config(_))));
+    assert!(matches!(
+        OnlineGruEngine::new(&gru, 0),
+        Err(ModelError::Config(_))
+    ));
     let engine = OnlineGruEngine::new(&gru, 1).unwrap();
     let mut scratch = engine.scratch(2);
     let mut hidden = vec![0.0; 2 * STATE_DIM];
     let mut out = vec![0.0; 2 * OUTPUT_DIM];
     let err = engine
-        .step(&[0.0; 2 * INPUT_DIM - 1], &mut hidden, &mut out, &mut scratch)
+        .step(
+            &[0.0; 2 * INPUT_DIM - 1],
+            &mut hidden,
+            &mut out,
+            &mut scratch,
+        )
         .unwrap_err();
     assert!(matches!(err, ModelError::BadLength { .. }), "{err}");
     let err = engine
-        .step(&[0.0; 2 * INPUT_DIM], &mut hidden[..STATE_DIM], &mut out, &mut scratch)
+        .step(
+            &[0.0; 2 * INPUT_DIM],
+            &mut hidden[..STATE_DIM],
+            &mut out,
+            &mut scratch,
+        )
         .unwrap_err();
     assert!(matches!(err, ModelError::BadLength { .. }), "{err}");
 }
@@ -140,12 +170,16 @@ fn non_finite_input_leaves_every_state_untouched() {
         let mut x = random_frames(batch, 8);
         // a few good steps so the state is not trivially zero
         for _ in 0..3 {
-            engine.step(&x, &mut hidden, &mut out, &mut scratch).unwrap();
+            engine
+                .step(&x, &mut hidden, &mut out, &mut scratch)
+                .unwrap();
         }
         let (h0, y0) = (hidden.clone(), out.clone());
         for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
             x[3 * INPUT_DIM + 7] = bad;
-            let err = engine.step(&x, &mut hidden, &mut out, &mut scratch).unwrap_err();
+            let err = engine
+                .step(&x, &mut hidden, &mut out, &mut scratch)
+                .unwrap_err();
             assert!(
                 matches!(err, ModelError::NonFiniteInput { row: 3, col: 7 }),
                 "{err}"
@@ -177,14 +211,21 @@ fn scratch_grows_for_larger_batches() {
         let x = random_frames(batch, batch as u64);
         let mut hidden = vec![0.0; batch * STATE_DIM];
         let mut out = vec![0.0; batch * OUTPUT_DIM];
-        engine.step(&x, &mut hidden, &mut out, &mut scratch).unwrap();
+        engine
+            .step(&x, &mut hidden, &mut out, &mut scratch)
+            .unwrap();
         // every row equals the same frame run alone
         let mut single = engine.scratch(1);
         for b in 0..batch {
             let mut h1 = vec![0.0; STATE_DIM];
             let mut y1 = vec![0.0; OUTPUT_DIM];
             engine
-                .step(&x[b * INPUT_DIM..(b + 1) * INPUT_DIM], &mut h1, &mut y1, &mut single)
+                .step(
+                    &x[b * INPUT_DIM..(b + 1) * INPUT_DIM],
+                    &mut h1,
+                    &mut y1,
+                    &mut single,
+                )
                 .unwrap();
             assert!(max_abs_diff(&h1, &hidden[b * STATE_DIM..(b + 1) * STATE_DIM]) < 1e-6);
             assert!(max_abs_diff(&y1, &out[b * OUTPUT_DIM..(b + 1) * OUTPUT_DIM]) < 1e-6);
@@ -222,7 +263,10 @@ fn offline_agrees_with_reference() {
 fn offline_refuses_bad_sequences() {
     let weights = LoadedWeights::random(ModelKind::BiGru, 2).unwrap();
     let engine = OfflineBiGruEngine::new(&weights, 1).unwrap();
-    assert!(matches!(engine.predict(&[]), Err(ModelError::EmptySequence)));
+    assert!(matches!(
+        engine.predict(&[]),
+        Err(ModelError::EmptySequence)
+    ));
     assert!(matches!(
         engine.predict(&[0.0; INPUT_DIM + 1]),
         Err(ModelError::BadLength { .. })
@@ -243,7 +287,12 @@ fn half_precision_weights_stay_close() {
     let weights = LoadedWeights::random(ModelKind::Gru, 11).unwrap();
     let (batch, steps) = (3, 300);
     let frames = random_frames(batch * steps, 77);
-    let exact = run_online(&OnlineGruEngine::new(&weights, 1).unwrap(), &frames, batch, steps);
+    let exact = run_online(
+        &OnlineGruEngine::new(&weights, 1).unwrap(),
+        &frames,
+        batch,
+        steps,
+    );
     for isa in Isa::ALL.into_iter().filter(|i| i.is_available()) {
         let opts = EngineOptions {
             isa: Some(isa),
@@ -260,7 +309,10 @@ fn half_precision_weights_stay_close() {
     }
     let weights = LoadedWeights::random(ModelKind::BiGru, 21).unwrap();
     let frames = random_frames(500, 5);
-    let exact = OfflineBiGruEngine::new(&weights, 1).unwrap().predict(&frames).unwrap();
+    let exact = OfflineBiGruEngine::new(&weights, 1)
+        .unwrap()
+        .predict(&frames)
+        .unwrap();
     let opts = EngineOptions {
         precision: Precision::F16,
         ..EngineOptions::threads(2)

@@ -38,19 +38,35 @@ fn check(threads: usize) {
     let engine = OnlineGruEngine::new(&weights, threads).unwrap();
     let batch = 5;
     let mut scratch = engine.scratch(batch);
-    let x: Vec<f32> = (0..batch * INPUT_DIM).map(|i| (i as f32 * 0.1).sin()).collect();
+    let x: Vec<f32> = (0..batch * INPUT_DIM)
+        .map(|i| (i as f32 * 0.1).sin())
+        .collect();
     let mut hidden = vec![0.0; batch * STATE_DIM];
     let mut out = vec![0.0; batch * OUTPUT_DIM];
-    engine.step(&x, &mut hidden, &mut out, &mut scratch).unwrap();
+    engine
+        .step(&x, &mut hidden, &mut out, &mut scratch)
+        .unwrap();
     let before = ALLOCATIONS.load(Ordering::Relaxed);
     for _ in 0..20 {
-        engine.step(&x, &mut hidden, &mut out, &mut scratch).unwrap();
+        engine
+            .step(&x, &mut hidden, &mut out, &mut scratch)
+            .unwrap();
     }
     let after = ALLOCATIONS.load(Ordering::Relaxed);
-    assert_eq!(after - before, 0, "{threads} threads: {} allocations in 20 steps", after - before);
+    assert_eq!(
+        after - before,
+        0,
+        "{threads} threads: {} allocations in 20 steps",
+        after - before
+    );
     // smaller batches reuse the same scratch
     engine
-        .step(&x[..2 * INPUT_DIM], &mut hidden[..2 * STATE_DIM], &mut out[..2 * OUTPUT_DIM], &mut scratch)
+        .step(
+            &x[..2 * INPUT_DIM],
+            &mut hidden[..2 * STATE_DIM],
+            &mut out[..2 * OUTPUT_DIM],
+            &mut scratch,
+        )
         .unwrap();
     assert_eq!(ALLOCATIONS.load(Ordering::Relaxed), after);
 }

@@ -8,8 +8,7 @@ use blapose_core::skeleton::SYMMETRIC_BONE_PAIRS;
 use blapose_model::names::{GruNames, EMBED_BIAS, EMBED_WEIGHT, FC_WEIGHT};
 use blapose_model::reference::{count_parameters, frames_tensor, GruImpl};
 use blapose_model::{
-    BoneLengthBiGru, BoneLengthGru, LoadedWeights, ModelKind, HIDDEN, INPUT_DIM, OUTPUT_DIM,
-    PARAMS,
+    BoneLengthBiGru, BoneLengthGru, LoadedWeights, ModelKind, HIDDEN, INPUT_DIM, OUTPUT_DIM, PARAMS,
 };
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
@@ -34,10 +33,15 @@ fn naive_gru(w: &LoadedWeights, n: &GruNames, xs: &[Vec<f32>]) -> Vec<f32> {
     let mut h = vec![0.0f32; HIDDEN];
     for x in xs {
         let dot_i = |row: usize| -> f32 {
-            (0..e).map(|k| wi[row * e + k] as f64 * x[k] as f64).sum::<f64>() as f32 + bi[row]
+            (0..e)
+                .map(|k| wi[row * e + k] as f64 * x[k] as f64)
+                .sum::<f64>() as f32
+                + bi[row]
         };
         let dot_h = |row: usize, h: &[f32]| -> f32 {
-            (0..HIDDEN).map(|k| wh[row * HIDDEN + k] as f64 * h[k] as f64).sum::<f64>() as f32
+            (0..HIDDEN)
+                .map(|k| wh[row * HIDDEN + k] as f64 * h[k] as f64)
+                .sum::<f64>() as f32
                 + bh[row]
         };
         let mut next = vec![0.0; HIDDEN];
@@ -129,7 +133,11 @@ fn online_model_matches_the_pytorch_equations() {
     let model = BoneLengthGru::new(w.var_builder()).unwrap();
     let (batch, steps) = (2, 6);
     let fr = frames(batch * steps, 1);
-    let got = to_vec(&model.forward(&frames_tensor(&fr, batch, steps).unwrap(), false).unwrap());
+    let got = to_vec(
+        &model
+            .forward(&frames_tensor(&fr, batch, steps).unwrap(), false)
+            .unwrap(),
+    );
     let [a, b] = GruNames::for_kind(ModelKind::Gru);
     for s in 0..batch {
         let e = naive_embed(&w, &fr[s * steps * INPUT_DIM..(s + 1) * steps * INPUT_DIM]);
@@ -146,7 +154,11 @@ fn bidirectional_model_matches_the_pytorch_equations() {
     let model = BoneLengthBiGru::new(w.var_builder()).unwrap();
     let steps = 7;
     let fr = frames(steps, 2);
-    let got = to_vec(&model.forward(&frames_tensor(&fr, 1, steps).unwrap(), false).unwrap());
+    let got = to_vec(
+        &model
+            .forward(&frames_tensor(&fr, 1, steps).unwrap(), false)
+            .unwrap(),
+    );
     let [fwd, bwd] = GruNames::for_kind(ModelKind::BiGru);
     let e = naive_embed(&w, &fr);
     let h_fwd = naive_gru(&w, &fwd, &e);
@@ -215,7 +227,9 @@ fn every_parameter_receives_a_gradient() {
         let grads = loss.backward().unwrap();
         let named: HashMap<String, _> = vm.data().lock().unwrap().clone();
         for (name, var) in named {
-            let g = grads.get(var.as_tensor()).unwrap_or_else(|| panic!("{kind}: no grad for {name}"));
+            let g = grads
+                .get(var.as_tensor())
+                .unwrap_or_else(|| panic!("{kind}: no grad for {name}"));
             let norm: f32 = g.sqr().unwrap().sum_all().unwrap().to_scalar().unwrap();
             assert!(norm > 0.0 && norm.is_finite(), "{kind} {name}: {norm}");
         }
@@ -238,7 +252,10 @@ fn fused_recurrence_matches_autograd_values_and_gradients() {
             let (y, per_frame) = match kind {
                 ModelKind::Gru => {
                     let m = BoneLengthGru::new(vb).unwrap().with_gru_impl(imp);
-                    (m.forward(&x, false).unwrap(), Some(m.forward_per_frame(&x).unwrap()))
+                    (
+                        m.forward(&x, false).unwrap(),
+                        Some(m.forward_per_frame(&x).unwrap()),
+                    )
                 }
                 ModelKind::BiGru => {
                     let m = BoneLengthBiGru::new(vb).unwrap().with_gru_impl(imp);
@@ -252,7 +269,13 @@ fn fused_recurrence_matches_autograd_values_and_gradients() {
                     .unwrap()
                     .reshape((1, steps, 1))
                     .unwrap();
-                let extra = pf.broadcast_mul(&ramp).unwrap().sqr().unwrap().sum_all().unwrap();
+                let extra = pf
+                    .broadcast_mul(&ramp)
+                    .unwrap()
+                    .sqr()
+                    .unwrap()
+                    .sum_all()
+                    .unwrap();
                 loss = (loss + extra).unwrap();
             }
             let grads = loss.backward().unwrap();
@@ -272,7 +295,10 @@ fn fused_recurrence_matches_autograd_values_and_gradients() {
         for ((name, ga), (_, gb)) in fused.2.iter().zip(&plain.2) {
             let scale = gb.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-3);
             for (i, (a, b)) in ga.iter().zip(gb).enumerate() {
-                assert!((a - b).abs() <= 1e-3 * scale, "{kind} {name}[{i}]: {a} vs {b}");
+                assert!(
+                    (a - b).abs() <= 1e-3 * scale,
+                    "{kind} {name}[{i}]: {a} vs {b}"
+                );
             }
         }
     }

@@ -75,7 +75,13 @@ fn wrong_kind_is_refused() {
     .unwrap();
     let err = weights::load_bytes(&bytes, ModelKind::Gru).unwrap_err();
     assert!(
-        matches!(err, ModelError::WrongKind { expected: ModelKind::Gru, found: ModelKind::BiGru }),
+        matches!(
+            err,
+            ModelError::WrongKind {
+                expected: ModelKind::Gru,
+                found: ModelKind::BiGru
+            }
+        ),
         "{err}"
     );
     assert!(err.to_string().contains("bigru"), "{err}");
@@ -96,13 +102,19 @@ fn missing_tensor_is_refused() {
     t.remove(&name);
     let bytes = raw_file(&t, meta(ModelKind::Gru).to_header());
     let err = weights::load_bytes(&bytes, ModelKind::Gru).unwrap_err();
-    assert!(matches!(&err, ModelError::MissingTensor { name: n, .. } if *n == name), "{err}");
+    assert!(
+        matches!(&err, ModelError::MissingTensor { name: n, .. } if *n == name),
+        "{err}"
+    );
 }
 
 #[test]
 fn misshaped_tensor_is_refused() {
     let mut t = init::random_tensors(ModelKind::Gru, 1).unwrap();
-    t.insert(FC_WEIGHT.into(), Tensor::zeros((16, 512), DType::F32, &Device::Cpu).unwrap());
+    t.insert(
+        FC_WEIGHT.into(),
+        Tensor::zeros((16, 512), DType::F32, &Device::Cpu).unwrap(),
+    );
     let bytes = raw_file(&t, meta(ModelKind::Gru).to_header());
     let err = weights::load_bytes(&bytes, ModelKind::Gru).unwrap_err();
     assert!(
@@ -120,10 +132,16 @@ fn misshaped_tensor_is_refused() {
 #[test]
 fn unexpected_tensor_is_refused() {
     let mut t = init::random_tensors(ModelKind::Gru, 1).unwrap();
-    t.insert("fc.bias".into(), Tensor::zeros(16, DType::F32, &Device::Cpu).unwrap());
+    t.insert(
+        "fc.bias".into(),
+        Tensor::zeros(16, DType::F32, &Device::Cpu).unwrap(),
+    );
     let bytes = raw_file(&t, meta(ModelKind::Gru).to_header());
     let err = weights::load_bytes(&bytes, ModelKind::Gru).unwrap_err();
-    assert!(matches!(&err, ModelError::UnexpectedTensor { name, .. } if name == "fc.bias"), "{err}");
+    assert!(
+        matches!(&err, ModelError::UnexpectedTensor { name, .. } if name == "fc.bias"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -131,10 +149,16 @@ fn non_finite_weight_is_refused() {
     let mut t = init::random_tensors(ModelKind::Gru, 1).unwrap();
     let mut fc = values(&t[FC_WEIGHT]);
     fc[100] = f32::NAN;
-    t.insert(FC_WEIGHT.into(), Tensor::from_vec(fc, (16, 1024), &Device::Cpu).unwrap());
+    t.insert(
+        FC_WEIGHT.into(),
+        Tensor::from_vec(fc, (16, 1024), &Device::Cpu).unwrap(),
+    );
     let bytes = raw_file(&t, meta(ModelKind::Gru).to_header());
     let err = weights::load_bytes(&bytes, ModelKind::Gru).unwrap_err();
-    assert!(matches!(&err, ModelError::NonFiniteWeight { name } if name == FC_WEIGHT), "{err}");
+    assert!(
+        matches!(&err, ModelError::NonFiniteWeight { name } if name == FC_WEIGHT),
+        "{err}"
+    );
 }
 
 #[test]
@@ -142,17 +166,32 @@ fn files_without_blapose_metadata_are_refused() {
     let t = init::random_tensors(ModelKind::Gru, 1).unwrap();
     let bytes = raw_file(&t, HashMap::new());
     let err = weights::load_bytes(&bytes, ModelKind::Gru).unwrap_err();
-    assert!(matches!(err, ModelError::MissingMetadata { key: "format" }), "{err}");
+    assert!(
+        matches!(err, ModelError::MissingMetadata { key: "format" }),
+        "{err}"
+    );
 
     let mut header = meta(ModelKind::Gru).to_header();
     header.insert("kind".into(), "lstm".into());
     let err = weights::load_bytes(&raw_file(&t, header), ModelKind::Gru).unwrap_err();
-    assert!(matches!(err, ModelError::BadMetadata { key: "kind", .. }), "{err}");
+    assert!(
+        matches!(err, ModelError::BadMetadata { key: "kind", .. }),
+        "{err}"
+    );
 
     let mut header = meta(ModelKind::Gru).to_header();
     header.insert("format_version".into(), "99".into());
     let err = weights::load_bytes(&raw_file(&t, header), ModelKind::Gru).unwrap_err();
-    assert!(matches!(err, ModelError::BadMetadata { key: "format_version", .. }), "{err}");
+    assert!(
+        matches!(
+            err,
+            ModelError::BadMetadata {
+                key: "format_version",
+                ..
+            }
+        ),
+        "{err}"
+    );
 }
 
 #[test]

@@ -31,8 +31,16 @@ pub(crate) fn matmul_t(
     assert_eq!(b.len(), k * n, "rhs size");
     assert_eq!(dst.len(), m * n, "dst size");
     // (row stride, column stride) of each operand as stored
-    let (a_rs, a_cs) = if a_t { (1, m as isize) } else { (k as isize, 1) };
-    let (b_rs, b_cs) = if b_t { (1, k as isize) } else { (n as isize, 1) };
+    let (a_rs, a_cs) = if a_t {
+        (1, m as isize)
+    } else {
+        (k as isize, 1)
+    };
+    let (b_rs, b_cs) = if b_t {
+        (1, k as isize)
+    } else {
+        (n as isize, 1)
+    };
     if m == 0 || n == 0 {
         return;
     }
@@ -82,7 +90,11 @@ mod tests {
         let bt: Vec<f32> = (0..n * k).map(|i| b[(i % k) * n + i / k]).collect();
         let mut want = vec![0.0; m * n];
         matmul(&mut want, &a, &b, (m, k, n), false, 1);
-        for (aa, bb) in [((&at, true), (&b, false)), ((&a, false), (&bt, true)), ((&at, true), (&bt, true))] {
+        for (aa, bb) in [
+            ((&at, true), (&b, false)),
+            ((&a, false), (&bt, true)),
+            ((&at, true), (&bt, true)),
+        ] {
             let mut d = vec![0.0; m * n];
             matmul_t(&mut d, (aa.0, aa.1), (bb.0, bb.1), (m, k, n), false, 2);
             for (x, y) in d.iter().zip(&want) {

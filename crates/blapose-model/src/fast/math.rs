@@ -140,7 +140,10 @@ mod tests {
     use std::arch::x86_64::*;
 
     fn grid() -> Vec<f32> {
-        (-4000..=4000).map(|i| i as f32 * 0.01).chain([-200.0, -90.0, 90.0, 300.0]).collect()
+        (-4000..=4000)
+            .map(|i| i as f32 * 0.01)
+            .chain([-200.0, -90.0, 90.0, 300.0])
+            .collect()
     }
 
     #[test]
@@ -159,7 +162,11 @@ mod tests {
                 _mm256_storeu_ps(t.as_mut_ptr(), avx2::tanh(v));
             }
             for i in 0..8 {
-                assert!((s[i] - scalar::sigmoid(chunk[i])).abs() < 3e-7, "{}", chunk[i]);
+                assert!(
+                    (s[i] - scalar::sigmoid(chunk[i])).abs() < 3e-7,
+                    "{}",
+                    chunk[i]
+                );
                 assert!((t[i] - scalar::tanh(chunk[i])).abs() < 6e-7, "{}", chunk[i]);
             }
         }

@@ -16,7 +16,9 @@ use super::linalg::matmul;
 use super::pack::{PackedEmbed, PackedGru, PackedHead, LANES, PANELS};
 use super::{build_pool, check_finite, EngineOptions, Isa};
 use crate::names::{GruNames, EMBED_BIAS, EMBED_WEIGHT, FC_WEIGHT};
-use crate::{LoadedWeights, ModelError, ModelKind, EMBED_DIM, GATES, HIDDEN, INPUT_DIM, OUTPUT_DIM};
+use crate::{
+    LoadedWeights, ModelError, ModelKind, EMBED_DIM, GATES, HIDDEN, INPUT_DIM, OUTPUT_DIM,
+};
 
 /// Frames per input-projection GEMM.
 const CHUNK: usize = 256;
@@ -121,7 +123,7 @@ impl OfflineBiGruEngine {
         if frames.is_empty() {
             return Err(ModelError::EmptySequence);
         }
-        if frames.len() % INPUT_DIM != 0 {
+        if !frames.len().is_multiple_of(INPUT_DIM) {
             return Err(ModelError::BadLength {
                 what: "frames (T x 34)",
                 expected: frames.len().div_ceil(INPUT_DIM) * INPUT_DIM,

@@ -191,7 +191,7 @@ impl OnlineGruEngine {
         scratch: &mut StepScratch,
     ) -> Result<(), ModelError> {
         let batch = inputs.len() / INPUT_DIM;
-        if batch == 0 || inputs.len() % INPUT_DIM != 0 {
+        if batch == 0 || !inputs.len().is_multiple_of(INPUT_DIM) {
             return Err(ModelError::BadLength {
                 what: "inputs (B x 34)",
                 expected: batch.max(1) * INPUT_DIM,
@@ -224,7 +224,8 @@ impl OnlineGruEngine {
 
         let k_total = EMBED_DIM + HIDDEN;
         let embedded = &scratch.embedded[..batch * EMBED_DIM];
-        let (packed_a, packed_b) = scratch.packed[..2 * batch * k_total].split_at_mut(batch * k_total);
+        let (packed_a, packed_b) =
+            scratch.packed[..2 * batch * k_total].split_at_mut(batch * k_total);
         for (g, packed) in [packed_a, packed_b].into_iter().enumerate() {
             kernel::pack_rows(
                 self.isa,
@@ -245,9 +246,9 @@ impl OnlineGruEngine {
         let new_state = &mut scratch.new_state.as_mut_slice()[..ITEMS * batch * LANES];
         let partial = &mut scratch.partial_out[..self.threads * batch * OUTPUT_DIM];
         match &self.pool {
-            Some(pool) => pool.install(|| {
-                self.run_items(0..ITEMS, new_state, partial, self.threads, &ctx)
-            }),
+            Some(pool) => {
+                pool.install(|| self.run_items(0..ITEMS, new_state, partial, self.threads, &ctx))
+            }
             None => self.run_items(0..ITEMS, new_state, partial, 1, &ctx),
         }
 
@@ -257,11 +258,15 @@ impl OnlineGruEngine {
         for b in 0..batch {
             let y_ok = (0..self.threads).all(|t| {
                 let start = (t * batch + b) * OUTPUT_DIM;
-                partial[start..start + OUTPUT_DIM].iter().all(|v| v.is_finite())
+                partial[start..start + OUTPUT_DIM]
+                    .iter()
+                    .all(|v| v.is_finite())
             });
             let h_ok = (0..ITEMS).all(|i| {
                 let start = (i * batch + b) * LANES;
-                new_state[start..start + LANES].iter().all(|v| v.is_finite())
+                new_state[start..start + LANES]
+                    .iter()
+                    .all(|v| v.is_finite())
             });
             if !(y_ok && h_ok) {
                 return Err(ModelError::NonFiniteState { row: b });
@@ -316,7 +321,10 @@ impl OnlineGruEngine {
         let y = &mut partial[..batch * OUTPUT_DIM];
         y.fill(0.0);
         assert_eq!(new_state.len(), items.len() * batch * LANES);
-        assert!(ctx.packed.iter().all(|p| p.len() == batch * (EMBED_DIM + HIDDEN)));
+        assert!(ctx
+            .packed
+            .iter()
+            .all(|p| p.len() == batch * (EMBED_DIM + HIDDEN)));
         assert_eq!(ctx.hidden.len(), batch * STATE_DIM);
         let first = items.start;
         let mut run_item = |i: usize| {

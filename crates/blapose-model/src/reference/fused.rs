@@ -98,11 +98,18 @@ fn forward_direction(
             &done[(t - 1) * batch * HIDDEN..]
         };
         let h = &mut rest[..batch * HIDDEN];
-        kernel::pack_rows(isa, batch, 0, |_| &[], |row| &h_prev[row * HIDDEN..(row + 1) * HIDDEN], &mut x);
+        kernel::pack_rows(
+            isa,
+            batch,
+            0,
+            |_| &[],
+            |row| &h_prev[row * HIDDEN..(row + 1) * HIDDEN],
+            &mut x,
+        );
         let gi_t = &gi[(t * 2 + d) * batch * GATES..(t * 2 + d + 1) * batch * GATES];
-        let save_t = saved
-            .as_mut()
-            .map_or(std::ptr::null_mut(), |s| s[t * batch * SAVED..].as_mut_ptr());
+        let save_t = saved.as_mut().map_or(std::ptr::null_mut(), |s| {
+            s[t * batch * SAVED..].as_mut_ptr()
+        });
         for p in 0..PANELS {
             let args = TileArgs {
                 w: packed.panel_ptr(p),
@@ -151,7 +158,10 @@ fn backward_direction(
     let mut dh_prev = vec![0.0f32; batch * HIDDEN];
     let zeros = vec![0.0f32; batch * HIDDEN];
     for t in (0..steps).rev() {
-        for (v, g) in dh.iter_mut().zip(&d_states[t * batch * HIDDEN..(t + 1) * batch * HIDDEN]) {
+        for (v, g) in dh
+            .iter_mut()
+            .zip(&d_states[t * batch * HIDDEN..(t + 1) * batch * HIDDEN])
+        {
             *v += g;
         }
         let h_prev: &[f32] = if t == 0 {
@@ -253,7 +263,8 @@ impl GruPairSeq {
         let block = batch * HIDDEN;
         let mut out = vec![0.0f32; steps * 2 * block];
         for t in 0..steps {
-            out[(2 * t) * block..(2 * t + 1) * block].copy_from_slice(&s0[t * block..(t + 1) * block]);
+            out[(2 * t) * block..(2 * t + 1) * block]
+                .copy_from_slice(&s0[t * block..(t + 1) * block]);
             out[(2 * t + 1) * block..(2 * t + 2) * block]
                 .copy_from_slice(&s1[t * block..(t + 1) * block]);
         }
@@ -301,7 +312,10 @@ impl CustomOp3 for GruPairSeq {
         let dims = Self::dims(gi.layout(), w.layout(), b.layout())?;
         let Dims { steps, batch } = dims;
         let flat = |t: &Tensor| -> Result<Vec<f32>> {
-            t.to_dtype(DType::F32)?.contiguous()?.flatten_all()?.to_vec1::<f32>()
+            t.to_dtype(DType::F32)?
+                .contiguous()?
+                .flatten_all()?
+                .to_vec1::<f32>()
         };
         let w_v = flat(w)?;
         let taken = match self.saved.lock() {
@@ -324,7 +338,11 @@ impl CustomOp3 for GruPairSeq {
         let block = batch * HIDDEN;
         let split = |all: &[f32], d: usize| -> Vec<f32> {
             (0..steps)
-                .flat_map(|t| all[(2 * t + d) * block..(2 * t + d + 1) * block].iter().copied())
+                .flat_map(|t| {
+                    all[(2 * t + d) * block..(2 * t + d + 1) * block]
+                        .iter()
+                        .copied()
+                })
                 .collect()
         };
         let dir = |d: usize| {
@@ -347,7 +365,8 @@ impl CustomOp3 for GruPairSeq {
         }
         let dev = gi.device();
         let d_gi = Tensor::from_vec(d_gi, (steps, 2, batch, GATES), dev)?.to_dtype(gi.dtype())?;
-        let d_w = Tensor::from_vec([w0, w1].concat(), (2, GATES, HIDDEN), dev)?.to_dtype(w.dtype())?;
+        let d_w =
+            Tensor::from_vec([w0, w1].concat(), (2, GATES, HIDDEN), dev)?.to_dtype(w.dtype())?;
         let d_b = Tensor::from_vec([b0, b1].concat(), (2, GATES), dev)?.to_dtype(b.dtype())?;
         Ok((Some(d_gi), Some(d_w), Some(d_b)))
     }

@@ -39,9 +39,8 @@ pub struct GruParams {
 impl GruParams {
     /// Fetch (or create, for a training `VarMap`) the tensors named `names`.
     pub fn new(vb: &VarBuilder, names: &GruNames) -> Result<Self> {
-        let get = |shape: &[usize], name: &str| {
-            vb.get_with_hints(shape.to_vec(), name, init_for(name))
-        };
+        let get =
+            |shape: &[usize], name: &str| vb.get_with_hints(shape.to_vec(), name, init_for(name));
         Ok(Self {
             weight_ih: get(&[GATES, EMBED_DIM], &names.weight_ih)?,
             weight_hh: get(&[GATES, HIDDEN], &names.weight_hh)?,

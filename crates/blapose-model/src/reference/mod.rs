@@ -42,9 +42,8 @@ struct Shared {
 
 impl Shared {
     fn new(vb: &VarBuilder, kind: ModelKind) -> Result<Self> {
-        let get = |shape: &[usize], name: &str| {
-            vb.get_with_hints(shape.to_vec(), name, init_for(name))
-        };
+        let get =
+            |shape: &[usize], name: &str| vb.get_with_hints(shape.to_vec(), name, init_for(name));
         let [na, nb] = GruNames::for_kind(kind);
         let sym: Vec<f32> = averaging_matrix().iter().flatten().copied().collect();
         Ok(Self {

@@ -74,14 +74,28 @@ macro_rules! tile2_fn {
                 (zero, zero, zero, zero, zero, zero);
             let mut w = a.w as *const $ty;
             let mut x = a.x;
-            accumulate!($ld, w, x, a.k_in, 2, 1,
+            accumulate!(
+                $ld,
+                w,
+                x,
+                a.k_in,
+                2,
+                1,
                 (ar0, br0, az0, bz0, an0, bn0, 0, 0),
-                (ar1, br1, az1, bz1, an1, bn1, 1, 0));
+                (ar1, br1, az1, bz1, an1, bn1, 1, 0)
+            );
             let ni = [[an0, bn0], [an1, bn1]];
             (an0, bn0, an1, bn1) = (zero, zero, zero, zero);
-            accumulate!($ld, w, x, HIDDEN, 2, 1,
+            accumulate!(
+                $ld,
+                w,
+                x,
+                HIDDEN,
+                2,
+                1,
                 (ar0, br0, az0, bz0, an0, bn0, 0, 0),
-                (ar1, br1, az1, bz1, an1, bn1, 1, 0));
+                (ar1, br1, az1, bz1, an1, bn1, 1, 0)
+            );
             let acc = [
                 [[ar0, br0], [az0, bz0], [an0, bn0]],
                 [[ar1, br1], [az1, bz1], [an1, bn1]],
@@ -104,14 +118,28 @@ macro_rules! tile1_fn {
             let mut w = a.w as *const $ty;
             let mut x = a.x;
             // k_in and HIDDEN are even
-            accumulate!($ld, w, x, a.k_in / 2, 2, 2,
+            accumulate!(
+                $ld,
+                w,
+                x,
+                a.k_in / 2,
+                2,
+                2,
                 (ar0, br0, az0, bz0, an0, bn0, 0, 0),
-                (ar1, br1, az1, bz1, an1, bn1, 1, 1));
+                (ar1, br1, az1, bz1, an1, bn1, 1, 1)
+            );
             let ni = [[_mm256_add_ps(an0, an1), _mm256_add_ps(bn0, bn1)]];
             (an0, bn0, an1, bn1) = (zero, zero, zero, zero);
-            accumulate!($ld, w, x, HIDDEN / 2, 2, 2,
+            accumulate!(
+                $ld,
+                w,
+                x,
+                HIDDEN / 2,
+                2,
+                2,
                 (ar0, br0, az0, bz0, an0, bn0, 0, 0),
-                (ar1, br1, az1, bz1, an1, bn1, 1, 1));
+                (ar1, br1, az1, bz1, an1, bn1, 1, 1)
+            );
             let acc = [[
                 [_mm256_add_ps(ar0, ar1), _mm256_add_ps(br0, br1)],
                 [_mm256_add_ps(az0, az1), _mm256_add_ps(bz0, bz1)],

@@ -107,8 +107,23 @@ macro_rules! tile_fns {
 }
 
 tile_fns!(tile2, tile2_h, 2, (r0, z0, n0, 0), (r1, z1, n1, 1));
-tile_fns!(tile3, tile3_h, 3, (r0, z0, n0, 0), (r1, z1, n1, 1), (r2, z2, n2, 2));
-tile_fns!(tile4, tile4_h, 4, (r0, z0, n0, 0), (r1, z1, n1, 1), (r2, z2, n2, 2), (r3, z3, n3, 3));
+tile_fns!(
+    tile3,
+    tile3_h,
+    3,
+    (r0, z0, n0, 0),
+    (r1, z1, n1, 1),
+    (r2, z2, n2, 2)
+);
+tile_fns!(
+    tile4,
+    tile4_h,
+    4,
+    (r0, z0, n0, 0),
+    (r1, z1, n1, 1),
+    (r2, z2, n2, 2),
+    (r3, z3, n3, 3)
+);
 tile_fns!(
     tile5,
     tile5_h,
