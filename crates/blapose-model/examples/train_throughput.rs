@@ -8,6 +8,9 @@ use blapose_model::{BoneLengthBiGru, BoneLengthGru, ModelKind, INPUT_DIM, OUTPUT
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
 
+/// A model's training-mode forward pass.
+type Forward = Box<dyn Fn(&Tensor) -> candle_core::Result<Tensor>>;
+
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().collect();
     let kind: ModelKind = args
@@ -21,7 +24,7 @@ fn main() -> Result<()> {
     let dev = Device::Cpu;
     let varmap = VarMap::new();
     let vb = VarBuilder::from_varmap(&varmap, DType::F32, &dev);
-    let forward: Box<dyn Fn(&Tensor) -> candle_core::Result<Tensor>> = match kind {
+    let forward: Forward = match kind {
         ModelKind::Gru => {
             let m = BoneLengthGru::new(vb)?;
             Box::new(move |x| m.forward(x, true))

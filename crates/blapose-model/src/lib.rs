@@ -14,6 +14,7 @@
 //! those of the reference PyTorch module ([`names`]), so a converted reference
 //! checkpoint loads unchanged.
 
+pub mod averaging;
 pub mod error;
 pub mod fast;
 pub mod init;
@@ -22,6 +23,7 @@ pub mod reference;
 pub mod symmetry;
 pub mod weights;
 
+pub use averaging::RunningMean;
 pub use error::ModelError;
 pub use fast::{EngineOptions, Isa, OfflineBiGruEngine, OnlineGruEngine, Precision, StepScratch};
 pub use reference::{BoneLengthBiGru, BoneLengthGru};
