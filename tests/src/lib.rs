@@ -52,11 +52,14 @@ pub fn test_weights(kind: ModelKind) -> LoadedWeights {
 }
 
 /// A directory holding `gru.safetensors` and `bigru.safetensors` made from
-/// [`test_weights`], written once per test process.
+/// [`test_weights`], written once per test process. The directory name is
+/// fixed (per seed), so repeated runs reuse it instead of leaving a new
+/// 19 MB copy behind each time; files are written under a temporary name
+/// and renamed, so concurrent test processes never read a partial file.
 pub fn weights_dir() -> &'static Path {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
-        let dir = std::env::temp_dir().join(format!("blapose-tests-{}", std::process::id()));
+        let dir = std::env::temp_dir().join(format!("blapose-tests-weights-seed{WEIGHTS_SEED}"));
         std::fs::create_dir_all(&dir).expect("temp dir");
         for (kind, name) in [
             (ModelKind::Gru, "gru.safetensors"),
@@ -64,7 +67,9 @@ pub fn weights_dir() -> &'static Path {
         ] {
             let w = test_weights(kind);
             let bytes = weights::to_bytes(w.tensors(), &w.meta).expect("serialize weights");
-            std::fs::write(dir.join(name), bytes).expect("write weights");
+            let partial = dir.join(format!("{name}.{}.partial", std::process::id()));
+            std::fs::write(&partial, bytes).expect("write weights");
+            std::fs::rename(&partial, dir.join(name)).expect("move weights into place");
         }
         dir
     })

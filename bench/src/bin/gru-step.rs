@@ -173,7 +173,7 @@ fn online_fast(args: &Args, opts: EngineOptions) -> Result<(usize, f64)> {
 
 fn online_reference(args: &Args) -> Result<(usize, f64)> {
     let weights = LoadedWeights::random(ModelKind::Gru, args.seed)?;
-    let model = BoneLengthGru::new(weights.var_builder())?;
+    let model = BoneLengthGru::new(weights.var_builder())?.stepper()?;
     let b = args.batch;
     let pool_steps = 64;
     let inputs = random_inputs(pool_steps * b * INPUT_DIM, args.seed + 1);

@@ -303,3 +303,35 @@ fn fused_recurrence_matches_autograd_values_and_gradients() {
         }
     }
 }
+
+#[test]
+fn stepper_reproduces_the_per_frame_output() {
+    let w = LoadedWeights::random(ModelKind::Gru, 24).unwrap();
+    let model = BoneLengthGru::new(w.var_builder()).unwrap();
+    let (batch, steps) = (2, 5);
+    let fr = frames(batch * steps, 7);
+    let expect = to_vec(
+        &model
+            .forward_per_frame(&frames_tensor(&fr, batch, steps).unwrap())
+            .unwrap(),
+    );
+    let stepper = model.stepper().unwrap();
+    let mut state = Tensor::zeros((batch, 2 * HIDDEN), DType::F32, &Device::Cpu).unwrap();
+    for t in 0..steps {
+        let x: Vec<f32> = (0..batch)
+            .flat_map(|b| fr[(b * steps + t) * INPUT_DIM..(b * steps + t + 1) * INPUT_DIM].to_vec())
+            .collect();
+        let x = Tensor::from_vec(x, (batch, INPUT_DIM), &Device::Cpu).unwrap();
+        let (next, y) = stepper.step(&x, &state).unwrap();
+        state = next;
+        let y = to_vec(&y);
+        for b in 0..batch {
+            let at = (b * steps + t) * OUTPUT_DIM;
+            assert_close(
+                &y[b * OUTPUT_DIM..(b + 1) * OUTPUT_DIM],
+                &expect[at..at + OUTPUT_DIM],
+                1e-5,
+            );
+        }
+    }
+}

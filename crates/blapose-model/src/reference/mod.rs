@@ -133,23 +133,19 @@ impl BoneLengthGru {
         self.forward_per_frame_with(x, false)
     }
 
-    /// One online step in candle (the unoptimized baseline of the fast
-    /// engine): frames `x` `(B, 34)` and states `(B, 1024)` (`gru.0` then
-    /// `gru.1`, zeros at the start) -> `(new states, lengths (B, 16))`.
-    pub fn step(&self, x: &Tensor, state: &Tensor) -> Result<(Tensor, Tensor)> {
-        let (batch, width) = x.dims2()?;
-        let e = self.shared.embed(&x.reshape((batch, 1, width))?, false)?;
+    /// A candle stepper for online inference one frame at a time (the
+    /// unoptimized baseline of the fast engine). It snapshots the weights:
+    /// build a new one after the model's variables change.
+    pub fn stepper(&self) -> Result<ReferenceStepper> {
         let [a, b] = &self.shared.grus;
-        let gi = gru::input_projection(a, b, &e, false)?.get(0)?; // (2, B, 1536)
-        let [gr, gz, gn] = gru::split_gates(&gi)?;
-        let h = state
-            .reshape((batch, 2, HIDDEN))?
-            .transpose(0, 1)?
-            .contiguous()?;
-        let h = gru::Recurrent::new(a, b)?.cell([&gr, &gz, &gn], &h)?;
-        let features = h.transpose(0, 1)?.reshape((batch, 2 * HIDDEN))?;
-        let y = self.shared.head(&features)?;
-        Ok((features, y))
+        Ok(ReferenceStepper {
+            shared: self.shared.clone(),
+            w_ih_t: Tensor::cat(&[&a.weight_ih, &b.weight_ih], 0)?
+                .t()?
+                .contiguous()?,
+            b_ih: Tensor::cat(&[&a.bias_ih, &b.bias_ih], 0)?,
+            rec: gru::Recurrent::new(a, b)?,
+        })
     }
 
     /// [`Self::forward_per_frame`] with dropout when `train` (per-frame losses).
@@ -203,6 +199,40 @@ impl BoneLengthBiGru {
         // backward direction's final state first, as in the reference code
         let features = Tensor::cat(&[run.last.get(1)?, run.last.get(0)?], D::Minus1)?;
         self.shared.head(&features)
+    }
+}
+
+/// Online inference in candle, one frame per call; see [`BoneLengthGru::stepper`].
+pub struct ReferenceStepper {
+    shared: Shared,
+    w_ih_t: Tensor,
+    b_ih: Tensor,
+    rec: gru::Recurrent,
+}
+
+impl ReferenceStepper {
+    /// Frames `x` `(B, 34)` and states `(B, 1024)` (`gru.0` then `gru.1`,
+    /// zeros at the start) -> `(new states, lengths (B, 16))`.
+    pub fn step(&self, x: &Tensor, state: &Tensor) -> Result<(Tensor, Tensor)> {
+        let (batch, width) = x.dims2()?;
+        let e = self
+            .shared
+            .embed(&x.reshape((batch, 1, width))?, false)?
+            .reshape((batch, EMBED_DIM))?;
+        let gi = e
+            .matmul(&self.w_ih_t)?
+            .broadcast_add(&self.b_ih)?
+            .reshape((batch, 2, 3 * HIDDEN))?
+            .transpose(0, 1)?; // (2, B, 1536)
+        let [gr, gz, gn] = gru::split_gates(&gi)?;
+        let h = state
+            .reshape((batch, 2, HIDDEN))?
+            .transpose(0, 1)?
+            .contiguous()?;
+        let h = self.rec.cell([&gr, &gz, &gn], &h)?;
+        let features = h.transpose(0, 1)?.reshape((batch, 2 * HIDDEN))?;
+        let y = self.shared.head(&features)?;
+        Ok((features, y))
     }
 }
 

@@ -196,17 +196,7 @@ macro_rules! tile1_fn {
                     };
                 }
                 // k_in and HIDDEN are multiples of 4
-                let pf: usize = std::env::var("PF").ok().and_then(|v| v.parse().ok()).unwrap_or(0);
                 for _ in 0..len / 4 {
-                    if pf > 0 {
-                        let base = (w as *const u8).add(pf);
-                        let bytes = 4 * ROW * std::mem::size_of::<$ty>();
-                        let mut off = 0;
-                        while off < bytes {
-                            _mm_prefetch::<_MM_HINT_T0>(base.add(off) as *const i8);
-                            off += 64;
-                        }
-                    }
                     k_step!(r0, z0, n0, 0);
                     k_step!(r1, z1, n1, 1);
                     k_step!(r2, z2, n2, 2);
