@@ -255,13 +255,18 @@ impl OnlineGruEngine {
         // Commit only if every new state and output is finite.
         let new_state = &scratch.new_state.as_slice()[..ITEMS * batch * LANES];
         let partial = &scratch.partial_out[..self.threads * batch * OUTPUT_DIM];
-        for b in 0..batch {
-            let y_ok = (0..self.threads).all(|t| {
+        let output = |b: usize| -> [f32; OUTPUT_DIM] {
+            let mut y = [0.0f32; OUTPUT_DIM];
+            for t in 0..self.threads {
                 let start = (t * batch + b) * OUTPUT_DIM;
-                partial[start..start + OUTPUT_DIM]
-                    .iter()
-                    .all(|v| v.is_finite())
-            });
+                for (yo, p) in y.iter_mut().zip(&partial[start..start + OUTPUT_DIM]) {
+                    *yo += p;
+                }
+            }
+            y
+        };
+        for b in 0..batch {
+            let y_ok = output(b).iter().all(|v| v.is_finite());
             let h_ok = (0..ITEMS).all(|i| {
                 let start = (i * batch + b) * LANES;
                 new_state[start..start + LANES]
@@ -273,13 +278,7 @@ impl OnlineGruEngine {
             }
         }
         for (b, y) in out.chunks_exact_mut(OUTPUT_DIM).enumerate() {
-            y.copy_from_slice(&partial[b * OUTPUT_DIM..(b + 1) * OUTPUT_DIM]);
-            for t in 1..self.threads {
-                let start = (t * batch + b) * OUTPUT_DIM;
-                for (yo, p) in y.iter_mut().zip(&partial[start..start + OUTPUT_DIM]) {
-                    *yo += p;
-                }
-            }
+            y.copy_from_slice(&output(b));
         }
         for (i, chunk) in new_state.chunks_exact(batch * LANES).enumerate() {
             let (g, p) = (i / PANELS, i % PANELS);
