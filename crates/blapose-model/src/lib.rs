@@ -3,7 +3,7 @@
 //! The paper's length predictor is small (2,390,784 parameters) but it runs on
 //! every frame of every stream, so this crate has two faces:
 //!
-//! * [`reference`]: the networks in candle, exactly as the paper's reference
+//! * [`mod@reference`]: the networks in candle, exactly as the paper's reference
 //!   code defines them and trainable with candle autograd. They are the
 //!   ground truth every other path is tested against.
 //! * [`fast`]: hand-written CPU kernels for serving — one batched online GRU

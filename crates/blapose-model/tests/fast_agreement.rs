@@ -325,3 +325,13 @@ fn half_precision_weights_stay_close() {
     eprintln!("offline f16: max error {err:.3e}");
     assert!(err < 2e-3, "{err}");
 }
+
+#[test]
+fn engines_can_be_shared_across_threads() {
+    fn assert_send_sync<T: Send + Sync>() {}
+    fn assert_send<T: Send>() {}
+    assert_send_sync::<OnlineGruEngine>();
+    assert_send_sync::<OfflineBiGruEngine>();
+    assert_send_sync::<LoadedWeights>();
+    assert_send::<blapose_model::StepScratch>();
+}

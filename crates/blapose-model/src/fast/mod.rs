@@ -4,7 +4,7 @@
 //! * [`OfflineBiGruEngine`]: the Bi-GRU over a whole sequence.
 //!
 //! Both are built from [`crate::LoadedWeights`], repack the weights once
-//! ([`pack`]) and run the fused panel kernel ([`kernel`]) in the best
+//! (`pack`) and run the fused panel kernel (`kernel`) in the best
 //! instruction set of the CPU ([`Isa`]). They agree with the reference
 //! candle models to 1e-4 (tests in `tests/fast_agreement.rs`).
 
