@@ -140,6 +140,9 @@ struct Row {
     /// Median share of the with-adjustment step time spent in the
     /// adjustment (timed inside the steps), %.
     adjustment_share_pct: Option<f64>,
+    /// Median steps per CPU-second alone (FPS / CPU use): what the row
+    /// would reach with its threads' CPUs to itself, cache sharing aside.
+    fps_per_cpu_second: Option<f64>,
     /// Median CPU use (process CPU time / wall time, %) alone.
     cpu_pct: Option<f64>,
     /// Median CPU use with the adjustment.
@@ -171,6 +174,9 @@ impl Row {
             paper_overhead_pct: paper_with.map(|w| overhead_pct(paper, w)),
             mpjpe_mm: None,
             adjustment_share_pct: median_of(&with, |m| m.adjustment_share_pct),
+            fps_per_cpu_second: median_of(&alone, |m| {
+                m.cpu_pct.filter(|c| *c > 0.0).map(|c| 100.0 * m.fps / c)
+            }),
             cpu_pct: median_of(&alone, |m| m.cpu_pct),
             cpu_pct_with_adjustment: median_of(&with, |m| m.cpu_pct),
             runs: alone,
@@ -805,6 +811,9 @@ mod tests {
             Vec::new(),
         );
         assert_eq!((gru.fps_with_adjustment, gru.paper_fps), (None, 2097.0));
+        // 3000 FPS while getting 99 % of a CPU is 3030 steps per CPU-second.
+        assert!((gru.fps_per_cpu_second.unwrap() - 3030.3).abs() < 0.1);
+        assert_eq!(row.fps_per_cpu_second, None);
     }
 
     #[test]

@@ -8,6 +8,15 @@ use blapose_model::{
 };
 use rand::{rngs::StdRng, Rng, SeedableRng};
 
+/// Run candle's element-wise ops on the calling thread. Its worker pool
+/// spin-waits on barriers; on a loaded 2-core machine that spinning took
+/// half the time of the 1,000-step reference runs. Every test calls this
+/// first, so the variable is set before candle reads it (once).
+fn candle_single_threaded() {
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| std::env::set_var("CANDLE_NUM_THREADS", "1"));
+}
+
 fn random_frames(n: usize, seed: u64) -> Vec<f32> {
     let mut rng = StdRng::seed_from_u64(seed);
     (0..n * INPUT_DIM)
@@ -46,6 +55,7 @@ fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
 }
 
 fn online_matches_reference(batch: usize, threads: usize) {
+    candle_single_threaded();
     let steps = 1000;
     let weights = LoadedWeights::random(ModelKind::Gru, 11).unwrap();
     // plain candle ops: independent of the kernels (the fused training op reuses them)
@@ -99,6 +109,7 @@ fn online_batch64_agrees_with_reference_over_1000_steps() {
 
 #[test]
 fn every_isa_and_thread_count_agrees_with_scalar() {
+    candle_single_threaded();
     let weights = LoadedWeights::random(ModelKind::Gru, 3).unwrap();
     let (batch, steps) = (11, 40); // 11 rows: full tiles plus remainders
     let frames = random_frames(batch * steps, 99);
@@ -120,6 +131,7 @@ fn every_isa_and_thread_count_agrees_with_scalar() {
 
 #[test]
 fn unavailable_or_mismatched_configs_are_refused() {
+    candle_single_threaded();
     let bigru = LoadedWeights::random(ModelKind::BiGru, 1).unwrap();
     assert!(matches!(
         OnlineGruEngine::new(&bigru, 1),
@@ -160,6 +172,7 @@ fn unavailable_or_mismatched_configs_are_refused() {
 
 #[test]
 fn non_finite_input_leaves_every_state_untouched() {
+    candle_single_threaded();
     let weights = LoadedWeights::random(ModelKind::Gru, 4).unwrap();
     for threads in [1, 2] {
         let engine = OnlineGruEngine::new(&weights, threads).unwrap();
@@ -204,6 +217,7 @@ fn non_finite_input_leaves_every_state_untouched() {
 
 #[test]
 fn scratch_grows_for_larger_batches() {
+    candle_single_threaded();
     let weights = LoadedWeights::random(ModelKind::Gru, 5).unwrap();
     let engine = OnlineGruEngine::new(&weights, 2).unwrap();
     let mut scratch = engine.scratch(1);
@@ -236,6 +250,7 @@ fn scratch_grows_for_larger_batches() {
 
 #[test]
 fn offline_agrees_with_reference() {
+    candle_single_threaded();
     let weights = LoadedWeights::random(ModelKind::BiGru, 21).unwrap();
     let model = BoneLengthBiGru::new(weights.var_builder())
         .unwrap()
@@ -261,6 +276,7 @@ fn offline_agrees_with_reference() {
 
 #[test]
 fn offline_refuses_bad_sequences() {
+    candle_single_threaded();
     let weights = LoadedWeights::random(ModelKind::BiGru, 2).unwrap();
     let engine = OfflineBiGruEngine::new(&weights, 1).unwrap();
     assert!(matches!(
@@ -283,6 +299,7 @@ fn offline_refuses_bad_sequences() {
 /// and bounded loosely so a broken conversion still fails.
 #[test]
 fn half_precision_weights_stay_close() {
+    candle_single_threaded();
     use blapose_model::{EngineOptions, Precision};
     let weights = LoadedWeights::random(ModelKind::Gru, 11).unwrap();
     let (batch, steps) = (3, 300);

@@ -35,6 +35,11 @@ struct TrainArgs {
     /// Bone-length sampling strategy: true|uniform|normal|ansur.
     #[arg(long, default_value = "ansur")]
     lengths: String,
+    /// ansur only: scale each bone's spread to this multiple of the training
+    /// subjects' std, keeping the survey's correlations (0 = the survey's own
+    /// spread, which is far wider than Human3.6M's for thorax, calf, forearm).
+    #[arg(long, default_value_t = 1.25)]
+    ansur_spread: f32,
     /// 2D detector-noise model: none|gaussian|residual.
     #[arg(long, default_value = "residual")]
     noise: String,
@@ -256,6 +261,11 @@ fn train(a: TrainArgs) -> Result<()> {
     let cfg = TrainConfig {
         kind: a.model.parse::<blapose_model::ModelKind>()?.to_string(),
         lengths: strategy.to_string(),
+        ansur_spread: if strategy == LengthStrategy::Ansur {
+            a.ansur_spread
+        } else {
+            0.0
+        },
         noise: a
             .noise
             .parse::<blapose_train::noise::NoiseKind>()?
@@ -283,7 +293,11 @@ fn train(a: TrainArgs) -> Result<()> {
     let set = TrainingSet::load(&root)?;
     let stats = TrainingLengthStats::from_training(&set.lengths_list())?;
     let pop = if strategy == LengthStrategy::Ansur {
-        Some(load_population(&root, &stats)?)
+        let mut pop = load_population(&root, &stats)?;
+        if cfg.ansur_spread > 0.0 {
+            pop.match_spread(&stats, cfg.ansur_spread)?;
+        }
+        Some(pop)
     } else {
         None
     };
@@ -300,8 +314,8 @@ fn train(a: TrainArgs) -> Result<()> {
         t0.elapsed().as_secs_f64()
     );
     let training_data = format!(
-        "Human3.6M S1 S5 S6 S7 S8, lengths={}, noise={}, seq_len={}, stride=[{:.3},{:.3}], shift_std={} m, flip={}",
-        cfg.lengths, cfg.noise, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.flip_prob
+        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}), noise={}, seq_len={}, stride=[{:.3},{:.3}], shift_std={} m, flip={}",
+        cfg.lengths, cfg.ansur_spread, cfg.noise, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.flip_prob
     );
     let pb = ProgressBar::new(cfg.steps);
     pb.set_style(

@@ -60,6 +60,11 @@ pub struct TrainConfig {
     pub kind: String,
     /// Length strategy name (for the metadata; the sampler is passed in).
     pub lengths: String,
+    /// `ansur` only: each bone's std as a multiple of the training
+    /// subjects' std ([`crate::ansur::AnsurPopulation::match_spread`]);
+    /// 0 keeps the survey's own spread (runs before this field existed).
+    #[serde(default)]
+    pub ansur_spread: f32,
     /// Noise model name (also in `synth`).
     pub noise: String,
     /// Frames per training window.

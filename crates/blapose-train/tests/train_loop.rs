@@ -66,6 +66,7 @@ fn config(steps: u64) -> TrainConfig {
         lr_decay: 0.9,
         clip_norm: 5.0,
         per_frame_weight: 0.5,
+        ansur_spread: 0.0,
         init_output_mean: true,
         seed: 3,
         val_every: 2,
