@@ -76,7 +76,47 @@ impl EvalSequence {
     pub fn frames(&self) -> usize {
         self.input.len() / crate::synth::FRAME_DIM
     }
+
+    /// The same trial as a stream of `fps` frames per second: the 50 Hz
+    /// keypoints linearly interpolated at `50 / fps` source frames per
+    /// output frame (`fps` 25 keeps every other frame; 60 interpolates).
+    /// This is how the evaluation measures the served model on 25-60 fps
+    /// cameras. `fps` must be positive and finite.
+    pub fn resampled(&self, fps: f32) -> Result<EvalSequence, TrainError> {
+        use crate::synth::FRAME_DIM;
+        if !(fps.is_finite() && fps > 0.0) {
+            return Err(TrainError::InvalidArgument(format!(
+                "frame rate must be positive, got {fps}"
+            )));
+        }
+        let n = self.frames();
+        let step = f64::from(SOURCE_FPS) / f64::from(fps);
+        let out_frames = if n == 0 {
+            0
+        } else {
+            ((n - 1) as f64 / step).floor() as usize + 1
+        };
+        let mut input = Vec::with_capacity(out_frames * FRAME_DIM);
+        for i in 0..out_frames {
+            let u = i as f64 * step;
+            let a = (u.floor() as usize).min(n - 1);
+            let b = (a + 1).min(n - 1);
+            let t = (u - a as f64) as f32;
+            let (fa, fb) = (
+                &self.input[a * FRAME_DIM..(a + 1) * FRAME_DIM],
+                &self.input[b * FRAME_DIM..(b + 1) * FRAME_DIM],
+            );
+            input.extend(fa.iter().zip(fb).map(|(x, y)| x + (y - x) * t));
+        }
+        Ok(EvalSequence {
+            input,
+            ..self.clone()
+        })
+    }
 }
+
+/// Frame rate of Human3.6M's poses and detections.
+pub const SOURCE_FPS: f32 = 50.0;
 
 /// Each subject's bone lengths: the mean over all its frames (Human3.6M
 /// lengths are constant per subject to well under a millimetre).
@@ -302,4 +342,41 @@ pub fn eval_sequences(
         }
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::synth::FRAME_DIM;
+
+    fn ramp(frames: usize) -> EvalSequence {
+        EvalSequence {
+            subject: "S9".into(),
+            sequence: "Walking 1".into(),
+            camera: "54138969".into(),
+            input: (0..frames * FRAME_DIM)
+                .map(|i| (i / FRAME_DIM) as f32)
+                .collect(),
+            gt: [0.2; 16],
+        }
+    }
+
+    #[test]
+    fn resampling_keeps_every_other_frame_at_25_fps_and_interpolates_at_60() {
+        let s = ramp(11);
+        let half = s.resampled(25.0).unwrap();
+        assert_eq!(half.frames(), 6);
+        for i in 0..6 {
+            assert_eq!(half.input[i * FRAME_DIM], 2.0 * i as f32);
+        }
+        let fast = s.resampled(60.0).unwrap();
+        // 10 source intervals at 50/60 source frames per output frame.
+        assert_eq!(fast.frames(), 13);
+        assert!((fast.input[FRAME_DIM] - 50.0 / 60.0).abs() < 1e-6);
+        assert_eq!(fast.input[fast.input.len() - 1], 10.0);
+        assert_eq!(s.resampled(50.0).unwrap(), s);
+        assert!(s.resampled(0.0).is_err());
+        assert!(s.resampled(f32::NAN).is_err());
+        assert_eq!(ramp(0).resampled(30.0).unwrap().frames(), 0);
+    }
 }

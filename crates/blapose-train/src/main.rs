@@ -133,6 +133,10 @@ struct EvalArgs {
     /// many frames instead of one pass over the whole sequence (0 = whole).
     #[arg(long, default_value_t = 0)]
     chunk: usize,
+    /// Feed the model a stream of this many frames per second (the 50 Hz
+    /// data linearly resampled; e.g. 25 or 60).
+    #[arg(long, default_value_t = 50.0)]
+    fps: f32,
     /// Evaluate only every k-th trial (quick subsets; 1 = all).
     #[arg(long, default_value_t = 1)]
     every: usize,
@@ -421,6 +425,12 @@ fn eval(a: EvalArgs) -> Result<()> {
     let mut trials = eval_sequences(&h36m, &subjects, input, &lengths)?;
     if a.every > 1 {
         trials = trials.into_iter().step_by(a.every).collect();
+    }
+    if a.fps != blapose_train::dataset::SOURCE_FPS {
+        trials = trials
+            .iter()
+            .map(|t| t.resampled(a.fps))
+            .collect::<Result<_, _>>()?;
     }
     if trials.is_empty() {
         anyhow::bail!("no trials for subjects {}", a.subjects.join(","));
