@@ -1,1 +1,9 @@
-//! blapose-bench (under construction).
+//! blapose-bench: measurements of blapose's hot paths and of the service.
+//!
+//! The binaries (`gru-step`, `fps-table`, `loadtest`) stay thin; what they
+//! share or what deserves unit tests lives here. [`loadtest`] is the gRPC
+//! load generator: N concurrent sessions through the client library against
+//! an in-process or running server, with latency percentiles, error counts
+//! and the server's own batch-size histogram.
+
+pub mod loadtest;

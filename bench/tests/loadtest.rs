@@ -1,0 +1,143 @@
+//! The `loadtest` binary end to end: a small run against a server it
+//! spawns in its own process (so the process-global metrics recorder is its
+//! own), checking that every frame was answered, nothing failed, and the
+//! JSON report has the agreed fields with sane values. No timing is
+//! asserted: the machine may be busy.
+
+use std::path::PathBuf;
+use std::process::Command;
+
+use serde_json::Value;
+
+fn temp_json(name: &str) -> PathBuf {
+    std::env::temp_dir().join(format!(
+        "blapose-loadtest-{name}-{}.json",
+        std::process::id()
+    ))
+}
+
+fn run(args: &[&str]) -> (String, String, bool) {
+    let out = Command::new(env!("CARGO_BIN_EXE_loadtest"))
+        .args(args)
+        .output()
+        .expect("run loadtest");
+    (
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+        out.status.success(),
+    )
+}
+
+#[test]
+fn four_streams_of_fifty_frames_are_all_answered() {
+    let json = temp_json("streams");
+    let (stdout, stderr, ok) = run(&[
+        "--spawn",
+        "--streams",
+        "4",
+        "--frames",
+        "50",
+        "--inflight",
+        "4",
+        "--timeout",
+        "60",
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert!(ok, "loadtest failed\nstdout:\n{stdout}\nstderr:\n{stderr}");
+    let last = stdout.lines().last().unwrap_or_default();
+    let fps: f64 = last
+        .strip_prefix("frames_per_second=")
+        .unwrap_or_else(|| panic!("last line {last:?}"))
+        .parse()
+        .unwrap();
+    assert!(fps > 0.0);
+    assert!(stdout.contains("| streams |"), "{stdout}");
+
+    let v: Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    std::fs::remove_file(&json).ok();
+    assert_eq!(v["streams"], 4);
+    assert_eq!(v["frames"], 200, "{v:#}");
+    assert_eq!(v["frames_sent"], 200);
+    assert_eq!(v["errors"], serde_json::json!({}), "{v:#}");
+    assert!(v["frames_per_second"].as_f64().unwrap() > 0.0);
+    let lat = &v["latency_ms"];
+    let (p50, p90, p99, max) = (
+        lat["p50"].as_f64().unwrap(),
+        lat["p90"].as_f64().unwrap(),
+        lat["p99"].as_f64().unwrap(),
+        lat["max"].as_f64().unwrap(),
+    );
+    assert!(0.0 < p50 && p50 <= p90 && p90 <= p99 && p99 <= max, "{lat}");
+    // Every frame went through a batched step; the server ran at least
+    // frames / streams steps (one frame per session per step).
+    let b = &v["batch_sizes"];
+    let steps = b["steps"].as_u64().unwrap();
+    assert!((50..=200).contains(&steps), "{b}");
+    let mean = b["mean"].as_f64().unwrap();
+    assert!((200.0 / steps as f64 - mean).abs() < 1e-6, "{b}");
+    let bucketed: u64 = b["buckets"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x["steps"].as_u64().unwrap())
+        .sum();
+    assert_eq!(bucketed, steps);
+}
+
+#[test]
+fn idle_mode_reports_memory_per_session() {
+    let json = temp_json("idle");
+    let (stdout, stderr, ok) = run(&[
+        "--spawn",
+        "--idle",
+        "--streams",
+        "32",
+        "--hold",
+        "0.1",
+        "--timeout",
+        "60",
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert!(ok, "loadtest failed\nstdout:\n{stdout}\nstderr:\n{stderr}");
+    assert!(
+        stdout
+            .lines()
+            .last()
+            .unwrap()
+            .starts_with("bytes_per_session="),
+        "{stdout}"
+    );
+    let v: Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    std::fs::remove_file(&json).ok();
+    assert_eq!(v["mode"], "idle");
+    assert_eq!(v["errors"], serde_json::json!({}), "{v:#}");
+    let idle = &v["idle"];
+    assert_eq!(idle["sessions"], 32);
+    // Gauges set concurrently by many streams: present and in range
+    // (their exact value is informational).
+    for gauge in ["server_sessions", "server_streams"] {
+        let g = idle[gauge]
+            .as_f64()
+            .unwrap_or_else(|| panic!("{gauge}: {idle}"));
+        assert!((0.0..=32.0).contains(&g), "{gauge}: {idle}");
+    }
+    if std::path::Path::new("/proc/self/status").exists() {
+        assert!(idle["bytes_per_session"].is_f64(), "{idle}");
+    }
+}
+
+#[test]
+fn an_unreachable_server_is_a_clear_error() {
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let url = format!("http://127.0.0.1:{port}");
+    let (stdout, stderr, ok) = run(&["--server", &url, "--streams", "1", "--frames", "1"]);
+    assert!(!ok, "{stdout}");
+    assert!(stderr.contains(&url), "{stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+}
