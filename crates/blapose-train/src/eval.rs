@@ -129,8 +129,15 @@ impl GruEstimator {
     }
 
     /// Step a group of trials in lockstep; finished trials are fed their
-    /// last frame again but stop accumulating.
-    fn run_group(&self, group: &[&EvalSequence]) -> Result<Vec<Estimate>, TrainError> {
+    /// last frame again but stop accumulating. With `per_frame`, the second
+    /// element holds every frame's running estimate (the estimate after
+    /// frames `0..=t`, what a causal adjustment of frame `t` uses);
+    /// otherwise it is empty.
+    fn run_group(
+        &self,
+        group: &[&EvalSequence],
+        per_frame: bool,
+    ) -> Result<Vec<(Estimate, Vec<BoneLengths>)>, TrainError> {
         let b = group.len();
         let longest = group.iter().map(|t| t.frames()).max().unwrap_or(0);
         let mut hidden = vec![0.0f32; b * STATE_DIM];
@@ -138,6 +145,10 @@ impl GruEstimator {
         let mut input = vec![0.0f32; b * FRAME_DIM];
         let mut sums = vec![[0.0f64; NUM_BONES]; b];
         let mut curves = vec![Vec::with_capacity(CURVE_FRAMES.len()); b];
+        let mut running: Vec<Vec<BoneLengths>> = group
+            .iter()
+            .map(|t| Vec::with_capacity(if per_frame { t.frames() } else { 0 }))
+            .collect();
         let mut scratch = self.engine.scratch(b);
         for t in 0..longest {
             for (i, tr) in group.iter().enumerate() {
@@ -161,36 +172,49 @@ impl GruEstimator {
                         curves[i].push(mean);
                     }
                 }
+                if per_frame {
+                    running[i].push(mean);
+                }
             }
         }
-        Ok((0..b)
-            .map(|i| {
+        Ok(running
+            .into_iter()
+            .enumerate()
+            .map(|(i, r)| {
                 let n = group[i].frames() as f64;
-                Estimate {
+                let e = Estimate {
                     lengths: std::array::from_fn(|j| (sums[i][j] / n) as f32),
                     curve: curves[i].clone(),
-                }
+                };
+                (e, r)
             })
             .collect())
     }
-}
 
-impl LengthEstimator for GruEstimator {
-    fn estimate(&self, trials: &[EvalSequence]) -> Result<Vec<Estimate>, TrainError> {
-        // Group trials of similar length so lockstep wastes little.
+    /// Run every trial (in groups of similar length, so lockstep wastes
+    /// little; groups in parallel), results in trial order.
+    fn run_all(
+        &self,
+        trials: &[EvalSequence],
+        per_frame: bool,
+    ) -> Result<Vec<(Estimate, Vec<BoneLengths>)>, TrainError> {
         let mut order: Vec<usize> = (0..trials.len())
             .filter(|&i| trials[i].frames() > 0)
             .collect();
         order.sort_by_key(|&i| trials[i].frames());
         let groups: Vec<Vec<usize>> = order.chunks(ONLINE_GROUP).map(|c| c.to_vec()).collect();
-        let results: Vec<Vec<(usize, Estimate)>> = groups
+        type Indexed = Vec<(usize, (Estimate, Vec<BoneLengths>))>;
+        let results: Vec<Indexed> = groups
             .par_iter()
             .map(|g| {
                 let refs: Vec<&EvalSequence> = g.iter().map(|&i| &trials[i]).collect();
-                Ok(g.iter().copied().zip(self.run_group(&refs)?).collect())
+                Ok(g.iter()
+                    .copied()
+                    .zip(self.run_group(&refs, per_frame)?)
+                    .collect())
             })
             .collect::<Result<_, TrainError>>()?;
-        let mut out: Vec<Option<Estimate>> = vec![None; trials.len()];
+        let mut out: Vec<Option<(Estimate, Vec<BoneLengths>)>> = vec![None; trials.len()];
         for (i, e) in results.into_iter().flatten() {
             out[i] = Some(e);
         }
@@ -198,6 +222,29 @@ impl LengthEstimator for GruEstimator {
             .enumerate()
             .map(|(i, e)| e.ok_or_else(|| TrainError::Data(format!("trial {i} has no frames"))))
             .collect()
+    }
+
+    /// For every trial, the running estimate after each frame (`result[i][t]`
+    /// is the mean of the per-frame predictions of frames `0..=t`).
+    pub fn running_estimates(
+        &self,
+        trials: &[EvalSequence],
+    ) -> Result<Vec<Vec<BoneLengths>>, TrainError> {
+        Ok(self
+            .run_all(trials, true)?
+            .into_iter()
+            .map(|(_, r)| r)
+            .collect())
+    }
+}
+
+impl LengthEstimator for GruEstimator {
+    fn estimate(&self, trials: &[EvalSequence]) -> Result<Vec<Estimate>, TrainError> {
+        Ok(self
+            .run_all(trials, false)?
+            .into_iter()
+            .map(|(e, _)| e)
+            .collect())
     }
 }
 

@@ -4,7 +4,10 @@
 //! - [`lengths`], [`ansur`]: what bone lengths synthetic sequences get;
 //! - [`noise`]: 2D detector-noise models fitted to real detections;
 //! - [`synth`], [`loader`]: the augmentation pipeline and batch prefetching;
-//! - [`adam`]: the optimizer with checkpointable state.
+//! - [`adam`]: the optimizer with checkpointable state;
+//! - [`lifter`]: 2D-to-3D lifters trained on the real detections;
+//! - [`eval_adjust`]: lifter accuracy before and after the bone-length
+//!   adjustment (the paper's Tables 2 and 3).
 
 // Numeric kernels index several parallel buffers with one loop variable;
 // iterator chains would hide the indexing the maths is written in.
@@ -15,8 +18,10 @@ pub mod ansur;
 pub mod dataset;
 pub mod error;
 pub mod eval;
+pub mod eval_adjust;
 pub mod fastnet;
 pub mod lengths;
+pub mod lifter;
 pub mod loader;
 pub mod noise;
 pub mod plot;

@@ -88,6 +88,10 @@ struct TrainArgs {
     /// Initialize the output layer at the training mean lengths (false: PyTorch's random init).
     #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
     init_output_mean: bool,
+    /// Warm start: initial weights from this file (same model kind), e.g.
+    /// to continue training shipped weights with a new schedule.
+    #[arg(long)]
+    init_weights: Option<PathBuf>,
     /// Master seed (data, initial weights).
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -145,6 +149,98 @@ struct EvalArgs {
     data: Option<PathBuf>,
 }
 
+/// Arguments of `blapose train-lifter`.
+#[derive(clap::Args, Debug)]
+struct TrainLifterArgs {
+    /// Lifter architecture: mlp (Martinez et al. 2017 residual MLP, one frame).
+    #[arg(long, default_value = "mlp")]
+    model: String,
+    /// Run directory (log, checkpoint, weights, curve).
+    #[arg(long)]
+    out: PathBuf,
+    /// Continue from OUT/checkpoint.safetensors.
+    #[arg(long)]
+    resume: bool,
+    /// Optimizer steps.
+    #[arg(long, default_value_t = 40_000)]
+    steps: u64,
+    /// Samples per batch.
+    #[arg(long, default_value_t = 256)]
+    batch: usize,
+    /// Train on every k-th 50 Hz frame (consecutive frames are redundant).
+    #[arg(long, default_value_t = 4)]
+    every: usize,
+    /// Initial learning rate.
+    #[arg(long, default_value_t = 1e-3)]
+    lr: f64,
+    /// Learning-rate factor per epoch.
+    #[arg(long, default_value_t = 0.95)]
+    lr_decay: f64,
+    /// Steps per "epoch" (the learning-rate decay period).
+    #[arg(long, default_value_t = 1000)]
+    epoch_steps: u64,
+    /// Clip the global gradient norm (0 = off).
+    #[arg(long, default_value_t = 5.0)]
+    clip_norm: f64,
+    /// Probability of mirroring each training sample.
+    #[arg(long, default_value_t = 0.5)]
+    flip_prob: f32,
+    /// mlp: hidden width.
+    #[arg(long, default_value_t = 1024)]
+    hidden: usize,
+    /// mlp: residual blocks.
+    #[arg(long, default_value_t = 2)]
+    blocks: usize,
+    /// mlp: dropout probability.
+    #[arg(long, default_value_t = 0.5)]
+    dropout: f32,
+    /// Master seed (initial weights, batches, dropout).
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Validate every N steps.
+    #[arg(long, default_value_t = 500)]
+    val_every: u64,
+    /// Held-out validation frames (training subjects, between training frames).
+    #[arg(long, default_value_t = 8192)]
+    val_samples: usize,
+    /// Seconds between checkpoints.
+    #[arg(long, default_value_t = 300)]
+    checkpoint_secs: u64,
+    /// Data root (default: $BLAPOSE_DATA or ../shared/data).
+    #[arg(long)]
+    data: Option<PathBuf>,
+}
+
+/// Arguments of `blapose eval-adjust`.
+#[derive(clap::Args, Debug)]
+struct EvalAdjustArgs {
+    /// Lifter weights written by `blapose train-lifter` (repeat or comma
+    /// separate for several lifters).
+    #[arg(long, required = true, value_delimiter = ',')]
+    lifter_weights: Vec<PathBuf>,
+    /// Online GRU weights ("none" to skip).
+    #[arg(long, default_value = "models/bone_length_gru.safetensors")]
+    gru_weights: PathBuf,
+    /// Offline Bi-GRU weights ("none" to skip).
+    #[arg(long, default_value = "models/bone_length_bigru.safetensors")]
+    bigru_weights: PathBuf,
+    /// Write the report as JSON here.
+    #[arg(long)]
+    json: Option<PathBuf>,
+    /// Evaluate only every k-th trial (quick subsets; 1 = all).
+    #[arg(long, default_value_t = 1)]
+    every: usize,
+    /// Subjects to evaluate (comma separated).
+    #[arg(long, default_value = "S9,S11", value_delimiter = ',')]
+    subjects: Vec<String>,
+    /// Turn test-time flip off.
+    #[arg(long)]
+    no_flip: bool,
+    /// Data root (default: $BLAPOSE_DATA or ../shared/data).
+    #[arg(long)]
+    data: Option<PathBuf>,
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Evaluate bone-length predictions on Human3.6M (default S9 and S11,
@@ -174,6 +270,14 @@ enum Command {
     Train(Box<TrainArgs>),
     /// Print the training data statistics, the ANSUR calibration and the
     /// detector residuals; time the augmentation pipeline.
+    /// Train a 2D-to-3D lifter on the training subjects' real Stacked
+    /// Hourglass detections (root-relative camera-space MPJPE, flip
+    /// augmentation).
+    TrainLifter(Box<TrainLifterArgs>),
+    /// Score lifters on S9/S11 before and after the bone-length adjustment
+    /// (online GRU running estimate, offline Bi-GRU): the paper's Tables 2
+    /// and 3.
+    EvalAdjust(Box<EvalAdjustArgs>),
     DataReport {
         /// Data root (default: $BLAPOSE_DATA or ../shared/data).
         #[arg(long)]
@@ -187,6 +291,8 @@ fn main() -> Result<()> {
         Command::DataReport { data } => data_report(data),
         Command::Train(args) => train(*args),
         Command::Eval(args) => eval(*args),
+        Command::TrainLifter(args) => train_lifter(*args),
+        Command::EvalAdjust(args) => eval_adjust(*args),
         Command::BenchTrain {
             model,
             batch,
@@ -287,6 +393,10 @@ fn train(a: TrainArgs) -> Result<()> {
         clip_norm: a.clip_norm,
         per_frame_weight: a.per_frame_weight,
         init_output_mean: a.init_output_mean,
+        init_weights: a
+            .init_weights
+            .as_ref()
+            .map(|p| p.display().to_string()),
         seed: a.seed,
         val_every: a.val_every,
         val_samples: a.val_samples,
@@ -481,6 +591,185 @@ fn eval(a: EvalArgs) -> Result<()> {
             blapose_train::plot::error_curve(&report, p)?;
             eprintln!("plot: {}", p.display());
         }
+    }
+    Ok(())
+}
+
+fn train_lifter(a: TrainLifterArgs) -> Result<()> {
+    use blapose_data::h36m::{H36m, Parts, TRAIN_SUBJECTS};
+    use blapose_train::lifter::mlp::MlpConfig;
+    use blapose_train::lifter::train::LifterTrainConfig;
+    use blapose_train::lifter::{data::lifter_sequences, LifterArch, LifterKind};
+    let root = blapose_data::data_root(a.data.clone());
+    let arch = match a.model.parse::<LifterKind>()? {
+        LifterKind::Mlp => LifterArch::Mlp(MlpConfig {
+            hidden: a.hidden,
+            blocks: a.blocks,
+            dropout: a.dropout,
+        }),
+    };
+    let cfg = LifterTrainConfig {
+        arch,
+        every: a.every,
+        batch: a.batch,
+        steps: a.steps,
+        epoch_steps: a.epoch_steps,
+        lr: a.lr,
+        lr_decay: a.lr_decay,
+        clip_norm: a.clip_norm,
+        flip_prob: a.flip_prob,
+        seed: a.seed,
+        val_every: a.val_every,
+        val_samples: a.val_samples,
+        checkpoint_secs: a.checkpoint_secs,
+    };
+    let t0 = Instant::now();
+    let seqs = {
+        let h36m = H36m::load(&root, &TRAIN_SUBJECTS, Parts::ALL)?;
+        lifter_sequences(&h36m, &TRAIN_SUBJECTS)?
+    };
+    let frames: usize = seqs.iter().map(|s| s.frames()).sum();
+    eprintln!(
+        "data: {} streams (sequence x camera), {frames} frames ({} for training at every {}), loaded in {:.1}s",
+        seqs.len(),
+        frames.div_ceil(cfg.every.max(1)),
+        cfg.every,
+        t0.elapsed().as_secs_f64()
+    );
+    let training_data = format!(
+        "Human3.6M {} (all cameras), Stacked Hourglass detections mapped to H36M-17, every {} frame(s), flip p={}",
+        TRAIN_SUBJECTS.join(" "),
+        cfg.every,
+        cfg.flip_prob
+    );
+    let pb = ProgressBar::new(cfg.steps);
+    pb.set_style(
+        ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {pos}/{len} eta {eta} {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let mut progress = |step: u64, _total: u64, loss: f64, rate: f64| {
+        pb.set_position(step);
+        pb.set_message(format!("loss {loss:.1} mm, {rate:.0} samples/s"));
+    };
+    let outcome = blapose_train::lifter::train::train(
+        &cfg,
+        &seqs,
+        &a.out,
+        a.resume,
+        &training_data,
+        &mut progress,
+    )?;
+    pb.finish();
+    let curve = a.out.join("curve.svg");
+    blapose_train::plot::lifter_training_curve(
+        &a.out.join(blapose_train::train::LOG_FILE),
+        &curve,
+    )?;
+    println!(
+        "trained {} steps in {:.0}s ({:.0} samples/s); training loss {:.1} mm; held-out MPJPE {:.1} mm ({:.1} mm with test-time flip)",
+        outcome.steps_run,
+        outcome.elapsed_s,
+        outcome.samples_per_s,
+        outcome.train_loss_mm,
+        outcome.validation.mpjpe_mm,
+        outcome.validation.mpjpe_flip_mm
+    );
+    println!("weights: {}", outcome.weights.display());
+    println!("curve: {}", curve.display());
+    Ok(())
+}
+
+fn eval_adjust(a: EvalAdjustArgs) -> Result<()> {
+    use std::collections::BTreeMap;
+
+    use blapose_data::h36m::{H36m, Parts, ALL_SUBJECTS};
+    use blapose_train::eval::{BiGruEstimator, GruEstimator, LengthEstimator};
+    use blapose_train::eval_adjust::{evaluate_lifter, markdown, Adjusters};
+    use blapose_train::lifter::data::lifter_sequences;
+    use blapose_train::lifter::predict::predict_sequence;
+    use blapose_train::lifter::weights as lifter_weights;
+    let root = blapose_data::data_root(a.data.clone());
+    let subjects: Vec<&str> = a.subjects.iter().map(String::as_str).collect();
+    if let Some(bad) = subjects.iter().find(|s| !ALL_SUBJECTS.contains(s)) {
+        anyhow::bail!("unknown subject {bad} (known: {})", ALL_SUBJECTS.join(","));
+    }
+    let skip = |p: &PathBuf| p.as_os_str() == "none";
+    let mut lifters = BTreeMap::new();
+    for p in &a.lifter_weights {
+        let l = lifter_weights::load(p)?;
+        let mut name = l.metadata.arch.kind().to_string();
+        if lifters.contains_key(&name) {
+            name = p
+                .file_stem()
+                .map_or(name.clone(), |s| s.to_string_lossy().into_owned());
+        }
+        anyhow::ensure!(!lifters.contains_key(&name), "two lifters named {name}");
+        lifters.insert(name, l);
+    }
+    let t0 = Instant::now();
+    let mut trials = {
+        let h36m = H36m::load(&root, &subjects, Parts::ALL)?;
+        lifter_sequences(&h36m, &subjects)?
+    };
+    if a.every > 1 {
+        trials = trials.into_iter().step_by(a.every).collect();
+    }
+    anyhow::ensure!(!trials.is_empty(), "no trials for {}", a.subjects.join(","));
+    let inputs: Vec<_> = trials.iter().map(|t| t.trial.clone()).collect();
+    eprintln!(
+        "loaded {} trials ({} frames) in {:.1}s",
+        trials.len(),
+        trials.iter().map(|t| t.frames()).sum::<usize>(),
+        t0.elapsed().as_secs_f64()
+    );
+    let gru = if skip(&a.gru_weights) {
+        None
+    } else {
+        let t = Instant::now();
+        let w = blapose_model::weights::load(&a.gru_weights, blapose_model::ModelKind::Gru)?;
+        let r = GruEstimator::new(&w)?.running_estimates(&inputs)?;
+        eprintln!(
+            "online GRU running estimates: {:.1}s",
+            t.elapsed().as_secs_f64()
+        );
+        Some(r)
+    };
+    let bigru = if skip(&a.bigru_weights) {
+        None
+    } else {
+        let t = Instant::now();
+        let w = blapose_model::weights::load(&a.bigru_weights, blapose_model::ModelKind::BiGru)?;
+        let r: Vec<BoneLengths> = BiGruEstimator::new(&w, 0)?
+            .estimate(&inputs)?
+            .into_iter()
+            .map(|e| e.lengths)
+            .collect();
+        eprintln!(
+            "offline Bi-GRU estimates: {:.1}s",
+            t.elapsed().as_secs_f64()
+        );
+        Some(r)
+    };
+    let adjusters = Adjusters {
+        gru: gru.as_deref(),
+        bigru: bigru.as_deref(),
+    };
+    let mut reports = BTreeMap::new();
+    for (name, l) in &lifters {
+        let t = Instant::now();
+        let lift = |s: &blapose_train::lifter::data::LifterSequence| {
+            predict_sequence(l.net.as_ref(), &s.trial, !a.no_flip)
+        };
+        reports.insert(name.clone(), evaluate_lifter(&trials, &lift, adjusters)?);
+        eprintln!(
+            "{name}: lifted and scored in {:.1}s",
+            t.elapsed().as_secs_f64()
+        );
+    }
+    println!("{}", markdown(&reports));
+    if let Some(p) = &a.json {
+        std::fs::write(p, serde_json::to_string_pretty(&reports)?)?;
+        eprintln!("json: {}", p.display());
     }
     Ok(())
 }

@@ -87,31 +87,62 @@ pub fn line_chart(
     Ok(())
 }
 
+/// Columns `(name, label)` of a training log against steps on one chart
+/// (columns absent from the log or without finite values are left out).
+pub fn log_curve(
+    log: &Path,
+    out: &Path,
+    title: &str,
+    y_label: &str,
+    columns: &[(&str, &str)],
+) -> Result<(), TrainError> {
+    let mut series = Vec::new();
+    for (col, label) in columns {
+        if let Ok(p) = read_log_column(log, col) {
+            if !p.is_empty() {
+                series.push((label.to_string(), p));
+            }
+        }
+    }
+    line_chart(out, title, "step", y_label, &series, false)
+}
+
 /// The training curve from a training log: training loss and validation
 /// errors (mm) against steps.
 pub fn training_curve(log: &Path, out: &Path) -> Result<(), TrainError> {
-    let mut series = Vec::new();
-    for (col, label) in [
-        ("train_loss_mm", "training loss (synthetic)"),
-        ("val_synth_mm", "validation, synthetic"),
-        ("val_real_sh_mm", "validation, real SH (training subjects)"),
-        (
-            "val_real_sh_running_mm",
-            "validation, real SH, running mean",
-        ),
-    ] {
-        let p = read_log_column(log, col)?;
-        if !p.is_empty() {
-            series.push((label.to_string(), p));
-        }
-    }
-    line_chart(
+    log_curve(
+        log,
         out,
         "bone-length training",
-        "step",
         "mean bone-length error (mm)",
-        &series,
-        false,
+        &[
+            ("train_loss_mm", "training loss (synthetic)"),
+            ("val_synth_mm", "validation, synthetic"),
+            ("val_real_sh_mm", "validation, real SH (training subjects)"),
+            (
+                "val_real_sh_running_mm",
+                "validation, real SH, running mean",
+            ),
+        ],
+    )
+}
+
+/// The lifter training curve ([`crate::lifter::train::LOG_HEADER`]):
+/// training loss and held-out MPJPE (mm) against steps.
+pub fn lifter_training_curve(log: &Path, out: &Path) -> Result<(), TrainError> {
+    log_curve(
+        log,
+        out,
+        "lifter training",
+        "MPJPE (mm)",
+        &[
+            ("train_loss_mm", "training loss (16 joints, augmented)"),
+            ("val_mpjpe_mm", "validation, held-out frames"),
+            (
+                "val_mpjpe_flip_mm",
+                "validation, held-out frames, test-time flip",
+            ),
+        ],
     )
 }
 

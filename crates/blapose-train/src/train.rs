@@ -94,6 +94,11 @@ pub struct TrainConfig {
     /// Start the output layer at the training mean lengths
     /// ([`FastNet::init_output_at`]).
     pub init_output_mean: bool,
+    /// Start from these weights (a `model.safetensors` of the same kind)
+    /// instead of a random initialization; `init_output_mean` is then
+    /// ignored. Recorded so a resumed run can check it.
+    #[serde(default)]
+    pub init_weights: Option<String>,
     /// Master seed.
     pub seed: u64,
     /// Validate every this many steps (0 = only at the end).
@@ -351,7 +356,7 @@ fn load_checkpoint(
 }
 
 /// Keep the log's header and the rows up to `step` (for a resumed run).
-fn truncate_log(path: &Path, step: u64) -> Result<(), TrainError> {
+pub fn truncate_log(path: &Path, step: u64) -> Result<(), TrainError> {
     let Ok(text) = std::fs::read_to_string(path) else {
         return Ok(());
     };
@@ -411,11 +416,20 @@ pub fn train(
     let ckpt_path = out.join(CHECKPOINT_FILE);
     let log_path = out.join(LOG_FILE);
 
-    let init = LoadedWeights::random(kind, cfg.seed)?;
-    let mut net = FastNet::from_tensors(kind, init.tensors())?;
-    if cfg.init_output_mean {
-        net.init_output_at(&source.sampler().stats().mean, 0.05);
-    }
+    let mut net = match &cfg.init_weights {
+        Some(path) => {
+            let init = weights::load(Path::new(path), kind)?;
+            FastNet::from_tensors(kind, init.tensors())?
+        }
+        None => {
+            let init = LoadedWeights::random(kind, cfg.seed)?;
+            let mut net = FastNet::from_tensors(kind, init.tensors())?;
+            if cfg.init_output_mean {
+                net.init_output_at(&source.sampler().stats().mean, 0.05);
+            }
+            net
+        }
+    };
     let clip = (cfg.clip_norm > 0.0).then_some(cfg.clip_norm);
     let mut opt = Adam::new(
         net.params.len(),

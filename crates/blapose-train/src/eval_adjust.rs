@@ -1,0 +1,302 @@
+//! How much the bone-length adjustment helps a lifter: the paper's Table 2
+//! (MPJPE, P-MPJPE, MPJVE and bone-length error, before and after
+//! adjustment) and Table 3 (MPJPE per action).
+//!
+//! For every trial (sequence x camera of the test subjects) the lifter's
+//! root-relative camera-space poses are scored against the ground truth as
+//! they are (`before`), and after [`adjust_sequence_with`] /
+//! [`adjust_sequence_per_frame`] rebuilt them from their own bone
+//! directions and
+//!
+//! * `gru`: the online GRU's *running* estimate — frame `t` uses the mean of
+//!   the per-frame predictions over frames `0..=t`, so the adjustment is
+//!   causal, exactly what a streaming session serves;
+//! * `bigru`: the offline Bi-GRU's one estimate from the whole sequence.
+//!
+//! The root is kept (it is the origin here). A frame with a zero-length
+//! bone keeps that bone's input offset ([`ZeroBonePolicy::KeepInput`])
+//! rather than aborting a whole evaluation.
+//!
+//! **Aggregation** as in the bone-length evaluation ([`ActionAggregator`]):
+//! each metric is frame-weighted within an action (take number dropped; all
+//! subjects and cameras), then averaged over actions. MPJVE has `T - 1`
+//! velocity frames per trial (a one-frame trial contributes none); it is in
+//! mm per 50 Hz frame. The bone-length error of a pose is the mean over the
+//! 16 bones of `|length - true length|`, true lengths from the ground-truth
+//! pose of the same frame.
+
+use std::collections::BTreeMap;
+
+use blapose_core::bones::{adjust_sequence_per_frame, adjust_sequence_with, ZeroBonePolicy};
+use blapose_core::metrics::{
+    mpjpe, mpjve, p_mpjpe, pose_bone_length_error, ActionAggregator, MetricError, MM_PER_M,
+};
+use blapose_core::{BoneLengths, Pose};
+use rayon::prelude::*;
+use serde::Serialize;
+
+use crate::error::TrainError;
+use crate::lifter::data::LifterSequence;
+
+/// The four pose metrics (mm; MPJVE in mm per frame).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct PoseMetrics {
+    /// MPJPE (protocol 1).
+    pub mpjpe_mm: f64,
+    /// P-MPJPE (protocol 2).
+    pub p_mpjpe_mm: f64,
+    /// MPJVE.
+    pub mpjve_mm: f64,
+    /// Mean bone-length error.
+    pub bone_error_mm: f64,
+}
+
+/// One method's aggregated metrics.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct MethodReport {
+    /// Mean over actions (the tables' "Avg").
+    #[serde(flatten)]
+    pub avg: PoseMetrics,
+    /// Per action.
+    pub per_action: BTreeMap<String, PoseMetrics>,
+}
+
+/// One lifter before and after adjustment (the `--json` value per lifter).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct LifterReport {
+    /// The lifter as it is.
+    pub before: MethodReport,
+    /// Adjusted with the online GRU's running estimate.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gru: Option<MethodReport>,
+    /// Adjusted with the offline Bi-GRU's whole-sequence estimate.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub bigru: Option<MethodReport>,
+    /// Trials scored.
+    pub trials: usize,
+    /// Frames scored.
+    pub frames: usize,
+    /// How the averages are formed.
+    pub aggregation: String,
+}
+
+/// Per-trial means and their frame counts.
+#[derive(Debug, Clone, Copy)]
+struct TrialMetrics {
+    m: PoseMetrics,
+    frames: usize,
+}
+
+fn metric(e: MetricError) -> TrainError {
+    TrainError::Data(e.to_string())
+}
+
+fn trial_metrics(pred: &[Pose], gt: &[Pose]) -> Result<TrialMetrics, TrainError> {
+    Ok(TrialMetrics {
+        m: PoseMetrics {
+            mpjpe_mm: mpjpe(pred, gt).map_err(metric)? * MM_PER_M,
+            p_mpjpe_mm: p_mpjpe(pred, gt).map_err(metric)? * MM_PER_M,
+            mpjve_mm: if pred.len() >= 2 {
+                mpjve(pred, gt).map_err(metric)? * MM_PER_M
+            } else {
+                0.0
+            },
+            bone_error_mm: pose_bone_length_error(pred, gt).map_err(metric)?.mean * MM_PER_M,
+        },
+        frames: pred.len(),
+    })
+}
+
+/// Four [`ActionAggregator`]s, one per metric.
+#[derive(Default)]
+struct Accumulator {
+    mpjpe: ActionAggregator,
+    p_mpjpe: ActionAggregator,
+    mpjve: ActionAggregator,
+    bone: ActionAggregator,
+}
+
+impl Accumulator {
+    fn add(&mut self, sequence: &str, t: TrialMetrics) {
+        self.mpjpe.add_mean(sequence, t.m.mpjpe_mm, t.frames);
+        self.p_mpjpe.add_mean(sequence, t.m.p_mpjpe_mm, t.frames);
+        self.mpjve
+            .add_mean(sequence, t.m.mpjve_mm, t.frames.saturating_sub(1));
+        self.bone.add_mean(sequence, t.m.bone_error_mm, t.frames);
+    }
+
+    fn report(&self) -> MethodReport {
+        let avg = |a: &ActionAggregator| a.mean_over_actions().unwrap_or(f64::NAN);
+        let per = |a: &ActionAggregator| -> BTreeMap<String, f64> {
+            a.per_action().into_iter().collect()
+        };
+        let (m, p, v, b) = (
+            per(&self.mpjpe),
+            per(&self.p_mpjpe),
+            per(&self.mpjve),
+            per(&self.bone),
+        );
+        MethodReport {
+            avg: PoseMetrics {
+                mpjpe_mm: avg(&self.mpjpe),
+                p_mpjpe_mm: avg(&self.p_mpjpe),
+                mpjve_mm: avg(&self.mpjve),
+                bone_error_mm: avg(&self.bone),
+            },
+            per_action: m
+                .iter()
+                .map(|(a, &mv)| {
+                    let get = |x: &BTreeMap<String, f64>| x.get(a).copied().unwrap_or(f64::NAN);
+                    (
+                        a.clone(),
+                        PoseMetrics {
+                            mpjpe_mm: mv,
+                            p_mpjpe_mm: get(&p),
+                            mpjve_mm: get(&v),
+                            bone_error_mm: get(&b),
+                        },
+                    )
+                })
+                .collect(),
+        }
+    }
+}
+
+/// Length estimates to adjust with, per trial (same order as the trials).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Adjusters<'a> {
+    /// Online GRU: one running estimate per frame of each trial.
+    pub gru: Option<&'a [Vec<BoneLengths>]>,
+    /// Offline Bi-GRU: one estimate per trial.
+    pub bigru: Option<&'a [BoneLengths]>,
+}
+
+/// Score one lifter on `trials`; `lift` gives the lifter's poses for a
+/// trial (one per target frame).
+pub fn evaluate_lifter(
+    trials: &[LifterSequence],
+    lift: &(dyn Fn(&LifterSequence) -> Result<Vec<Pose>, TrainError> + Sync),
+    adjusters: Adjusters,
+) -> Result<LifterReport, TrainError> {
+    if trials.is_empty() {
+        return Err(TrainError::InvalidArgument("no trials to evaluate".into()));
+    }
+    for (name, n) in [
+        ("gru", adjusters.gru.map(<[_]>::len)),
+        ("bigru", adjusters.bigru.map(<[_]>::len)),
+    ] {
+        if n.is_some_and(|n| n != trials.len()) {
+            return Err(TrainError::InvalidArgument(format!(
+                "{name}: {} estimates for {} trials",
+                n.unwrap_or(0),
+                trials.len()
+            )));
+        }
+    }
+    type PerTrial = (TrialMetrics, Option<TrialMetrics>, Option<TrialMetrics>);
+    let scored: Vec<PerTrial> = trials
+        .par_iter()
+        .enumerate()
+        .map(|(i, tr)| -> Result<PerTrial, TrainError> {
+            let pred = lift(tr)?;
+            let gt = &tr.target;
+            let before = trial_metrics(&pred, gt)?;
+            let gru = match adjusters.gru {
+                Some(g) => {
+                    let adj = adjust_sequence_per_frame(&pred, &g[i], ZeroBonePolicy::KeepInput)?;
+                    Some(trial_metrics(&adj, gt)?)
+                }
+                None => None,
+            };
+            let bigru = match adjusters.bigru {
+                Some(b) => {
+                    let adj = adjust_sequence_with(&pred, &b[i], ZeroBonePolicy::KeepInput)?;
+                    Some(trial_metrics(&adj, gt)?)
+                }
+                None => None,
+            };
+            Ok((before, gru, bigru))
+        })
+        .collect::<Result<_, _>>()?;
+    let mut acc = [
+        Accumulator::default(),
+        Accumulator::default(),
+        Accumulator::default(),
+    ];
+    for (tr, (b, g, bi)) in trials.iter().zip(&scored) {
+        let seq = tr.trial.sequence.as_str();
+        acc[0].add(seq, *b);
+        if let Some(g) = g {
+            acc[1].add(seq, *g);
+        }
+        if let Some(bi) = bi {
+            acc[2].add(seq, *bi);
+        }
+    }
+    Ok(LifterReport {
+        before: acc[0].report(),
+        gru: adjusters.gru.map(|_| acc[1].report()),
+        bigru: adjusters.bigru.map(|_| acc[2].report()),
+        trials: trials.len(),
+        frames: trials.iter().map(LifterSequence::frames).sum(),
+        aggregation:
+            "per metric: frame-weighted mean within each action (takes, subjects, cameras \
+                      pooled), then the mean over actions"
+                .into(),
+    })
+}
+
+fn methods(r: &LifterReport) -> Vec<(&'static str, &MethodReport)> {
+    let mut v = vec![("none", &r.before)];
+    if let Some(g) = &r.gru {
+        v.push(("online GRU (running estimate)", g));
+    }
+    if let Some(b) = &r.bigru {
+        v.push(("offline Bi-GRU", b));
+    }
+    v
+}
+
+/// Table 2 (summary) and Table 3 (MPJPE per action) as markdown.
+pub fn markdown(reports: &BTreeMap<String, LifterReport>) -> String {
+    let mut s = String::from(
+        "## Adjustment on S9/S11 (Table 2)\n\n\
+         | lifter | adjustment | MPJPE (mm) | P-MPJPE (mm) | MPJVE (mm/frame) | bone error (mm) |\n\
+         |---|---|---|---|---|---|\n",
+    );
+    for (name, r) in reports {
+        for (method, m) in methods(r) {
+            s.push_str(&format!(
+                "| {name} | {method} | {:.2} | {:.2} | {:.2} | {:.2} |\n",
+                m.avg.mpjpe_mm, m.avg.p_mpjpe_mm, m.avg.mpjve_mm, m.avg.bone_error_mm
+            ));
+        }
+    }
+    let actions: Vec<&String> = reports
+        .values()
+        .next()
+        .map(|r| r.before.per_action.keys().collect())
+        .unwrap_or_default();
+    s.push_str("\n## MPJPE per action (mm, Table 3)\n\n| lifter | adjustment |");
+    for a in &actions {
+        s.push_str(&format!(" {a} |"));
+    }
+    s.push_str(" Avg |\n|---|---|");
+    for _ in &actions {
+        s.push_str("---|");
+    }
+    s.push_str("---|\n");
+    for (name, r) in reports {
+        for (method, m) in methods(r) {
+            s.push_str(&format!("| {name} | {method} |"));
+            for a in &actions {
+                match m.per_action.get(*a) {
+                    Some(v) => s.push_str(&format!(" {:.1} |", v.mpjpe_mm)),
+                    None => s.push_str(" - |"),
+                }
+            }
+            s.push_str(&format!(" {:.1} |\n", m.avg.mpjpe_mm));
+        }
+    }
+    s
+}

@@ -1,0 +1,179 @@
+//! Lifter weights files: safetensors holding every variable of the network
+//! (batch-norm running statistics included) and, under the header key
+//! [`METADATA_KEY`], a JSON [`LifterMetadata`] that says how to rebuild the
+//! network and what it expects and was trained on. A file is enough to run
+//! the lifter: nothing about its size lives in code or flags.
+
+use std::collections::{BTreeMap, HashMap};
+use std::path::Path;
+
+use blapose_model::weights::{DEFAULT_INPUT_NORMALIZATION, DEFAULT_KEYPOINT_LAYOUT};
+use candle_core::{Device, Tensor};
+use candle_nn::VarMap;
+use serde::{Deserialize, Serialize};
+
+use super::{LifterArch, LifterNet};
+use crate::error::TrainError;
+
+/// Header key of the metadata JSON.
+pub const METADATA_KEY: &str = "blapose_lifter";
+
+/// What the output of a lifter is.
+pub const OUTPUT_DESCRIPTION: &str =
+    "16 joints (H36M-17 order without the pelvis, which is fixed at 0), root-relative camera space, metres";
+
+/// Provenance and conventions of a lifter weights file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LifterMetadata {
+    /// Architecture and size.
+    pub arch: LifterArch,
+    /// 2D input layout.
+    pub keypoint_layout: String,
+    /// How pixels were normalized.
+    pub input_normalization: String,
+    /// What the outputs are.
+    pub output: String,
+    /// Free text: subjects, detections, augmentation.
+    pub training_data: String,
+    /// Optimizer steps trained.
+    pub train_steps: u64,
+    /// Further key/value pairs (training configuration, timings, ...).
+    pub extra: BTreeMap<String, String>,
+}
+
+impl LifterMetadata {
+    /// Metadata with the project's input conventions.
+    pub fn new(arch: LifterArch, training_data: &str, train_steps: u64) -> Self {
+        Self {
+            arch,
+            keypoint_layout: DEFAULT_KEYPOINT_LAYOUT.into(),
+            input_normalization: DEFAULT_INPUT_NORMALIZATION.into(),
+            output: OUTPUT_DESCRIPTION.into(),
+            training_data: training_data.into(),
+            train_steps,
+            extra: BTreeMap::new(),
+        }
+    }
+}
+
+/// All variables of `varmap` by name (sorted).
+pub fn named_tensors(varmap: &VarMap) -> Result<BTreeMap<String, Tensor>, TrainError> {
+    let data = varmap
+        .data()
+        .lock()
+        .map_err(|_| TrainError::InvalidArgument("variable map lock poisoned".into()))?;
+    Ok(data
+        .iter()
+        .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
+        .collect())
+}
+
+/// Serialize `tensors` with `header` entries to safetensors bytes.
+pub fn serialize(
+    tensors: &BTreeMap<String, Tensor>,
+    header: HashMap<String, String>,
+    path: &Path,
+) -> Result<Vec<u8>, TrainError> {
+    safetensors::serialize(tensors.iter().map(|(k, v)| (k.as_str(), v)), Some(header)).map_err(
+        |e| TrainError::Checkpoint {
+            path: path.into(),
+            msg: e.to_string(),
+        },
+    )
+}
+
+/// Write the weights file (atomically).
+pub fn save(path: &Path, varmap: &VarMap, meta: &LifterMetadata) -> Result<(), TrainError> {
+    let mut header = HashMap::new();
+    header.insert(METADATA_KEY.to_string(), serde_json::to_string(meta)?);
+    let bytes = serialize(&named_tensors(varmap)?, header, path)?;
+    crate::train::write_atomic(path, &bytes)
+}
+
+/// A safetensors file read whole: its tensors and header metadata.
+pub struct TensorFile {
+    /// Tensors by name.
+    pub tensors: HashMap<String, Tensor>,
+    /// Header `__metadata__` entries.
+    pub metadata: HashMap<String, String>,
+}
+
+/// Read a safetensors file (weights or checkpoint).
+pub fn read(path: &Path) -> Result<TensorFile, TrainError> {
+    let bad = |msg: String| TrainError::Checkpoint {
+        path: path.into(),
+        msg,
+    };
+    let bytes = std::fs::read(path).map_err(|e| TrainError::io(path, e))?;
+    let (_, header) =
+        safetensors::SafeTensors::read_metadata(&bytes).map_err(|e| bad(e.to_string()))?;
+    let meta = header.metadata().clone().unwrap_or_default();
+    let tensors = candle_core::safetensors::load_buffer(&bytes, &Device::Cpu)?;
+    Ok(TensorFile {
+        tensors,
+        metadata: meta,
+    })
+}
+
+/// Copy every variable of `varmap` from `tensors` (same names and shapes;
+/// extra tensors are ignored).
+pub fn assign(
+    varmap: &VarMap,
+    tensors: &HashMap<String, Tensor>,
+    path: &Path,
+) -> Result<(), TrainError> {
+    let data = varmap
+        .data()
+        .lock()
+        .map_err(|_| TrainError::InvalidArgument("variable map lock poisoned".into()))?;
+    for (name, var) in data.iter() {
+        let t = tensors.get(name).ok_or_else(|| TrainError::Checkpoint {
+            path: path.into(),
+            msg: format!("missing tensor {name}"),
+        })?;
+        if t.dims() != var.as_tensor().dims() {
+            return Err(TrainError::Checkpoint {
+                path: path.into(),
+                msg: format!(
+                    "{name}: shape {:?}, the network needs {:?}",
+                    t.dims(),
+                    var.as_tensor().dims()
+                ),
+            });
+        }
+        var.set(t)?;
+    }
+    Ok(())
+}
+
+/// A lifter loaded from a weights file.
+pub struct LoadedLifter {
+    /// The network (evaluation use).
+    pub net: Box<dyn LifterNet>,
+    /// Its variables.
+    pub varmap: VarMap,
+    /// The file's metadata.
+    pub metadata: LifterMetadata,
+}
+
+/// Load a weights file written by [`save`].
+pub fn load(path: &Path) -> Result<LoadedLifter, TrainError> {
+    let TensorFile {
+        tensors,
+        metadata: header,
+    } = read(path)?;
+    let json = header
+        .get(METADATA_KEY)
+        .ok_or_else(|| TrainError::Checkpoint {
+            path: path.into(),
+            msg: format!("no {METADATA_KEY} metadata (not a lifter weights file?)"),
+        })?;
+    let metadata: LifterMetadata = serde_json::from_str(json)?;
+    let (net, varmap) = metadata.arch.build(0)?;
+    assign(&varmap, &tensors, path)?;
+    Ok(LoadedLifter {
+        net,
+        varmap,
+        metadata,
+    })
+}
