@@ -212,14 +212,18 @@ impl LoadTest {
             report.frames_sent = stats.sent;
             report.errors = std::mem::take(&mut stats.errors);
             report.first_error = stats.first_error.take();
-            if let Some(m) = &metrics_url {
-                let after = prom::fetch_text(m, METRICS_TIMEOUT).await;
-                match batch_sizes(before, after) {
-                    Ok(b) => report.batch_sizes = Some(b),
-                    Err(e) => report.metrics_error = Some(e),
+            // Idle sessions run no batches: nothing to report there.
+            if report.mode == Mode::Stream {
+                match &metrics_url {
+                    Some(m) => {
+                        let after = prom::fetch_text(m, METRICS_TIMEOUT).await;
+                        match batch_sizes(before, after) {
+                            Ok(b) => report.batch_sizes = Some(b),
+                            Err(e) => report.metrics_error = Some(e),
+                        }
+                    }
+                    None => report.metrics_error = Some("no metrics URL (pass --metrics)".into()),
                 }
-            } else {
-                report.metrics_error = Some("no metrics URL (pass --metrics)".into());
             }
             Ok::<_, LoadTestError>(report)
         }

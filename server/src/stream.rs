@@ -330,7 +330,10 @@ async fn frames(
     tx: &mpsc::Sender<Outbound>,
 ) -> End {
     let cap = state.max_inflight_per_stream.max(1);
-    let mut pending: VecDeque<Pending> = VecDeque::with_capacity(cap);
+    // Grows to the stream's actual pipelining depth (then stays there, so
+    // no allocation per frame); not preallocated to `cap`, which would cost
+    // every idle stream `cap` x ~250 bytes.
+    let mut pending: VecDeque<Pending> = VecDeque::new();
     let mut owner: watch::Receiver<Ownership> = a.session.watch();
     let mut reading = true;
     let mut end = End::Detach;
