@@ -161,8 +161,9 @@ struct TrainLifterArgs {
     /// Continue from OUT/checkpoint.safetensors.
     #[arg(long)]
     resume: bool,
-    /// Optimizer steps.
-    #[arg(long, default_value_t = 40_000)]
+    /// Optimizer steps (10,000 x 256 samples is about 2 hours on the
+    /// project's shared 2-core VM).
+    #[arg(long, default_value_t = 10_000)]
     steps: u64,
     /// Samples per batch.
     #[arg(long, default_value_t = 256)]
@@ -177,7 +178,7 @@ struct TrainLifterArgs {
     #[arg(long, default_value_t = 0.95)]
     lr_decay: f64,
     /// Steps per "epoch" (the learning-rate decay period).
-    #[arg(long, default_value_t = 1000)]
+    #[arg(long, default_value_t = 500)]
     epoch_steps: u64,
     /// Clip the global gradient norm (0 = off).
     #[arg(long, default_value_t = 5.0)]
@@ -393,10 +394,7 @@ fn train(a: TrainArgs) -> Result<()> {
         clip_norm: a.clip_norm,
         per_frame_weight: a.per_frame_weight,
         init_output_mean: a.init_output_mean,
-        init_weights: a
-            .init_weights
-            .as_ref()
-            .map(|p| p.display().to_string()),
+        init_weights: a.init_weights.as_ref().map(|p| p.display().to_string()),
         seed: a.seed,
         val_every: a.val_every,
         val_samples: a.val_samples,
