@@ -67,6 +67,7 @@ fn config(steps: u64) -> TrainConfig {
         clip_norm: 5.0,
         per_frame_weight: 0.5,
         ansur_spread: 0.0,
+        init_weights: None,
         init_output_mean: true,
         seed: 3,
         val_every: 2,
@@ -143,6 +144,54 @@ fn resume_continues_exactly() {
     // A checkpoint from another configuration is refused.
     let mut other = config(6);
     other.batch = 8;
-    assert!(train(&other, source, real, &split, true, "test", &mut quiet).is_err());
+    assert!(train(
+        &other,
+        source.clone(),
+        real,
+        &split,
+        true,
+        "test",
+        &mut quiet
+    )
+    .is_err());
+    // A warm start begins at the given weights: with a zero learning rate
+    // the run's weights are exactly the file's.
+    let mut warm = config(1);
+    warm.lr = 0.0;
+    warm.init_weights = Some(straight.join(WEIGHTS_FILE).display().to_string());
+    let warm_dir = dir.join("warm");
+    train(
+        &warm,
+        source.clone(),
+        real,
+        &warm_dir,
+        false,
+        "test",
+        &mut quiet,
+    )
+    .unwrap();
+    let ww = blapose_model::weights::load(warm_dir.join(WEIGHTS_FILE), ModelKind::Gru).unwrap();
+    for (name, t) in wa.tensors() {
+        let va: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
+        let vw: Vec<f32> = ww
+            .tensor(name)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        assert_eq!(va, vw, "warm start changed {name}");
+    }
+    warm.init_weights = Some(dir.join("missing.safetensors").display().to_string());
+    assert!(train(
+        &warm,
+        source,
+        real,
+        &dir.join("warm2"),
+        false,
+        "test",
+        &mut quiet
+    )
+    .is_err());
     let _ = std::fs::remove_dir_all(&dir);
 }
