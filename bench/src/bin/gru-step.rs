@@ -162,11 +162,16 @@ fn online_fast(args: &Args, opts: EngineOptions) -> Result<(usize, f64)> {
     for t in 0..args.warmup {
         engine.step(frame(t), &mut hidden, &mut out, &mut scratch)?;
     }
+    let cpu_start = process_cpu_seconds();
     let start = Instant::now();
     for t in 0..args.steps {
         engine.step(frame(t), &mut hidden, &mut out, &mut scratch)?;
     }
     let secs = start.elapsed().as_secs_f64();
+    if let (Some(a), Some(b)) = (cpu_start, process_cpu_seconds()) {
+        // below `threads` on a shared machine: the rate above is then low
+        println!("  cores used while timed: {:.2}", (b - a) / secs);
+    }
     std::hint::black_box(&out);
     Ok((args.steps * b, secs))
 }

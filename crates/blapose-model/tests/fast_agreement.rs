@@ -75,9 +75,13 @@ fn online_matches_reference(batch: usize, threads: usize) {
     let got = run_online(&engine, &frames, batch, steps);
     let err = max_abs_diff(&got, &expect);
     eprintln!(
-        "batch {batch}, {threads} threads, {}: max |fast - reference| = {err:.3e}",
-        engine.isa()
+        "batch {batch}, {threads} threads, {} (blocked: {}): max |fast - reference| = {err:.3e}",
+        engine.isa(),
+        engine.is_cache_blocked(batch)
     );
+    if engine.isa() == Isa::Avx2 && batch == 64 {
+        assert!(engine.is_cache_blocked(batch), "batch {batch} not blocked");
+    }
     assert!(err < 1e-4, "max error {err}");
     // the final prediction equals the reference's final-state forward
     let last: Vec<f32> = model
@@ -351,4 +355,93 @@ fn engines_can_be_shared_across_threads() {
     assert_send_sync::<OfflineBiGruEngine>();
     assert_send_sync::<LoadedWeights>();
     assert_send::<blapose_model::StepScratch>();
+}
+
+/// As [`run_online`], but every session stepped alone (batch 1), which
+/// never takes the cache-blocked path.
+fn run_online_rowwise(
+    engine: &OnlineGruEngine,
+    frames: &[f32],
+    batch: usize,
+    steps: usize,
+) -> Vec<f32> {
+    assert!(!engine.is_cache_blocked(1));
+    (0..batch)
+        .flat_map(|b| {
+            let rows = &frames[b * steps * INPUT_DIM..(b + 1) * steps * INPUT_DIM];
+            run_online(engine, rows, 1, steps)
+        })
+        .collect()
+}
+
+/// The smallest batch that takes the cache-blocked kernel on this CPU.
+fn blocked_threshold(engine: &OnlineGruEngine) -> Option<usize> {
+    (1..=64).find(|&b| engine.is_cache_blocked(b))
+}
+
+#[test]
+fn blocked_path_agrees_with_reference_around_its_threshold() {
+    candle_single_threaded();
+    let weights = LoadedWeights::random(ModelKind::Gru, 13).unwrap();
+    let probe = OnlineGruEngine::new(&weights, 1).unwrap();
+    let Some(min) = blocked_threshold(&probe) else {
+        eprintln!("skipping: no cache-blocked kernel for {}", probe.isa());
+        return;
+    };
+    assert!(probe.is_cache_blocked(64));
+    let model = BoneLengthGru::new(weights.var_builder())
+        .unwrap()
+        .with_gru_impl(GruImpl::Autograd);
+    let steps = 500;
+    // below, at and above the threshold; odd sizes leave a 1-row tile
+    for (batch, threads) in [(min - 1, 1), (min, 2), (min + 1, 1), (37, 2)] {
+        let frames = random_frames(batch * steps, 40 + batch as u64);
+        let x = frames_tensor(&frames, batch, steps).unwrap();
+        let expect: Vec<f32> = model
+            .forward_per_frame(&x)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        let engine = OnlineGruEngine::new(&weights, threads).unwrap();
+        assert_eq!(engine.is_cache_blocked(batch), batch >= min);
+        let got = run_online(&engine, &frames, batch, steps);
+        let err = max_abs_diff(&got, &expect);
+        eprintln!(
+            "batch {batch} x{threads} (blocked: {}): max |fast - reference| = {err:.3e}",
+            batch >= min
+        );
+        assert!(err < 1e-4, "batch {batch}: {err}");
+    }
+}
+
+/// At batch 64 the blocked kernel (f32 and f16 weights, 1 and 2 threads)
+/// gives each session what stepping it alone through the plain kernel
+/// gives, over a long sequence.
+#[test]
+fn blocked_batch64_matches_sessions_stepped_alone() {
+    candle_single_threaded();
+    use blapose_model::{EngineOptions, Precision};
+    let weights = LoadedWeights::random(ModelKind::Gru, 17).unwrap();
+    let (batch, steps) = (64, 300);
+    let frames = random_frames(batch * steps, 123);
+    for precision in [Precision::F32, Precision::F16] {
+        for threads in [1, 2] {
+            let opts = EngineOptions {
+                precision,
+                ..EngineOptions::threads(threads)
+            };
+            let engine = OnlineGruEngine::with_options(&weights, opts).unwrap();
+            if !engine.is_cache_blocked(batch) {
+                eprintln!("skipping: no cache-blocked kernel for {}", engine.isa());
+                return;
+            }
+            let got = run_online(&engine, &frames, batch, steps);
+            let alone = run_online_rowwise(&engine, &frames, batch, steps);
+            let err = max_abs_diff(&got, &alone);
+            eprintln!("batch 64 {precision:?} x{threads}: max |blocked - alone| = {err:.3e}");
+            assert!(err < 1e-5, "{precision:?} x{threads}: {err}");
+        }
+    }
 }

@@ -1,4 +1,5 @@
-//! A steady-state online step allocates nothing (1 and 2 threads).
+//! A steady-state online step allocates nothing (1 and 2 threads, a small
+//! batch on the plain kernel and batch 64 on the cache-blocked one).
 //! Its own test binary, because it installs a counting global allocator.
 
 use std::alloc::{GlobalAlloc, Layout, System};
@@ -29,14 +30,15 @@ static GLOBAL: Counting = Counting;
 fn steady_state_step_does_not_allocate() {
     // one test function: the counter is global, parallel tests would pollute it
     for threads in [1, 2] {
-        check(threads);
+        for batch in [5, 64] {
+            check(threads, batch);
+        }
     }
 }
 
-fn check(threads: usize) {
+fn check(threads: usize, batch: usize) {
     let weights = LoadedWeights::random(ModelKind::Gru, 1).unwrap();
     let engine = OnlineGruEngine::new(&weights, threads).unwrap();
-    let batch = 5;
     let mut scratch = engine.scratch(batch);
     let x: Vec<f32> = (0..batch * INPUT_DIM)
         .map(|i| (i as f32 * 0.1).sin())
@@ -56,7 +58,7 @@ fn check(threads: usize) {
     assert_eq!(
         after - before,
         0,
-        "{threads} threads: {} allocations in 20 steps",
+        "{threads} threads, batch {batch}: {} allocations in 20 steps",
         after - before
     );
     // smaller batches reuse the same scratch

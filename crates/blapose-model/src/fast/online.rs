@@ -12,7 +12,11 @@
 //! 3. the 64 panels (2 GRUs x 32) are split into contiguous ranges, one per
 //!    thread; each thread streams its panels once, applying each to all
 //!    rows tile by tile ([`super::kernel`]), writing new states into scratch
-//!    and accumulating its share of the outputs;
+//!    and accumulating its share of the outputs. From
+//!    `kernel::BLOCKED_MIN_ROWS` rows on, a panel is applied in L1-sized
+//!    blocks of its input indices (`kernel::run_blocked`): with only 2 rows
+//!    per AVX2 tile, re-streaming the whole panel from L2 for every tile
+//!    made large batches L2-bandwidth bound;
 //! 4. the per-thread output shares are summed, the new states are checked
 //!    for non-finite values (absurd inputs can overflow), and only then are
 //!    they copied over the caller's states.
@@ -25,7 +29,7 @@
 
 use std::ops::Range;
 
-use super::kernel::{self, TileArgs};
+use super::kernel::{self, TileArgs, BLOCK_ACC, BLOCK_WBUF};
 use super::pack::{AlignedBuf, PackedEmbed, PackedGru, PackedHead, LANES, PANELS};
 use super::{build_pool, check_finite, EngineOptions, Isa, Precision};
 use crate::names::{GruNames, EMBED_BIAS, EMBED_WEIGHT, FC_WEIGHT};
@@ -64,6 +68,10 @@ pub struct StepScratch {
     packed: Vec<f32>,
     new_state: AlignedBuf,
     partial_out: Vec<f32>,
+    /// Per thread: the blocked kernel's partial sums (`batch * BLOCK_ACC`).
+    block_acc: AlignedBuf,
+    /// Per thread: the blocked kernel's f16-widening buffer (`BLOCK_WBUF`).
+    block_wbuf: AlignedBuf,
     reverse: bool,
 }
 
@@ -79,6 +87,8 @@ impl StepScratch {
             packed: vec![0.0; 2 * batch * (EMBED_DIM + HIDDEN)],
             new_state: AlignedBuf::zeros(ITEMS * batch * LANES),
             partial_out: vec![0.0; threads * batch * OUTPUT_DIM],
+            block_acc: AlignedBuf::zeros(threads * batch * BLOCK_ACC),
+            block_wbuf: AlignedBuf::zeros(threads * BLOCK_WBUF),
             reverse: false,
         }
     }
@@ -94,6 +104,44 @@ impl StepScratch {
             *self = StepScratch::new(batch.max(self.batch), threads.max(self.threads));
             self.reverse = reverse;
         }
+    }
+}
+
+/// One thread's (or a group of threads') share of the step's mutable
+/// buffers; split in two along with the panels.
+struct ThreadBufs<'a> {
+    /// New states of the group's panels, `[panel][row][16]`.
+    new_state: &'a mut [f32],
+    /// Per thread: output share, `batch x 16`.
+    partial: &'a mut [f32],
+    /// Per thread: blocked-kernel partial sums.
+    acc: &'a mut [f32],
+    /// Per thread: blocked-kernel weight buffer.
+    wbuf: &'a mut [f32],
+}
+
+impl<'a> ThreadBufs<'a> {
+    /// The buffers of the first `threads` threads (owning `panels` panels)
+    /// and of the rest.
+    fn split(self, panels: usize, threads: usize, batch: usize) -> (Self, Self) {
+        let (s_l, s_r) = self.new_state.split_at_mut(panels * batch * LANES);
+        let (p_l, p_r) = self.partial.split_at_mut(threads * batch * OUTPUT_DIM);
+        let (a_l, a_r) = self.acc.split_at_mut(threads * batch * BLOCK_ACC);
+        let (w_l, w_r) = self.wbuf.split_at_mut(threads * BLOCK_WBUF);
+        (
+            Self {
+                new_state: s_l,
+                partial: p_l,
+                acc: a_l,
+                wbuf: w_l,
+            },
+            Self {
+                new_state: s_r,
+                partial: p_r,
+                acc: a_r,
+                wbuf: w_r,
+            },
+        )
     }
 }
 
@@ -172,6 +220,13 @@ impl OnlineGruEngine {
         self.threads
     }
 
+    /// Whether a step of `batch` sessions uses the cache-blocked kernel
+    /// (large batches with AVX2; see the module docs). Results agree either
+    /// way; this is for tests and benchmarks.
+    pub fn is_cache_blocked(&self, batch: usize) -> bool {
+        kernel::use_blocked(self.isa, batch)
+    }
+
     /// Scratch sized for batches up to `max_batch` on this engine.
     pub fn scratch(&self, max_batch: usize) -> StepScratch {
         StepScratch::new(max_batch, self.threads)
@@ -243,13 +298,15 @@ impl OnlineGruEngine {
             hidden,
             reverse: scratch.reverse,
         };
-        let new_state = &mut scratch.new_state.as_mut_slice()[..ITEMS * batch * LANES];
-        let partial = &mut scratch.partial_out[..self.threads * batch * OUTPUT_DIM];
+        let bufs = ThreadBufs {
+            new_state: &mut scratch.new_state.as_mut_slice()[..ITEMS * batch * LANES],
+            partial: &mut scratch.partial_out[..self.threads * batch * OUTPUT_DIM],
+            acc: &mut scratch.block_acc.as_mut_slice()[..self.threads * batch * BLOCK_ACC],
+            wbuf: &mut scratch.block_wbuf.as_mut_slice()[..self.threads * BLOCK_WBUF],
+        };
         match &self.pool {
-            Some(pool) => {
-                pool.install(|| self.run_items(0..ITEMS, new_state, partial, self.threads, &ctx))
-            }
-            None => self.run_items(0..ITEMS, new_state, partial, 1, &ctx),
+            Some(pool) => pool.install(|| self.run_items(0..ITEMS, bufs, self.threads, &ctx)),
+            None => self.run_items(0..ITEMS, bufs, 1, &ctx),
         }
 
         // Commit only if every new state and output is finite.
@@ -292,31 +349,31 @@ impl OnlineGruEngine {
 
     /// Process `items` with `threads` threads: split in two and recurse
     /// with `rayon::join` (no allocation), one range per thread at the leaves.
-    fn run_items(
-        &self,
-        items: Range<usize>,
-        new_state: &mut [f32],
-        partial: &mut [f32],
-        threads: usize,
-        ctx: &StepCtx,
-    ) {
+    fn run_items(&self, items: Range<usize>, bufs: ThreadBufs, threads: usize, ctx: &StepCtx) {
         if threads <= 1 {
-            self.work(items, new_state, partial, ctx);
+            self.work(items, bufs, ctx);
             return;
         }
         let left = threads / 2;
         let mid = items.start + items.len() * left / threads;
-        let (s_l, s_r) = new_state.split_at_mut((mid - items.start) * ctx.batch * LANES);
-        let (p_l, p_r) = partial.split_at_mut(left * ctx.batch * OUTPUT_DIM);
+        let (b_l, b_r) = bufs.split(mid - items.start, left, ctx.batch);
         rayon::join(
-            || self.run_items(items.start..mid, s_l, p_l, left, ctx),
-            || self.run_items(mid..items.end, s_r, p_r, threads - left, ctx),
+            || self.run_items(items.start..mid, b_l, left, ctx),
+            || self.run_items(mid..items.end, b_r, threads - left, ctx),
         );
     }
 
     /// One thread's share: panels `items`, all rows.
-    fn work(&self, items: Range<usize>, new_state: &mut [f32], partial: &mut [f32], ctx: &StepCtx) {
+    fn work(&self, items: Range<usize>, bufs: ThreadBufs, ctx: &StepCtx) {
         let batch = ctx.batch;
+        let ThreadBufs {
+            new_state,
+            partial,
+            acc,
+            wbuf,
+        } = bufs;
+        let acc = &mut acc[..batch * BLOCK_ACC];
+        let wbuf = &mut wbuf[..BLOCK_WBUF];
         let y = &mut partial[..batch * OUTPUT_DIM];
         y.fill(0.0);
         assert_eq!(new_state.len(), items.len() * batch * LANES);
@@ -355,8 +412,10 @@ impl OnlineGruEngine {
             // `batch` rows of 1024 (this GRU's 512 start at g * 512), `out`
             // `batch` rows of 16, `y` `batch` rows of 16; panels, biases and
             // output weights come from the packers with their full sizes and
-            // 64-byte alignment; `self.isa` was checked at construction.
-            unsafe { kernel::run(self.isa, batch, &args) };
+            // 64-byte alignment; `self.isa` was checked at construction;
+            // k_in = 256 is a multiple of the block size; `acc` and `wbuf`
+            // are this thread's aligned blocked-kernel buffers.
+            unsafe { kernel::run_blocked(self.isa, batch, &args, acc, wbuf) };
         };
         if ctx.reverse {
             items.rev().for_each(&mut run_item);

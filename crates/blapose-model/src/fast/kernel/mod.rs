@@ -8,6 +8,16 @@
 //! from L2 instead of once per row. The kernels exist in three versions
 //! (scalar, AVX2, AVX-512) with identical layout and arithmetic order per
 //! lane; `tile` dispatches on the [`Isa`] chosen at engine construction.
+//!
+//! A tile holds as many rows as the registers allow (2 for AVX2), so at
+//! large batches a whole panel (147 KB) would be re-streamed from L2 once
+//! per tile, and the step becomes bound by L2 bandwidth (measured: 25% of
+//! the FMA peak at batch 64). [`run_blocked`] therefore cuts the panel into
+//! blocks of [`KC`] input indices that stay in L1 while every tile uses
+//! them, keeping the tiles' partial sums in a small scratch buffer; it is
+//! what the online step uses from [`BLOCKED_MIN_ROWS`] rows on (AVX2).
+//! Its 2-row inner loop is written in assembly so that the 12 accumulators,
+//! 2 broadcasts and 2 weight registers fit the 16 `ymm` registers exactly.
 
 pub(crate) mod scalar;
 
@@ -86,6 +96,32 @@ impl TileArgs {
     }
 }
 
+/// Input indices per weight block of [`run_blocked`]: 64 x 48 f32 = 12 KB,
+/// which leaves room in a 32 KB L1 for the streamed inputs and partial sums.
+/// Divides the input width (256) so no block straddles the input and
+/// recurrent parts.
+pub(crate) const KC: usize = 64;
+
+/// Floats of partial sums per row that [`run_blocked`] needs.
+pub(crate) const BLOCK_ACC: usize = 4 * crate::fast::pack::LANES;
+
+/// Floats of weight-widening buffer that [`run_blocked`] needs (f16 panels).
+pub(crate) const BLOCK_WBUF: usize = KC * crate::fast::pack::ROW;
+
+/// Smallest batch for which [`run_blocked`] beats [`run`], measured with
+/// the `gru-step` benchmark on a Zen 3 AVX2 core: already at 2 rows (one
+/// tile) it is faster, because its assembly inner loop keeps all 12
+/// accumulators in registers where LLVM's `tile2` spills some. Batch 1 keeps
+/// the plain kernel, whose 1-row tile unrolls `k` twice.
+pub(crate) const BLOCKED_MIN_ROWS: usize = 2;
+
+/// Whether [`run_blocked`] has a blocked kernel for `isa` and is worth it
+/// for `rows` rows. AVX-512 tiles already hold 8 rows and its machines have
+/// 2 MB of L2, so it keeps the plain kernel (and has not been measured).
+pub(crate) fn use_blocked(isa: Isa, rows: usize) -> bool {
+    isa == Isa::Avx2 && rows >= BLOCKED_MIN_ROWS
+}
+
 /// Largest tile (rows per weight pass) of each instruction set.
 pub(crate) fn max_tile(isa: Isa) -> usize {
     match isa {
@@ -125,6 +161,34 @@ pub(crate) fn pack_rows<'a>(
         }
         r0 += n;
     }
+}
+
+/// As [`run`], blocked over `k` (see the module docs) where [`use_blocked`]
+/// says so, else exactly [`run`]. `acc` must hold `rows * BLOCK_ACC` and
+/// `wbuf` `BLOCK_WBUF` floats, both 32-byte aligned; their contents on entry
+/// do not matter.
+///
+/// # Safety
+/// As [`run`]; in addition `a.k_in` must be a multiple of [`KC`].
+pub(crate) unsafe fn run_blocked(
+    isa: Isa,
+    rows: usize,
+    a: &TileArgs,
+    acc: &mut [f32],
+    wbuf: &mut [f32],
+) {
+    if !use_blocked(isa, rows) {
+        run(isa, rows, a);
+        return;
+    }
+    assert!(acc.len() >= rows * BLOCK_ACC && wbuf.len() >= BLOCK_WBUF);
+    assert!(acc.as_ptr().cast::<u8>().align_offset(32) == 0);
+    assert!(wbuf.as_ptr().cast::<u8>().align_offset(32) == 0);
+    assert!(a.k_in.is_multiple_of(KC));
+    #[cfg(target_arch = "x86_64")]
+    avx2::run_blocked(rows, a, acc.as_mut_ptr(), wbuf.as_mut_ptr());
+    #[cfg(not(target_arch = "x86_64"))]
+    unreachable!("blocked kernel without AVX2");
 }
 
 /// Run the kernel for `rows` batch rows (any count; split into tiles).
