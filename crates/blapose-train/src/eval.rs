@@ -348,12 +348,52 @@ pub struct EvalReport {
     pub bone_names: Vec<String>,
     /// Per action (mm).
     pub per_action_mm: BTreeMap<String, f64>,
+    /// Per bone: mean signed error `pred - true` over trials (mm). A bias
+    /// close to the absolute error means the model is off in one
+    /// direction for everyone, not noisy.
+    pub per_bone_bias_mm: Vec<f64>,
+    /// Every trial's estimate beside the truth (for calibration and
+    /// error analysis).
+    pub trial_predictions: Vec<TrialPrediction>,
     /// Naive baselines, same aggregation.
     pub baselines: BTreeMap<String, Summary>,
     /// Online only: error against frames seen.
     pub curve: Vec<CurvePoint>,
     /// Wall-clock seconds of the model pass.
     pub seconds: f64,
+}
+
+/// One trial's estimate in the JSON report.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TrialPrediction {
+    /// Subject.
+    pub subject: String,
+    /// Sequence.
+    pub sequence: String,
+    /// Camera id.
+    pub camera: String,
+    /// Frames read.
+    pub frames: usize,
+    /// Predicted lengths (metres).
+    pub predicted_m: Vec<f32>,
+    /// True lengths (metres).
+    pub true_m: Vec<f32>,
+}
+
+/// Mean of `pred - true` per bone over trials, mm.
+fn per_bone_bias_mm(trials: &[EvalSequence], pred: &[BoneLengths]) -> Vec<f64> {
+    let n = trials.len().max(1) as f64;
+    (0..NUM_BONES)
+        .map(|b| {
+            trials
+                .iter()
+                .zip(pred)
+                .map(|(t, p)| f64::from(p[b] - t.gt[b]))
+                .sum::<f64>()
+                * 1000.0
+                / n
+        })
+        .collect()
 }
 
 /// Evaluate `estimator` on `trials`; `baselines` are `(name, lengths)`
@@ -406,6 +446,19 @@ pub fn evaluate(
         per_bone_mm: summary.per_bone_mm.clone(),
         bone_names: BONE_NAMES.iter().map(|s| s.to_string()).collect(),
         per_action_mm: summary.per_action_mm.clone(),
+        per_bone_bias_mm: per_bone_bias_mm(trials, &pred),
+        trial_predictions: trials
+            .iter()
+            .zip(&pred)
+            .map(|(t, p)| TrialPrediction {
+                subject: t.subject.clone(),
+                sequence: t.sequence.clone(),
+                camera: t.camera.clone(),
+                frames: t.frames(),
+                predicted_m: p.to_vec(),
+                true_m: t.gt.to_vec(),
+            })
+            .collect(),
         summary,
         baselines: base,
         curve,
@@ -460,6 +513,11 @@ pub fn markdown(r: &EvalReport) -> String {
     for a in r.summary.per_action_mm.keys() {
         row(&mut s, a, &|x| x.per_action_mm.get(a).copied());
     }
+    s.push_str("\nModel bias per bone (mean of pred - true, mm):");
+    for (name, b) in BONE_NAMES.iter().zip(&r.per_bone_bias_mm) {
+        s.push_str(&format!(" {name} {b:+.1};"));
+    }
+    s.push('\n');
     if !r.curve.is_empty() {
         s.push_str("\n| frames seen |");
         for c in &r.curve {

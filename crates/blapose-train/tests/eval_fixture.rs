@@ -73,6 +73,11 @@ fn aggregation_matches_hand_computation() {
     assert!((r.summary.per_subject_mm["S9"] - 20.0).abs() < 1e-3);
     assert!((r.summary.per_subject_mm["S11"] - 40.0).abs() < 1e-3);
     assert!(r.per_bone_mm.iter().all(|&b| (b - 25.0).abs() < 1e-3));
+    // Signed: +10, -30, +20, +40 mm -> bias +10 mm on every bone.
+    assert!(r.per_bone_bias_mm.iter().all(|&b| (b - 10.0).abs() < 1e-3));
+    assert_eq!(r.trial_predictions.len(), 4);
+    assert!((r.trial_predictions[1].predicted_m[3] - 0.17).abs() < 1e-6);
+    assert_eq!(r.trial_predictions[3].true_m, vec![0.30; 16]);
     // Baseline 0.25 everywhere: S9 trials 50 mm, S11 50 mm.
     assert!((r.baselines["flat"].mean_bone_error_mm - 50.0).abs() < 1e-3);
     assert_eq!(r.frames, 20);
