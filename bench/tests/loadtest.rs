@@ -141,3 +141,57 @@ fn an_unreachable_server_is_a_clear_error() {
     assert!(stderr.contains(&url), "{stderr}");
     assert!(!stderr.contains("panicked"), "{stderr}");
 }
+
+/// A server that shuts down mid-run: the run ends with the streams' status
+/// counted (not a hang until the deadline, not a panic).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_server_that_goes_away_mid_run_is_counted_not_waited_for() {
+    use std::time::Duration;
+
+    use blapose_bench::loadtest::driver::StreamOptions;
+    use blapose_bench::loadtest::workload::default_examples_dir;
+    use blapose_bench::loadtest::{LoadTest, Target, Workmode};
+
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let config = blapose_server::ServerConfig {
+        shutdown_grace: Duration::from_secs(1),
+        ..Default::default()
+    };
+    let handle = blapose_server::spawn(config, listener).await.unwrap();
+    let test = LoadTest {
+        target: Target::Remote {
+            url: format!("http://{}", handle.local_addr()),
+            metrics_url: None,
+            server_pid: None,
+        },
+        // Far more frames than could be sent before the shutdown below.
+        mode: Workmode::Stream(StreamOptions {
+            streams: 4,
+            frames: 1_000_000,
+            rate: Some(200.0),
+            inflight: 2,
+        }),
+        connections: 1,
+        timeout: Duration::from_secs(120),
+        examples: default_examples_dir(),
+    };
+    let run = tokio::spawn(async move { test.run().await });
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    handle.shutdown().await.unwrap();
+    let report = run
+        .await
+        .unwrap()
+        .expect("a report despite the server going away");
+    assert!(report.frames < 4_000_000);
+    assert!(report.error_count() > 0, "{:?}", report.errors);
+    assert!(
+        !report.errors.contains_key("client:deadline"),
+        "waited for the deadline: {:?}",
+        report.errors
+    );
+    assert!(
+        report.errors.keys().any(|k| k.starts_with("status:")),
+        "{:?}",
+        report.errors
+    );
+}
