@@ -7,20 +7,32 @@
 use std::sync::Arc;
 
 use blapose_core::BoneLengths;
-use blapose_model::{LoadedWeights, ModelError, OfflineBiGruEngine, OnlineGruEngine, StepScratch};
+use blapose_model::{
+    EngineOptions, LoadedWeights, ModelError, OfflineBiGruEngine, OnlineGruEngine, Precision,
+    StepScratch,
+};
 
 use crate::backend::{check_step_shapes, Backend, BackendError, SequenceBackend, INPUT_DIM};
+
+fn options(threads: usize, precision: Precision) -> EngineOptions {
+    EngineOptions {
+        precision,
+        ..EngineOptions::threads(threads.max(1))
+    }
+}
 
 fn model_error(e: ModelError) -> BackendError {
     BackendError::Model(e.to_string())
 }
 
-/// Build the online engine (`threads` workers per step).
+/// Build the online engine (`threads` workers per step, GRU weights
+/// stored at `precision`).
 pub fn online_engine(
     weights: &LoadedWeights,
     threads: usize,
+    precision: Precision,
 ) -> Result<Arc<OnlineGruEngine>, BackendError> {
-    OnlineGruEngine::new(weights, threads.max(1))
+    OnlineGruEngine::with_options(weights, options(threads, precision))
         .map(Arc::new)
         .map_err(model_error)
 }
@@ -29,8 +41,9 @@ pub fn online_engine(
 pub fn offline_engine(
     weights: &LoadedWeights,
     threads: usize,
+    precision: Precision,
 ) -> Result<Arc<OfflineBiGruEngine>, BackendError> {
-    OfflineBiGruEngine::new(weights, threads.max(1))
+    OfflineBiGruEngine::with_options(weights, options(threads, precision))
         .map(Arc::new)
         .map_err(model_error)
 }
@@ -113,7 +126,7 @@ mod tests {
     #[test]
     fn online_backend_matches_the_engine_and_refuses_bad_shapes() {
         let weights = LoadedWeights::random(ModelKind::Gru, 3).unwrap();
-        let engine = online_engine(&weights, 1).unwrap();
+        let engine = online_engine(&weights, 1, Precision::F32).unwrap();
         let mut backend = GruBackend::new(engine.clone(), 4);
         let inputs: Vec<f32> = (0..2 * INPUT_DIM)
             .map(|i| (i as f32 * 0.37).sin())
@@ -146,7 +159,7 @@ mod tests {
     #[test]
     fn offline_backend_predicts_finite_lengths() {
         let weights = LoadedWeights::random(ModelKind::BiGru, 4).unwrap();
-        let mut backend = BiGruBackend::new(offline_engine(&weights, 1).unwrap());
+        let mut backend = BiGruBackend::new(offline_engine(&weights, 1, Precision::F32).unwrap());
         let inputs: Vec<f32> = (0..5 * INPUT_DIM)
             .map(|i| (i as f32 * 0.11).cos())
             .collect();

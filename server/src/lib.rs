@@ -122,15 +122,17 @@ pub async fn spawn(
     config: ServerConfig,
     listener: TcpListener,
 ) -> Result<ServerHandle, ServerError> {
-    let (gru, bigru, threads) = (
+    let (gru, bigru, threads, precision) = (
         config.weights.clone(),
         config.bigru_weights.clone(),
         config.compute_threads,
+        config.weight_precision,
     );
-    let provider =
-        tokio::task::spawn_blocking(move || WeightsProvider::load(&gru, &bigru, threads))
-            .await
-            .map_err(|e| ServerError::Task(e.to_string()))??;
+    let provider = tokio::task::spawn_blocking(move || {
+        WeightsProvider::load(&gru, &bigru, threads, precision)
+    })
+    .await
+    .map_err(|e| ServerError::Task(e.to_string()))??;
     tracing::info!(
         gru = %provider.gru().origin,
         gru_sha256 = %provider.gru().sha256,

@@ -11,7 +11,7 @@ use std::collections::HashMap;
 use std::sync::Arc;
 
 use blapose_model::weights::{self, LoadedWeights};
-use blapose_model::{ModelError, ModelKind, OfflineBiGruEngine, OnlineGruEngine};
+use blapose_model::{ModelError, ModelKind, OfflineBiGruEngine, OnlineGruEngine, Precision};
 use blapose_proto::v1 as pb;
 use sha2::{Digest, Sha256};
 
@@ -174,16 +174,18 @@ pub struct WeightsProvider {
 const SCRATCH_BATCH: usize = 64;
 
 impl WeightsProvider {
-    /// Load both models and build their engines with `threads` workers.
+    /// Load both models and build their engines with `threads` workers and
+    /// the GRU weights stored at `precision`.
     pub fn load(
         gru: &WeightsSource,
         bigru: &WeightsSource,
         threads: usize,
+        precision: Precision,
     ) -> Result<Self, ServerError> {
         let gru = LoadedModel::load(gru, ModelKind::Gru)?;
         let bigru = LoadedModel::load(bigru, ModelKind::BiGru)?;
-        let online = engine::online_engine(&gru.weights, threads)?;
-        let offline = engine::offline_engine(&bigru.weights, threads)?;
+        let online = engine::online_engine(&gru.weights, threads, precision)?;
+        let offline = engine::offline_engine(&bigru.weights, threads, precision)?;
         Ok(Self {
             gru,
             bigru,

@@ -88,6 +88,9 @@ struct Args {
     /// With --spawn: threads of one batched GRU step.
     #[arg(long, requires = "spawn")]
     compute_threads: Option<usize>,
+    /// With --spawn: storage precision of the GRU weights (f32 or f16).
+    #[arg(long, requires = "spawn", value_parser = blapose_server::config::parse_precision)]
+    weight_precision: Option<blapose_model::Precision>,
 }
 
 fn main() -> Result<()> {
@@ -134,6 +137,9 @@ fn load_test(args: &Args) -> Result<LoadTest> {
         }
         if let Some(t) = args.compute_threads {
             options.compute_threads = t;
+        }
+        if let Some(p) = args.weight_precision {
+            options.weight_precision = p;
         }
         Target::Spawn(options)
     } else {

@@ -28,6 +28,8 @@ pub struct SpawnOptions {
     pub compute_threads: usize,
     /// Per-stream in-flight bound on the server side.
     pub max_inflight_per_stream: usize,
+    /// Storage precision of the GRU weights.
+    pub weight_precision: blapose_model::Precision,
 }
 
 impl Default for SpawnOptions {
@@ -41,6 +43,7 @@ impl Default for SpawnOptions {
             max_queue_delay: d.max_queue_delay,
             compute_threads: d.compute_threads,
             max_inflight_per_stream: d.max_inflight_per_stream,
+            weight_precision: d.weight_precision,
         }
     }
 }
@@ -82,6 +85,7 @@ pub async fn spawn(options: &SpawnOptions) -> Result<Spawned, ServerError> {
             max_queue_delay: options.max_queue_delay,
             compute_threads: options.compute_threads,
             max_inflight_per_stream: options.max_inflight_per_stream,
+            weight_precision: options.weight_precision,
             shutdown_grace: Duration::from_secs(2),
             ..ServerConfig::default()
         };

@@ -28,9 +28,11 @@
 //! [`AnsurPopulation::match_spread`] rescales each bone's deviations from
 //! the mean so its std becomes `factor x` the training subjects' std: a
 //! per-bone affine map, so the survey's correlations between bones are kept
-//! exactly. A factor above 1 (the CLI default is 1.25, about the small-sample
-//! correction of a std taken over 5 subjects) keeps the prior wider than the
-//! five training skeletons.
+//! exactly. A factor above 1 (e.g. 1.25, about the small-sample correction
+//! of a std taken over 5 subjects) keeps the prior wider than the five
+//! training skeletons. The CLI default (0) keeps the survey's spread, the
+//! recipe of the shipped weights; short runs with 1.25 did not learn faster
+//! (see models/README.md).
 //!
 //! **Only training subjects calibrate.** [`AnsurPopulation::calibrate`] takes
 //! the [`TrainingLengthStats`] built from the training subjects' lengths and

@@ -36,9 +36,10 @@ struct TrainArgs {
     #[arg(long, default_value = "ansur")]
     lengths: String,
     /// ansur only: scale each bone's spread to this multiple of the training
-    /// subjects' std, keeping the survey's correlations (0 = the survey's own
-    /// spread, which is far wider than Human3.6M's for thorax, calf, forearm).
-    #[arg(long, default_value_t = 1.25)]
+    /// subjects' std, keeping the survey's correlations (e.g. 1.25). 0 keeps
+    /// the survey's own spread (the shipped weights' recipe), which is far
+    /// wider than Human3.6M's for thorax, calf and forearm.
+    #[arg(long, default_value_t = 0.0)]
     ansur_spread: f32,
     /// 2D detector-noise model: none|gaussian|residual.
     #[arg(long, default_value = "residual")]
