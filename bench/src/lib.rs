@@ -7,3 +7,4 @@
 //! and the server's own batch-size histogram.
 
 pub mod loadtest;
+pub mod machine;

@@ -313,14 +313,7 @@ fn batch_sizes(
     Ok(BatchSizes::from_histogram(&now.since(earlier.as_ref())))
 }
 
-/// User + system CPU time of this process (Linux `/proc/self/stat`, in
-/// USER_HZ = 100 ticks per second).
-pub fn process_cpu_seconds() -> Option<f64> {
-    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
-    let fields: Vec<&str> = stat.rsplit_once(')')?.1.split_whitespace().collect();
-    let ticks: u64 = fields.get(11)?.parse::<u64>().ok()? + fields.get(12)?.parse::<u64>().ok()?;
-    Some(ticks as f64 / 100.0)
-}
+pub use crate::machine::process_cpu_seconds;
 
 #[cfg(test)]
 mod tests {

@@ -33,6 +33,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
+use blapose_bench::machine::{cpu_model, load_average, process_cpu_seconds};
 use clap::{Parser, ValueEnum};
 use serde::Serialize;
 
@@ -383,16 +384,6 @@ fn measure(
     })
 }
 
-/// User + system CPU time of this process so far (Linux `/proc/self/stat`,
-/// in USER_HZ = 100 ticks per second; 10 ms resolution).
-fn process_cpu_seconds() -> Option<f64> {
-    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
-    let after_name = &stat[stat.rfind(')')? + 1..];
-    let fields: Vec<&str> = after_name.split_whitespace().collect();
-    let ticks: u64 = fields.get(11)?.parse::<u64>().ok()? + fields.get(12)?.parse::<u64>().ok()?;
-    Some(ticks as f64 / 100.0)
-}
-
 /// Median of the defined values of `f` over `runs` (`None` if there are none).
 fn median_of(runs: &[Measurement], f: impl Fn(&Measurement) -> Option<f64>) -> Option<f64> {
     let mut v: Vec<f64> = runs.iter().filter_map(f).collect();
@@ -407,24 +398,6 @@ fn median_of(runs: &[Measurement], f: impl Fn(&Measurement) -> Option<f64>) -> O
 
 fn overhead_pct(alone: f64, with: f64) -> f64 {
     100.0 * (1.0 - with / alone)
-}
-
-fn load_average() -> String {
-    std::fs::read_to_string("/proc/loadavg")
-        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
-        .unwrap_or_else(|_| "unknown".into())
-}
-
-fn cpu_model() -> String {
-    std::fs::read_to_string("/proc/cpuinfo")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("model name"))
-                .and_then(|l| l.split(':').nth(1))
-                .map(|m| m.trim().to_string())
-        })
-        .unwrap_or_else(|| std::env::consts::ARCH.to_string())
 }
 
 /// Measure a lifter row: alone and with the adjustment, interleaved.

@@ -9,6 +9,7 @@
 use std::time::Instant;
 
 use anyhow::{bail, Result};
+use blapose_bench::machine::process_cpu_seconds;
 use blapose_model::reference::frames_tensor;
 use blapose_model::{
     BoneLengthGru, EngineOptions, Isa, LoadedWeights, ModelKind, OfflineBiGruEngine,
@@ -216,16 +217,4 @@ fn offline(args: &Args, opts: EngineOptions) -> Result<(usize, f64)> {
     let start = Instant::now();
     std::hint::black_box(engine.predict(&frames)?);
     Ok((args.frames, start.elapsed().as_secs_f64()))
-}
-
-/// User + system CPU time of this process so far (Linux `/proc/self/stat`).
-fn process_cpu_seconds() -> Option<f64> {
-    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
-    // fields after the parenthesized command name; utime, stime are 14th, 15th overall
-    let rest = stat.rsplit_once(')')?.1;
-    let fields: Vec<&str> = rest.split_whitespace().collect();
-    let utime: f64 = fields.get(11)?.parse().ok()?;
-    let stime: f64 = fields.get(12)?.parse().ok()?;
-    // clock ticks; 100 per second on Linux
-    Some((utime + stime) / 100.0)
 }

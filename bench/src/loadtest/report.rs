@@ -276,22 +276,10 @@ impl Report {
 
 /// CPU model and logical CPU count from `/proc`, and the load average.
 pub fn machine() -> Machine {
-    let cpu = std::fs::read_to_string("/proc/cpuinfo")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("model name"))
-                .and_then(|l| l.split(':').nth(1))
-                .map(|m| m.trim().to_string())
-        })
-        .unwrap_or_else(|| std::env::consts::ARCH.to_string());
-    let load_average = std::fs::read_to_string("/proc/loadavg")
-        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
-        .unwrap_or_else(|_| "unknown".into());
     Machine {
-        cpu,
+        cpu: crate::machine::cpu_model(),
         logical_cpus: std::thread::available_parallelism().map_or(1, |n| n.get()),
-        load_average,
+        load_average: crate::machine::load_average(),
     }
 }
 

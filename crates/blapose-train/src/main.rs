@@ -287,6 +287,16 @@ enum Command {
     },
 }
 
+/// The progress bar of a training run (`steps` optimizer steps).
+fn step_bar(steps: u64) -> ProgressBar {
+    let pb = ProgressBar::new(steps);
+    pb.set_style(
+        ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {pos}/{len} eta {eta} {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    pb
+}
+
 fn main() -> Result<()> {
     let cli = Cli::parse();
     match cli.command {
@@ -430,11 +440,7 @@ fn train(a: TrainArgs) -> Result<()> {
         "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}), noise={}, seq_len={}, stride=[{:.3},{:.3}], shift_std={} m, flip={}",
         cfg.lengths, cfg.ansur_spread, cfg.noise, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.flip_prob
     );
-    let pb = ProgressBar::new(cfg.steps);
-    pb.set_style(
-        ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {pos}/{len} eta {eta} {msg}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
+    let pb = step_bar(cfg.steps);
     let mut progress = |step: u64, _total: u64, loss: f64, fps: f64| {
         pb.set_position(step);
         pb.set_message(format!("loss {loss:.2} mm, {fps:.0} frames/s"));
@@ -641,11 +647,7 @@ fn train_lifter(a: TrainLifterArgs) -> Result<()> {
         cfg.every,
         cfg.flip_prob
     );
-    let pb = ProgressBar::new(cfg.steps);
-    pb.set_style(
-        ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {pos}/{len} eta {eta} {msg}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
+    let pb = step_bar(cfg.steps);
     let mut progress = |step: u64, _total: u64, loss: f64, rate: f64| {
         pb.set_position(step);
         pb.set_message(format!("loss {loss:.1} mm, {rate:.0} samples/s"));

@@ -29,7 +29,7 @@ use std::time::Instant;
 use blapose_core::skeleton::NUM_BONES;
 use blapose_model::weights::{self, LoadedWeights, WeightsMetadata};
 use blapose_model::{ModelKind, DROPOUT};
-use candle_core::{DType, Device, Tensor};
+use candle_core::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
 use crate::adam::{Adam, AdamConfig};
@@ -134,25 +134,44 @@ impl TrainConfig {
 
     /// Learning rate at `step`.
     pub fn lr_at(&self, step: u64) -> f64 {
-        self.lr * self.lr_decay.powi((step / self.epoch_steps.max(1)) as i32)
+        step_decayed_lr(self.lr, self.lr_decay, self.epoch_steps, step)
     }
 
     /// The fields a resumed run must share with its checkpoint.
     fn compatible(&self, other: &TrainConfig) -> Result<(), String> {
-        let mut a = self.clone();
-        // These may change on resume (e.g. train longer, log more often).
-        a.steps = other.steps;
-        a.val_every = other.val_every;
-        a.checkpoint_secs = other.checkpoint_secs;
-        if a == *other {
-            Ok(())
-        } else {
-            Err(format!(
-                "checkpoint was written by a different configuration:\n  checkpoint: {}\n  now:        {}",
-                serde_json::to_string(other).unwrap_or_default(),
-                serde_json::to_string(self).unwrap_or_default()
-            ))
-        }
+        check_resumable(self, other, |a, o| {
+            // These may change on resume (e.g. train longer, log more often).
+            a.steps = o.steps;
+            a.val_every = o.val_every;
+            a.checkpoint_secs = o.checkpoint_secs;
+        })
+    }
+}
+
+/// `lr * decay^floor(step / epoch_steps)`: the step decay of every trainer.
+pub fn step_decayed_lr(lr: f64, decay: f64, epoch_steps: u64, step: u64) -> f64 {
+    lr * decay.powi((step / epoch_steps.max(1)) as i32)
+}
+
+/// Whether a run configured as `now` may continue a checkpoint written
+/// with `checkpoint`: equal once `relax` has copied the fields a resume may
+/// change (run length, logging) from the checkpoint's configuration into a
+/// copy of `now`. The error shows both configurations.
+pub fn check_resumable<T: Clone + PartialEq + Serialize>(
+    now: &T,
+    checkpoint: &T,
+    relax: impl FnOnce(&mut T, &T),
+) -> Result<(), String> {
+    let mut relaxed = now.clone();
+    relax(&mut relaxed, checkpoint);
+    if relaxed == *checkpoint {
+        Ok(())
+    } else {
+        Err(format!(
+            "checkpoint was written by a different configuration:\n  checkpoint: {}\n  now:        {}",
+            serde_json::to_string(checkpoint).unwrap_or_default(),
+            serde_json::to_string(now).unwrap_or_default()
+        ))
     }
 }
 
@@ -330,9 +349,16 @@ fn save_checkpoint(
     write_atomic(path, &bytes)
 }
 
-fn load_checkpoint(
-    path: &Path,
-) -> Result<(CheckpointMeta, BTreeMap<String, Vec<f32>>), TrainError> {
+/// A safetensors file read whole: its tensors and header metadata.
+pub struct TensorFile {
+    /// Tensors by name.
+    pub tensors: HashMap<String, Tensor>,
+    /// Header `__metadata__` entries.
+    pub metadata: HashMap<String, String>,
+}
+
+/// Read a safetensors file (weights or checkpoint).
+pub fn read_tensor_file(path: &Path) -> Result<TensorFile, TrainError> {
     let bad = |msg: String| TrainError::Checkpoint {
         path: path.into(),
         msg,
@@ -340,17 +366,30 @@ fn load_checkpoint(
     let bytes = std::fs::read(path).map_err(|e| TrainError::io(path, e))?;
     let (_, header) =
         safetensors::SafeTensors::read_metadata(&bytes).map_err(|e| bad(e.to_string()))?;
-    let meta_json = header
-        .metadata()
-        .as_ref()
-        .and_then(|m| m.get("blapose_checkpoint").cloned())
+    let meta = header.metadata().clone().unwrap_or_default();
+    let tensors = candle_core::safetensors::load_buffer(&bytes, &Device::Cpu)?;
+    Ok(TensorFile {
+        tensors,
+        metadata: meta,
+    })
+}
+
+fn load_checkpoint(
+    path: &Path,
+) -> Result<(CheckpointMeta, BTreeMap<String, Vec<f32>>), TrainError> {
+    let bad = |msg: String| TrainError::Checkpoint {
+        path: path.into(),
+        msg,
+    };
+    let file = read_tensor_file(path)?;
+    let meta_json = file
+        .metadata
+        .get("blapose_checkpoint")
         .ok_or_else(|| bad("no blapose_checkpoint metadata".into()))?;
-    let meta: CheckpointMeta = serde_json::from_str(&meta_json).map_err(|e| bad(e.to_string()))?;
-    let st = safetensors::SafeTensors::deserialize(&bytes).map_err(|e| bad(e.to_string()))?;
+    let meta: CheckpointMeta = serde_json::from_str(meta_json).map_err(|e| bad(e.to_string()))?;
     let mut tensors = BTreeMap::new();
-    for (name, view) in st.iter() {
-        let t = Tensor::from_raw_buffer(view.data(), DType::F32, view.shape(), &Device::Cpu)?;
-        tensors.insert(name.to_string(), t.flatten_all()?.to_vec1::<f32>()?);
+    for (name, t) in file.tensors {
+        tensors.insert(name, t.flatten_all()?.to_vec1::<f32>()?);
     }
     Ok((meta, tensors))
 }

@@ -87,24 +87,16 @@ pub struct LifterTrainConfig {
 impl LifterTrainConfig {
     /// Learning rate at `step`.
     pub fn lr_at(&self, step: u64) -> f64 {
-        self.lr * self.lr_decay.powi((step / self.epoch_steps.max(1)) as i32)
+        crate::train::step_decayed_lr(self.lr, self.lr_decay, self.epoch_steps, step)
     }
 
     /// The fields a resumed run may change: length, logging, checkpoints.
     fn compatible(&self, other: &LifterTrainConfig) -> Result<(), String> {
-        let mut a = self.clone();
-        a.steps = other.steps;
-        a.val_every = other.val_every;
-        a.checkpoint_secs = other.checkpoint_secs;
-        if a == *other {
-            Ok(())
-        } else {
-            Err(format!(
-                "checkpoint was written by a different configuration:\n  checkpoint: {}\n  now:        {}",
-                serde_json::to_string(other).unwrap_or_default(),
-                serde_json::to_string(self).unwrap_or_default()
-            ))
-        }
+        crate::train::check_resumable(self, other, |a, o| {
+            a.steps = o.steps;
+            a.val_every = o.val_every;
+            a.checkpoint_secs = o.checkpoint_secs;
+        })
     }
 }
 

@@ -8,7 +8,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
 
 use blapose_model::weights::{DEFAULT_INPUT_NORMALIZATION, DEFAULT_KEYPOINT_LAYOUT};
-use candle_core::{Device, Tensor};
+use candle_core::Tensor;
 use candle_nn::VarMap;
 use serde::{Deserialize, Serialize};
 
@@ -90,30 +90,7 @@ pub fn save(path: &Path, varmap: &VarMap, meta: &LifterMetadata) -> Result<(), T
     crate::train::write_atomic(path, &bytes)
 }
 
-/// A safetensors file read whole: its tensors and header metadata.
-pub struct TensorFile {
-    /// Tensors by name.
-    pub tensors: HashMap<String, Tensor>,
-    /// Header `__metadata__` entries.
-    pub metadata: HashMap<String, String>,
-}
-
-/// Read a safetensors file (weights or checkpoint).
-pub fn read(path: &Path) -> Result<TensorFile, TrainError> {
-    let bad = |msg: String| TrainError::Checkpoint {
-        path: path.into(),
-        msg,
-    };
-    let bytes = std::fs::read(path).map_err(|e| TrainError::io(path, e))?;
-    let (_, header) =
-        safetensors::SafeTensors::read_metadata(&bytes).map_err(|e| bad(e.to_string()))?;
-    let meta = header.metadata().clone().unwrap_or_default();
-    let tensors = candle_core::safetensors::load_buffer(&bytes, &Device::Cpu)?;
-    Ok(TensorFile {
-        tensors,
-        metadata: meta,
-    })
-}
+pub use crate::train::{read_tensor_file as read, TensorFile};
 
 /// Copy every variable of `varmap` from `tensors` (same names and shapes;
 /// extra tensors are ignored).
