@@ -1,7 +1,8 @@
 //! Compiles `proto/blapose/v1/blapose.proto` with protox (pure Rust, no
 //! system `protoc`) and generates prost messages plus tonic server and client
 //! stubs. The encoded file descriptor set is written next to the generated
-//! code so the server can offer gRPC reflection from the same source.
+//! code so the server can offer gRPC reflection from the same source. Every
+//! method uses `codec::SmallBufferCodec` (smaller per-RPC buffers).
 
 use std::path::PathBuf;
 
@@ -24,6 +25,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     tonic_prost_build::configure()
         .build_server(true)
         .build_client(true)
+        .codec_path("crate::codec::SmallBufferCodec")
         .compile_fds(compiler.file_descriptor_set())?;
     Ok(())
 }

@@ -8,6 +8,8 @@
 //! ([`v1::pose_adjustment_client`]) live here; read the proto for the meaning
 //! of every field.
 
+pub mod codec;
+
 /// Package `blapose.v1`.
 pub mod v1 {
     #![allow(clippy::all, missing_docs)]
