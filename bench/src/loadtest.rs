@@ -28,6 +28,7 @@ use blapose_client::ClientError;
 use blapose_server::metrics::{BATCH_SIZE, SESSIONS, STREAMS};
 use blapose_server::ServerError;
 
+use crate::machine::process_cpu_seconds;
 use driver::{StreamOptions, StreamStats};
 use prom::Histogram;
 use report::{BatchSizes, IdleMemory, Mode, Report};
@@ -312,8 +313,6 @@ fn batch_sizes(
         .ok_or_else(|| format!("the metrics page has no {BATCH_SIZE} histogram"))?;
     Ok(BatchSizes::from_histogram(&now.since(earlier.as_ref())))
 }
-
-pub use crate::machine::process_cpu_seconds;
 
 #[cfg(test)]
 mod tests {

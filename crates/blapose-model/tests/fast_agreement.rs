@@ -46,6 +46,24 @@ fn run_online(engine: &OnlineGruEngine, frames: &[f32], batch: usize, steps: usi
     outs
 }
 
+/// The reference model's per-frame predictions for `batch` sequences of
+/// `steps` frames, flattened like [`run_online`]'s output.
+fn reference_per_frame(
+    model: &BoneLengthGru,
+    frames: &[f32],
+    batch: usize,
+    steps: usize,
+) -> Vec<f32> {
+    let x = frames_tensor(frames, batch, steps).unwrap();
+    model
+        .forward_per_frame(&x)
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap()
+}
+
 fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
     assert_eq!(a.len(), b.len());
     a.iter()
@@ -63,14 +81,7 @@ fn online_matches_reference(batch: usize, threads: usize) {
         .unwrap()
         .with_gru_impl(GruImpl::Autograd);
     let frames = random_frames(batch * steps, 5 + batch as u64);
-    let x = frames_tensor(&frames, batch, steps).unwrap();
-    let expect: Vec<f32> = model
-        .forward_per_frame(&x)
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1()
-        .unwrap();
+    let expect = reference_per_frame(&model, &frames, batch, steps);
     let engine = OnlineGruEngine::new(&weights, threads).unwrap();
     let got = run_online(&engine, &frames, batch, steps);
     let err = max_abs_diff(&got, &expect);
@@ -85,7 +96,7 @@ fn online_matches_reference(batch: usize, threads: usize) {
     assert!(err < 1e-4, "max error {err}");
     // the final prediction equals the reference's final-state forward
     let last: Vec<f32> = model
-        .forward(&x, false)
+        .forward(&frames_tensor(&frames, batch, steps).unwrap(), false)
         .unwrap()
         .flatten_all()
         .unwrap()
@@ -396,14 +407,7 @@ fn blocked_path_agrees_with_reference_around_its_threshold() {
     // below, at and above the threshold; odd sizes leave a 1-row tile
     for (batch, threads) in [(min - 1, 1), (min, 2), (min + 1, 1), (37, 2)] {
         let frames = random_frames(batch * steps, 40 + batch as u64);
-        let x = frames_tensor(&frames, batch, steps).unwrap();
-        let expect: Vec<f32> = model
-            .forward_per_frame(&x)
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .to_vec1()
-            .unwrap();
+        let expect = reference_per_frame(&model, &frames, batch, steps);
         let engine = OnlineGruEngine::new(&weights, threads).unwrap();
         assert_eq!(engine.is_cache_blocked(batch), batch >= min);
         let got = run_online(&engine, &frames, batch, steps);

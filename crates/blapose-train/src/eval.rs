@@ -184,7 +184,7 @@ impl GruEstimator {
                 let n = group[i].frames() as f64;
                 let e = Estimate {
                     lengths: std::array::from_fn(|j| (sums[i][j] / n) as f32),
-                    curve: curves[i].clone(),
+                    curve: std::mem::take(&mut curves[i]),
                 };
                 (e, r)
             })

@@ -77,6 +77,21 @@ fn config(steps: u64) -> TrainConfig {
     }
 }
 
+/// Every tensor of `a` equals `b`'s tensor of the same name, bit for bit.
+fn assert_same_weights(a: &LoadedWeights, b: &LoadedWeights, what: &str) {
+    for (name, t) in a.tensors() {
+        let va: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
+        let vb: Vec<f32> = b
+            .tensor(name)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        assert_eq!(va, vb, "tensor {name} {what}");
+    }
+}
+
 #[test]
 fn resume_continues_exactly() {
     let Some(root) = blapose_data::test_data_root("h36m/poses_3d.npz", "resume test") else {
@@ -126,17 +141,7 @@ fn resume_continues_exactly() {
     assert_eq!(b2.steps_run, 2, "resumed at step 2");
     let wa = blapose_model::weights::load(straight.join(WEIGHTS_FILE), ModelKind::Gru).unwrap();
     let wb = blapose_model::weights::load(split.join(WEIGHTS_FILE), ModelKind::Gru).unwrap();
-    for (name, t) in wa.tensors() {
-        let va: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
-        let vb: Vec<f32> = wb
-            .tensor(name)
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .to_vec1()
-            .unwrap();
-        assert_eq!(va, vb, "tensor {name} differs after resume");
-    }
+    assert_same_weights(&wa, &wb, "differs after resume");
     assert_eq!(a.validation, b2.validation);
     // The log has one row per validation, none duplicated by the resume.
     let log = std::fs::read_to_string(split.join("train_log.csv")).unwrap();
@@ -171,17 +176,7 @@ fn resume_continues_exactly() {
     )
     .unwrap();
     let ww = blapose_model::weights::load(warm_dir.join(WEIGHTS_FILE), ModelKind::Gru).unwrap();
-    for (name, t) in wa.tensors() {
-        let va: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
-        let vw: Vec<f32> = ww
-            .tensor(name)
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .to_vec1()
-            .unwrap();
-        assert_eq!(va, vw, "warm start changed {name}");
-    }
+    assert_same_weights(&wa, &ww, "changed by the warm start");
     warm.init_weights = Some(dir.join("missing.safetensors").display().to_string());
     assert!(train(
         &warm,
