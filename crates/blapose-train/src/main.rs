@@ -80,6 +80,11 @@ struct TrainArgs {
     /// Std of the per-sequence 3D shift, metres.
     #[arg(long, default_value_t = 0.5)]
     shift_std: f32,
+    /// Where the shift is drawn: camera (all three camera axes, the paper's
+    /// recipe) or ground (along the world floor, so the feet's image height
+    /// still tells the distance).
+    #[arg(long, default_value = "camera")]
+    shift_plane: String,
     /// Horizontal flip probability.
     #[arg(long, default_value_t = 0.5)]
     flip_prob: f32,
@@ -396,6 +401,10 @@ fn train(a: TrainArgs) -> Result<()> {
         stride_min: a.stride_min,
         stride_max: a.stride_max,
         shift_std: a.shift_std,
+        shift_plane: a
+            .shift_plane
+            .parse::<blapose_train::synth::ShiftPlane>()?
+            .to_string(),
         flip_prob: a.flip_prob,
         batch: a.batch,
         steps: a.steps,
@@ -437,8 +446,8 @@ fn train(a: TrainArgs) -> Result<()> {
         t0.elapsed().as_secs_f64()
     );
     let training_data = format!(
-        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}), noise={}, seq_len={}, stride=[{:.3},{:.3}], shift_std={} m, flip={}",
-        cfg.lengths, cfg.ansur_spread, cfg.noise, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.flip_prob
+        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}), noise={}, seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), flip={}",
+        cfg.lengths, cfg.ansur_spread, cfg.noise, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.shift_plane, cfg.flip_prob
     );
     let pb = step_bar(cfg.steps);
     let mut progress = |step: u64, _total: u64, loss: f64, fps: f64| {

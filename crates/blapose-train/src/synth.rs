@@ -13,9 +13,13 @@
 //!    frame with the sequence's directions, the drawn lengths and the
 //!    original root trajectory;
 //! 4. pick one of the subject's 4 real cameras, move the whole window by one
-//!    random camera-space shift `s ~ N(0, shift_std)` (re-drawn, at most
+//!    random shift `s ~ N(0, shift_std)` (re-drawn, at most
 //!    [`MAX_SHIFT_TRIES`] times, while the root comes closer than `min_depth`
-//!    or leaves the image; no shift if every draw fails);
+//!    or leaves the image; no shift if every draw fails). The paper shifts
+//!    in all three camera axes ([`ShiftPlane::Camera`]), which lifts people
+//!    off the floor and so hides their distance; [`ShiftPlane::Ground`]
+//!    shifts along the world floor only, so the feet's height in the image
+//!    still tells the distance, as it does in any fixed-camera scene;
 //! 5. project with the camera's real intrinsics *and* distortion straight to
 //!    normalized screen coordinates;
 //! 6. add detector noise ([`crate::noise`]), rescaled to the new depth;
@@ -99,6 +103,63 @@ impl MotionSequence {
     }
 }
 
+/// In which space the per-window 3D shift is drawn.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum ShiftPlane {
+    /// `N(0, std)` on all three camera axes (the paper's reference code).
+    #[default]
+    Camera,
+    /// `N(0, std)` on the two horizontal world axes (Human3.6M's world
+    /// `z` is up): the person stays on the floor.
+    Ground,
+}
+
+impl ShiftPlane {
+    /// The flag spelling.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Camera => "camera",
+            Self::Ground => "ground",
+        }
+    }
+
+    /// A shift drawn with `rng`, in `cam`'s coordinates.
+    fn draw<R: Rng + ?Sized>(self, cam: &Camera, std: f32, rng: &mut R) -> [f32; 3] {
+        match self {
+            Self::Camera => [
+                normal_f32(rng, std),
+                normal_f32(rng, std),
+                normal_f32(rng, std),
+            ],
+            Self::Ground => {
+                let w = [normal_f32(rng, std) as f64, normal_f32(rng, std) as f64];
+                // A direction: rotate only, `R (w, 0)`.
+                cam.rotation
+                    .map(|row| (row[0] * w[0] + row[1] * w[1]) as f32)
+            }
+        }
+    }
+}
+
+impl std::fmt::Display for ShiftPlane {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for ShiftPlane {
+    type Err = TrainError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "camera" => Ok(Self::Camera),
+            "ground" => Ok(Self::Ground),
+            _ => Err(TrainError::InvalidArgument(format!(
+                "unknown shift plane {s:?} (camera|ground)"
+            ))),
+        }
+    }
+}
+
 /// Knobs of the augmentation (see the module docs).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SynthConfig {
@@ -110,6 +171,8 @@ pub struct SynthConfig {
     pub stride_max: f32,
     /// Standard deviation of each component of the 3D shift, metres.
     pub shift_std: f32,
+    /// Where the shift is drawn.
+    pub shift_plane: ShiftPlane,
     /// The root must stay at least this deep in front of the camera, metres.
     pub min_depth: f32,
     /// Probability of a horizontal flip.
@@ -125,6 +188,7 @@ impl Default for SynthConfig {
             stride_min: 50.0 / 60.0,
             stride_max: 2.0,
             shift_std: 0.5,
+            shift_plane: ShiftPlane::Camera,
             min_depth: 1.5,
             flip_prob: 0.5,
             noise: NoiseKind::Residual,
@@ -319,11 +383,7 @@ impl SynthSource {
         let mut shift = [0.0f32; 3];
         if cfg.shift_std > 0.0 {
             for _ in 0..MAX_SHIFT_TRIES {
-                let s = [
-                    normal_f32(rng, cfg.shift_std),
-                    normal_f32(rng, cfg.shift_std),
-                    normal_f32(rng, cfg.shift_std),
-                ];
+                let s = cfg.shift_plane.draw(cam, cfg.shift_std, rng);
                 let ok = cam_poses.iter().all(|p| {
                     let r = [p[0][0] + s[0], p[0][1] + s[1], p[0][2] + s[2]];
                     if r[2] < cfg.min_depth {
@@ -417,4 +477,61 @@ pub fn flip_input(input: &[f32]) -> Vec<f32> {
         out.extend(flip_keypoints_normalized(&kp).iter().flatten());
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tilted_camera() -> Camera {
+        // Looking along world +y, tilted down by ~0.3 rad about x.
+        let (c, s) = (0.3f64.cos(), 0.3f64.sin());
+        Camera {
+            id: "test".into(),
+            rotation: [[1.0, 0.0, 0.0], [0.0, -s, -c], [0.0, c, -s]],
+            center: [0.5, -4.0, 1.6],
+            focal: [1145.0, 1144.0],
+            principal: [512.0, 515.0],
+            radial: [0.0; 3],
+            tangential: [0.0; 2],
+            width: 1000,
+            height: 1002,
+        }
+    }
+
+    /// World-space direction of a camera-space shift.
+    fn to_world(cam: &Camera, s: [f32; 3]) -> [f64; 3] {
+        let w = cam.camera_to_world(s.map(f64::from));
+        std::array::from_fn(|i| w[i] - cam.center[i])
+    }
+
+    #[test]
+    fn ground_shift_stays_on_the_floor_and_camera_shift_does_not() {
+        let cam = tilted_camera();
+        let mut rng = StdRng::seed_from_u64(1);
+        let mut max_up = 0.0f64;
+        let mut max_up_camera = 0.0f64;
+        let mut horizontal = 0.0f64;
+        for _ in 0..200 {
+            let g = to_world(&cam, ShiftPlane::Ground.draw(&cam, 0.5, &mut rng));
+            max_up = max_up.max(g[2].abs());
+            horizontal = horizontal.max(g[0].abs().max(g[1].abs()));
+            let c = to_world(&cam, ShiftPlane::Camera.draw(&cam, 0.5, &mut rng));
+            max_up_camera = max_up_camera.max(c[2].abs());
+        }
+        assert!(max_up < 1e-5, "ground shift moved {max_up} m vertically");
+        assert!(horizontal > 0.5, "ground shift too small: {horizontal}");
+        assert!(
+            max_up_camera > 0.5,
+            "camera shift should move vertically too"
+        );
+    }
+
+    #[test]
+    fn shift_plane_names_round_trip() {
+        for p in [ShiftPlane::Camera, ShiftPlane::Ground] {
+            assert_eq!(p.name().parse::<ShiftPlane>().unwrap(), p);
+        }
+        assert!("floor".parse::<ShiftPlane>().is_err());
+    }
 }

@@ -75,6 +75,10 @@ pub struct TrainConfig {
     pub stride_max: f32,
     /// 3D shift std, metres.
     pub shift_std: f32,
+    /// Where the shift is drawn (`camera` or `ground`,
+    /// [`crate::synth::ShiftPlane`]); runs before this field were `camera`.
+    #[serde(default = "default_shift_plane")]
+    pub shift_plane: String,
     /// Flip probability.
     pub flip_prob: f32,
     /// Samples per batch.
@@ -111,6 +115,10 @@ pub struct TrainConfig {
     pub checkpoint_secs: u64,
 }
 
+fn default_shift_plane() -> String {
+    crate::synth::ShiftPlane::Camera.to_string()
+}
+
 impl TrainConfig {
     /// The model kind.
     pub fn model_kind(&self) -> Result<ModelKind, TrainError> {
@@ -124,6 +132,7 @@ impl TrainConfig {
             stride_min: self.stride_min,
             stride_max: self.stride_max,
             shift_std: self.shift_std,
+            shift_plane: self.shift_plane.parse()?,
             min_depth: 1.5,
             flip_prob: self.flip_prob,
             noise: self.noise.parse()?,

@@ -58,6 +58,7 @@ fn config(steps: u64) -> TrainConfig {
         stride_min: 50.0 / 60.0,
         stride_max: 2.0,
         shift_std: 0.5,
+        shift_plane: "camera".into(),
         flip_prob: 0.5,
         batch: 4,
         steps,
