@@ -98,6 +98,14 @@ struct TrainArgs {
     /// to continue training shipped weights with a new schedule.
     #[arg(long)]
     init_weights: Option<PathBuf>,
+    /// Learning-rate multiplier of the output layer (its 1,024 inputs add
+    /// up Adam's per-weight steps, so at the base rate predictions jitter).
+    #[arg(long, default_value_t = 1.0)]
+    head_lr_scale: f32,
+    /// Validate and save an exponential moving average of the weights with
+    /// this decay per step (0 = off; e.g. 0.999).
+    #[arg(long, default_value_t = 0.0)]
+    ema_decay: f32,
     /// Master seed (data, initial weights).
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -415,6 +423,8 @@ fn train(a: TrainArgs) -> Result<()> {
         per_frame_weight: a.per_frame_weight,
         init_output_mean: a.init_output_mean,
         init_weights: a.init_weights.as_ref().map(|p| p.display().to_string()),
+        head_lr_scale: a.head_lr_scale,
+        ema_decay: a.ema_decay,
         seed: a.seed,
         val_every: a.val_every,
         val_samples: a.val_samples,

@@ -70,6 +70,9 @@ fn config(steps: u64) -> TrainConfig {
         ansur_spread: 0.0,
         init_weights: None,
         init_output_mean: true,
+        // exercised by the resume test: the average must survive a resume
+        head_lr_scale: 0.1,
+        ema_decay: 0.9,
         seed: 3,
         val_every: 2,
         val_samples: 8,
@@ -144,9 +147,11 @@ fn resume_continues_exactly() {
     let wb = blapose_model::weights::load(split.join(WEIGHTS_FILE), ModelKind::Gru).unwrap();
     assert_same_weights(&wa, &wb, "differs after resume");
     assert_eq!(a.validation, b2.validation);
-    // The log has one row per validation, none duplicated by the resume.
+    // The log has one row per validation (row 0: the untrained network),
+    // none duplicated by the resume.
     let log = std::fs::read_to_string(split.join("train_log.csv")).unwrap();
-    assert_eq!(log.lines().count(), 3, "{log}");
+    assert_eq!(log.lines().count(), 4, "{log}");
+    assert!(log.lines().nth(1).unwrap().starts_with("0,"), "{log}");
     // A checkpoint from another configuration is refused.
     let mut other = config(6);
     other.batch = 8;
