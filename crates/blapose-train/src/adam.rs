@@ -159,7 +159,11 @@ mod tests {
         plain.step(&mut a, &grad).unwrap();
         grouped.step(&mut b, &grad).unwrap();
         for i in 0..6 {
-            let want = if (2..4).contains(&i) { 0.1 * a[i] } else { a[i] };
+            let want = if (2..4).contains(&i) {
+                0.1 * a[i]
+            } else {
+                a[i]
+            };
             assert!((b[i] - want).abs() < 1e-9, "param {i}: {} vs {want}", b[i]);
         }
         assert_eq!(plain.m, grouped.m, "moments do not depend on the rate");

@@ -8,7 +8,8 @@
 //!
 //! 1. every input value is checked to be finite — a NaN is refused before
 //!    any state is touched (the whole call is refused, naming the row);
-//! 2. the frames are embedded (`relu(W x + b)`);
+//! 2. the frames are embedded (`relu(W x + b)`) and each GRU's kernel
+//!    inputs are packed, the two GRUs in parallel;
 //! 3. the 64 panels (2 GRUs x 32) are split into contiguous ranges, one per
 //!    thread; each thread streams its panels once, applying each to all
 //!    rows tile by tile ([`super::kernel`]), writing new states into scratch
@@ -17,15 +18,18 @@
 //!    blocks of its input indices (`kernel::run_blocked`): with only 2 rows
 //!    per AVX2 tile, re-streaming the whole panel from L2 for every tile
 //!    made large batches L2-bandwidth bound;
-//! 4. the per-thread output shares are summed, the new states are checked
-//!    for non-finite values (absurd inputs can overflow), and only then are
-//!    they copied over the caller's states.
+//! 4. each thread checks its new states for non-finite values (absurd
+//!    inputs can overflow) while they are in cache; the output shares are
+//!    summed, and only if everything is finite are the states copied over
+//!    the caller's and the outputs written.
 //!
 //! At batch 1 the step is bound by streaming the 9.4 MB of f32 weights from
 //! L3, so the panel order alternates between calls: the panels used last
 //! in one call are used first in the next, while they are still in L2.
 //! All buffers live in a reusable [`StepScratch`]; a step allocates nothing
-//! once the scratch has seen the largest batch.
+//! once the scratch has seen the largest batch, except that with worker
+//! threads rayon's job queue allocates one small block per 63 steps (each
+//! step enters the pool once).
 
 use std::ops::Range;
 
@@ -68,7 +72,8 @@ pub struct StepScratch {
     packed: Vec<f32>,
     new_state: AlignedBuf,
     partial_out: Vec<f32>,
-    /// Per thread: the blocked kernel's partial sums (`batch * BLOCK_ACC`).
+    /// Per thread: the blocked kernel's partial sums
+    /// (`blocked_rows(batch) * BLOCK_ACC`).
     block_acc: AlignedBuf,
     /// Per thread: the blocked kernel's f16-widening buffer (`BLOCK_WBUF`).
     block_wbuf: AlignedBuf,
@@ -268,7 +273,25 @@ impl OnlineGruEngine {
         check_finite(inputs, INPUT_DIM)?;
         scratch.ensure(batch, self.threads);
         scratch.reverse = !scratch.reverse;
+        // One pool entry per step: inside it the phases fork with
+        // `rayon::join`, which allocates nothing (each `install` from outside
+        // the pool pushes a job into rayon's injector, which allocates a
+        // block every 63 jobs).
+        match &self.pool {
+            Some(pool) => pool.install(|| self.step_valid(batch, inputs, hidden, out, scratch)),
+            None => self.step_valid(batch, inputs, hidden, out, scratch),
+        }
+    }
 
+    /// [`Self::step`] after the argument checks, on the pool's threads.
+    fn step_valid(
+        &self,
+        batch: usize,
+        inputs: &[f32],
+        hidden: &mut [f32],
+        out: &mut [f32],
+        scratch: &mut StepScratch,
+    ) -> Result<(), ModelError> {
         let embedded = &mut scratch.embedded[..batch * EMBED_DIM];
         for (x, e) in inputs
             .chunks_exact(INPUT_DIM)
@@ -281,7 +304,7 @@ impl OnlineGruEngine {
         let embedded = &scratch.embedded[..batch * EMBED_DIM];
         let (packed_a, packed_b) =
             scratch.packed[..2 * batch * k_total].split_at_mut(batch * k_total);
-        for (g, packed) in [packed_a, packed_b].into_iter().enumerate() {
+        let pack = |g: usize, packed: &mut [f32]| {
             kernel::pack_rows(
                 self.isa,
                 batch,
@@ -290,7 +313,9 @@ impl OnlineGruEngine {
                 |b| &hidden[b * STATE_DIM + g * HIDDEN..b * STATE_DIM + (g + 1) * HIDDEN],
                 packed,
             );
-        }
+        };
+        self.per_gru(|| pack(0, packed_a), || pack(1, packed_b));
+
         let (packed_a, packed_b) = scratch.packed[..2 * batch * k_total].split_at(batch * k_total);
         let ctx = StepCtx {
             batch,
@@ -304,42 +329,33 @@ impl OnlineGruEngine {
             acc: &mut scratch.block_acc.as_mut_slice()[..self.threads * batch * BLOCK_ACC],
             wbuf: &mut scratch.block_wbuf.as_mut_slice()[..self.threads * BLOCK_WBUF],
         };
-        match &self.pool {
-            Some(pool) => pool.install(|| self.run_items(0..ITEMS, bufs, self.threads, &ctx)),
-            None => self.run_items(0..ITEMS, bufs, 1, &ctx),
-        }
+        let states_ok = self.run_items(0..ITEMS, bufs, self.threads, &ctx);
 
-        // Commit only if every new state and output is finite.
+        // Commit only if every new state and output is finite. The output
+        // shares are summed into thread 0's share (scratch), not `out`.
         let new_state = &scratch.new_state.as_slice()[..ITEMS * batch * LANES];
-        let partial = &scratch.partial_out[..self.threads * batch * OUTPUT_DIM];
-        let output = |b: usize| -> [f32; OUTPUT_DIM] {
-            let mut y = [0.0f32; OUTPUT_DIM];
-            for t in 0..self.threads {
-                let start = (t * batch + b) * OUTPUT_DIM;
-                for (yo, p) in y.iter_mut().zip(&partial[start..start + OUTPUT_DIM]) {
-                    *yo += p;
-                }
+        let (y, others) = scratch.partial_out[..self.threads * batch * OUTPUT_DIM]
+            .split_at_mut(batch * OUTPUT_DIM);
+        for share in others.chunks_exact(batch * OUTPUT_DIM) {
+            for (yo, p) in y.iter_mut().zip(share) {
+                *yo += p;
             }
-            y
-        };
-        for b in 0..batch {
-            let y_ok = output(b).iter().all(|v| v.is_finite());
-            let h_ok = (0..ITEMS).all(|i| {
-                let start = (i * batch + b) * LANES;
-                new_state[start..start + LANES]
-                    .iter()
-                    .all(|v| v.is_finite())
+        }
+        if !(states_ok && all_finite(y)) {
+            let bad_row = (0..batch).find(|&b| {
+                let h_ok = (0..ITEMS).all(|i| {
+                    let start = (i * batch + b) * LANES;
+                    all_finite(&new_state[start..start + LANES])
+                });
+                !(h_ok && all_finite(&y[b * OUTPUT_DIM..(b + 1) * OUTPUT_DIM]))
             });
-            if !(y_ok && h_ok) {
-                return Err(ModelError::NonFiniteState { row: b });
-            }
+            return Err(ModelError::NonFiniteState {
+                row: bad_row.unwrap_or(0),
+            });
         }
-        for (b, y) in out.chunks_exact_mut(OUTPUT_DIM).enumerate() {
-            y.copy_from_slice(&output(b));
-        }
+        out.copy_from_slice(y);
         for (i, chunk) in new_state.chunks_exact(batch * LANES).enumerate() {
-            let (g, p) = (i / PANELS, i % PANELS);
-            let col = g * HIDDEN + p * LANES;
+            let col = (i / PANELS) * HIDDEN + (i % PANELS) * LANES;
             for (b, units) in chunk.chunks_exact(LANES).enumerate() {
                 hidden[b * STATE_DIM + col..b * STATE_DIM + col + LANES].copy_from_slice(units);
             }
@@ -347,24 +363,43 @@ impl OnlineGruEngine {
         Ok(())
     }
 
+    /// Run `a` and `b` (one per GRU) in parallel when the engine has
+    /// threads (called inside its pool), else one after the other.
+    fn per_gru(&self, a: impl FnOnce() + Send, b: impl FnOnce() + Send) {
+        if self.threads > 1 {
+            rayon::join(a, b);
+        } else {
+            a();
+            b();
+        }
+    }
+
     /// Process `items` with `threads` threads: split in two and recurse
     /// with `rayon::join` (no allocation), one range per thread at the leaves.
-    fn run_items(&self, items: Range<usize>, bufs: ThreadBufs, threads: usize, ctx: &StepCtx) {
+    /// Returns whether every new state is finite.
+    fn run_items(
+        &self,
+        items: Range<usize>,
+        bufs: ThreadBufs,
+        threads: usize,
+        ctx: &StepCtx,
+    ) -> bool {
         if threads <= 1 {
-            self.work(items, bufs, ctx);
-            return;
+            return self.work(items, bufs, ctx);
         }
         let left = threads / 2;
         let mid = items.start + items.len() * left / threads;
         let (b_l, b_r) = bufs.split(mid - items.start, left, ctx.batch);
-        rayon::join(
+        let (ok_l, ok_r) = rayon::join(
             || self.run_items(items.start..mid, b_l, left, ctx),
             || self.run_items(mid..items.end, b_r, threads - left, ctx),
         );
+        ok_l && ok_r
     }
 
-    /// One thread's share: panels `items`, all rows.
-    fn work(&self, items: Range<usize>, bufs: ThreadBufs, ctx: &StepCtx) {
+    /// One thread's share: panels `items`, all rows. Returns whether all
+    /// of its new states are finite (checked while they are in cache).
+    fn work(&self, items: Range<usize>, bufs: ThreadBufs, ctx: &StepCtx) -> bool {
         let batch = ctx.batch;
         let ThreadBufs {
             new_state,
@@ -407,7 +442,7 @@ impl OnlineGruEngine {
                 y_stride: OUTPUT_DIM,
             };
             // SAFETY: the asserts above and the slice bounds give every row
-            // its operands: `packed[g]` holds `batch` rows of 768 packed by
+            // its operands: `packed[g]` holds `blocked_rows(batch)` rows of 768 packed by
             // `pack_rows` for `self.isa`, `hidden`
             // `batch` rows of 1024 (this GRU's 512 start at g * 512), `out`
             // `batch` rows of 16, `y` `batch` rows of 16; panels, biases and
@@ -422,5 +457,14 @@ impl OnlineGruEngine {
         } else {
             items.for_each(&mut run_item);
         }
+        all_finite(new_state)
     }
+}
+
+/// Whether every value is finite, as one branch-free pass the compiler
+/// vectorizes (an exponent of all ones marks Inf and NaN).
+fn all_finite(values: &[f32]) -> bool {
+    values.iter().fold(0u32, |bad, v| {
+        bad | u32::from(v.to_bits() & 0x7f80_0000 == 0x7f80_0000)
+    }) == 0
 }
