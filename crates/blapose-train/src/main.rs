@@ -283,8 +283,6 @@ enum Command {
     /// Train a bone-length model on synthetic sequences built from the
     /// Human3.6M training subjects (S1 S5 S6 S7 S8).
     Train(Box<TrainArgs>),
-    /// Print the training data statistics, the ANSUR calibration and the
-    /// detector residuals; time the augmentation pipeline.
     /// Train a 2D-to-3D lifter on the training subjects' real Stacked
     /// Hourglass detections (root-relative camera-space MPJPE, flip
     /// augmentation).
@@ -293,6 +291,8 @@ enum Command {
     /// (online GRU running estimate, offline Bi-GRU): the paper's Tables 2
     /// and 3.
     EvalAdjust(Box<EvalAdjustArgs>),
+    /// Print the training data statistics, the ANSUR calibration and the
+    /// detector residuals; time the augmentation pipeline.
     DataReport {
         /// Data root (default: $BLAPOSE_DATA or ../shared/data).
         #[arg(long)]
