@@ -99,12 +99,14 @@ struct TrainArgs {
     #[arg(long)]
     init_weights: Option<PathBuf>,
     /// Learning-rate multiplier of the output layer (its 1,024 inputs add
-    /// up Adam's per-weight steps, so at the base rate predictions jitter).
-    #[arg(long, default_value_t = 1.0)]
+    /// up Adam's per-weight steps, so at the base rate predictions jitter
+    /// by centimetres; runs with 1 never beat the constant predictor).
+    #[arg(long, default_value_t = 0.01)]
     head_lr_scale: f32,
     /// Validate and save an exponential moving average of the weights with
-    /// this decay per step (0 = off; e.g. 0.999).
-    #[arg(long, default_value_t = 0.0)]
+    /// this decay per step (0 = off). Runs from before this option: resume
+    /// them with `--head-lr-scale 1 --ema-decay 0`.
+    #[arg(long, default_value_t = 0.999)]
     ema_decay: f32,
     /// Master seed (data, initial weights).
     #[arg(long, default_value_t = 0)]
