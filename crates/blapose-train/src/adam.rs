@@ -40,9 +40,10 @@ impl Default for AdamConfig {
 pub struct Adam {
     /// Hyper-parameters.
     pub config: AdamConfig,
-    /// Learning-rate multipliers for parameter ranges (the rest: 1). Not
-    /// optimizer state: rebuilt from the training config on resume.
-    pub lr_groups: Vec<(std::ops::Range<usize>, f32)>,
+    /// Learning-rate multipliers for parameter ranges, sorted by start
+    /// (the rest: 1). Not optimizer state: rebuilt from the training
+    /// config on resume ([`Adam::set_lr_groups`]).
+    lr_groups: Vec<(std::ops::Range<usize>, f32)>,
     /// First moments.
     pub m: Vec<f32>,
     /// Second moments.
@@ -66,6 +67,13 @@ impl Adam {
     /// Apply one update to `params` from `grad`; returns the global gradient
     /// norm before clipping, or `None` (and changes nothing) when the
     /// gradient is not finite.
+    /// Run the parameters in each range at `multiplier` times the rate
+    /// (ranges must not overlap).
+    pub fn set_lr_groups(&mut self, mut groups: Vec<(std::ops::Range<usize>, f32)>) {
+        groups.sort_by_key(|(r, _)| r.start);
+        self.lr_groups = groups;
+    }
+
     pub fn step(&mut self, params: &mut [f32], grad: &[f32]) -> Option<f64> {
         assert_eq!(params.len(), self.m.len(), "parameter count changed");
         assert_eq!(grad.len(), self.m.len(), "gradient size mismatch");
@@ -87,9 +95,12 @@ impl Adam {
         let lr_t = (c.lr * (1.0 - c.beta2.powi(t)).sqrt() / (1.0 - c.beta1.powi(t))) as f32;
         let (b1, b2, eps) = (c.beta1 as f32, c.beta2 as f32, c.eps as f32);
         // Ranges between (and around) the groups run at the base rate.
-        let mut groups = self.lr_groups.clone();
-        groups.sort_by_key(|(r, _)| r.start);
-        let (m_all, v_all) = (&mut self.m, &mut self.v);
+        let Self {
+            lr_groups,
+            m: m_all,
+            v: v_all,
+            ..
+        } = self;
         let n = params.len();
         let mut update = |range: std::ops::Range<usize>, lr: f32| {
             for i in range {
@@ -102,7 +113,7 @@ impl Adam {
             }
         };
         let mut next = 0;
-        for (range, mult) in groups {
+        for (range, mult) in lr_groups.iter() {
             update(next..range.start, lr_t);
             update(range.clone(), lr_t * mult);
             next = range.end;
@@ -153,7 +164,7 @@ mod tests {
         let grad = vec![1.0f32; 6];
         let mut plain = Adam::new(6, AdamConfig::default());
         let mut grouped = plain.clone();
-        grouped.lr_groups = vec![(2..4, 0.1)];
+        grouped.set_lr_groups(vec![(2..4, 0.1)]);
         let mut a = vec![0.0f32; 6];
         let mut b = vec![0.0f32; 6];
         plain.step(&mut a, &grad).unwrap();

@@ -508,13 +508,13 @@ pub fn train(
             ..Default::default()
         },
     );
-    if cfg.head_lr_scale != 1.0 {
-        opt.lr_groups = vec![(net.layout.fc_w.clone(), cfg.head_lr_scale)];
-    }
     if !(cfg.ema_decay >= 0.0 && cfg.ema_decay < 1.0 && cfg.head_lr_scale >= 0.0) {
         return Err(TrainError::InvalidArgument(
             "need 0 <= ema_decay < 1 and head_lr_scale >= 0".into(),
         ));
+    }
+    if cfg.head_lr_scale != 1.0 {
+        opt.set_lr_groups(vec![(net.layout.fc_w.clone(), cfg.head_lr_scale)]);
     }
     let mut ema = (cfg.ema_decay > 0.0).then(|| ParamEma::new(&net.params, cfg.ema_decay));
 
@@ -588,11 +588,7 @@ pub fn train(
             v.real_sh_mm,
             v.real_sh_running_mm
         );
-        std::fs::OpenOptions::new()
-            .append(true)
-            .open(&log_path)
-            .and_then(|mut f| f.write_all(row.as_bytes()))
-            .map_err(|e| TrainError::io(&log_path, e))?;
+        append_log_row(&log_path, &row)?;
     }
     let mut step = start_step;
     while let Some((s, batch)) = loader.next_batch() {
@@ -647,12 +643,7 @@ pub fn train(
                 validation.real_sh_running_mm,
                 elapsed_before + t_start.elapsed().as_secs_f64()
             );
-            let mut f = std::fs::OpenOptions::new()
-                .append(true)
-                .open(&log_path)
-                .map_err(|e| TrainError::io(&log_path, e))?;
-            f.write_all(row.as_bytes())
-                .map_err(|e| TrainError::io(&log_path, e))?;
+            append_log_row(&log_path, &row)?;
             window = (0.0, 0, 0.0, Instant::now(), 0);
         }
         if at_end || last_ckpt.elapsed().as_secs() >= cfg.checkpoint_secs {
@@ -688,6 +679,15 @@ pub fn train(
         elapsed_s: elapsed,
         steps_run: step - start_step,
     })
+}
+
+/// Append one row (with its newline) to the training log.
+fn append_log_row(path: &Path, row: &str) -> Result<(), TrainError> {
+    std::fs::OpenOptions::new()
+        .append(true)
+        .open(path)
+        .and_then(|mut f| f.write_all(row.as_bytes()))
+        .map_err(|e| TrainError::io(path, e))
 }
 
 /// The network validation and the weights file see: `net` with the

@@ -72,8 +72,7 @@ pub struct StepScratch {
     packed: Vec<f32>,
     new_state: AlignedBuf,
     partial_out: Vec<f32>,
-    /// Per thread: the blocked kernel's partial sums
-    /// (`blocked_rows(batch) * BLOCK_ACC`).
+    /// Per thread: the blocked kernel's partial sums (`batch * BLOCK_ACC`).
     block_acc: AlignedBuf,
     /// Per thread: the blocked kernel's f16-widening buffer (`BLOCK_WBUF`).
     block_wbuf: AlignedBuf,
@@ -442,7 +441,7 @@ impl OnlineGruEngine {
                 y_stride: OUTPUT_DIM,
             };
             // SAFETY: the asserts above and the slice bounds give every row
-            // its operands: `packed[g]` holds `blocked_rows(batch)` rows of 768 packed by
+            // its operands: `packed[g]` holds `batch` rows of 768 packed by
             // `pack_rows` for `self.isa`, `hidden`
             // `batch` rows of 1024 (this GRU's 512 start at g * 512), `out`
             // `batch` rows of 16, `y` `batch` rows of 16; panels, biases and
