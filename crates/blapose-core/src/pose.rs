@@ -29,6 +29,17 @@ pub fn flip_pose(pose: &Pose) -> Pose {
     out
 }
 
+/// The bone lengths of the mirrored person ([`flip_pose`]): left and right
+/// bones swap. Twice is the identity.
+pub fn flip_bone_lengths(lengths: &BoneLengths) -> BoneLengths {
+    let mut out = [0.0; NUM_BONES];
+    for (b, l) in lengths.iter().enumerate() {
+        // Bone `b` ends at joint `b + 1`.
+        out[flipped_joint(b + 1) - 1] = *l;
+    }
+    out
+}
+
 /// Mirror Human3.6M-order keypoints in normalized screen coordinates:
 /// `x -> -x` and swap left/right joints. Twice is the identity.
 pub fn flip_keypoints_normalized(kp: &Keypoints2d) -> Keypoints2d {
@@ -127,5 +138,20 @@ mod tests {
         assert_eq!(flip_pose(&f), pose);
         let kp: Keypoints2d = std::array::from_fn(|j| [j as f32, 1.0]);
         assert_eq!(flip_keypoints_pixels(&kp, 1000)[16], [1000.0 - 13.0, 1.0]);
+    }
+
+    #[test]
+    fn flipped_lengths_are_the_lengths_of_the_flipped_pose() {
+        let pose: Pose = std::array::from_fn(|j| [0.1 * j as f32, (j * j) as f32 * 0.01, 0.3]);
+        let flipped = flip_bone_lengths(&crate::bones::bone_lengths(&pose));
+        let of_flipped = crate::bones::bone_lengths(&flip_pose(&pose));
+        for (a, b) in flipped.iter().zip(&of_flipped) {
+            assert!((a - b).abs() < 1e-6);
+        }
+        assert_ne!(flipped, crate::bones::bone_lengths(&pose));
+        assert_eq!(
+            flip_bone_lengths(&flipped),
+            crate::bones::bone_lengths(&pose)
+        );
     }
 }

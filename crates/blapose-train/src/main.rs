@@ -165,31 +165,28 @@ struct EvalArgs {
     data: Option<PathBuf>,
 }
 
-/// Arguments of `blapose train-lifter`.
+/// The run flags `train-lifter` and `finetune` share.
 #[derive(clap::Args, Debug)]
-struct TrainLifterArgs {
-    /// Lifter architecture: mlp (Martinez et al. 2017 residual MLP, one frame).
-    #[arg(long, default_value = "mlp")]
-    model: String,
+struct LifterRunArgs {
     /// Run directory (log, checkpoint, weights, curve).
     #[arg(long)]
     out: PathBuf,
     /// Continue from OUT/checkpoint.safetensors.
     #[arg(long)]
     resume: bool,
-    /// Optimizer steps (10,000 x 256 samples is about 2 hours on the
-    /// project's shared 2-core VM).
-    #[arg(long, default_value_t = 10_000)]
-    steps: u64,
+    /// Optimizer steps (train-lifter: 10,000; finetune: 2,000). 10,000 x 256
+    /// samples of the MLP is about 50 minutes on the project's 2-core VM.
+    #[arg(long)]
+    steps: Option<u64>,
     /// Samples per batch.
     #[arg(long, default_value_t = 256)]
     batch: usize,
     /// Train on every k-th 50 Hz frame (consecutive frames are redundant).
     #[arg(long, default_value_t = 4)]
     every: usize,
-    /// Initial learning rate.
-    #[arg(long, default_value_t = 1e-3)]
-    lr: f64,
+    /// Initial learning rate (train-lifter: 1e-3; finetune: 1e-4).
+    #[arg(long)]
+    lr: Option<f64>,
     /// Learning-rate factor per epoch.
     #[arg(long, default_value_t = 0.95)]
     lr_decay: f64,
@@ -202,15 +199,6 @@ struct TrainLifterArgs {
     /// Probability of mirroring each training sample.
     #[arg(long, default_value_t = 0.5)]
     flip_prob: f32,
-    /// mlp: hidden width.
-    #[arg(long, default_value_t = 1024)]
-    hidden: usize,
-    /// mlp: residual blocks.
-    #[arg(long, default_value_t = 2)]
-    blocks: usize,
-    /// mlp: dropout probability.
-    #[arg(long, default_value_t = 0.5)]
-    dropout: f32,
     /// Master seed (initial weights, batches, dropout).
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -226,6 +214,51 @@ struct TrainLifterArgs {
     /// Data root (default: $BLAPOSE_DATA or ../shared/data).
     #[arg(long)]
     data: Option<PathBuf>,
+}
+
+/// Arguments of `blapose train-lifter`.
+#[derive(clap::Args, Debug)]
+struct TrainLifterArgs {
+    /// Lifter architecture: mlp (Martinez et al. 2017 residual MLP, one
+    /// frame) or videopose (VideoPose3D-style temporal convolutions).
+    #[arg(long, default_value = "mlp")]
+    model: String,
+    #[command(flatten)]
+    run: LifterRunArgs,
+    /// mlp: hidden width.
+    #[arg(long, default_value_t = 1024)]
+    hidden: usize,
+    /// Residual blocks (videopose: receptive field = filter width^(blocks+1),
+    /// so 2 blocks of width 3 read 27 frames).
+    #[arg(long, default_value_t = 2)]
+    blocks: usize,
+    /// Dropout probability (default: 0.5 for mlp, 0.25 for videopose).
+    #[arg(long)]
+    dropout: Option<f32>,
+    /// videopose: filter width of every layer (odd).
+    #[arg(long, default_value_t = 3)]
+    filter_width: usize,
+    /// videopose: convolution channels.
+    #[arg(long, default_value_t = 512)]
+    channels: usize,
+    /// videopose: causal convolutions (the output is the window's last
+    /// frame; the variant for online use).
+    #[arg(long)]
+    causal: bool,
+}
+
+/// Arguments of `blapose finetune`.
+#[derive(clap::Args, Debug)]
+struct FinetuneArgs {
+    /// Lifter weights to start from (written by `blapose train-lifter`).
+    #[arg(long)]
+    lifter_weights: PathBuf,
+    /// The frozen bone-length model whose lengths the poses are adjusted to
+    /// (offline Bi-GRU, one estimate per training stream).
+    #[arg(long, default_value = "models/bone_length_bigru.safetensors")]
+    bigru_weights: PathBuf,
+    #[command(flatten)]
+    run: LifterRunArgs,
 }
 
 /// Arguments of `blapose eval-adjust`.
@@ -289,6 +322,9 @@ enum Command {
     /// Hourglass detections (root-relative camera-space MPJPE, flip
     /// augmentation).
     TrainLifter(Box<TrainLifterArgs>),
+    /// Fine-tune a lifter through the bone-length adjustment (L_direction +
+    /// L_MPJPE of the pose rebuilt with the frozen Bi-GRU's lengths).
+    Finetune(Box<FinetuneArgs>),
     /// Score lifters on S9/S11 before and after the bone-length adjustment
     /// (online GRU running estimate, offline Bi-GRU): the paper's Tables 2
     /// and 3.
@@ -319,6 +355,7 @@ fn main() -> Result<()> {
         Command::Train(args) => train(*args),
         Command::Eval(args) => eval(*args),
         Command::TrainLifter(args) => train_lifter(*args),
+        Command::Finetune(args) => finetune(*args),
         Command::EvalAdjust(args) => eval_adjust(*args),
         Command::BenchTrain {
             model,
@@ -622,25 +659,78 @@ fn eval(a: EvalArgs) -> Result<()> {
 }
 
 fn train_lifter(a: TrainLifterArgs) -> Result<()> {
-    use blapose_data::h36m::{H36m, Parts, TRAIN_SUBJECTS};
     use blapose_train::lifter::mlp::MlpConfig;
-    use blapose_train::lifter::train::LifterTrainConfig;
-    use blapose_train::lifter::{data::lifter_sequences, LifterArch, LifterKind};
-    let root = blapose_data::data_root(a.data.clone());
+    use blapose_train::lifter::temporal::TemporalConfig;
+    use blapose_train::lifter::{LifterArch, LifterKind};
     let arch = match a.model.parse::<LifterKind>()? {
-        LifterKind::Mlp => LifterArch::Mlp(MlpConfig {
-            hidden: a.hidden,
-            blocks: a.blocks,
-            dropout: a.dropout,
-        }),
+        LifterKind::Mlp => {
+            let d = MlpConfig::default();
+            LifterArch::Mlp(MlpConfig {
+                hidden: a.hidden,
+                blocks: a.blocks,
+                dropout: a.dropout.unwrap_or(d.dropout),
+            })
+        }
+        LifterKind::Temporal => {
+            let d = TemporalConfig::default();
+            LifterArch::Temporal(TemporalConfig {
+                filter_width: a.filter_width,
+                blocks: a.blocks,
+                channels: a.channels,
+                dropout: a.dropout.unwrap_or(d.dropout),
+                causal: a.causal,
+            })
+        }
     };
+    run_lifter_training(&a.run, arch, None, (10_000, 1e-3), |_| Ok(None))
+}
+
+fn finetune(a: FinetuneArgs) -> Result<()> {
+    use blapose_train::eval::{BiGruEstimator, LengthEstimator};
+    let (meta, _) = blapose_train::lifter::weights::read_lifter(&a.lifter_weights)?;
+    let bigru = blapose_model::weights::load(&a.bigru_weights, blapose_model::ModelKind::BiGru)?;
+    let init = Some(a.lifter_weights.clone());
+    run_lifter_training(&a.run, meta.arch, init, (2_000, 1e-4), |seqs| {
+        let t = Instant::now();
+        let inputs: Vec<_> = seqs.iter().map(|s| s.trial.clone()).collect();
+        let lengths: Vec<BoneLengths> = BiGruEstimator::new(&bigru, 0)?
+            .estimate(&inputs)?
+            .into_iter()
+            .map(|e| e.lengths)
+            .collect();
+        eprintln!(
+            "frozen Bi-GRU lengths for {} training streams: {:.1}s",
+            lengths.len(),
+            t.elapsed().as_secs_f64()
+        );
+        Ok(Some(lengths))
+    })
+}
+
+/// Load the training subjects, train (or fine-tune, when `init` is given:
+/// the adjusted objective with the lengths `lengths_for` returns), plot the
+/// curve and print the outcome. `defaults` are `(steps, lr)` when not given.
+fn run_lifter_training(
+    a: &LifterRunArgs,
+    arch: blapose_train::lifter::LifterArch,
+    init: Option<PathBuf>,
+    defaults: (u64, f64),
+    lengths_for: impl FnOnce(
+        &[blapose_train::lifter::data::LifterSequence],
+    ) -> Result<Option<Vec<BoneLengths>>>,
+) -> Result<()> {
+    use blapose_data::h36m::{H36m, Parts, TRAIN_SUBJECTS};
+    use blapose_train::lifter::data::lifter_sequences;
+    use blapose_train::lifter::objective::Objective;
+    use blapose_train::lifter::train::LifterTrainConfig;
+    let root = blapose_data::data_root(a.data.clone());
     let cfg = LifterTrainConfig {
         arch,
         every: a.every,
         batch: a.batch,
-        steps: a.steps,
+        steps: a.steps.unwrap_or(defaults.0),
         epoch_steps: a.epoch_steps,
-        lr: a.lr,
+        lr: a.lr.unwrap_or(defaults.1),
         lr_decay: a.lr_decay,
         clip_norm: a.clip_norm,
         flip_prob: a.flip_prob,
@@ -648,6 +738,12 @@ fn train_lifter(a: TrainLifterArgs) -> Result<()> {
         val_every: a.val_every,
         val_samples: a.val_samples,
         checkpoint_secs: a.checkpoint_secs,
+        objective: if init.is_some() {
+            Objective::Adjusted
+        } else {
+            Objective::Mpjpe
+        },
+        init_weights: init,
     };
     let t0 = Instant::now();
     let seqs = {
@@ -662,12 +758,19 @@ fn train_lifter(a: TrainLifterArgs) -> Result<()> {
         cfg.every,
         t0.elapsed().as_secs_f64()
     );
-    let training_data = format!(
+    let lengths = lengths_for(&seqs)?;
+    let mut training_data = format!(
         "Human3.6M {} (all cameras), Stacked Hourglass detections mapped to H36M-17, every {} frame(s), flip p={}",
         TRAIN_SUBJECTS.join(" "),
         cfg.every,
         cfg.flip_prob
     );
+    if let Some(init) = &cfg.init_weights {
+        training_data.push_str(&format!(
+            "; fine-tuned from {} through the bone-length adjustment (L_direction + L_MPJPE, frozen Bi-GRU lengths)",
+            init.display()
+        ));
+    }
     let pb = step_bar(cfg.steps);
     let mut progress = |step: u64, _total: u64, loss: f64, rate: f64| {
         pb.set_position(step);
@@ -676,6 +779,7 @@ fn train_lifter(a: TrainLifterArgs) -> Result<()> {
     let outcome = blapose_train::lifter::train::train(
         &cfg,
         &seqs,
+        lengths.as_deref(),
         &a.out,
         a.resume,
         &training_data,
@@ -688,13 +792,14 @@ fn train_lifter(a: TrainLifterArgs) -> Result<()> {
         &curve,
     )?;
     println!(
-        "trained {} steps in {:.0}s ({:.0} samples/s); training loss {:.1} mm; held-out MPJPE {:.1} mm ({:.1} mm with test-time flip)",
+        "trained {} steps in {:.0}s ({:.0} samples/s); training loss {:.1} mm; held-out MPJPE {:.1} mm ({:.1} mm with test-time flip){}",
         outcome.steps_run,
         outcome.elapsed_s,
         outcome.samples_per_s,
         outcome.train_loss_mm,
         outcome.validation.mpjpe_mm,
-        outcome.validation.mpjpe_flip_mm
+        outcome.validation.mpjpe_flip_mm,
+        if lengths.is_some() { ", after adjustment" } else { "" }
     );
     println!("weights: {}", outcome.weights.display());
     println!("curve: {}", curve.display());
@@ -719,7 +824,7 @@ fn eval_adjust(a: EvalAdjustArgs) -> Result<()> {
     let mut lifters = BTreeMap::new();
     for p in &a.lifter_weights {
         let l = lifter_weights::load(p)?;
-        let mut name = l.metadata.arch.kind().to_string();
+        let mut name = l.metadata.arch.name();
         if lifters.contains_key(&name) {
             name = p
                 .file_stem()

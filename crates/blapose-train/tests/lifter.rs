@@ -9,8 +9,10 @@ use blapose_core::pose::flip_pose;
 use blapose_core::{BoneDirections, BoneLengths, Pose};
 use blapose_train::dataset::EvalSequence;
 use blapose_train::eval_adjust::{evaluate_lifter, markdown, Adjusters};
-use blapose_train::lifter::data::{average_flipped, flip_input, gather, LifterSequence};
+use blapose_train::lifter::data::{average_flipped, flip_input, gather, LifterSequence, Window};
 use blapose_train::lifter::mlp::MlpConfig;
+use blapose_train::lifter::objective::Objective;
+use blapose_train::lifter::temporal::TemporalConfig;
 use blapose_train::lifter::train::{train, LifterTrainConfig};
 use blapose_train::lifter::{pose_to_target, weights, LifterArch};
 use blapose_train::train::{read_log_column, LOG_FILE};
@@ -91,6 +93,8 @@ fn tiny_config(steps: u64) -> LifterTrainConfig {
         val_every: 5,
         val_samples: 64,
         checkpoint_secs: 3600,
+        objective: Objective::Mpjpe,
+        init_weights: None,
     }
 }
 
@@ -112,7 +116,16 @@ fn training_loss_falls_on_a_tiny_set_and_resume_is_exact() {
     let seqs = tiny_set();
     let dir = run_dir("train");
     let cfg = tiny_config(40);
-    let out = train(&cfg, &seqs, &dir, false, "synthetic", &mut |_, _, _, _| {}).unwrap();
+    let out = train(
+        &cfg,
+        &seqs,
+        None,
+        &dir,
+        false,
+        "synthetic",
+        &mut |_, _, _, _| {},
+    )
+    .unwrap();
     let loss = read_log_column(&dir.join(LOG_FILE), "train_loss_mm").unwrap();
     assert_eq!(loss.len(), 8);
     let (first, last) = (loss[0].1, loss[loss.len() - 1].1);
@@ -126,13 +139,23 @@ fn training_loss_falls_on_a_tiny_set_and_resume_is_exact() {
     train(
         &tiny_config(20),
         &seqs,
+        None,
         &dir2,
         false,
         "synthetic",
         &mut |_, _, _, _| {},
     )
     .unwrap();
-    let resumed = train(&cfg, &seqs, &dir2, true, "synthetic", &mut |_, _, _, _| {}).unwrap();
+    let resumed = train(
+        &cfg,
+        &seqs,
+        None,
+        &dir2,
+        true,
+        "synthetic",
+        &mut |_, _, _, _| {},
+    )
+    .unwrap();
     assert_eq!(resumed.steps_run, 20);
     let a = weights::load(&out.weights).unwrap();
     let b = weights::load(&resumed.weights).unwrap();
@@ -152,6 +175,7 @@ fn training_loss_falls_on_a_tiny_set_and_resume_is_exact() {
     assert!(train(
         &other,
         &seqs,
+        None,
         &dir2,
         true,
         "synthetic",
@@ -160,6 +184,121 @@ fn training_loss_falls_on_a_tiny_set_and_resume_is_exact() {
     .is_err());
     let _ = std::fs::remove_dir_all(&dir);
     let _ = std::fs::remove_dir_all(&dir2);
+}
+
+#[test]
+fn temporal_training_loss_falls_centred_and_causal() {
+    let seqs = tiny_set();
+    for causal in [false, true] {
+        let dir = run_dir(&format!("temporal-{causal}"));
+        let mut cfg = tiny_config(40);
+        cfg.arch = LifterArch::Temporal(TemporalConfig {
+            filter_width: 3,
+            blocks: 1,
+            channels: 32,
+            dropout: 0.1,
+            causal,
+        });
+        let out = train(
+            &cfg,
+            &seqs,
+            None,
+            &dir,
+            false,
+            "synthetic",
+            &mut |_, _, _, _| {},
+        )
+        .unwrap();
+        let loss = read_log_column(&dir.join(LOG_FILE), "train_loss_mm").unwrap();
+        let (first, last) = (loss[0].1, loss[loss.len() - 1].1);
+        assert!(
+            last < 0.6 * first,
+            "causal={causal}: loss {first:.1} -> {last:.1} mm"
+        );
+        let w = weights::load(&out.weights).unwrap();
+        assert_eq!(w.metadata.arch, cfg.arch);
+        assert_eq!(w.net.window(), Window { frames: 9, causal });
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
+
+#[test]
+fn finetuning_starts_from_the_weights_and_lowers_the_adjusted_error() {
+    let seqs = tiny_set();
+    let base_dir = run_dir("ft-base");
+    let base = train(
+        &tiny_config(30),
+        &seqs,
+        None,
+        &base_dir,
+        false,
+        "synthetic",
+        &mut |_, _, _, _| {},
+    )
+    .unwrap();
+    // Lengths 5% short of the truth, as a frozen estimator might give.
+    let lengths: Vec<BoneLengths> = seqs
+        .iter()
+        .map(|s| bone_lengths(&s.target[0]).map(|l| 0.95 * l))
+        .collect();
+    let mut cfg = tiny_config(30);
+    cfg.objective = Objective::Adjusted;
+    cfg.init_weights = Some(base.weights.clone());
+    cfg.lr = 1e-3;
+    let dir = run_dir("ft");
+    assert!(
+        train(
+            &cfg,
+            &seqs,
+            None,
+            &dir,
+            false,
+            "synthetic",
+            &mut |_, _, _, _| {}
+        )
+        .is_err(),
+        "the adjusted objective without lengths is refused"
+    );
+    let out = train(
+        &cfg,
+        &seqs,
+        Some(&lengths),
+        &dir,
+        false,
+        "synthetic",
+        &mut |_, _, _, _| {},
+    )
+    .unwrap();
+    let val = read_log_column(&dir.join(LOG_FILE), "val_mpjpe_flip_mm").unwrap();
+    let fresh = read_log_column(&base_dir.join(LOG_FILE), "val_mpjpe_flip_mm").unwrap();
+    assert!(
+        val[0].1 < fresh[0].1,
+        "starts from the trained weights: {val:?} vs {fresh:?}"
+    );
+    assert!(
+        val[val.len() - 1].1 < val[0].1,
+        "adjusted error falls: {val:?}"
+    );
+    assert!(out.validation.mpjpe_flip_mm.is_finite());
+    // Another architecture is refused.
+    let mut wrong = cfg.clone();
+    wrong.arch = LifterArch::Mlp(MlpConfig {
+        hidden: 32,
+        blocks: 1,
+        dropout: 0.1,
+    });
+    assert!(train(
+        &wrong,
+        &seqs,
+        Some(&lengths),
+        &run_dir("ft-wrong"),
+        false,
+        "x",
+        &mut |_, _, _, _| {}
+    )
+    .is_err());
+    let _ = std::fs::remove_dir_all(&dir);
+    let _ = std::fs::remove_dir_all(&base_dir);
 }
 
 #[test]
@@ -176,8 +315,12 @@ fn flip_is_its_own_inverse() {
 
     // A mirrored sample mirrored again is the sample.
     let seqs = tiny_set();
-    let plain = gather(&seqs, &[(0, 7)], 1, &[false]);
-    let flipped = gather(&seqs, &[(0, 7)], 1, &[true]);
+    let plain = gather(&seqs, &[(0, 7)], Window::SINGLE_FRAME, &[false]);
+    let flipped = gather(&seqs, &[(0, 7)], Window::SINGLE_FRAME, &[true]);
+    assert_eq!(
+        (plain.flipped.clone(), flipped.flipped.clone()),
+        (vec![false], vec![true])
+    );
     assert_eq!(flip_input(&flipped.inputs), plain.inputs);
     let t = seqs[0].target[7];
     assert_eq!(flipped.targets, pose_to_target(&flip_pose(&t)).to_vec());

@@ -114,13 +114,47 @@ pub fn held_out_samples(seqs: &[LifterSequence], every: usize, max: usize) -> Ve
     (0..max).map(|i| all[i * all.len() / max]).collect()
 }
 
-/// Append the `rf` frames centred on `t` (edges repeat the first/last
-/// frame) to `out`.
-pub fn push_window(trial: &EvalSequence, t: usize, rf: usize, out: &mut Vec<f32>) {
+/// The input frames a lifter reads for one output frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Window {
+    /// Frames per window (the receptive field; odd).
+    pub frames: usize,
+    /// The output belongs to the window's last frame (online use) rather
+    /// than its centre.
+    pub causal: bool,
+}
+
+impl Window {
+    /// One frame: the output is that frame.
+    pub const SINGLE_FRAME: Window = Window {
+        frames: 1,
+        causal: false,
+    };
+
+    /// Frames before the output frame.
+    pub fn past(&self) -> usize {
+        if self.causal {
+            self.frames - 1
+        } else {
+            self.frames / 2
+        }
+    }
+
+    /// Input values per window.
+    pub fn values(&self) -> usize {
+        self.frames * FRAME_DIM
+    }
+}
+
+/// Append the window of output frame `t` to `out`: frames `t - past ..`,
+/// with the first and last frames repeated beyond the stream's ends (the
+/// reference's edge padding, and what an online window holds before it
+/// fills).
+pub fn push_window(trial: &EvalSequence, t: usize, window: Window, out: &mut Vec<f32>) {
     let n = trial.frames();
-    let half = rf / 2;
-    for k in 0..rf {
-        let f = (t + k).saturating_sub(half).min(n - 1);
+    let past = window.past();
+    for k in 0..window.frames {
+        let f = (t + k).saturating_sub(past).min(n - 1);
         out.extend_from_slice(&trial.input[f * FRAME_DIM..(f + 1) * FRAME_DIM]);
     }
 }
@@ -130,27 +164,34 @@ pub fn push_window(trial: &EvalSequence, t: usize, rf: usize, out: &mut Vec<f32>
 pub struct LifterBatch {
     /// Samples.
     pub batch: usize,
-    /// `batch * rf * 34` inputs.
+    /// `batch * window.values()` inputs.
     pub inputs: Vec<f32>,
     /// `batch * OUTPUT_DIM` targets (joints 1..17, metres).
     pub targets: Vec<f32>,
+    /// Where each sample comes from.
+    pub samples: Vec<SampleIndex>,
+    /// Whether each sample was mirrored.
+    pub flipped: Vec<bool>,
 }
 
 /// Gather `idx` into a batch; sample `i` is mirrored when `flip[i]`.
 pub fn gather(
     seqs: &[LifterSequence],
     idx: &[SampleIndex],
-    rf: usize,
+    spec: Window,
     flip: &[bool],
 ) -> LifterBatch {
-    let mut inputs = Vec::with_capacity(idx.len() * rf * FRAME_DIM);
+    let mut inputs = Vec::with_capacity(idx.len() * spec.values());
     let mut targets = Vec::with_capacity(idx.len() * OUTPUT_DIM);
-    let mut window = Vec::with_capacity(rf * FRAME_DIM);
-    for (i, &(s, t)) in idx.iter().enumerate() {
+    let mut window = Vec::with_capacity(spec.values());
+    let flipped: Vec<bool> = (0..idx.len())
+        .map(|i| flip.get(i).copied().unwrap_or(false))
+        .collect();
+    for (&(s, t), &mirrored) in idx.iter().zip(&flipped) {
         let q = &seqs[s];
         window.clear();
-        push_window(&q.trial, t, rf, &mut window);
-        if flip.get(i).copied().unwrap_or(false) {
+        push_window(&q.trial, t, spec, &mut window);
+        if mirrored {
             inputs.extend(flip_input(&window));
             targets.extend(pose_to_target(&flip_pose(&q.target[t])));
         } else {
@@ -162,6 +203,8 @@ pub fn gather(
         batch: idx.len(),
         inputs,
         targets,
+        samples: idx.to_vec(),
+        flipped,
     }
 }
 
@@ -170,7 +213,7 @@ pub fn gather(
 pub fn random_batch(
     seqs: &[LifterSequence],
     pool: &[SampleIndex],
-    rf: usize,
+    window: Window,
     batch: usize,
     flip_prob: f32,
     rng: &mut impl Rng,
@@ -181,7 +224,7 @@ pub fn random_batch(
     let flip: Vec<bool> = (0..batch)
         .map(|_| rng.random::<f32>() < flip_prob)
         .collect();
-    gather(seqs, &idx, rf, &flip)
+    gather(seqs, &idx, window, &flip)
 }
 
 /// Test-time flip: the mean of `pred[t]` and the mirrored-back
@@ -236,13 +279,16 @@ mod tests {
     #[test]
     fn windows_repeat_the_edges() {
         let q = seq(3);
-        let mut w = Vec::new();
-        push_window(&q.trial, 0, 3, &mut w);
-        let firsts: Vec<f32> = w.chunks(FRAME_DIM).map(|f| f[0]).collect();
-        assert_eq!(firsts, vec![0.0, 0.0, 1.0]);
-        w.clear();
-        push_window(&q.trial, 2, 5, &mut w);
-        let firsts: Vec<f32> = w.chunks(FRAME_DIM).map(|f| f[0]).collect();
-        assert_eq!(firsts, vec![0.0, 1.0, 2.0, 2.0, 2.0]);
+        let firsts = |t: usize, frames: usize, causal: bool| {
+            let mut w = Vec::new();
+            push_window(&q.trial, t, Window { frames, causal }, &mut w);
+            w.chunks(FRAME_DIM).map(|f| f[0]).collect::<Vec<f32>>()
+        };
+        assert_eq!(firsts(0, 3, false), vec![0.0, 0.0, 1.0]);
+        assert_eq!(firsts(2, 5, false), vec![0.0, 1.0, 2.0, 2.0, 2.0]);
+        // Causal: the output frame is the last of its window.
+        assert_eq!(firsts(1, 3, true), vec![0.0, 0.0, 1.0]);
+        assert_eq!(firsts(2, 3, true), vec![0.0, 1.0, 2.0]);
+        assert_eq!(firsts(2, 1, false), vec![2.0]);
     }
 }

@@ -16,28 +16,21 @@
 //! Built in candle-nn on a [`VarMap`] so candle autograd trains it. The
 //! initial weights are drawn from a seeded generator ([`MlpLifter::init`]:
 //! Kaiming-normal weights, PyTorch-default uniform biases, the output layer
-//! scaled by [`OUTPUT_INIT_SCALE`]), not from
+//! scaled by [`super::init::OUTPUT_INIT_SCALE`]), not from
 //! candle's unseeded CPU generator, and dropout masks come from the caller's
 //! generator, so a run is a function of its seed.
 
 use blapose_core::Keypoints2d;
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{BatchNorm, Linear, Module, ModuleT, VarBuilder, VarMap};
-use rand::{Rng, RngCore};
-use rand_distr::{Distribution, Normal};
+use rand::RngCore;
 use serde::{Deserialize, Serialize};
 
+use super::data::Window;
+use super::init::{apply_dropout, seed_weights};
 use super::{LifterKind, LifterNet, OUTPUT_DIM};
 use crate::error::TrainError;
-use crate::synth::{sample_rng, FRAME_DIM};
-
-/// Seed offset of the initial weights.
-const INIT_SEED_SALT: u64 = 0x11F7_E541;
-/// The output layer starts at this fraction of its Kaiming scale, so the
-/// first predictions are tens of centimetres, not metres: with batch-normed
-/// hidden units of unit scale a full-scale output layer starts the MPJPE
-/// near 3 m and the first few hundred steps only shrink it.
-pub const OUTPUT_INIT_SCALE: f64 = 0.1;
+use crate::synth::FRAME_DIM;
 
 /// Size of the MLP.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -90,16 +83,6 @@ impl Layer {
     }
 }
 
-/// Inverted dropout with a mask drawn from `rng` (kept units scaled by
-/// `1 / (1 - p)`).
-fn apply_dropout(x: &Tensor, p: f32, rng: &mut dyn RngCore) -> Result<Tensor, TrainError> {
-    let keep = 1.0 / (1.0 - p);
-    let mask: Vec<f32> = (0..x.elem_count())
-        .map(|_| if rng.random::<f32>() < p { 0.0 } else { keep })
-        .collect();
-    Ok(x.mul(&Tensor::from_vec(mask, x.shape(), x.device())?)?)
-}
-
 /// The residual MLP lifter.
 pub struct MlpLifter {
     config: MlpConfig,
@@ -139,15 +122,7 @@ impl MlpLifter {
         let varmap = VarMap::new();
         let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
         let model = Self::new(config, vb)?;
-        seed_linear_layers(&varmap, seed)?;
-        if let Some(w) = varmap
-            .data()
-            .lock()
-            .map_err(|_| TrainError::InvalidArgument("variable map lock poisoned".into()))?
-            .get("output.weight")
-        {
-            w.set(&(w.as_tensor() * OUTPUT_INIT_SCALE)?)?;
-        }
+        seed_weights(&varmap, seed, "output.weight")?;
         Ok((model, varmap))
     }
 
@@ -165,45 +140,13 @@ impl MlpLifter {
     }
 }
 
-/// Re-draw every linear layer of `varmap` from `seed`: weights Kaiming
-/// normal (`std = sqrt(2 / fan_in)`), biases `U(-1/sqrt(fan_in),
-/// 1/sqrt(fan_in))`. Layers are visited in name order, each with its own
-/// generator, so the result does not depend on hash-map order.
-fn seed_linear_layers(varmap: &VarMap, seed: u64) -> Result<(), TrainError> {
-    let data = varmap
-        .data()
-        .lock()
-        .map_err(|_| TrainError::InvalidArgument("variable map lock poisoned".into()))?;
-    let mut weights: Vec<&String> = data
-        .keys()
-        .filter(|k| k.ends_with(".weight") && data[*k].as_tensor().rank() == 2)
-        .collect();
-    weights.sort();
-    for (i, name) in weights.into_iter().enumerate() {
-        let w = &data[name];
-        let (out, fan_in) = w.as_tensor().dims2()?;
-        let mut rng = sample_rng(seed ^ INIT_SEED_SALT, i as u64, 0);
-        let normal = Normal::new(0.0f32, (2.0 / fan_in as f32).sqrt())
-            .map_err(|e| TrainError::InvalidArgument(e.to_string()))?;
-        let wv: Vec<f32> = (0..out * fan_in).map(|_| normal.sample(&mut rng)).collect();
-        w.set(&Tensor::from_vec(wv, (out, fan_in), &Device::Cpu)?)?;
-        let bias_name = format!("{}.bias", name.trim_end_matches(".weight"));
-        if let Some(b) = data.get(&bias_name) {
-            let bound = 1.0 / (fan_in as f32).sqrt();
-            let bv: Vec<f32> = (0..out).map(|_| rng.random_range(-bound..bound)).collect();
-            b.set(&Tensor::from_vec(bv, out, &Device::Cpu)?)?;
-        }
-    }
-    Ok(())
-}
-
 impl LifterNet for MlpLifter {
     fn kind(&self) -> LifterKind {
         LifterKind::Mlp
     }
 
-    fn receptive_field(&self) -> usize {
-        1
+    fn window(&self) -> Window {
+        Window::SINGLE_FRAME
     }
 
     fn forward(

@@ -7,21 +7,28 @@
 //!   and root-relative camera-space targets; frame subsampling; horizontal
 //!   flip augmentation and test-time flip;
 //! - [`mlp`]: the residual MLP of Martinez et al. 2017 in candle-nn;
+//! - [`temporal`]: a VideoPose3D-style dilated temporal convolution model
+//!   (centred or causal), under the reference tensor names so its weights
+//!   also load into `blapose_lifters::VideoPose3d`;
+//! - [`init`]: seeded initial weights and dropout masks;
+//! - [`objective`]: the training objectives — MPJPE from scratch, and the
+//!   paper's fine-tuning through the bone-length adjustment;
 //! - [`train`]: the training loop (candle autograd, the crate's
 //!   checkpointable [`crate::adam::Adam`]), checkpoints, resume, log;
 //! - [`weights`]: the weights file (safetensors + metadata) and loading.
 //!
-//! Every lifter is a [`LifterNet`]: a window of `receptive_field` frames in,
-//! the 16 non-root joints of the centre frame out (the root is fixed at the
-//! origin: targets are root-relative, so predicting it would only add a
-//! constant-zero output). The single-frame MLP has a receptive field of 1; a
-//! temporal (VideoPose3D-style) model is meant to be a second [`LifterKind`]
-//! with a wider field, and everything outside [`mlp`] already gathers
-//! windows of any odd width.
+//! Every lifter is a [`LifterNet`]: a [`data::Window`] of frames in, the 16
+//! non-root joints of one frame out — the window's centre frame, or its
+//! last for a causal model (the root is fixed at the origin: targets are
+//! root-relative, so predicting it would only add a constant-zero output).
+//! The single-frame MLP reads a window of 1.
 
 pub mod data;
+pub mod init;
 pub mod mlp;
+pub mod objective;
 pub mod predict;
+pub mod temporal;
 pub mod train;
 pub mod weights;
 
@@ -32,7 +39,9 @@ use rand::RngCore;
 use serde::{Deserialize, Serialize};
 
 use crate::error::TrainError;
+use data::Window;
 use mlp::{MlpConfig, MlpLifter};
+use temporal::{TemporalConfig, TemporalLifter};
 
 /// Outputs of a lifter: the 16 non-root joints x (x, y, z), metres.
 pub const OUTPUT_DIM: usize = (NUM_JOINTS - 1) * 3;
@@ -42,6 +51,8 @@ pub const OUTPUT_DIM: usize = (NUM_JOINTS - 1) * 3;
 pub enum LifterKind {
     /// Martinez et al. 2017 residual MLP, single frame.
     Mlp,
+    /// VideoPose3D-style temporal convolutions.
+    Temporal,
 }
 
 impl LifterKind {
@@ -49,6 +60,7 @@ impl LifterKind {
     pub fn as_str(self) -> &'static str {
         match self {
             Self::Mlp => "mlp",
+            Self::Temporal => "videopose",
         }
     }
 }
@@ -64,8 +76,9 @@ impl std::str::FromStr for LifterKind {
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         match s {
             "mlp" => Ok(Self::Mlp),
+            "videopose" => Ok(Self::Temporal),
             _ => Err(TrainError::InvalidArgument(format!(
-                "unknown lifter model {s:?} (mlp)"
+                "unknown lifter model {s:?} (mlp, videopose)"
             ))),
         }
     }
@@ -78,6 +91,9 @@ impl std::str::FromStr for LifterKind {
 pub enum LifterArch {
     /// [`MlpLifter`].
     Mlp(MlpConfig),
+    /// [`TemporalLifter`].
+    #[serde(rename = "videopose")]
+    Temporal(TemporalConfig),
 }
 
 impl LifterArch {
@@ -85,6 +101,7 @@ impl LifterArch {
     pub fn default_for(kind: LifterKind) -> Self {
         match kind {
             LifterKind::Mlp => Self::Mlp(MlpConfig::default()),
+            LifterKind::Temporal => Self::Temporal(TemporalConfig::default()),
         }
     }
 
@@ -92,6 +109,19 @@ impl LifterArch {
     pub fn kind(&self) -> LifterKind {
         match self {
             Self::Mlp(_) => LifterKind::Mlp,
+            Self::Temporal(_) => LifterKind::Temporal,
+        }
+    }
+
+    /// A short name for tables: `mlp`, `videopose27`, `videopose27-causal`.
+    pub fn name(&self) -> String {
+        match self {
+            Self::Mlp(_) => "mlp".into(),
+            Self::Temporal(c) => format!(
+                "videopose{}{}",
+                c.receptive_field(),
+                if c.causal { "-causal" } else { "" }
+            ),
         }
     }
 
@@ -102,6 +132,10 @@ impl LifterArch {
                 let (m, v) = MlpLifter::init(c, seed)?;
                 Ok((Box::new(m), v))
             }
+            Self::Temporal(c) => {
+                let (m, v) = TemporalLifter::init(c, seed)?;
+                Ok((Box::new(m), v))
+            }
         }
     }
 }
@@ -110,9 +144,9 @@ impl LifterArch {
 pub trait LifterNet: Send + Sync {
     /// The architecture.
     fn kind(&self) -> LifterKind;
-    /// Input frames per output frame (odd; the output is the centre one).
-    fn receptive_field(&self) -> usize;
-    /// `x`: `(B, receptive_field * 34)` normalized screen coordinates ->
+    /// The input frames of one output frame.
+    fn window(&self) -> Window;
+    /// `x`: `(B, window().values())` normalized screen coordinates ->
     /// `(B, OUTPUT_DIM)` root-relative joints 1..17 (metres). `train` is
     /// `Some(rng)` in training mode (dropout masks drawn from `rng`, batch
     /// statistics in batch norm, running statistics updated) and `None` in

@@ -13,7 +13,6 @@ use super::data::{
 use super::LifterNet;
 use crate::dataset::EvalSequence;
 use crate::error::TrainError;
-use crate::synth::FRAME_DIM;
 
 /// Rows per forward pass.
 const CHUNK: usize = 2048;
@@ -26,7 +25,7 @@ pub fn predict_rows(
     inputs: &[f32],
     flip: bool,
 ) -> Result<Vec<Pose>, TrainError> {
-    let width = net.receptive_field() * FRAME_DIM;
+    let width = net.window().values();
     if !inputs.len().is_multiple_of(width) {
         return Err(TrainError::InvalidArgument(format!(
             "{} input values is not a whole number of {width}-value windows",
@@ -56,13 +55,13 @@ pub fn predict_sequence(
     trial: &EvalSequence,
     flip: bool,
 ) -> Result<Vec<Pose>, TrainError> {
-    let rf = net.receptive_field();
-    if rf == 1 {
+    let window = net.window();
+    if window.frames == 1 {
         return predict_rows(net, &trial.input, flip);
     }
-    let mut rows = Vec::with_capacity(trial.frames() * rf * FRAME_DIM);
+    let mut rows = Vec::with_capacity(trial.frames() * window.values());
     for t in 0..trial.frames() {
-        push_window(trial, t, rf, &mut rows);
+        push_window(trial, t, window, &mut rows);
     }
     predict_rows(net, &rows, flip)
 }
@@ -74,10 +73,10 @@ pub fn predict_samples(
     idx: &[SampleIndex],
     flip: bool,
 ) -> Result<Vec<Pose>, TrainError> {
-    let rf = net.receptive_field();
-    let mut rows = Vec::with_capacity(idx.len() * rf * FRAME_DIM);
+    let window = net.window();
+    let mut rows = Vec::with_capacity(idx.len() * window.values());
     for &(s, t) in idx {
-        push_window(&seqs[s].trial, t, rf, &mut rows);
+        push_window(&seqs[s].trial, t, window, &mut rows);
     }
     predict_rows(net, &rows, flip)
 }

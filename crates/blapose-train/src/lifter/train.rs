@@ -26,19 +26,22 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use blapose_core::bones::adjust_pose_lenient;
 use blapose_core::metrics::{mpjpe, MM_PER_M};
-use blapose_core::Pose;
+use blapose_core::pose::flip_bone_lengths;
+use blapose_core::{BoneLengths, Pose};
 use candle_core::{Device, Tensor, Var};
 use candle_nn::VarMap;
 use serde::{Deserialize, Serialize};
 
 use super::data::{held_out_samples, random_batch, training_samples, LifterSequence, SampleIndex};
+use super::objective::{AdjustmentGraph, Objective};
 use super::predict::predict_samples;
 use super::weights::{self, named_tensors, LifterMetadata};
 use super::{LifterArch, LifterNet, OUTPUT_DIM};
 use crate::adam::{Adam, AdamConfig};
 use crate::error::TrainError;
-use crate::synth::{sample_rng, FRAME_DIM};
+use crate::synth::sample_rng;
 use crate::train::{truncate_log, write_atomic, Progress, CHECKPOINT_FILE, LOG_FILE, WEIGHTS_FILE};
 
 /// Columns of the lifter training log.
@@ -82,6 +85,13 @@ pub struct LifterTrainConfig {
     pub val_samples: usize,
     /// Seconds between checkpoints.
     pub checkpoint_secs: u64,
+    /// What the run minimises.
+    #[serde(default)]
+    pub objective: Objective,
+    /// Start from these weights instead of a seeded initialization
+    /// (fine-tuning); the file's architecture must be `arch`.
+    #[serde(default)]
+    pub init_weights: Option<PathBuf>,
 }
 
 impl LifterTrainConfig {
@@ -179,25 +189,63 @@ fn write_vars(vars: &[(String, Var)], flat: &[f32]) -> Result<(), TrainError> {
     Ok(())
 }
 
+/// The data a run trains on.
+struct TrainingSet<'a> {
+    seqs: &'a [LifterSequence],
+    pool: &'a [SampleIndex],
+    /// Per sequence, for [`Objective::Adjusted`].
+    lengths: Option<&'a [BoneLengths]>,
+    graph: &'a AdjustmentGraph,
+}
+
+/// The lengths of each batch sample (mirrored with the sample), `(B, 16)`.
+fn batch_lengths(
+    lengths: &[BoneLengths],
+    samples: &[SampleIndex],
+    flipped: &[bool],
+) -> Result<Tensor, TrainError> {
+    let mut flat = Vec::with_capacity(samples.len() * 16);
+    for (&(s, _), &f) in samples.iter().zip(flipped) {
+        let l = if f {
+            flip_bone_lengths(&lengths[s])
+        } else {
+            lengths[s]
+        };
+        flat.extend_from_slice(&l);
+    }
+    Ok(Tensor::from_vec(flat, (samples.len(), 16), &Device::Cpu)?)
+}
+
 /// One optimizer step on a random batch; returns `(loss_mm, grad_norm)`.
-#[allow(clippy::too_many_arguments)]
 fn train_step(
     cfg: &LifterTrainConfig,
     net: &dyn LifterNet,
     vars: &[(String, Var)],
     params: &mut [f32],
     opt: &mut Adam,
-    seqs: &[LifterSequence],
-    pool: &[SampleIndex],
+    data: &TrainingSet,
     step: u64,
 ) -> Result<(f64, f64), TrainError> {
-    let rf = net.receptive_field();
+    let (seqs, pool) = (data.seqs, data.pool);
+    let window = net.window();
     let mut rng = sample_rng(cfg.seed ^ BATCH_SEED_SALT, step, 0);
-    let b = random_batch(seqs, pool, rf, cfg.batch, cfg.flip_prob, &mut rng);
-    let x = Tensor::from_vec(b.inputs, (b.batch, rf * FRAME_DIM), &Device::Cpu)?;
-    let y = Tensor::from_vec(b.targets, (b.batch, OUTPUT_DIM), &Device::Cpu)?;
+    let b = random_batch(seqs, pool, window, cfg.batch, cfg.flip_prob, &mut rng);
+    let x = Tensor::from_slice(&b.inputs, (b.batch, window.values()), &Device::Cpu)?;
+    let y = Tensor::from_slice(&b.targets, (b.batch, OUTPUT_DIM), &Device::Cpu)?;
     let mut drop_rng = sample_rng(cfg.seed ^ DROPOUT_SEED_SALT, step, 0);
-    let loss = mpjpe_loss(&net.forward(&x, Some(&mut drop_rng))?, &y)?;
+    let pred = net.forward(&x, Some(&mut drop_rng))?;
+    let loss = match (cfg.objective, data.lengths) {
+        (Objective::Mpjpe, _) => mpjpe_loss(&pred, &y)?,
+        (Objective::Adjusted, Some(lengths)) => {
+            let l = batch_lengths(lengths, &b.samples, &b.flipped)?;
+            data.graph.loss(&pred, &y, &l)?.0
+        }
+        (Objective::Adjusted, None) => {
+            return Err(TrainError::InvalidArgument(
+                "the adjusted objective needs bone lengths per sequence".into(),
+            ))
+        }
+    };
     let loss_m = f64::from(loss.to_scalar::<f32>()?);
     if !loss_m.is_finite() {
         return Err(TrainError::Data(format!("non-finite loss at step {step}")));
@@ -218,11 +266,13 @@ fn train_step(
     Ok((loss_m * MM_PER_M, norm))
 }
 
-/// Held-out MPJPE (mm) without and with test-time flip.
+/// Held-out MPJPE (mm) without and with test-time flip; with `lengths`
+/// (per sequence) the MPJPE of the poses adjusted to them.
 pub fn validate(
     net: &dyn LifterNet,
     seqs: &[LifterSequence],
     idx: &[SampleIndex],
+    lengths: Option<&[BoneLengths]>,
 ) -> Result<LifterValidation, TrainError> {
     if idx.is_empty() {
         return Ok(LifterValidation {
@@ -232,7 +282,13 @@ pub fn validate(
     }
     let gt: Vec<Pose> = idx.iter().map(|&(s, t)| seqs[s].target[t]).collect();
     let err = |flip: bool| -> Result<f64, TrainError> {
-        let p = predict_samples(net, seqs, idx, flip)?;
+        let mut p = predict_samples(net, seqs, idx, flip)?;
+        if let Some(lengths) = lengths {
+            for (pose, &(s, _)) in p.iter_mut().zip(idx) {
+                *pose = adjust_pose_lenient(pose, &lengths[s])
+                    .map_err(|e| TrainError::Data(e.to_string()))?;
+            }
+        }
         mpjpe(&p, &gt)
             .map(|e| e * MM_PER_M)
             .map_err(|e| TrainError::Data(e.to_string()))
@@ -274,10 +330,13 @@ fn append_log(path: &Path, row: &str) -> Result<(), TrainError> {
 
 /// Train in `out` (created if needed) on `seqs`, which must come from the
 /// training subjects only; validation uses their held-out frames.
-/// `training_data` goes into the weights' metadata.
+/// `lengths` (one per sequence) are the frozen bone-length model's
+/// estimates, which [`Objective::Adjusted`] needs; validation then scores
+/// the adjusted poses. `training_data` goes into the weights' metadata.
 pub fn train(
     cfg: &LifterTrainConfig,
     seqs: &[LifterSequence],
+    lengths: Option<&[BoneLengths]>,
     out: &Path,
     resume: bool,
     training_data: &str,
@@ -288,6 +347,17 @@ pub fn train(
             "batch must be at least 2 (batch norm), steps and every positive".into(),
         ));
     }
+    let lengths = match (cfg.objective, lengths) {
+        (Objective::Mpjpe, _) => None,
+        (Objective::Adjusted, Some(l)) if l.len() == seqs.len() => Some(l),
+        (Objective::Adjusted, l) => {
+            return Err(TrainError::InvalidArgument(format!(
+                "the adjusted objective needs one set of bone lengths per sequence ({} sequences, {} sets)",
+                seqs.len(),
+                l.map_or(0, <[BoneLengths]>::len)
+            )))
+        }
+    };
     let pool = training_samples(seqs, cfg.every);
     if pool.is_empty() {
         return Err(TrainError::Data("no training frames".into()));
@@ -298,6 +368,19 @@ pub fn train(
     let log_path = out.join(LOG_FILE);
 
     let (net, varmap) = cfg.arch.build(cfg.seed)?;
+    if let Some(init) = &cfg.init_weights {
+        // A resumed run overwrites these with the checkpoint below.
+        let (meta, tensors) = weights::read_lifter(init)?;
+        if meta.arch != cfg.arch {
+            return Err(TrainError::InvalidArgument(format!(
+                "{} is a {:?}, the run trains a {:?}",
+                init.display(),
+                meta.arch,
+                cfg.arch
+            )));
+        }
+        weights::assign(&varmap, &tensors, init)?;
+    }
     let vars = trainable_vars(&varmap)?;
     let n_params = vars.iter().map(|(_, v)| v.as_tensor().elem_count()).sum();
     let clip = (cfg.clip_norm > 0.0).then_some(cfg.clip_norm);
@@ -346,6 +429,13 @@ pub fn train(
     std::fs::write(out.join("config.json"), serde_json::to_string_pretty(cfg)?)
         .map_err(|e| TrainError::io(out, e))?;
     let mut params = flatten_vars(&vars)?;
+    let graph = AdjustmentGraph::new()?;
+    let data = TrainingSet {
+        seqs,
+        pool: &pool,
+        lengths,
+        graph: &graph,
+    };
 
     let t_start = Instant::now();
     let mut last_ckpt = Instant::now();
@@ -355,16 +445,8 @@ pub fn train(
     let mut last_loss = f64::NAN;
     let mut step = start_step;
     while step < cfg.steps {
-        let (loss_mm, norm) = train_step(
-            cfg,
-            net.as_ref(),
-            &vars,
-            &mut params,
-            &mut opt,
-            seqs,
-            &pool,
-            step,
-        )?;
+        let (loss_mm, norm) =
+            train_step(cfg, net.as_ref(), &vars, &mut params, &mut opt, &data, step)?;
         let lr = cfg.lr_at(step);
         step += 1;
         window.0 += loss_mm;
@@ -377,7 +459,7 @@ pub fn train(
 
         let at_end = step == cfg.steps;
         if at_end || (cfg.val_every > 0 && step.is_multiple_of(cfg.val_every)) {
-            validation = validate(net.as_ref(), seqs, &val_idx)?;
+            validation = validate(net.as_ref(), seqs, &val_idx, lengths)?;
             last_loss = mean_loss;
             append_log(
                 &log_path,

@@ -135,6 +135,19 @@ pub struct LoadedLifter {
 
 /// Load a weights file written by [`save`].
 pub fn load(path: &Path) -> Result<LoadedLifter, TrainError> {
+    let (metadata, tensors) = read_lifter(path)?;
+    let (net, varmap) = metadata.arch.build(0)?;
+    assign(&varmap, &tensors, path)?;
+    Ok(LoadedLifter {
+        net,
+        varmap,
+        metadata,
+    })
+}
+
+/// The metadata and tensors of a weights file written by [`save`], without
+/// building the network.
+pub fn read_lifter(path: &Path) -> Result<(LifterMetadata, HashMap<String, Tensor>), TrainError> {
     let TensorFile {
         tensors,
         metadata: header,
@@ -145,12 +158,5 @@ pub fn load(path: &Path) -> Result<LoadedLifter, TrainError> {
             path: path.into(),
             msg: format!("no {METADATA_KEY} metadata (not a lifter weights file?)"),
         })?;
-    let metadata: LifterMetadata = serde_json::from_str(json)?;
-    let (net, varmap) = metadata.arch.build(0)?;
-    assign(&varmap, &tensors, path)?;
-    Ok(LoadedLifter {
-        net,
-        varmap,
-        metadata,
-    })
+    Ok((serde_json::from_str(json)?, tensors))
 }
