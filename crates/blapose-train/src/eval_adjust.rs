@@ -76,6 +76,9 @@ pub struct LifterReport {
     pub trials: usize,
     /// Frames scored.
     pub frames: usize,
+    /// The lifter's weights file, as given to eval-adjust.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub weights: Option<String>,
     /// How the averages are formed.
     pub aggregation: String,
 }
@@ -171,6 +174,51 @@ pub struct Adjusters<'a> {
     pub bigru: Option<&'a [BoneLengths]>,
 }
 
+/// The bone-length estimates an evaluation adjusts with, computed once for
+/// all lifters.
+#[derive(Debug, Clone, Default)]
+pub struct LengthEstimates {
+    /// Online GRU running estimates (one per frame of each trial).
+    pub gru: Option<Vec<Vec<BoneLengths>>>,
+    /// Offline Bi-GRU estimates (one per trial).
+    pub bigru: Option<Vec<BoneLengths>>,
+}
+
+impl LengthEstimates {
+    /// Run the given models on `trials`' 2D inputs.
+    pub fn compute(
+        trials: &[LifterSequence],
+        gru: Option<&blapose_model::weights::LoadedWeights>,
+        bigru: Option<&blapose_model::weights::LoadedWeights>,
+    ) -> Result<Self, TrainError> {
+        use crate::eval::{BiGruEstimator, GruEstimator, LengthEstimator};
+        let inputs: Vec<_> = trials.iter().map(|t| t.trial.clone()).collect();
+        let gru = match gru {
+            Some(w) => Some(GruEstimator::new(w)?.running_estimates(&inputs)?),
+            None => None,
+        };
+        let bigru = match bigru {
+            Some(w) => Some(
+                BiGruEstimator::new(w, 0)?
+                    .estimate(&inputs)?
+                    .into_iter()
+                    .map(|e| e.lengths)
+                    .collect(),
+            ),
+            None => None,
+        };
+        Ok(Self { gru, bigru })
+    }
+
+    /// The adjusters over these estimates.
+    pub fn adjusters(&self) -> Adjusters<'_> {
+        Adjusters {
+            gru: self.gru.as_deref(),
+            bigru: self.bigru.as_deref(),
+        }
+    }
+}
+
 /// Score one lifter on `trials`; `lift` gives the lifter's poses for a
 /// trial (one per target frame).
 pub fn evaluate_lifter(
@@ -239,6 +287,7 @@ pub fn evaluate_lifter(
         bigru: adjusters.bigru.map(|_| acc[2].report()),
         trials: trials.len(),
         frames: trials.iter().map(LifterSequence::frames).sum(),
+        weights: None,
         aggregation:
             "per metric: frame-weighted mean within each action (takes, subjects, cameras \
                       pooled), then the mean over actions"

@@ -686,18 +686,15 @@ fn train_lifter(a: TrainLifterArgs) -> Result<()> {
 }
 
 fn finetune(a: FinetuneArgs) -> Result<()> {
-    use blapose_train::eval::{BiGruEstimator, LengthEstimator};
+    use blapose_train::eval_adjust::LengthEstimates;
     let (meta, _) = blapose_train::lifter::weights::read_lifter(&a.lifter_weights)?;
     let bigru = blapose_model::weights::load(&a.bigru_weights, blapose_model::ModelKind::BiGru)?;
     let init = Some(a.lifter_weights.clone());
     run_lifter_training(&a.run, meta.arch, init, (2_000, 1e-4), |seqs| {
         let t = Instant::now();
-        let inputs: Vec<_> = seqs.iter().map(|s| s.trial.clone()).collect();
-        let lengths: Vec<BoneLengths> = BiGruEstimator::new(&bigru, 0)?
-            .estimate(&inputs)?
-            .into_iter()
-            .map(|e| e.lengths)
-            .collect();
+        let lengths = LengthEstimates::compute(seqs, None, Some(&bigru))?
+            .bigru
+            .unwrap_or_default();
         eprintln!(
             "frozen Bi-GRU lengths for {} training streams: {:.1}s",
             lengths.len(),
@@ -810,8 +807,7 @@ fn eval_adjust(a: EvalAdjustArgs) -> Result<()> {
     use std::collections::BTreeMap;
 
     use blapose_data::h36m::{H36m, Parts, ALL_SUBJECTS};
-    use blapose_train::eval::{BiGruEstimator, GruEstimator, LengthEstimator};
-    use blapose_train::eval_adjust::{evaluate_lifter, markdown, Adjusters};
+    use blapose_train::eval_adjust::{evaluate_lifter, markdown, LengthEstimates};
     use blapose_train::lifter::data::lifter_sequences;
     use blapose_train::lifter::predict::predict_sequence;
     use blapose_train::lifter::weights as lifter_weights;
@@ -831,7 +827,7 @@ fn eval_adjust(a: EvalAdjustArgs) -> Result<()> {
                 .map_or(name.clone(), |s| s.to_string_lossy().into_owned());
         }
         anyhow::ensure!(!lifters.contains_key(&name), "two lifters named {name}");
-        lifters.insert(name, l);
+        lifters.insert(name, (p.clone(), l));
     }
     let t0 = Instant::now();
     let mut trials = {
@@ -842,52 +838,39 @@ fn eval_adjust(a: EvalAdjustArgs) -> Result<()> {
         trials = trials.into_iter().step_by(a.every).collect();
     }
     anyhow::ensure!(!trials.is_empty(), "no trials for {}", a.subjects.join(","));
-    let inputs: Vec<_> = trials.iter().map(|t| t.trial.clone()).collect();
     eprintln!(
         "loaded {} trials ({} frames) in {:.1}s",
         trials.len(),
         trials.iter().map(|t| t.frames()).sum::<usize>(),
         t0.elapsed().as_secs_f64()
     );
-    let gru = if skip(&a.gru_weights) {
-        None
-    } else {
-        let t = Instant::now();
-        let w = blapose_model::weights::load(&a.gru_weights, blapose_model::ModelKind::Gru)?;
-        let r = GruEstimator::new(&w)?.running_estimates(&inputs)?;
-        eprintln!(
-            "online GRU running estimates: {:.1}s",
-            t.elapsed().as_secs_f64()
-        );
-        Some(r)
+    let load = |path: &PathBuf, kind| -> Result<Option<blapose_model::weights::LoadedWeights>> {
+        Ok(if skip(path) {
+            None
+        } else {
+            Some(blapose_model::weights::load(path, kind)?)
+        })
     };
-    let bigru = if skip(&a.bigru_weights) {
-        None
-    } else {
-        let t = Instant::now();
-        let w = blapose_model::weights::load(&a.bigru_weights, blapose_model::ModelKind::BiGru)?;
-        let r: Vec<BoneLengths> = BiGruEstimator::new(&w, 0)?
-            .estimate(&inputs)?
-            .into_iter()
-            .map(|e| e.lengths)
-            .collect();
-        eprintln!(
-            "offline Bi-GRU estimates: {:.1}s",
-            t.elapsed().as_secs_f64()
-        );
-        Some(r)
-    };
-    let adjusters = Adjusters {
-        gru: gru.as_deref(),
-        bigru: bigru.as_deref(),
-    };
+    let t = Instant::now();
+    let estimates = LengthEstimates::compute(
+        &trials,
+        load(&a.gru_weights, blapose_model::ModelKind::Gru)?.as_ref(),
+        load(&a.bigru_weights, blapose_model::ModelKind::BiGru)?.as_ref(),
+    )?;
+    eprintln!(
+        "bone-length estimates (online GRU running, offline Bi-GRU): {:.1}s",
+        t.elapsed().as_secs_f64()
+    );
+    let adjusters = estimates.adjusters();
     let mut reports = BTreeMap::new();
-    for (name, l) in &lifters {
+    for (name, (path, l)) in &lifters {
         let t = Instant::now();
         let lift = |s: &blapose_train::lifter::data::LifterSequence| {
             predict_sequence(l.net.as_ref(), &s.trial, !a.no_flip)
         };
-        reports.insert(name.clone(), evaluate_lifter(&trials, &lift, adjusters)?);
+        let mut report = evaluate_lifter(&trials, &lift, adjusters)?;
+        report.weights = Some(path.display().to_string());
+        reports.insert(name.clone(), report);
         eprintln!(
             "{name}: lifted and scored in {:.1}s",
             t.elapsed().as_secs_f64()
