@@ -10,6 +10,7 @@ use blapose_core::BoneLengths;
 use blapose_train::ansur::{load_population, AnsurPopulation};
 use blapose_train::dataset::TrainingSet;
 use blapose_train::lengths::{LengthSampler, LengthStrategy, TrainingLengthStats};
+use blapose_train::lifter::objective::Objective;
 use blapose_train::synth::{SynthConfig, SynthSource};
 use blapose_train::train::TrainConfig;
 use clap::{Parser, Subcommand};
@@ -257,6 +258,11 @@ struct FinetuneArgs {
     /// (offline Bi-GRU, one estimate per training stream).
     #[arg(long, default_value = "models/bone_length_bigru.safetensors")]
     bigru_weights: PathBuf,
+    /// adjusted (L_direction + L_MPJPE after adjustment, the paper's) or
+    /// mpjpe (plain lifter MPJPE: the control that separates the effect of
+    /// the objective from that of more training).
+    #[arg(long, default_value = "adjusted")]
+    objective: String,
     #[command(flatten)]
     run: LifterRunArgs,
 }
@@ -682,15 +688,25 @@ fn train_lifter(a: TrainLifterArgs) -> Result<()> {
             })
         }
     };
-    run_lifter_training(&a.run, arch, None, (10_000, 1e-3), |_| Ok(None))
+    run_lifter_training(&a.run, arch, None, Objective::Mpjpe, (10_000, 1e-3), |_| {
+        Ok(None)
+    })
 }
 
 fn finetune(a: FinetuneArgs) -> Result<()> {
     use blapose_train::eval_adjust::LengthEstimates;
     let (meta, _) = blapose_train::lifter::weights::read_lifter(&a.lifter_weights)?;
     let bigru = blapose_model::weights::load(&a.bigru_weights, blapose_model::ModelKind::BiGru)?;
+    let objective = match a.objective.as_str() {
+        "adjusted" => Objective::Adjusted,
+        "mpjpe" => Objective::Mpjpe,
+        other => anyhow::bail!("unknown objective {other:?} (adjusted, mpjpe)"),
+    };
     let init = Some(a.lifter_weights.clone());
-    run_lifter_training(&a.run, meta.arch, init, (2_000, 1e-4), |seqs| {
+    run_lifter_training(&a.run, meta.arch, init, objective, (2_000, 1e-4), |seqs| {
+        if objective == Objective::Mpjpe {
+            return Ok(None);
+        }
         let t = Instant::now();
         let lengths = LengthEstimates::compute(seqs, None, Some(&bigru))?
             .bigru
@@ -704,13 +720,15 @@ fn finetune(a: FinetuneArgs) -> Result<()> {
     })
 }
 
-/// Load the training subjects, train (or fine-tune, when `init` is given:
-/// the adjusted objective with the lengths `lengths_for` returns), plot the
-/// curve and print the outcome. `defaults` are `(steps, lr)` when not given.
+/// Load the training subjects, train `objective` from `init` (fine-tuning)
+/// or from scratch, with the per-stream lengths `lengths_for` returns, plot
+/// the curve and print the outcome. `defaults` are `(steps, lr)` when not
+/// given.
 fn run_lifter_training(
     a: &LifterRunArgs,
     arch: blapose_train::lifter::LifterArch,
     init: Option<PathBuf>,
+    objective: Objective,
     defaults: (u64, f64),
     lengths_for: impl FnOnce(
         &[blapose_train::lifter::data::LifterSequence],
@@ -718,7 +736,6 @@ fn run_lifter_training(
 ) -> Result<()> {
     use blapose_data::h36m::{H36m, Parts, TRAIN_SUBJECTS};
     use blapose_train::lifter::data::lifter_sequences;
-    use blapose_train::lifter::objective::Objective;
     use blapose_train::lifter::train::LifterTrainConfig;
     let root = blapose_data::data_root(a.data.clone());
     let cfg = LifterTrainConfig {
@@ -735,11 +752,7 @@ fn run_lifter_training(
         val_every: a.val_every,
         val_samples: a.val_samples,
         checkpoint_secs: a.checkpoint_secs,
-        objective: if init.is_some() {
-            Objective::Adjusted
-        } else {
-            Objective::Mpjpe
-        },
+        objective,
         init_weights: init,
     };
     let t0 = Instant::now();
@@ -764,8 +777,13 @@ fn run_lifter_training(
     );
     if let Some(init) = &cfg.init_weights {
         training_data.push_str(&format!(
-            "; fine-tuned from {} through the bone-length adjustment (L_direction + L_MPJPE, frozen Bi-GRU lengths)",
-            init.display()
+            "; fine-tuned from {} with {}",
+            init.display(),
+            match cfg.objective {
+                Objective::Adjusted =>
+                    "L_direction + L_MPJPE through the bone-length adjustment (frozen Bi-GRU lengths)",
+                Objective::Mpjpe => "the plain MPJPE objective (control)",
+            }
         ));
     }
     let pb = step_bar(cfg.steps);
