@@ -258,6 +258,11 @@ struct FinetuneArgs {
     /// (offline Bi-GRU, one estimate per training stream).
     #[arg(long, default_value = "models/bone_length_bigru.safetensors")]
     bigru_weights: PathBuf,
+    /// Cache of the frozen model's per-stream lengths (JSON; reused when it
+    /// names the same Bi-GRU file and streams, written otherwise). Default:
+    /// OUT/frozen_lengths.json.
+    #[arg(long)]
+    lengths_cache: Option<PathBuf>,
     /// adjusted (L_direction + L_MPJPE after adjustment, the paper's) or
     /// mpjpe (plain lifter MPJPE: the control that separates the effect of
     /// the objective from that of more training).
@@ -707,6 +712,26 @@ fn finetune(a: FinetuneArgs) -> Result<()> {
         if objective == Objective::Mpjpe {
             return Ok(None);
         }
+        let cache = a
+            .lengths_cache
+            .clone()
+            .unwrap_or_else(|| a.run.out.join("frozen_lengths.json"));
+        let key = FrozenLengths {
+            bigru_weights: a.bigru_weights.display().to_string(),
+            streams: seqs
+                .iter()
+                .map(|s| format!("{}/{}/{}", s.trial.subject, s.trial.sequence, s.trial.camera))
+                .collect(),
+            lengths: Vec::new(),
+        };
+        if let Some(hit) = std::fs::read_to_string(&cache)
+            .ok()
+            .and_then(|t| serde_json::from_str::<FrozenLengths>(&t).ok())
+            .filter(|c| c.bigru_weights == key.bigru_weights && c.streams == key.streams)
+        {
+            eprintln!("frozen Bi-GRU lengths: {}", cache.display());
+            return Ok(Some(hit.lengths));
+        }
         let t = Instant::now();
         let lengths = LengthEstimates::compute(seqs, None, Some(&bigru))?
             .bigru
@@ -716,8 +741,25 @@ fn finetune(a: FinetuneArgs) -> Result<()> {
             lengths.len(),
             t.elapsed().as_secs_f64()
         );
+        if let Some(dir) = cache.parent() {
+            std::fs::create_dir_all(dir)?;
+        }
+        let store = FrozenLengths {
+            lengths: lengths.clone(),
+            ..key
+        };
+        std::fs::write(&cache, serde_json::to_string(&store)?)?;
         Ok(Some(lengths))
     })
+}
+
+/// The frozen model's lengths per training stream, cached between
+/// fine-tuning runs (computing them takes minutes).
+#[derive(serde::Serialize, serde::Deserialize)]
+struct FrozenLengths {
+    bigru_weights: String,
+    streams: Vec<String>,
+    lengths: Vec<BoneLengths>,
 }
 
 /// Load the training subjects, train `objective` from `init` (fine-tuning)
