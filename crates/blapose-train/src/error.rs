@@ -33,6 +33,9 @@ pub enum TrainError {
     /// Loading or saving model weights failed.
     #[error(transparent)]
     Model(#[from] blapose_model::ModelError),
+    /// An inference-crate lifter failed.
+    #[error(transparent)]
+    Lifter(#[from] blapose_lifters::LifterError),
     /// A checkpoint is unreadable or does not fit the run.
     #[error("checkpoint {path}: {msg}")]
     Checkpoint {

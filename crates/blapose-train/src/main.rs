@@ -720,7 +720,12 @@ fn finetune(a: FinetuneArgs) -> Result<()> {
             bigru_weights: a.bigru_weights.display().to_string(),
             streams: seqs
                 .iter()
-                .map(|s| format!("{}/{}/{}", s.trial.subject, s.trial.sequence, s.trial.camera))
+                .map(|s| {
+                    format!(
+                        "{}/{}/{}",
+                        s.trial.subject, s.trial.sequence, s.trial.camera
+                    )
+                })
                 .collect(),
             lengths: Vec::new(),
         };
@@ -869,7 +874,7 @@ fn eval_adjust(a: EvalAdjustArgs) -> Result<()> {
     use blapose_data::h36m::{H36m, Parts, ALL_SUBJECTS};
     use blapose_train::eval_adjust::{evaluate_lifter, markdown, LengthEstimates};
     use blapose_train::lifter::data::lifter_sequences;
-    use blapose_train::lifter::predict::predict_sequence;
+    use blapose_train::lifter::predict::StreamLifter;
     use blapose_train::lifter::weights as lifter_weights;
     let root = blapose_data::data_root(a.data.clone());
     let subjects: Vec<&str> = a.subjects.iter().map(String::as_str).collect();
@@ -925,9 +930,9 @@ fn eval_adjust(a: EvalAdjustArgs) -> Result<()> {
     let mut reports = BTreeMap::new();
     for (name, (path, l)) in &lifters {
         let t = Instant::now();
-        let lift = |s: &blapose_train::lifter::data::LifterSequence| {
-            predict_sequence(l.net.as_ref(), &s.trial, !a.no_flip)
-        };
+        let lifter = StreamLifter::new(l)?;
+        let lift =
+            |s: &blapose_train::lifter::data::LifterSequence| lifter.lift(&s.trial, !a.no_flip);
         let mut report = evaluate_lifter(&trials, &lift, adjusters)?;
         report.weights = Some(path.display().to_string());
         reports.insert(name.clone(), report);

@@ -15,7 +15,7 @@ use blapose_data::h36m::{H36m, Parts, TEST_SUBJECTS};
 use blapose_model::ModelKind;
 use blapose_train::eval_adjust::{evaluate_lifter, LengthEstimates, MethodReport};
 use blapose_train::lifter::data::lifter_sequences;
-use blapose_train::lifter::predict::predict_sequence;
+use blapose_train::lifter::predict::StreamLifter;
 use blapose_train::lifter::weights;
 
 #[test]
@@ -55,9 +55,8 @@ fn shipped_lifters_reproduce_the_model_card() {
     for (name, card) in lifters {
         let file = card["weights"].as_str().expect("weights path");
         let lifter = weights::load(&repo.join(file)).expect("shipped lifter loads");
-        let lift = |s: &blapose_train::lifter::data::LifterSequence| {
-            predict_sequence(lifter.net.as_ref(), &s.trial, true)
-        };
+        let streams = StreamLifter::new(&lifter).unwrap();
+        let lift = |s: &blapose_train::lifter::data::LifterSequence| streams.lift(&s.trial, true);
         let got = evaluate_lifter(&trials, &lift, estimates.adjusters()).unwrap();
         assert_eq!(
             got.trials as u64,
