@@ -120,6 +120,16 @@ impl tonic::service::Interceptor for BearerAuth {
 /// The generated stub with authentication applied.
 pub(crate) type Stub = PoseAdjustmentClient<InterceptedService<Channel, BearerAuth>>;
 
+/// How to open a session (see [`Client::open_session_with`]).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct SessionOptions<'a> {
+    /// Label for the server's logs.
+    pub label: Option<&'a str>,
+    /// Let the server lift the poses from the keypoints (it must have been
+    /// started with a lifter; see `ModelInfo::lifter`).
+    pub server_lifter: bool,
+}
+
 /// A connected blapose client. Clone it freely: clones share the connection.
 #[derive(Debug, Clone)]
 pub struct Client {
@@ -278,18 +288,48 @@ impl Client {
         Ok(ModelInfo::from_proto(resp))
     }
 
-    /// Open a new streaming session.
+    /// Open a new streaming session (every frame carries the client's 3D
+    /// pose).
     pub async fn open_session(
         &self,
         input_format: InputFormat,
         label: Option<&str>,
     ) -> Result<Session, ClientError> {
+        self.open_session_with(
+            input_format,
+            &SessionOptions {
+                label,
+                server_lifter: false,
+            },
+        )
+        .await
+    }
+
+    /// Open a new streaming session with `options`. With
+    /// `server_lifter`, the server lifts every pose itself: frames carry
+    /// keypoints only (`FrameInput::pose_3d` = `None`) and
+    /// [`SessionInfo::lifter`](crate::SessionInfo::lifter) names the lifter;
+    /// a server without a lifter answers INVALID_ARGUMENT.
+    pub async fn open_session_with(
+        &self,
+        input_format: InputFormat,
+        options: &SessionOptions<'_>,
+    ) -> Result<Session, ClientError> {
         let open = pb::OpenSession {
             input_format: Some(input_format.to_proto()),
             model: pb::Model::OnlineGru as i32,
-            client_label: label.unwrap_or_default().to_string(),
+            client_label: options.label.unwrap_or_default().to_string(),
+            server_lifter: options.server_lifter,
         };
-        Session::start(self, pb::stream_request::Kind::Open(open)).await
+        let session = Session::start(self, pb::stream_request::Kind::Open(open)).await?;
+        // A server that predates server lifters ignores the request; the
+        // session would then expect poses the client does not send.
+        if options.server_lifter && session.info().lifter.is_none() {
+            return Err(ClientError::Protocol(
+                "server_lifter was requested but the server opened a session that expects client poses (a server without lifter support?)".into(),
+            ));
+        }
+        Ok(session)
     }
 
     /// Re-attach to a session by id (its state is intact if its TTL has not

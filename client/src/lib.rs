@@ -2,7 +2,9 @@
 //!
 //! The server keeps each person's bone-length estimate in a *session*: a
 //! client opens one, streams frames (2D keypoints plus a lifter's 3D pose)
-//! and gets every pose back rebuilt with the estimated bone lengths. This
+//! and gets every pose back rebuilt with the estimated bone lengths. A
+//! server started with a lifter can also lift the poses itself: open the
+//! session with [`SessionOptions::server_lifter`] and send keypoints only. This
 //! crate hides the protobuf messages behind types from [`blapose_core`]:
 //!
 //! ```no_run
@@ -34,7 +36,8 @@ pub mod session;
 pub mod types;
 
 pub use client::{
-    Client, ClientConfig, OfflineAdjustment, SequenceInput, TlsOptions, DEFAULT_SERVER,
+    Client, ClientConfig, OfflineAdjustment, SequenceInput, SessionOptions, TlsOptions,
+    DEFAULT_SERVER,
 };
 pub use error::ClientError;
 pub use replay::{adjust_offline, replay, Adjusted, ReplayOptions};
@@ -42,6 +45,6 @@ pub use report::{evaluate, Evaluation, PoseMetrics};
 pub use sequence::{Sequence, SequenceError};
 pub use session::{EventReceiver, FrameRejection, FrameSender, Session, SessionEvent};
 pub use types::{
-    AdjustedFrame, Coordinates, FrameInput, InputFormat, KeypointLayout, ModelChoice,
-    ModelDescription, ModelInfo, SessionInfo, SessionSummary,
+    AdjustedFrame, Coordinates, FrameInput, InputFormat, KeypointLayout, LiftedPose,
+    LifterDescription, ModelChoice, ModelDescription, ModelInfo, SessionInfo, SessionSummary,
 };

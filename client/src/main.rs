@@ -73,7 +73,8 @@ enum Command {
     /// adjusted poses (adjusted_3d, T x 17 x 3) and the bone lengths applied
     /// to each frame (bone_lengths, T x 16) are written as an npz. When the
     /// file has gt_3d, MPJPE, P-MPJPE and bone-length error are printed
-    /// before and after the adjustment.
+    /// before and after the adjustment. With --server-lifter only the 2D
+    /// keypoints are sent and the server's lifter produces the poses.
     Replay {
         #[command(flatten)]
         io: IoArgs,
@@ -87,6 +88,12 @@ enum Command {
         /// Label for the server's logs.
         #[arg(long)]
         label: Option<String>,
+        /// Send the 2D keypoints only and let the server's lifter produce
+        /// the 3D poses (the server must run one: --lifter-weights); the
+        /// file's pose_3d is not sent, and "before" is the server lifter's
+        /// poses.
+        #[arg(long)]
+        server_lifter: bool,
     },
     /// Adjust a replay file with one offline call (Bi-GRU by default).
     Adjust {
@@ -165,6 +172,17 @@ fn finish(io: &IoArgs, seq: &Sequence, result: &Adjusted) -> Result<()> {
         result.elapsed.as_secs_f64(),
         result.frames_per_second()
     );
+    // The poses the adjustment started from: the server lifter's, or the
+    // file's own.
+    let before = match &result.lifter {
+        Some(name) => {
+            println!(
+                "input poses lifted by the server's {name} lifter from the 2D keypoints (the file's pose_3d was not sent)"
+            );
+            &result.lifted
+        }
+        None => &seq.pose_3d,
+    };
     if let Some(last) = result.bone_lengths.last() {
         let mm: Vec<String> = last.iter().map(|l| format!("{:.0}", l * 1000.0)).collect();
         println!("final bone lengths (mm): {}", mm.join(" "));
@@ -175,7 +193,7 @@ fn finish(io: &IoArgs, seq: &Sequence, result: &Adjusted) -> Result<()> {
     }
     match &seq.gt_3d {
         Some(gt) => {
-            let evaluation = evaluate(&seq.pose_3d, &result.adjusted, gt)?;
+            let evaluation = evaluate(before, &result.adjusted, gt)?;
             print!("{evaluation}");
             if let Some(path) = &io.json {
                 write_json(path, &evaluation)?;
@@ -208,11 +226,17 @@ async fn run(cli: Cli) -> Result<()> {
             fps,
             window,
             label,
+            server_lifter,
         } => {
             let seq = Sequence::load(&io.file, io.layout)?;
             let client = connect(&cli.connection).await?;
             let bar = progress_bar(seq.len());
-            let options = ReplayOptions { fps, window, label };
+            let options = ReplayOptions {
+                fps,
+                window,
+                label,
+                server_lifter,
+            };
             let result = replay(&client, &seq, &options, |n| bar.set_position(n as u64)).await;
             bar.finish_and_clear();
             let result = result?;
@@ -280,8 +304,14 @@ mod tests {
         .unwrap();
         assert_eq!(cli.connection.server, "http://h:1");
         match cli.command {
-            Command::Replay { io, fps, .. } => {
+            Command::Replay {
+                io,
+                fps,
+                server_lifter,
+                ..
+            } => {
                 assert_eq!(fps, Some(50.0));
+                assert!(!server_lifter, "client poses by default");
                 assert_eq!(io.out, Some(PathBuf::from("o.npz")));
                 assert_eq!(io.json, Some(PathBuf::from("m.json")));
             }
@@ -309,6 +339,19 @@ mod tests {
         ));
         assert!(
             Cli::try_parse_from(["blapose-client", "adjust", "x.npz", "--model", "lstm"]).is_err()
+        );
+        let cli =
+            Cli::try_parse_from(["blapose-client", "replay", "x.npz", "--server-lifter"]).unwrap();
+        assert!(matches!(
+            cli.command,
+            Command::Replay {
+                server_lifter: true,
+                ..
+            }
+        ));
+        assert!(
+            Cli::try_parse_from(["blapose-client", "adjust", "x.npz", "--server-lifter"]).is_err(),
+            "the offline call has no server lifter"
         );
     }
 }

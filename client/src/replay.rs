@@ -5,7 +5,10 @@
 //! most `window` frames in flight so the server's queue is never flooded by
 //! one stream. Every answer is checked against the protocol's promises:
 //! exactly one answer per frame, in order, with `frames_seen` counting up by
-//! one. [`adjust_offline`] does the same job with one unary call.
+//! one. With [`ReplayOptions::server_lifter`] the file's poses are not sent:
+//! the server lifts each frame from the keypoints, and every answer must
+//! name the lifter and carry its pose. [`adjust_offline`] does the same job
+//! (with the file's poses) in one unary call.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -13,7 +16,7 @@ use std::time::{Duration, Instant};
 use blapose_core::{BoneLengths, Pose};
 use tokio::sync::Semaphore;
 
-use crate::client::{Client, SequenceInput};
+use crate::client::{Client, SequenceInput, SessionOptions};
 use crate::error::ClientError;
 use crate::sequence::Sequence;
 use crate::session::SessionEvent;
@@ -29,6 +32,9 @@ pub struct ReplayOptions {
     pub window: usize,
     /// Label for the server's logs.
     pub label: Option<String>,
+    /// Send keypoints only and let the server's lifter produce the poses
+    /// (the server must run one).
+    pub server_lifter: bool,
 }
 
 impl Default for ReplayOptions {
@@ -37,6 +43,7 @@ impl Default for ReplayOptions {
             fps: None,
             window: 64,
             label: None,
+            server_lifter: false,
         }
     }
 }
@@ -50,6 +57,12 @@ pub struct Adjusted {
     pub adjusted: Vec<Pose>,
     /// The bone lengths applied to each frame.
     pub bone_lengths: Vec<BoneLengths>,
+    /// The server lifter that produced the input poses; `None` when they
+    /// were the sequence's own (`pose_3d`).
+    pub lifter: Option<String>,
+    /// The server lifter's poses before adjustment, one per frame (empty
+    /// unless `lifter` is set).
+    pub lifted: Vec<Pose>,
     /// Wall-clock time of the exchange.
     pub elapsed: Duration,
     /// The session (stream only; it is closed at the end).
@@ -72,10 +85,15 @@ pub async fn replay(
     mut progress: impl FnMut(usize),
 ) -> Result<Adjusted, ClientError> {
     let started = Instant::now();
+    let session_options = SessionOptions {
+        label: options.label.as_deref(),
+        server_lifter: options.server_lifter,
+    };
     let session = client
-        .open_session(seq.input_format, options.label.as_deref())
+        .open_session_with(seq.input_format, &session_options)
         .await?;
     let (info, sender, mut receiver) = session.split();
+    let lifter = info.lifter.clone();
     let total = seq.len();
     let window = Arc::new(Semaphore::new(options.window.max(1)));
 
@@ -92,9 +110,14 @@ pub async fn replay(
             if let Some(ticker) = ticker.as_mut() {
                 ticker.tick().await;
             }
+            let frame = if options.server_lifter {
+                seq.keypoints_frame(t)
+            } else {
+                seq.frame(t)
+            };
             // A failed send means the stream has ended; the receiving side
             // sees why (the server's status) and reports it.
-            if sender.send(&seq.frame(t)).await.is_err() {
+            if sender.send(&frame).await.is_err() {
                 return;
             }
         }
@@ -113,6 +136,7 @@ pub async fn replay(
         let _wake_sender = CloseOnDrop(&window);
         let mut adjusted = Vec::with_capacity(total);
         let mut lengths = Vec::with_capacity(total);
+        let mut lifted = Vec::new();
         while adjusted.len() < total {
             let expected = adjusted.len() as u64;
             let frame = match receiver.next().await? {
@@ -138,6 +162,14 @@ pub async fn replay(
                     info.frames_seen + expected + 1
                 )));
             }
+            if frame.lifter() != lifter.as_deref() {
+                return Err(ClientError::Protocol(format!(
+                    "frame {expected}: lifted by {:?}, but the session's poses come from {:?}",
+                    frame.lifter(),
+                    lifter
+                )));
+            }
+            lifted.extend(frame.lifted.map(|l| l.pose));
             adjusted.push(frame.pose);
             lengths.push(frame.bone_lengths);
             window.add_permits(1);
@@ -156,15 +188,17 @@ pub async fn replay(
                 "an answer after SessionClosed: {extra:?}"
             )));
         }
-        Ok((adjusted, lengths, summary))
+        Ok((adjusted, lengths, lifted, summary))
     };
 
     let ((), received) = tokio::join!(send, receive);
-    let (adjusted, bone_lengths, summary) = received?;
+    let (adjusted, bone_lengths, lifted, summary) = received?;
     Ok(Adjusted {
         model: info.model,
         adjusted,
         bone_lengths,
+        lifter,
+        lifted,
         elapsed: started.elapsed(),
         session: Some(summary),
     })
@@ -188,6 +222,8 @@ pub async fn adjust_offline(
         model: result.model,
         adjusted: result.adjusted,
         bone_lengths: result.bone_lengths,
+        lifter: None,
+        lifted: Vec::new(),
         elapsed: started.elapsed(),
         session: None,
     })

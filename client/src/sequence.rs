@@ -181,6 +181,15 @@ impl Sequence {
 
     /// Frame `t` as a message for a session (`t < len()`).
     pub fn frame(&self, t: usize) -> FrameInput {
+        FrameInput {
+            pose_3d: Some(self.pose_3d[t]),
+            ..self.keypoints_frame(t)
+        }
+    }
+
+    /// Frame `t` without its pose, for a session whose poses the server
+    /// lifts (`t < len()`).
+    pub fn keypoints_frame(&self, t: usize) -> FrameInput {
         let j = self.num_joints();
         let kp = &self.keypoints_2d[t * j * 2..(t + 1) * j * 2];
         FrameInput {
@@ -191,7 +200,7 @@ impl Sequence {
             } else {
                 self.confidence[t * j..(t + 1) * j].to_vec()
             },
-            pose_3d: self.pose_3d[t],
+            pose_3d: None,
         }
     }
 

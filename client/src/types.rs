@@ -186,8 +186,9 @@ pub struct FrameInput {
     pub keypoints_2d: Vec<[f32; 2]>,
     /// Optional per-joint confidence (empty or `J` values).
     pub confidence: Vec<f32>,
-    /// The lifted 3D pose to adjust (metres, Human3.6M order).
-    pub pose_3d: Pose,
+    /// The lifted 3D pose to adjust (metres, Human3.6M order); `None` in a
+    /// session whose poses the server lifts (keypoints only).
+    pub pose_3d: Option<Pose>,
 }
 
 impl FrameInput {
@@ -197,7 +198,10 @@ impl FrameInput {
             frame_index: self.frame_index,
             keypoints_2d: self.keypoints_2d.as_flattened().to_vec(),
             confidence: self.confidence.clone(),
-            pose_3d: self.pose_3d.as_flattened().to_vec(),
+            pose_3d: self
+                .pose_3d
+                .map(|p| p.as_flattened().to_vec())
+                .unwrap_or_default(),
         }
     }
 }
@@ -213,16 +217,51 @@ pub struct AdjustedFrame {
     pub bone_lengths: BoneLengths,
     /// Frames processed in the session, this one included.
     pub frames_seen: u64,
+    /// The server lifter's pose for this frame and the lifter's name;
+    /// `None` when the client sent the pose. (Boxed: most sessions send
+    /// their poses, and their answers stay small.)
+    pub lifted: Option<Box<LiftedPose>>,
+}
+
+/// The pose a server lifter produced for a frame, before adjustment.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LiftedPose {
+    /// The lifter's name, e.g. `videopose27-causal`.
+    pub lifter: String,
+    /// Root-relative camera space, metres, pelvis at 0.
+    pub pose: Pose,
 }
 
 impl AdjustedFrame {
     pub(crate) fn from_proto(msg: pb::AdjustedFrame) -> Result<Self, ClientError> {
+        let lifted = match (msg.lifter.is_empty(), msg.lifted_pose_3d.is_empty()) {
+            (true, true) => None,
+            (false, false) => Some(Box::new(LiftedPose {
+                pose: pose_from_flat(&msg.lifted_pose_3d, "lifted_pose_3d")?,
+                lifter: msg.lifter,
+            })),
+            _ => {
+                return Err(ClientError::Protocol(format!(
+                    "frame {}: a lifter name ({:?}) must come with the lifted pose ({} values) and vice versa",
+                    msg.frame_index,
+                    msg.lifter,
+                    msg.lifted_pose_3d.len()
+                )))
+            }
+        };
         Ok(AdjustedFrame {
             frame_index: msg.frame_index,
             pose: pose_from_flat(&msg.adjusted_pose_3d, "adjusted_pose_3d")?,
             bone_lengths: lengths_from_flat(&msg.bone_lengths, "bone_lengths")?,
             frames_seen: msg.frames_seen,
+            lifted,
         })
+    }
+
+    /// The server lifter that produced the input pose; `None` when the
+    /// client sent it.
+    pub fn lifter(&self) -> Option<&str> {
+        self.lifted.as_ref().map(|l| l.lifter.as_str())
     }
 }
 
@@ -243,6 +282,9 @@ pub struct SessionInfo {
     pub model: ModelChoice,
     /// How long a detached session survives without a stream.
     pub ttl: Duration,
+    /// The server lifter lifting this session's poses; `None` when the
+    /// client sends them.
+    pub lifter: Option<String>,
 }
 
 impl SessionInfo {
@@ -262,6 +304,7 @@ impl SessionInfo {
             input_format,
             model,
             ttl: Duration::from_millis(msg.session_ttl_ms),
+            lifter: (!msg.lifter.is_empty()).then_some(msg.lifter),
         })
     }
 }
@@ -318,6 +361,25 @@ pub struct ModelDescription {
     pub metadata: BTreeMap<String, String>,
 }
 
+/// The server's lifter (sessions may ask it to lift their poses).
+#[derive(Debug, Clone, PartialEq)]
+pub struct LifterDescription {
+    /// Name, e.g. `videopose27-causal`.
+    pub name: String,
+    /// Frames in one input window.
+    pub receptive_field: u32,
+    /// Trainable parameters.
+    pub parameter_count: u64,
+    /// Whether the pose belongs to the window's last frame.
+    pub causal: bool,
+    /// The weights file path the server was started with.
+    pub weights_source: String,
+    /// SHA-256 of the weights file.
+    pub weights_sha256: String,
+    /// Training provenance and conventions from the weights file.
+    pub metadata: BTreeMap<String, String>,
+}
+
 /// What the server runs and its limits.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ModelInfo {
@@ -341,6 +403,8 @@ pub struct ModelInfo {
     pub max_batch: u32,
     /// Maximum request message size in bytes.
     pub max_message_bytes: u64,
+    /// The server lifter, if the server runs one.
+    pub lifter: Option<LifterDescription>,
 }
 
 impl ModelInfo {
@@ -372,6 +436,15 @@ impl ModelInfo {
             session_ttl: Duration::from_millis(msg.session_ttl_ms),
             max_batch: msg.max_batch,
             max_message_bytes: msg.max_message_bytes,
+            lifter: msg.lifter.map(|l| LifterDescription {
+                name: l.name,
+                receptive_field: l.receptive_field,
+                parameter_count: l.parameter_count,
+                causal: l.causal,
+                weights_source: l.weights_source,
+                weights_sha256: l.weights_sha256,
+                metadata: l.metadata.into_iter().collect(),
+            }),
         }
     }
 }
@@ -406,6 +479,31 @@ impl fmt::Display for ModelInfo {
             )?;
             for (k, v) in &m.metadata {
                 writeln!(f, "  {k}: {v}")?;
+            }
+        }
+        match &self.lifter {
+            None => writeln!(f, "lifter:       none (clients send their 3D poses)")?,
+            Some(l) => {
+                writeln!(
+                    f,
+                    "lifter:       {} (sessions may send 2D keypoints only)",
+                    l.name
+                )?;
+                writeln!(
+                    f,
+                    "  frames:     {}{}",
+                    l.receptive_field,
+                    if l.causal { ", causal" } else { "" }
+                )?;
+                writeln!(f, "  parameters: {}", l.parameter_count)?;
+                writeln!(
+                    f,
+                    "  weights:    {} (sha256 {})",
+                    l.weights_source, l.weights_sha256
+                )?;
+                for (k, v) in &l.metadata {
+                    writeln!(f, "  {k}: {v}")?;
+                }
             }
         }
         Ok(())
@@ -488,6 +586,7 @@ mod tests {
             adjusted_pose_3d: vec![0.0; 50],
             bone_lengths: vec![0.1; 16],
             frames_seen: 1,
+            ..Default::default()
         };
         let err = AdjustedFrame::from_proto(msg).unwrap_err();
         assert!(err.to_string().contains("50 values"), "{err}");
@@ -496,9 +595,39 @@ mod tests {
             adjusted_pose_3d: (0..51).map(|v| v as f32).collect(),
             bone_lengths: vec![0.1; 16],
             frames_seen: 1,
+            ..Default::default()
         };
-        let f = AdjustedFrame::from_proto(msg).unwrap();
+        let f = AdjustedFrame::from_proto(msg.clone()).unwrap();
         assert_eq!(f.pose[16], [48.0, 49.0, 50.0]);
+        assert_eq!((f.lifter(), &f.lifted), (None, &None), "a client pose");
+        // A lifted frame names its lifter and carries the lifted pose.
+        let lifted = pb::AdjustedFrame {
+            lifter: "videopose27-causal".into(),
+            lifted_pose_3d: vec![0.5; 51],
+            ..msg.clone()
+        };
+        let f = AdjustedFrame::from_proto(lifted.clone()).unwrap();
+        assert_eq!(f.lifter(), Some("videopose27-causal"));
+        assert_eq!(f.lifted.map(|l| l.pose), Some([[0.5; 3]; NUM_JOINTS]));
+        for broken in [
+            pb::AdjustedFrame {
+                lifted_pose_3d: vec![0.5; 50],
+                ..lifted.clone()
+            },
+            pb::AdjustedFrame {
+                lifted_pose_3d: vec![],
+                ..lifted.clone()
+            },
+            pb::AdjustedFrame {
+                lifter: String::new(),
+                ..lifted
+            },
+        ] {
+            assert!(matches!(
+                AdjustedFrame::from_proto(broken),
+                Err(ClientError::Protocol(_))
+            ));
+        }
     }
 
     #[test]
@@ -509,12 +638,14 @@ mod tests {
             frame_index: 9,
             keypoints_2d: vec![[1.0, 2.0], [3.0, 4.0]],
             confidence: vec![],
-            pose_3d: pose,
+            pose_3d: Some(pose),
         };
         let p = f.to_proto();
         assert_eq!(p.keypoints_2d, vec![1.0, 2.0, 3.0, 4.0]);
         assert_eq!(&p.pose_3d[3..6], &[1.0, 2.0, 3.0]);
         assert_eq!(p.frame_index, 9);
+        let keypoints_only = FrameInput { pose_3d: None, ..f };
+        assert!(keypoints_only.to_proto().pose_3d.is_empty());
     }
 
     #[test]

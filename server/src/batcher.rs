@@ -26,19 +26,36 @@
 //! and scatters them back. A row whose session changed owner meanwhile, or
 //! whose outputs are not finite, is not written back: a bad step never
 //! corrupts a session.
+//!
+//! **Server lifter.** Frames of sessions whose poses the server lifts are
+//! lifted here too, before the GRU step, because this is where a session's
+//! frames are processed strictly one after another: the lifter's window for
+//! frame `t` must hold exactly the frames before `t` that were *accepted*,
+//! which is only known once frame `t - 1` has been through its step. Each
+//! lifting row's window plus its new frame is copied out (the session's
+//! window is not touched), all of a batch's windows run through the lifter
+//! in one call, every pose is checked as a client's pose would be, and the
+//! new frame is pushed into the session's window in the same locked scatter
+//! that writes its GRU state, so a frame refused at any point (lifting, the
+//! step, a takeover) leaves the window as it was. A lifter failure, even a
+//! panic, fails only the rows it concerns.
 
 use std::collections::{HashMap, VecDeque};
+use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use blapose_core::BoneLengths;
+use blapose_core::{BoneLengths, Keypoints2d, Pose};
+use blapose_lifters::trained::FRAME_VALUES;
 use tokio::sync::oneshot;
 
 use crate::backend::{Backend, BackendError, INPUT_DIM, OUTPUT_DIM, STATE_DIM};
 use crate::metrics;
+use crate::models::LoadedLifter;
 use crate::session::Session;
+use crate::validate;
 
 /// Batching limits.
 #[derive(Debug, Clone, Copy)]
@@ -60,6 +77,9 @@ pub struct FrameJob {
     pub epoch: u64,
     /// Normalized Human3.6M-17 keypoints, joint-major (x, y).
     pub input: [f32; INPUT_DIM],
+    /// Lift the pose from the session's window and `input` with the server
+    /// lifter (the session must have been opened lifting).
+    pub lift: bool,
     /// Where the answer goes.
     pub reply: oneshot::Sender<StepResult>,
 }
@@ -71,6 +91,9 @@ pub struct StepOutput {
     pub lengths: BoneLengths,
     /// Frames processed in the session, this one included.
     pub frames_seen: u64,
+    /// The server lifter's pose for this frame (root at 0), for a lifting
+    /// frame; `None` when the client sent the pose.
+    pub lifted: Option<Pose>,
 }
 
 /// Why an accepted frame was not processed. The session is unchanged.
@@ -88,6 +111,13 @@ pub enum StepError {
         "the model produced a non-finite result for this frame; the session state was not updated"
     )]
     NonFinite,
+    /// The server lifter failed on this frame.
+    #[error("the server lifter failed: {0}; the session state was not updated")]
+    Lifter(String),
+    /// The server lifter's pose cannot be adjusted (non-finite, out of
+    /// bounds or a zero-length bone).
+    #[error("the server lifter produced a pose that cannot be adjusted ({0}); the session state was not updated")]
+    LiftedPose(String),
 }
 
 impl StepError {
@@ -95,7 +125,10 @@ impl StepError {
     pub fn code(&self) -> tonic::Code {
         match self {
             StepError::Superseded => tonic::Code::Aborted,
-            StepError::Model(_) | StepError::NonFinite => tonic::Code::Internal,
+            StepError::Model(_)
+            | StepError::NonFinite
+            | StepError::Lifter(_)
+            | StepError::LiftedPose(_) => tonic::Code::Internal,
         }
     }
 }
@@ -151,12 +184,21 @@ impl Queue {
     }
 }
 
-#[derive(Debug)]
 struct Shared {
     queue: Mutex<Queue>,
     available: Condvar,
     config: BatcherConfig,
     active_streams: AtomicUsize,
+    lifter: Option<Arc<LoadedLifter>>,
+}
+
+impl std::fmt::Debug for Shared {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Shared")
+            .field("config", &self.config)
+            .field("lifter", &self.lifter.as_ref().map(|l| l.name()))
+            .finish()
+    }
 }
 
 impl Shared {
@@ -202,20 +244,47 @@ pub fn warm_up<B: Backend>(backend: &mut B) -> Result<(), BackendError> {
     }
 }
 
+/// Lift one window of zeros and check the pose is finite, so a server
+/// reports SERVING only with a lifter that works.
+pub fn warm_up_lifter(lifter: &LoadedLifter) -> Result<(), BackendError> {
+    let windows = vec![0.0f32; lifter.lifter.receptive_field() * FRAME_VALUES];
+    match guarded(|| lifter.lifter.lift_windows(&windows, 1)) {
+        Ok(poses) if poses.iter().flatten().flatten().all(|v| v.is_finite()) => Ok(()),
+        Ok(_) => Err(BackendError::Model(
+            "lifter warm-up produced non-finite values".into(),
+        )),
+        Err(e) => Err(BackendError::Model(format!("lifter warm-up failed: {e}"))),
+    }
+}
+
 impl Batcher {
     /// Warm the backend up and start the batcher thread.
-    pub fn start<B: Backend>(mut backend: B, config: BatcherConfig) -> Result<Self, BackendError> {
+    pub fn start<B: Backend>(backend: B, config: BatcherConfig) -> Result<Self, BackendError> {
+        Self::start_with_lifter(backend, config, None)
+    }
+
+    /// [`Batcher::start`] with a server lifter for the frames of lifting
+    /// sessions (warmed up too).
+    pub fn start_with_lifter<B: Backend>(
+        mut backend: B,
+        config: BatcherConfig,
+        lifter: Option<Arc<LoadedLifter>>,
+    ) -> Result<Self, BackendError> {
         let config = BatcherConfig {
             max_batch: config.max_batch.max(1),
             queue_capacity: config.queue_capacity.max(1),
             ..config
         };
         warm_up(&mut backend)?;
+        if let Some(lifter) = &lifter {
+            warm_up_lifter(lifter)?;
+        }
         let shared = Arc::new(Shared {
             queue: Mutex::new(Queue::default()),
             available: Condvar::new(),
             config,
             active_streams: AtomicUsize::new(0),
+            lifter,
         });
         let worker = shared.clone();
         let thread = std::thread::Builder::new()
@@ -301,13 +370,20 @@ impl Drop for Batcher {
     }
 }
 
-/// Preallocated step buffers (no allocation per batch).
+/// Preallocated step buffers (no allocation per batch; the lifter's grow
+/// to the largest batch of lifting rows seen, and stay empty without one).
 struct Buffers {
     inputs: Vec<f32>,
     hidden: Vec<f32>,
     lengths: Vec<f32>,
     /// For each buffer row, its index in the batch.
     rows: Vec<usize>,
+    /// Lifter windows of the lifting rows, one after the other.
+    windows: Vec<f32>,
+    /// For each lifter window, its index in the batch.
+    lift_rows: Vec<usize>,
+    /// For each batch index, the lifted pose (lifting rows that succeeded).
+    lifted: Vec<Option<Pose>>,
 }
 
 fn run<B: Backend>(shared: Arc<Shared>, mut backend: B) {
@@ -317,6 +393,9 @@ fn run<B: Backend>(shared: Arc<Shared>, mut backend: B) {
         hidden: vec![0.0; max * STATE_DIM],
         lengths: vec![0.0; max * OUTPUT_DIM],
         rows: Vec::with_capacity(max),
+        windows: Vec::new(),
+        lift_rows: Vec::new(),
+        lifted: Vec::with_capacity(max),
     };
     let mut batch: Vec<Queued> = Vec::with_capacity(max);
     while next_batch(&shared, &mut batch) {
@@ -388,13 +467,27 @@ fn run_batch<B: Backend>(
 ) {
     let started = Instant::now();
     buf.rows.clear();
-    let mut answers: Vec<Option<StepResult>> = Vec::with_capacity(batch.len());
+    let mut answers: Vec<Option<StepResult>> = batch.iter().map(|_| None).collect();
+    buf.lifted.clear();
+    buf.lifted.resize(batch.len(), None);
+    if let Some(lifter) = &shared.lifter {
+        lift_rows(&lifter.lifter, batch, &mut answers, buf);
+    } else {
+        for (item, answer) in batch.iter().zip(answers.iter_mut()) {
+            if item.job.lift {
+                *answer = Some(Err(StepError::Lifter("this server has no lifter".into())));
+            }
+        }
+    }
     // Gather the states of sessions still owned by the frame's stream.
     for (i, item) in batch.iter().enumerate() {
         metrics::queue_wait(started.saturating_duration_since(item.enqueued));
+        if answers[i].is_some() {
+            continue;
+        }
         let st = item.job.session.lock();
         if !st.accepts(item.job.epoch) {
-            answers.push(Some(Err(StepError::Superseded)));
+            answers[i] = Some(Err(StepError::Superseded));
             continue;
         }
         let r = buf.rows.len();
@@ -402,7 +495,6 @@ fn run_batch<B: Backend>(
         drop(st);
         buf.inputs[r * INPUT_DIM..(r + 1) * INPUT_DIM].copy_from_slice(&item.job.input);
         buf.rows.push(i);
-        answers.push(None);
     }
     let n = buf.rows.len();
     if n > 0 {
@@ -418,7 +510,7 @@ fn run_batch<B: Backend>(
                 for (r, &i) in buf.rows.iter().enumerate() {
                     let hidden = &buf.hidden[r * STATE_DIM..(r + 1) * STATE_DIM];
                     let lengths = &buf.lengths[r * OUTPUT_DIM..(r + 1) * OUTPUT_DIM];
-                    answers[i] = Some(scatter(&batch[i].job, hidden, lengths));
+                    answers[i] = Some(scatter(&batch[i].job, hidden, lengths, buf.lifted[i]));
                 }
             }
             // The engine refuses a whole batch for one bad row; isolate it by
@@ -428,7 +520,7 @@ fn run_batch<B: Backend>(
                 tracing::warn!(error = %e, batch = n, "batched step failed; retrying its rows one by one");
                 for (r, &i) in buf.rows.iter().enumerate() {
                     let input = &buf.inputs[r * INPUT_DIM..(r + 1) * INPUT_DIM];
-                    answers[i] = Some(step_alone(backend, &batch[i].job, input));
+                    answers[i] = Some(step_alone(backend, &batch[i].job, input, buf.lifted[i]));
                 }
             }
             Err(e) => {
@@ -449,9 +541,121 @@ fn run_batch<B: Backend>(
     }
 }
 
+/// Run `f`, turning a panic into an error: the lifter is a large numeric
+/// library call on the batcher thread, and a panic there must fail its rows,
+/// not stop the thread that serves every session.
+fn guarded<T>(f: impl FnOnce() -> blapose_lifters::Result<T>) -> Result<T, String> {
+    match catch_unwind(AssertUnwindSafe(f)) {
+        Ok(Ok(v)) => Ok(v),
+        Ok(Err(e)) => Err(e.to_string()),
+        Err(panic) => Err(format!(
+            "panicked: {}",
+            panic
+                .downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| panic.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "unknown cause".into())
+        )),
+    }
+}
+
+/// The model input as a keypoint frame.
+fn keypoints(input: &[f32; INPUT_DIM]) -> Keypoints2d {
+    std::array::from_fn(|j| [input[2 * j], input[2 * j + 1]])
+}
+
+/// Lift every lifting row of `batch`: copy each session's window plus its
+/// new frame out (the window itself is not changed), run all windows in one
+/// lifter call, and check each pose. Rows that fail get their answer here;
+/// the others get their pose in `buf.lifted`.
+fn lift_rows(
+    lifter: &blapose_lifters::TrainedLifter,
+    batch: &[Queued],
+    answers: &mut [Option<StepResult>],
+    buf: &mut Buffers,
+) {
+    buf.windows.clear();
+    buf.lift_rows.clear();
+    for (i, item) in batch.iter().enumerate() {
+        if !item.job.lift {
+            continue;
+        }
+        let st = item.job.session.lock();
+        if !st.accepts(item.job.epoch) {
+            answers[i] = Some(Err(StepError::Superseded));
+            continue;
+        }
+        let Some(window) = st.window.as_deref() else {
+            answers[i] = Some(Err(StepError::Lifter(
+                "the session has no lifter window".into(),
+            )));
+            continue;
+        };
+        if window.frames() != lifter.receptive_field() {
+            answers[i] = Some(Err(StepError::Lifter(format!(
+                "the session's window holds {} frames, the lifter needs {}",
+                window.frames(),
+                lifter.receptive_field()
+            ))));
+            continue;
+        }
+        window.extend_with_next(&keypoints(&item.job.input), &mut buf.windows);
+        buf.lift_rows.push(i);
+    }
+    let n = buf.lift_rows.len();
+    if n == 0 {
+        return;
+    }
+    let started = Instant::now();
+    let per_window = lifter.receptive_field() * FRAME_VALUES;
+    match guarded(|| lifter.lift_windows(&buf.windows, n)) {
+        Ok(poses) if poses.len() == n => {
+            for (&i, pose) in buf.lift_rows.iter().zip(poses) {
+                accept_lifted(i, pose, answers, &mut buf.lifted);
+            }
+        }
+        // Isolate the row that broke the call: one window at a time.
+        failed => {
+            let reason = match failed {
+                Ok(poses) => format!("{} poses for {n} windows", poses.len()),
+                Err(e) => e,
+            };
+            if n > 1 {
+                tracing::warn!(error = %reason, rows = n, "batched lift failed; retrying its rows one by one");
+            }
+            for (r, &i) in buf.lift_rows.iter().enumerate() {
+                let window = &buf.windows[r * per_window..(r + 1) * per_window];
+                match guarded(|| lifter.lift_windows(window, 1)).map(|mut p| p.pop()) {
+                    Ok(Some(pose)) => accept_lifted(i, pose, answers, &mut buf.lifted),
+                    Ok(None) => answers[i] = Some(Err(StepError::Lifter("no pose".into()))),
+                    Err(e) => answers[i] = Some(Err(StepError::Lifter(e))),
+                }
+            }
+        }
+    }
+    metrics::lift(n, started.elapsed());
+}
+
+fn accept_lifted(
+    i: usize,
+    pose: Pose,
+    answers: &mut [Option<StepResult>],
+    lifted: &mut [Option<Pose>],
+) {
+    match validate::lifted_pose(&pose) {
+        Ok(pose) => lifted[i] = Some(pose),
+        Err(e) => answers[i] = Some(Err(StepError::LiftedPose(e.to_string()))),
+    }
+}
+
 /// Run one frame on its own (state re-read from the session, since a failed
 /// step may have touched the gathered buffer).
-fn step_alone<B: Backend>(backend: &mut B, job: &FrameJob, input: &[f32]) -> StepResult {
+fn step_alone<B: Backend>(
+    backend: &mut B,
+    job: &FrameJob,
+    input: &[f32],
+    lifted: Option<Pose>,
+) -> StepResult {
     let mut hidden = vec![0.0f32; STATE_DIM];
     {
         let st = job.session.lock();
@@ -462,18 +666,29 @@ fn step_alone<B: Backend>(backend: &mut B, job: &FrameJob, input: &[f32]) -> Ste
     }
     let mut lengths = [0.0f32; OUTPUT_DIM];
     match backend.step(input, &mut hidden, &mut lengths, 1) {
-        Ok(()) => scatter(job, &hidden, &lengths),
+        Ok(()) => scatter(job, &hidden, &lengths, lifted),
         Err(e) => Err(StepError::Model(e.to_string())),
     }
 }
 
-fn scatter(job: &FrameJob, hidden: &[f32], lengths: &[f32]) -> StepResult {
+/// Write one successful row back: the GRU state, the prediction and, for a
+/// lifting frame, the frame into the lifter's window, all under one lock.
+fn scatter(job: &FrameJob, hidden: &[f32], lengths: &[f32], lifted: Option<Pose>) -> StepResult {
     if !hidden.iter().chain(lengths).all(|v| v.is_finite()) {
         return Err(StepError::NonFinite);
+    }
+    if job.lift && lifted.is_none() {
+        return Err(StepError::Lifter("the frame was not lifted".into()));
     }
     let mut st = job.session.lock();
     if !st.accepts(job.epoch) {
         return Err(StepError::Superseded);
+    }
+    if job.lift {
+        let Some(window) = st.window.as_deref_mut() else {
+            return Err(StepError::Lifter("the session has no lifter window".into()));
+        };
+        window.push(keypoints(&job.input));
     }
     st.hidden.copy_from_slice(hidden);
     let mut prediction = [0.0f32; OUTPUT_DIM];
@@ -482,6 +697,7 @@ fn scatter(job: &FrameJob, hidden: &[f32], lengths: &[f32]) -> StepResult {
     Ok(StepOutput {
         lengths: st.estimate().unwrap_or(prediction),
         frames_seen: st.frames_seen(),
+        lifted: if job.lift { lifted } else { None },
     })
 }
 
@@ -555,6 +771,7 @@ mod tests {
                 coordinates: Coordinates::Normalized,
             },
             label: String::new(),
+            lifter_frames: None,
         }
     }
 
@@ -573,6 +790,7 @@ mod tests {
                 session: session.clone(),
                 epoch,
                 input,
+                lift: false,
                 reply: tx,
             },
             rx,
@@ -829,6 +1047,164 @@ mod tests {
         for (k, rx) in rxs.into_iter().enumerate() {
             assert_eq!(rx.await.unwrap().unwrap().frames_seen, k as u64 + 1);
         }
+    }
+
+    fn test_lifter() -> Arc<LoadedLifter> {
+        let arch = blapose_lifters::trained::VideoPoseArch {
+            filter_width: 3,
+            blocks: 1,
+            channels: 16,
+            dropout: 0.0,
+            causal: true,
+        };
+        let bytes = blapose_lifters::trained::random_weights_file(arch, 11).unwrap();
+        Arc::new(LoadedLifter {
+            lifter: blapose_lifters::TrainedLifter::from_bytes(&bytes).unwrap(),
+            origin: "test".into(),
+            sha256: String::new(),
+        })
+    }
+
+    fn lifting_config(frames: usize) -> SessionConfig {
+        SessionConfig {
+            lifter_frames: Some(frames),
+            ..session_config()
+        }
+    }
+
+    /// A lifting frame: keypoints that vary with `t`, `tag` in x[1].
+    fn lift_job(
+        session: &Arc<Session>,
+        epoch: u64,
+        t: usize,
+        tag: f32,
+    ) -> (FrameJob, oneshot::Receiver<StepResult>) {
+        let (mut j, rx) = job(session, epoch, 1.0, tag);
+        for (k, v) in j.input.iter_mut().enumerate().skip(2) {
+            *v = (0.3 * t as f32 + 0.7 * k as f32).sin() * 0.5;
+        }
+        j.lift = true;
+        (j, rx)
+    }
+
+    fn window_len(session: &Session) -> usize {
+        session.lock().window.as_deref().map_or(0, |w| w.len())
+    }
+
+    #[tokio::test]
+    async fn lifted_frames_enter_the_window_only_when_the_whole_frame_succeeds() {
+        let fake = Fake::default();
+        let fail = fake.fail.clone();
+        let lifter = test_lifter();
+        let batcher =
+            Batcher::start_with_lifter(fake, config(8, 0, 100), Some(lifter.clone())).unwrap();
+        let (store, _g) = SessionStore::new(10, Duration::from_secs(60));
+        let a = store.open(lifting_config(9)).unwrap();
+        // The library path: the same frames through a window of our own.
+        let mut mine = lifter.lifter.window();
+
+        let (j, rx) = lift_job(&a.session, a.epoch, 0, 0.0);
+        let frame0 = keypoints(&j.input);
+        batcher.submit(j).unwrap();
+        let out = rx.await.unwrap().unwrap();
+        mine.push(frame0);
+        assert_eq!(out.lifted, Some(lifter.lifter.lift(&mut mine).unwrap()));
+        assert_eq!(out.lifted.unwrap()[0], [0.0; 3]);
+        assert_eq!((out.frames_seen, window_len(&a.session)), (1, 1));
+
+        // The GRU step fails: lifted fine, but nothing is kept.
+        fail.store(true, Ordering::Relaxed);
+        let (j, rx) = lift_job(&a.session, a.epoch, 50, 0.0);
+        batcher.submit(j).unwrap();
+        assert!(matches!(rx.await.unwrap(), Err(StepError::Model(_))));
+        fail.store(false, Ordering::Relaxed);
+        assert_eq!(window_len(&a.session), 1);
+
+        // A taken-over stream's lifting frame: refused before the lifter.
+        let resumed = store.resume(&a.session.id().to_string()).unwrap();
+        let (j, rx) = lift_job(&a.session, a.epoch, 51, 0.0);
+        batcher.submit(j).unwrap();
+        assert_eq!(rx.await.unwrap(), Err(StepError::Superseded));
+        assert_eq!(window_len(&a.session), 1);
+
+        // A pose that cannot be adjusted (here: out of bounds): refused.
+        let (mut j, rx) = lift_job(&a.session, resumed.epoch, 52, 0.0);
+        j.input[2..].fill(1e6);
+        batcher.submit(j).unwrap();
+        let err = rx.await.unwrap().unwrap_err();
+        assert!(matches!(err, StepError::LiftedPose(_)), "{err}");
+        assert_eq!(err.code(), tonic::Code::Internal);
+        assert_eq!(window_len(&a.session), 1);
+
+        // The next good frame continues from frame 0 alone.
+        let (j, rx) = lift_job(&a.session, resumed.epoch, 1, 0.0);
+        let frame1 = keypoints(&j.input);
+        batcher.submit(j).unwrap();
+        let out = rx.await.unwrap().unwrap();
+        mine.push(frame1);
+        assert_eq!(out.lifted, Some(lifter.lifter.lift(&mut mine).unwrap()));
+        assert_eq!((out.frames_seen, window_len(&a.session)), (2, 2));
+    }
+
+    #[tokio::test]
+    async fn lifting_and_client_pose_frames_share_a_batch() {
+        let fake = Fake::default();
+        let log = fake.log.clone();
+        let lifter = test_lifter();
+        let batcher =
+            Batcher::start_with_lifter(fake, config(8, 500, 100), Some(lifter.clone())).unwrap();
+        let (store, _g) = SessionStore::new(10, Duration::from_secs(60));
+        let a = store.open(lifting_config(9)).unwrap();
+        let b = store.open(lifting_config(9)).unwrap();
+        let c = store.open(session_config()).unwrap();
+        let _guards: Vec<_> = (0..3).map(|_| batcher.stream_guard()).collect();
+        let (ja, ra) = lift_job(&a.session, a.epoch, 3, 0.0);
+        let (jb, rb) = lift_job(&b.session, b.epoch, 8, 1.0);
+        let (jc, rc) = job(&c.session, c.epoch, 1.0, 2.0);
+        let (fa, fb) = (keypoints(&ja.input), keypoints(&jb.input));
+        for j in [ja, jb, jc] {
+            batcher.submit(j).unwrap();
+        }
+        let (oa, ob, oc) = (
+            ra.await.unwrap().unwrap(),
+            rb.await.unwrap().unwrap(),
+            rc.await.unwrap().unwrap(),
+        );
+        assert_eq!(
+            log.lock().unwrap().last().map(Vec::len),
+            Some(3),
+            "one batch"
+        );
+        for (out, frame) in [(oa, fa), (ob, fb)] {
+            let mut w = lifter.lifter.window();
+            w.push(frame);
+            let want = lifter.lifter.lift(&mut w).unwrap();
+            let got = out.lifted.expect("lifted");
+            for (u, v) in got.iter().flatten().zip(want.iter().flatten()) {
+                assert!((u - v).abs() < 1e-5, "{u} vs {v}");
+            }
+        }
+        assert_eq!(oc.lifted, None, "a client pose is not lifted");
+        assert!(c.session.lock().window.is_none());
+    }
+
+    #[tokio::test]
+    async fn a_batcher_without_a_lifter_refuses_lifting_frames() {
+        let batcher = Batcher::start(Fake::default(), config(8, 0, 100)).unwrap();
+        let (store, _g) = SessionStore::new(10, Duration::from_secs(60));
+        let a = store.open(lifting_config(9)).unwrap();
+        let (j, rx) = lift_job(&a.session, a.epoch, 0, 0.0);
+        batcher.submit(j).unwrap();
+        assert!(matches!(rx.await.unwrap(), Err(StepError::Lifter(_))));
+        assert_eq!(a.session.lock().frames_seen(), 0);
+    }
+
+    #[test]
+    fn panics_in_the_lifter_become_errors() {
+        let r: Result<(), String> = guarded(|| panic!("boom"));
+        assert_eq!(r, Err("panicked: boom".to_string()));
+        let r: Result<u8, String> = guarded(|| Ok(3));
+        assert_eq!(r, Ok(3));
     }
 
     #[test]

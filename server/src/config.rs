@@ -56,6 +56,10 @@ pub struct ServerConfig {
     pub weights: WeightsSource,
     /// Offline Bi-GRU weights.
     pub bigru_weights: WeightsSource,
+    /// A trained causal lifter (`blapose train-lifter` weights file) the
+    /// server runs for sessions that send 2D keypoints only; `None`: no
+    /// server lifter (clients send their own 3D poses).
+    pub lifter_weights: Option<PathBuf>,
     /// Maximum number of sessions held (attached or detached).
     pub max_sessions: usize,
     /// How long a detached session survives before it is evicted.
@@ -93,6 +97,7 @@ impl Default for ServerConfig {
             metrics_addr: None,
             weights: WeightsSource::Embedded,
             bigru_weights: WeightsSource::Embedded,
+            lifter_weights: None,
             max_sessions: DEFAULT_MAX_SESSIONS,
             session_ttl: Duration::from_secs(DEFAULT_SESSION_TTL_S),
             max_batch: DEFAULT_MAX_BATCH,
@@ -147,6 +152,12 @@ pub struct Cli {
     /// Offline Bi-GRU weights (safetensors); default: the weights embedded in this binary.
     #[arg(long, env = "BLAPOSE_BIGRU_WEIGHTS", value_name = "FILE")]
     pub bigru_weights: Option<PathBuf>,
+
+    /// A trained causal lifter (a `blapose train-lifter --model videopose --causal`
+    /// weights file): sessions opened with server_lifter send 2D keypoints only and
+    /// the server lifts them. Default: no server lifter.
+    #[arg(long, env = "BLAPOSE_LIFTER_WEIGHTS", value_name = "FILE")]
+    pub lifter_weights: Option<PathBuf>,
 
     /// Maximum sessions held at once (attached or detached); more -> RESOURCE_EXHAUSTED.
     #[arg(long, env = "BLAPOSE_MAX_SESSIONS", default_value_t = DEFAULT_MAX_SESSIONS,
@@ -247,6 +258,7 @@ impl Cli {
             bigru_weights: self
                 .bigru_weights
                 .map_or(WeightsSource::Embedded, WeightsSource::File),
+            lifter_weights: self.lifter_weights,
             max_sessions: self.max_sessions,
             session_ttl: self.session_ttl,
             max_batch: self.max_batch,
@@ -334,6 +346,24 @@ mod tests {
         assert_eq!(cfg.max_message_bytes, def.max_message_bytes);
         assert_eq!(cfg.shutdown_grace, def.shutdown_grace);
         assert_eq!(cfg.weights, WeightsSource::Embedded);
+        assert_eq!(cfg.lifter_weights, None, "no server lifter unless asked");
+        assert_eq!(def.lifter_weights, None);
+    }
+
+    #[test]
+    fn lifter_weights_flag_sets_the_server_lifter() {
+        let cli = Cli::try_parse_from([
+            "blapose-server",
+            "--lifter-weights",
+            "models/lifter_videopose27_causal.safetensors",
+        ])
+        .unwrap();
+        assert_eq!(
+            cli.into_config().lifter_weights,
+            Some(PathBuf::from(
+                "models/lifter_videopose27_causal.safetensors"
+            ))
+        );
     }
 
     #[test]

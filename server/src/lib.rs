@@ -9,6 +9,13 @@
 //! and the session's running bone-length estimate. The contract is
 //! `proto/blapose/v1/blapose.proto` (crate `blapose-proto`).
 //!
+//! Optionally (`--lifter-weights`) the server also runs a trained causal
+//! lifter, so a client with only a 2D detector can open a session with
+//! `server_lifter` and send keypoints alone: each frame's pose is then lifted
+//! in the batcher from the session's window of recent keypoints (batched
+//! across sessions like the GRU step) and adjusted as a client's pose would
+//! be. Without the flag nothing about serving changes.
+//!
 //! Module map, one concern each:
 //! [`config`] (flags and [`ServerConfig`]), [`session`] (store, TTL, resume),
 //! [`batcher`] (queue and batched steps on a dedicated thread), [`backend`]
@@ -54,7 +61,7 @@ use tonic_health::ServingStatus;
 
 pub use config::{Cli, LogFormat, ServerConfig, TlsFiles, WeightsSource};
 pub use error::ServerError;
-pub use models::{embedded_bigru, embedded_gru, ModelProvider, WeightsProvider};
+pub use models::{embedded_bigru, embedded_gru, LoadedLifter, ModelProvider, WeightsProvider};
 
 use auth::BearerAuth;
 use batcher::{Batcher, BatcherConfig};
@@ -150,21 +157,45 @@ pub async fn spawn_with_provider(
     provider: Arc<dyn ModelProvider>,
 ) -> Result<ServerHandle, ServerError> {
     let local_addr = listener.local_addr()?;
+    // A bad lifter file is a start-up error, before anything is served.
+    let lifter = match config.lifter_weights.clone() {
+        Some(path) => {
+            let lifter = tokio::task::spawn_blocking(move || LoadedLifter::load(&path))
+                .await
+                .map_err(|e| ServerError::Task(e.to_string()))??;
+            tracing::info!(
+                lifter = lifter.name(),
+                receptive_field = lifter.lifter.receptive_field(),
+                params = lifter.lifter.params(),
+                weights = %lifter.origin,
+                sha256 = %lifter.sha256,
+                "server lifter loaded"
+            );
+            Some(Arc::new(lifter))
+        }
+        None => None,
+    };
     if let Some(addr) = config.metrics_addr {
         metrics::install_exporter(addr)?;
         tracing::info!(%addr, "metrics at http://{addr}/metrics");
     }
 
-    // Build and warm up the online backend off the async workers.
+    // Build and warm up the online backend (and the lifter) off the async
+    // workers.
     let batcher_config = BatcherConfig {
         max_batch: config.max_batch.max(1),
         max_queue_delay: config.max_queue_delay,
         queue_capacity: config.queue_capacity.max(1),
     };
     let online_provider = provider.clone();
+    let batcher_lifter = lifter.clone();
     let batcher = tokio::task::spawn_blocking(move || -> Result<Batcher, ServerError> {
         let backend = online_provider.online()?;
-        Ok(Batcher::start(backend, batcher_config)?)
+        Ok(Batcher::start_with_lifter(
+            backend,
+            batcher_config,
+            batcher_lifter,
+        )?)
     })
     .await
     .map_err(|e| ServerError::Task(e.to_string()))??;
@@ -177,6 +208,7 @@ pub async fn spawn_with_provider(
         batcher: batcher.clone(),
         offline: OfflineRunner::new(provider.clone(), config.compute_threads),
         provider,
+        lifter,
         draining: shutdown.child_token(),
         max_inflight_per_stream: config.max_inflight_per_stream.max(1),
         max_message_bytes: config.max_message_bytes,

@@ -40,6 +40,10 @@ pub const ERRORS: &str = "blapose_errors_total";
 pub const OFFLINE_SEQUENCES: &str = "blapose_offline_sequences_total";
 /// Time one offline request's model run took.
 pub const OFFLINE_LATENCY: &str = "blapose_offline_latency_seconds";
+/// Frames lifted by the server lifter.
+pub const LIFTED_FRAMES: &str = "blapose_lifted_frames_total";
+/// Time one batched server-lifter call took.
+pub const LIFT_LATENCY: &str = "blapose_lift_latency_seconds";
 
 const LATENCY_BUCKETS: [f64; 14] = [
     50e-6, 100e-6, 250e-6, 500e-6, 1e-3, 2e-3, 5e-3, 10e-3, 20e-3, 50e-3, 100e-3, 250e-3, 1.0, 5.0,
@@ -130,6 +134,15 @@ fn describe() {
         Unit::Seconds,
         "Model time of one offline request."
     );
+    describe_counter!(
+        LIFTED_FRAMES,
+        "Frames the server lifter lifted (sessions opened with server_lifter)."
+    );
+    describe_histogram!(
+        LIFT_LATENCY,
+        Unit::Seconds,
+        "Time one batched server-lifter call took."
+    );
 }
 
 /// A session was opened; `held` sessions now.
@@ -191,6 +204,12 @@ pub fn frame_error(code: tonic::Code) {
 /// An error status (stream-ending or per-frame) was returned.
 pub fn error(code: tonic::Code, rpc: &'static str) {
     counter!(ERRORS, "code" => code_name(code), "rpc" => rpc).increment(1);
+}
+
+/// The server lifter lifted `frames` frames in one call.
+pub fn lift(frames: usize, elapsed: Duration) {
+    counter!(LIFTED_FRAMES).increment(frames as u64);
+    histogram!(LIFT_LATENCY).record(elapsed.as_secs_f64());
 }
 
 /// An offline request finished.

@@ -5,11 +5,15 @@
 //! `blapose-server` serves with no arguments; `--weights` and
 //! `--bigru-weights` override them. [`ModelProvider`] is the seam between the
 //! service and model execution: the real [`WeightsProvider`] builds
-//! blapose-model's fast engines, tests plug in fakes.
+//! blapose-model's fast engines, tests plug in fakes. A server lifter is
+//! never embedded: it runs only when `--lifter-weights` names a trained file
+//! ([`LoadedLifter`]).
 
 use std::collections::HashMap;
+use std::path::Path;
 use std::sync::Arc;
 
+use blapose_lifters::{TrainedLifter, TrainedLifterError};
 use blapose_model::weights::{self, LoadedWeights};
 use blapose_model::{ModelError, ModelKind, OfflineBiGruEngine, OnlineGruEngine, Precision};
 use blapose_proto::v1 as pb;
@@ -77,6 +81,15 @@ pub enum WeightsError {
         #[source]
         source: ModelError,
     },
+    /// The `--lifter-weights` file cannot be served. (The cause is part of
+    /// the message, not a `source()`, so an error chain prints it once.)
+    #[error("cannot serve the lifter weights {path} (--lifter-weights): {cause}")]
+    Lifter {
+        /// The path.
+        path: String,
+        /// The cause.
+        cause: TrainedLifterError,
+    },
 }
 
 /// Weights of one model plus where they came from.
@@ -117,14 +130,10 @@ impl LoadedModel {
                 origin: origin.clone(),
                 source,
             })?;
-        let sha256 = Sha256::digest(&bytes)
-            .iter()
-            .map(|b| format!("{b:02x}"))
-            .collect();
         Ok(Self {
             weights,
             origin,
-            sha256,
+            sha256: sha256_hex(&bytes),
         })
     }
 
@@ -146,6 +155,66 @@ impl LoadedModel {
             weights_source: self.origin.clone(),
             weights_sha256: self.sha256.clone(),
             metadata,
+        }
+    }
+}
+
+fn sha256_hex(bytes: &[u8]) -> String {
+    Sha256::digest(bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+/// The server lifter: a trained causal lifter plus where it came from.
+#[derive(Debug)]
+pub struct LoadedLifter {
+    /// The lifter.
+    pub lifter: TrainedLifter,
+    /// The file path given at start.
+    pub origin: String,
+    /// Lowercase hex SHA-256 of the file bytes.
+    pub sha256: String,
+}
+
+impl LoadedLifter {
+    /// Read `path` and build the lifter, refusing files that cannot be
+    /// served online (see [`blapose_lifters::trained`]).
+    pub fn load(path: &Path) -> Result<Self, WeightsError> {
+        let origin = path.display().to_string();
+        let invalid = |cause| WeightsError::Lifter {
+            path: origin.clone(),
+            cause,
+        };
+        let bytes = std::fs::read(path).map_err(|source| {
+            invalid(TrainedLifterError::Io {
+                path: path.to_path_buf(),
+                source,
+            })
+        })?;
+        let lifter = TrainedLifter::from_bytes(&bytes).map_err(invalid)?;
+        Ok(Self {
+            lifter,
+            sha256: sha256_hex(&bytes),
+            origin,
+        })
+    }
+
+    /// The lifter's name (as `AdjustedFrame.lifter` reports it).
+    pub fn name(&self) -> &str {
+        self.lifter.name()
+    }
+
+    /// The `ModelInfo` entry for the lifter.
+    pub fn describe(&self) -> pb::LifterDescription {
+        pb::LifterDescription {
+            name: self.lifter.name().to_string(),
+            receptive_field: u32::try_from(self.lifter.receptive_field()).unwrap_or(u32::MAX),
+            parameter_count: self.lifter.params() as u64,
+            causal: self.lifter.arch().causal,
+            weights_source: self.origin.clone(),
+            weights_sha256: self.sha256.clone(),
+            metadata: self.lifter.metadata().to_pairs().into_iter().collect(),
         }
     }
 }

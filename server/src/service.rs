@@ -17,7 +17,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 use crate::batcher::Batcher;
 use crate::metrics;
-use crate::models::ModelProvider;
+use crate::models::{LoadedLifter, ModelProvider};
 use crate::offline::OfflineRunner;
 use crate::session::SessionStore;
 use crate::stream::{self, session_status, Outbound};
@@ -33,6 +33,8 @@ pub struct AppState {
     pub offline: OfflineRunner,
     /// Models, for ModelInfo.
     pub provider: Arc<dyn ModelProvider>,
+    /// The server lifter (`--lifter-weights`), if any.
+    pub lifter: Option<Arc<LoadedLifter>>,
     /// Cancelled when shutdown begins: streams stop reading and drain.
     pub draining: CancellationToken,
     /// Per-stream pipelining bound.
@@ -150,6 +152,7 @@ impl pb::pose_adjustment_server::PoseAdjustment for PoseService {
             session_ttl_ms: u64::try_from(self.state.store.ttl().as_millis()).unwrap_or(u64::MAX),
             max_batch: u32::try_from(config.max_batch).unwrap_or(u32::MAX),
             max_message_bytes: self.state.max_message_bytes as u64,
+            lifter: self.state.lifter.as_ref().map(|l| l.describe()),
         }))
     }
 }

@@ -3,12 +3,16 @@
 //!
 //! A session is the GRU's hidden state (2 x 512 floats), the running sum of
 //! the per-frame length predictions, the number of frames seen and the input
-//! format fixed at open. It outlives its stream on purpose: when a connection
-//! drops, the session is *detached* and kept for the TTL so the client can
-//! resume it by id with its state intact. Expiry follows mini-redis's `Db`:
-//! detached sessions sit in an ordered set of deadlines, and one purge task
-//! sleeps until the earliest deadline (woken early when an earlier one
-//! appears) instead of scanning the whole store on a timer.
+//! format fixed at open. A session whose poses the server lifts also holds
+//! the lifter's window of recent normalized keypoints; it is allocated only
+//! for such sessions, so the others cost (almost) what they always did.
+//!
+//! A session outlives its stream on purpose: when a connection drops, the
+//! session is *detached* and kept for the TTL so the client can resume it by
+//! id with its state (the lifter's window included) intact. Expiry follows
+//! mini-redis's `Db`: detached sessions sit in an ordered set of deadlines,
+//! and one purge task sleeps until the earliest deadline (woken early when an
+//! earlier one appears) instead of scanning the whole store on a timer.
 //!
 //! Ownership of a session by a stream is an *epoch*: every open or resume
 //! bumps it, and work stamped with an older epoch (frames of a stream that
@@ -29,6 +33,7 @@ use std::time::Duration;
 
 use blapose_core::layouts::KeypointLayout;
 use blapose_core::{BoneLengths, NUM_BONES};
+use blapose_lifters::SlidingWindow;
 use rand::TryRngCore;
 use tokio::sync::{watch, Notify};
 use tokio::time::Instant;
@@ -127,6 +132,16 @@ pub struct SessionConfig {
     pub input: InputSpec,
     /// Free-form client label for logs (truncated).
     pub label: String,
+    /// `Some(frames)`: the server lifts this session's poses with a lifter
+    /// whose window holds `frames` frames; `None`: the client sends them.
+    pub lifter_frames: Option<usize>,
+}
+
+impl SessionConfig {
+    /// Whether the server lifts this session's poses.
+    pub fn lifting(&self) -> bool {
+        self.lifter_frames.is_some()
+    }
 }
 
 /// Longest client label kept, in bytes.
@@ -176,6 +191,10 @@ pub struct SessionState {
     pub hidden: Box<[f32]>,
     /// Running-mean length estimate and frames seen.
     pub lengths: RunningLengths,
+    /// The server lifter's window of this session's accepted frames
+    /// (normalized Human3.6M-17 keypoints); `None` unless the session lifts.
+    /// Only the batcher pushes to it, together with `hidden` and `lengths`.
+    pub window: Option<Box<SlidingWindow>>,
 }
 
 impl SessionState {
@@ -222,6 +241,9 @@ impl Session {
             closed: false,
             hidden: vec![0.0; STATE_DIM].into_boxed_slice(),
             lengths: RunningLengths::default(),
+            window: config
+                .lifter_frames
+                .map(|frames| Box::new(SlidingWindow::new(frames))),
         };
         let (owner, _) = watch::channel(Ownership {
             epoch: 1,
@@ -578,7 +600,26 @@ mod tests {
                 coordinates: Coordinates::Normalized,
             },
             label: String::new(),
+            lifter_frames: None,
         }
+    }
+
+    #[test]
+    fn only_lifting_sessions_hold_a_window() {
+        let plain = Session::new(SessionId([2; 16]), 1, config());
+        assert!(plain.lock().window.is_none());
+        let lifting = Session::new(
+            SessionId([3; 16]),
+            2,
+            SessionConfig {
+                lifter_frames: Some(27),
+                ..config()
+            },
+        );
+        assert!(lifting.config().lifting());
+        let st = lifting.lock();
+        let window = st.window.as_deref().expect("a window");
+        assert_eq!((window.frames(), window.len()), (27, 0));
     }
 
     #[test]

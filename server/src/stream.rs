@@ -9,6 +9,11 @@
 //! full the task stops reading, and HTTP/2 flow control pushes back on the
 //! client instead of the server buffering without limit.
 //!
+//! In a session opened with `server_lifter`, frames carry keypoints only;
+//! the batcher lifts each one from the session's window of earlier frames
+//! (see [`crate::batcher`]) and the answer is built from that pose and
+//! names the lifter.
+//!
 //! Ending: a `close` request, the client ending its side, a protocol error,
 //! a takeover by another stream, or server shutdown all stop the reading
 //! side first; the task then still answers every pending frame before it
@@ -43,10 +48,11 @@ pub type Outbound = Result<pb::StreamResponse, Status>;
 enum Pending {
     /// Already known (a refused frame).
     Ready(pb::StreamResponse),
-    /// In the batcher.
+    /// In the batcher. `pose` is the client's, `None` when the server
+    /// lifts it.
     Step {
         frame_index: u64,
-        pose: Pose,
+        pose: Option<Pose>,
         received: Instant,
         rx: oneshot::Receiver<StepResult>,
     },
@@ -135,15 +141,29 @@ fn open_or_resume(
             let input =
                 validate::input_spec(open.input_format.as_ref()).map_err(|e| e.to_status())?;
             validate::stream_model(open.model).map_err(|e| e.to_status())?;
+            let lifter_frames = if open.server_lifter {
+                let lifter = state
+                    .lifter
+                    .as_ref()
+                    .ok_or_else(|| validate::InvalidInput::NoServerLifter.to_status())?;
+                Some(lifter.lifter.receptive_field())
+            } else {
+                None
+            };
             let label = truncate_label(&open.client_label);
             let attachment = state
                 .store
-                .open(SessionConfig { input, label })
+                .open(SessionConfig {
+                    input,
+                    label,
+                    lifter_frames,
+                })
                 .map_err(session_status)?;
             tracing::info!(
                 session = %attachment.session.id(),
                 label = %attachment.session.config().label,
                 layout = %input.layout,
+                server_lifter = open.server_lifter,
                 "session opened"
             );
             Ok(attachment)
@@ -199,7 +219,17 @@ fn opened_response(state: &AppState, a: &Attachment) -> pb::StreamResponse {
             input_format: Some(validate::input_spec_to_proto(&a.session.config().input)),
             model: pb::Model::OnlineGru as i32,
             session_ttl_ms: u64::try_from(state.store.ttl().as_millis()).unwrap_or(u64::MAX),
+            lifter: session_lifter(state, a).to_string(),
         })),
+    }
+}
+
+/// The name of the lifter lifting this session's poses; empty when the
+/// client sends them.
+fn session_lifter<'a>(state: &'a AppState, a: &Attachment) -> &'a str {
+    match &state.lifter {
+        Some(l) if a.session.config().lifting() => l.name(),
+        _ => "",
     }
 }
 
@@ -222,7 +252,15 @@ fn frame_error(frame_index: u64, code: tonic::Code, message: String) -> pb::Stre
 fn submit(state: &AppState, a: &Attachment, frame: pb::Frame) -> Pending {
     let received = Instant::now();
     let index = frame.frame_index;
-    let valid = match validate::frame(&a.session.config().input, &frame) {
+    let config = a.session.config();
+    // A lifting session's frame carries keypoints only; its pose comes
+    // from the batcher.
+    let valid = if config.lifting() {
+        validate::keypoints_frame(&config.input, &frame).map(|input| (input, None))
+    } else {
+        validate::frame(&config.input, &frame).map(|v| (v.input, Some(v.pose)))
+    };
+    let (input, pose) = match valid {
         Ok(v) => v,
         Err(e) => {
             return Pending::Ready(frame_error(
@@ -236,13 +274,14 @@ fn submit(state: &AppState, a: &Attachment, frame: pb::Frame) -> Pending {
     let job = FrameJob {
         session: a.session.clone(),
         epoch: a.epoch,
-        input: valid.input,
+        input,
+        lift: pose.is_none(),
         reply,
     };
     match state.batcher.submit(job) {
         Ok(()) => Pending::Step {
             frame_index: index,
-            pose: valid.pose,
+            pose,
             received,
             rx,
         },
@@ -250,8 +289,9 @@ fn submit(state: &AppState, a: &Attachment, frame: pb::Frame) -> Pending {
     }
 }
 
-/// Wait for the front answer and turn it into a response.
-async fn next_answer(pending: &mut VecDeque<Pending>) -> Option<pb::StreamResponse> {
+/// Wait for the front answer and turn it into a response (`lifter`: the
+/// name lifted frames are answered with).
+async fn next_answer(pending: &mut VecDeque<Pending>, lifter: &str) -> Option<pb::StreamResponse> {
     let result = match pending.front_mut()? {
         Pending::Ready(_) => None,
         Pending::Step { rx, .. } => Some(rx.await),
@@ -266,7 +306,7 @@ async fn next_answer(pending: &mut VecDeque<Pending>) -> Option<pb::StreamRespon
                 ..
             },
             Some(result),
-        ) => Some(step_response(frame_index, &pose, received, result)),
+        ) => Some(step_response(frame_index, pose, lifter, received, result)),
         (Pending::Step { frame_index, .. }, None) => Some(frame_error(
             frame_index,
             tonic::Code::Internal,
@@ -277,7 +317,8 @@ async fn next_answer(pending: &mut VecDeque<Pending>) -> Option<pb::StreamRespon
 
 fn step_response(
     frame_index: u64,
-    pose: &Pose,
+    client_pose: Option<Pose>,
+    lifter: &str,
     received: Instant,
     result: Result<StepResult, oneshot::error::RecvError>,
 ) -> pb::StreamResponse {
@@ -292,7 +333,19 @@ fn step_response(
             )
         }
     };
-    match bones::adjust_pose(pose, &output.lengths) {
+    // The client's pose, or the one the server lifted for this frame.
+    let (pose, lifted) = match (client_pose, output.lifted) {
+        (Some(pose), _) => (pose, None),
+        (None, Some(lifted)) => (lifted, Some(lifted)),
+        (None, None) => {
+            return frame_error(
+                frame_index,
+                tonic::Code::Internal,
+                "the frame has neither a client pose nor a lifted one".into(),
+            )
+        }
+    };
+    match bones::adjust_pose(&pose, &output.lengths) {
         Ok(adjusted) => {
             metrics::frame_ok(received.elapsed());
             pb::StreamResponse {
@@ -301,6 +354,14 @@ fn step_response(
                     adjusted_pose_3d: adjusted.iter().flatten().copied().collect(),
                     bone_lengths: output.lengths.to_vec(),
                     frames_seen: output.frames_seen,
+                    lifter: if lifted.is_some() {
+                        lifter.to_string()
+                    } else {
+                        String::new()
+                    },
+                    lifted_pose_3d: lifted
+                        .map(|p| p.iter().flatten().copied().collect())
+                        .unwrap_or_default(),
                 })),
             }
         }
@@ -337,6 +398,7 @@ async fn frames(
     let mut owner: watch::Receiver<Ownership> = a.session.watch();
     let mut reading = true;
     let mut end = End::Detach;
+    let lifter = session_lifter(state, a);
     // A takeover between attaching and subscribing would not show up as a
     // change: check the current owner once up front.
     let now = *owner.borrow_and_update();
@@ -357,7 +419,7 @@ async fn frames(
                     return End::Lost(lost_status(now));
                 }
             }
-            response = next_answer(&mut pending), if !pending.is_empty() => {
+            response = next_answer(&mut pending, lifter), if !pending.is_empty() => {
                 if let Some(response) = response {
                     if tx.send(Ok(response)).await.is_err() {
                         return End::Gone;

@@ -60,6 +60,15 @@ pub enum InvalidInput {
     /// The Bi-GRU on a stream.
     #[error("MODEL_OFFLINE_BIGRU needs the whole sequence; use AdjustSequence, or MODEL_ONLINE_GRU for streaming")]
     OfflineModelOnStream,
+    /// `server_lifter` on a server started without a lifter.
+    #[error("server_lifter was requested but this server has no lifter (start it with --lifter-weights FILE); otherwise send pose_3d with every frame")]
+    NoServerLifter,
+    /// A pose in a session whose poses the server lifts.
+    #[error("pose_3d has {got} values, but this session's poses come from the server lifter (it was opened with server_lifter): send keypoints_2d only, with pose_3d empty")]
+    PoseInLiftingSession {
+        /// Values given.
+        got: usize,
+    },
     /// Wrong keypoint value count.
     #[error(
         "keypoints_2d has {got} values, expected {expected} ({joints} joints x 2) for {layout}"
@@ -375,6 +384,27 @@ pub fn frame(spec: &InputSpec, frame: &pb::Frame) -> Result<ValidFrame, InvalidI
     })
 }
 
+/// Validate a streamed frame of a session whose poses the server lifts:
+/// `pose_3d` must be empty; the keypoints become the model's (and the
+/// lifter's) input.
+pub fn keypoints_frame(
+    spec: &InputSpec,
+    frame: &pb::Frame,
+) -> Result<[f32; INPUT_DIM], InvalidInput> {
+    if !frame.pose_3d.is_empty() {
+        return Err(InvalidInput::PoseInLiftingSession {
+            got: frame.pose_3d.len(),
+        });
+    }
+    model_input(spec, &frame.keypoints_2d, &frame.confidence)
+}
+
+/// Check a pose the server lifter produced as a client's pose is checked
+/// (finite, within bounds, no zero-length bone), so the adjustment accepts it.
+pub fn lifted_pose(pose: &Pose) -> Result<Pose, InvalidInput> {
+    self::pose(pose.as_flattened())
+}
+
 /// A validated offline request.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ValidSequence {
@@ -663,6 +693,42 @@ mod tests {
             "{err}"
         );
         assert!(err.to_string().contains("l_forearm"), "{err}");
+    }
+
+    #[test]
+    fn lifting_frames_carry_keypoints_only() {
+        let s = spec(KeypointLayout::Coco17, Coordinates::Normalized);
+        let kp: Vec<f32> = (0..34).map(|i| (i as f32).cos()).collect();
+        let mut f = pb::Frame {
+            frame_index: 4,
+            keypoints_2d: kp.clone(),
+            confidence: vec![],
+            pose_3d: vec![],
+        };
+        assert_eq!(
+            keypoints_frame(&s, &f),
+            model_input(&s, &kp, &[]),
+            "the same input as a client-pose frame"
+        );
+        f.pose_3d = standing_pose();
+        let err = keypoints_frame(&s, &f).unwrap_err();
+        assert_eq!(err, InvalidInput::PoseInLiftingSession { got: 51 });
+        assert!(err.to_string().contains("server lifter"), "{err}");
+        f.pose_3d.clear();
+        f.keypoints_2d.pop();
+        assert!(matches!(
+            keypoints_frame(&s, &f),
+            Err(InvalidInput::KeypointCount { got: 33, .. })
+        ));
+        // Lifted poses are checked like client poses.
+        let good = pose(&standing_pose()).unwrap();
+        assert_eq!(lifted_pose(&good), Ok(good));
+        let mut flat = good;
+        flat[3] = flat[2];
+        assert!(matches!(
+            lifted_pose(&flat),
+            Err(InvalidInput::Pose(BoneError::ZeroLengthBone { .. }))
+        ));
     }
 
     #[test]

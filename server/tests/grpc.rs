@@ -141,6 +141,7 @@ fn open_request() -> pb::StreamRequest {
             }),
             model: 0,
             client_label: "test".into(),
+            server_lifter: false,
         })),
     }
 }

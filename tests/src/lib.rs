@@ -11,7 +11,9 @@
 //! they use seeded random weights with one change: the output layer's
 //! weights are made positive and small, so predicted lengths are positive
 //! (tens of centimetres) and every adjustment is defined. Only the example
-//! replay test needs the shipped weights and skips without them.
+//! replay test needs the shipped weights and skips without them. The server
+//! lifter tests use a small causal VideoPose3D with random weights written
+//! in the trainer's file format ([`lifter_weights_file`]).
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -22,7 +24,9 @@ use blapose_client::{Client, ClientConfig, Coordinates, KeypointLayout, Sequence
 use blapose_core::bones::adjust_pose;
 use blapose_core::camera::normalize_screen;
 use blapose_core::skeleton::NUM_BONES;
-use blapose_core::{BoneLengths, Pose};
+use blapose_core::{BoneLengths, Keypoints2d, Pose};
+use blapose_lifters::trained::{self, VideoPoseArch};
+use blapose_lifters::TrainedLifter;
 use blapose_model::weights::{self, LoadedWeights};
 use blapose_model::{
     ModelKind, OfflineBiGruEngine, OnlineGruEngine, INPUT_DIM, OUTPUT_DIM, STATE_DIM,
@@ -90,6 +94,87 @@ pub fn test_config() -> ServerConfig {
         shutdown_grace: Duration::from_secs(10),
         ..ServerConfig::default()
     }
+}
+
+/// Size of the test lifter: 3 x 3 = 9 frames, 16 channels, causal.
+pub const TEST_LIFTER: VideoPoseArch = VideoPoseArch {
+    filter_width: 3,
+    blocks: 1,
+    channels: 16,
+    dropout: 0.25,
+    causal: true,
+};
+
+/// Name the server gives the test lifter.
+pub const TEST_LIFTER_NAME: &str = "videopose9-causal";
+
+/// Write `bytes` to `name` in the weights directory (under a temporary
+/// name, then renamed, so concurrent test processes never read a partial
+/// file) and return the path.
+fn write_test_file(name: &str, bytes: &[u8]) -> PathBuf {
+    let path = weights_dir().join(name);
+    let partial = path.with_extension(format!("{}.partial", std::process::id()));
+    std::fs::write(&partial, bytes).expect("write test file");
+    std::fs::rename(&partial, &path).expect("move test file into place");
+    path
+}
+
+/// A lifter weights file as `blapose train-lifter` writes it, of size
+/// [`TEST_LIFTER`] with seeded random weights; written once per process.
+pub fn lifter_weights_file() -> &'static Path {
+    static PATH: OnceLock<PathBuf> = OnceLock::new();
+    PATH.get_or_init(|| {
+        let bytes = trained::random_weights_file(TEST_LIFTER, WEIGHTS_SEED).expect("lifter file");
+        write_test_file("lifter_videopose9_causal.safetensors", &bytes)
+    })
+}
+
+/// The same size and weights, but centred (not servable online).
+pub fn centred_lifter_weights_file() -> &'static Path {
+    static PATH: OnceLock<PathBuf> = OnceLock::new();
+    PATH.get_or_init(|| {
+        let arch = VideoPoseArch {
+            causal: false,
+            ..TEST_LIFTER
+        };
+        let bytes = trained::random_weights_file(arch, WEIGHTS_SEED).expect("lifter file");
+        write_test_file("lifter_videopose9.safetensors", &bytes)
+    })
+}
+
+/// [`test_config`] with the test lifter as the server lifter.
+pub fn lifter_config() -> ServerConfig {
+    ServerConfig {
+        lifter_weights: Some(lifter_weights_file().to_path_buf()),
+        ..test_config()
+    }
+}
+
+/// The test lifter, loaded as the server loads it.
+pub fn test_lifter() -> TrainedLifter {
+    TrainedLifter::from_file(lifter_weights_file()).expect("test lifter loads")
+}
+
+/// The model input of every frame (see [`Reference::model_inputs`]) as
+/// keypoint frames.
+pub fn input_frames(seq: &Sequence) -> Vec<Keypoints2d> {
+    Reference::model_inputs(seq)
+        .chunks_exact(INPUT_DIM)
+        .map(|x| std::array::from_fn(|j| [x[2 * j], x[2 * j + 1]]))
+        .collect()
+}
+
+/// What the server lifter gives for `seq` from a fresh window, frame by
+/// frame (the library path: push, lift).
+pub fn lifted_reference(lifter: &TrainedLifter, seq: &Sequence) -> Vec<Pose> {
+    let mut window = lifter.window();
+    input_frames(seq)
+        .into_iter()
+        .map(|frame| {
+            window.push(frame);
+            lifter.lift(&mut window).expect("lift")
+        })
+        .collect()
 }
 
 /// A server running in this process on `127.0.0.1:<ephemeral>`.
@@ -269,6 +354,19 @@ impl Reference {
             poses.push(adjust_pose(&seq.pose_3d[t], &estimate).expect("adjust"));
             lengths.push(estimate);
         }
+        (poses, lengths)
+    }
+
+    /// Online results for `seq` when the poses are `lifted` (one per frame)
+    /// instead of the sequence's own: the lengths depend on the keypoints
+    /// only, so they are [`Reference::online`]'s.
+    pub fn online_lifted(&self, seq: &Sequence, lifted: &[Pose]) -> (Vec<Pose>, Vec<BoneLengths>) {
+        let (_, lengths) = self.online(seq);
+        let poses = lifted
+            .iter()
+            .zip(&lengths)
+            .map(|(p, l)| adjust_pose(p, l).expect("adjust"))
+            .collect();
         (poses, lengths)
     }
 

@@ -26,6 +26,11 @@
 //! few rows of online lifting). A trainer would build its own autograd
 //! forward over the same tensor names.
 //!
+//! [`trained`] loads a VideoPose3D trained by `blapose train-lifter` from
+//! its weights file (architecture and provenance in the file's metadata)
+//! as a [`TrainedLifter`], the causal online lifter blapose-server can run
+//! for clients that send 2D keypoints only.
+//!
 //! Conventions: inputs are normalized 2D keypoints `(B, F, 17, 2)` in
 //! Human3.6M joint order, outputs root-relative 3D poses `(B, 17, 3)` (in
 //! whatever unit the weights were trained in; metres for the references).
@@ -37,6 +42,7 @@ mod kernel;
 mod layers;
 mod params;
 pub mod poseformer;
+pub mod trained;
 pub mod videopose;
 mod window;
 
@@ -44,6 +50,7 @@ pub use anatomy::{Anatomy3d, Anatomy3dConfig, BoneLengthBranch, OnlineBoneLength
 pub use error::{LifterError, Result};
 pub use init::RandomInit;
 pub use poseformer::{PoseFormer, PoseFormerConfig};
+pub use trained::{TrainedLifter, TrainedLifterError};
 pub use videopose::{VideoPose3d, VideoPose3dConfig};
 pub use window::{keypoints_tensor, poses_from_tensor, SlidingWindow};
 

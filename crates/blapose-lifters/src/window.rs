@@ -25,13 +25,16 @@ pub struct SlidingWindow {
 }
 
 impl SlidingWindow {
-    /// An empty window of `frames` frames (at least 1).
+    /// An empty window of `frames` frames (at least 1). The scratch buffer
+    /// of [`SlidingWindow::tensor`] is allocated on first use, so a window
+    /// only read through [`SlidingWindow::extend_with_next`] (the server's
+    /// batched path) holds just its frames.
     pub fn new(frames: usize) -> Self {
         let frames = frames.max(1);
         Self {
             frames,
             buf: VecDeque::with_capacity(frames),
-            flat: Vec::with_capacity(frames * NUM_JOINTS * 2),
+            flat: Vec::new(),
         }
     }
 
@@ -56,6 +59,28 @@ impl SlidingWindow {
             self.buf.pop_front();
         }
         self.buf.push_back(frame);
+    }
+
+    /// Append to `out` the window as it will be after `push(next)`:
+    /// `frames x 17 x 2` values, oldest frame first, edge-padded in front
+    /// while not yet full (exactly what [`SlidingWindow::tensor`] would
+    /// hold after the push). The window itself is not changed, so a caller
+    /// can lift a frame first and `push` it only once everything else about
+    /// that frame has succeeded (a refused frame must leave a stream's
+    /// state as it was).
+    pub fn extend_with_next(&self, next: &Keypoints2d, out: &mut Vec<f32>) {
+        // Frames kept from the buffer: the newest `frames - 1` at most.
+        let kept = self.buf.len().min(self.frames - 1);
+        let skip = self.buf.len() - kept;
+        let first = self.buf.get(skip).unwrap_or(next);
+        out.reserve(self.frames * NUM_JOINTS * INPUT_FEATURES);
+        for _ in kept + 1..self.frames {
+            out.extend(first.iter().flatten());
+        }
+        for frame in self.buf.iter().skip(skip) {
+            out.extend(frame.iter().flatten());
+        }
+        out.extend(next.iter().flatten());
     }
 
     /// The window as a `(1, frames, 17, 2)` tensor, oldest frame first,
@@ -127,6 +152,31 @@ mod tests {
         }
         assert_eq!(w.len(), 4);
         assert_eq!(firsts(&w.tensor().unwrap().unwrap()), [3.0, 4.0, 5.0, 6.0]);
+    }
+
+    #[test]
+    fn extend_with_next_is_the_window_after_a_push_and_changes_nothing() {
+        for frames in [1, 2, 4] {
+            let mut w = SlidingWindow::new(frames);
+            for v in 1..=6 {
+                let next = frame(v as f32);
+                let mut got = Vec::new();
+                w.extend_with_next(&next, &mut got);
+                assert_eq!(w.len(), (v - 1).min(frames), "unchanged");
+                let mut pushed = w.clone();
+                pushed.push(next);
+                let want: Vec<f32> = pushed
+                    .tensor()
+                    .unwrap()
+                    .unwrap()
+                    .flatten_all()
+                    .unwrap()
+                    .to_vec1()
+                    .unwrap();
+                assert_eq!(got, want, "frames {frames}, after {v} pushes");
+                w.push(next);
+            }
+        }
     }
 
     #[test]

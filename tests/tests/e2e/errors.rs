@@ -17,6 +17,11 @@ fn status_of<T: std::fmt::Debug>(result: Result<T, ClientError>) -> tonic::Statu
     }
 }
 
+/// The client pose of a frame built from a replay sequence.
+fn pose(f: &mut FrameInput) -> &mut blapose_core::Pose {
+    f.pose_3d.as_mut().expect("a frame with a client pose")
+}
+
 fn open_request(
     layout: i32,
     coordinates: Option<pb::input_format::Coordinates>,
@@ -30,6 +35,7 @@ fn open_request(
             }),
             model: model as i32,
             client_label: "hostile".into(),
+            server_lifter: false,
         })),
     }
 }
@@ -189,9 +195,16 @@ async fn bad_frames_are_rejected_in_band_and_do_not_corrupt_the_session() {
             "+Inf keypoint",
             with(&|f| f.keypoints_2d[0][0] = f32::INFINITY),
         ),
-        ("-Inf pose", with(&|f| f.pose_3d[7][2] = f32::NEG_INFINITY)),
-        ("NaN pose", with(&|f| f.pose_3d[16][0] = f32::NAN)),
-        ("zero-length bone", with(&|f| f.pose_3d[2] = f.pose_3d[1])),
+        ("-Inf pose", with(&|f| pose(f)[7][2] = f32::NEG_INFINITY)),
+        ("NaN pose", with(&|f| pose(f)[16][0] = f32::NAN)),
+        (
+            "zero-length bone",
+            with(&|f| {
+                let p = pose(f);
+                p[2] = p[1];
+            }),
+        ),
+        ("missing pose", with(&|f| f.pose_3d = None)),
         ("huge coordinate", with(&|f| f.keypoints_2d[5][0] = 3.0e38)),
         (
             "wrong confidence count",

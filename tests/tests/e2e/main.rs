@@ -9,12 +9,16 @@
 //!   session limits;
 //! - [`errors`]: every status code the server defines, bad frames that do
 //!   not corrupt a session, message size limits;
+//! - [`lifter`]: the server lifter: keypoint-only sessions, refused frames
+//!   that leave the lifter's window alone, resume, ModelInfo, start-up
+//!   errors, client-pose sessions beside lifting ones;
 //! - [`security`]: the bearer token and TLS;
 //! - [`shutdown`]: graceful shutdown answers frames already received;
 //! - [`example`]: replaying the shipped example improves its accuracy.
 
 mod errors;
 mod example;
+mod lifter;
 mod security;
 mod sessions;
 mod shutdown;

@@ -212,7 +212,7 @@ async fn replay_paces_to_the_requested_frame_rate() {
     let options = ReplayOptions {
         fps: Some(100.0),
         window: 4,
-        label: None,
+        ..ReplayOptions::default()
     };
     let mut progress = Vec::new();
     let result = replay(&client, &seq, &options, |n| progress.push(n))
