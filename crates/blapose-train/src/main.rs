@@ -268,6 +268,10 @@ struct FinetuneArgs {
     /// the objective from that of more training).
     #[arg(long, default_value = "adjusted")]
     objective: String,
+    /// Weight of L_direction in the adjusted objective (the paper: 1; 0 =
+    /// L_MPJPE of the adjusted pose only).
+    #[arg(long, default_value_t = 1.0)]
+    direction_weight: f64,
     #[command(flatten)]
     run: LifterRunArgs,
 }
@@ -693,9 +697,14 @@ fn train_lifter(a: TrainLifterArgs) -> Result<()> {
             })
         }
     };
-    run_lifter_training(&a.run, arch, None, Objective::Mpjpe, (10_000, 1e-3), |_| {
-        Ok(None)
-    })
+    run_lifter_training(
+        &a.run,
+        arch,
+        None,
+        (Objective::Mpjpe, 1.0),
+        (10_000, 1e-3),
+        |_| Ok(None),
+    )
 }
 
 fn finetune(a: FinetuneArgs) -> Result<()> {
@@ -708,7 +717,8 @@ fn finetune(a: FinetuneArgs) -> Result<()> {
         other => anyhow::bail!("unknown objective {other:?} (adjusted, mpjpe)"),
     };
     let init = Some(a.lifter_weights.clone());
-    run_lifter_training(&a.run, meta.arch, init, objective, (2_000, 1e-4), |seqs| {
+    let goal = (objective, a.direction_weight);
+    run_lifter_training(&a.run, meta.arch, init, goal, (2_000, 1e-4), |seqs| {
         if objective == Objective::Mpjpe {
             return Ok(None);
         }
@@ -767,7 +777,8 @@ struct FrozenLengths {
     lengths: Vec<BoneLengths>,
 }
 
-/// Load the training subjects, train `objective` from `init` (fine-tuning)
+/// Load the training subjects, train `objective` (with its direction
+/// weight) from `init` (fine-tuning)
 /// or from scratch, with the per-stream lengths `lengths_for` returns, plot
 /// the curve and print the outcome. `defaults` are `(steps, lr)` when not
 /// given.
@@ -775,7 +786,7 @@ fn run_lifter_training(
     a: &LifterRunArgs,
     arch: blapose_train::lifter::LifterArch,
     init: Option<PathBuf>,
-    objective: Objective,
+    (objective, direction_weight): (Objective, f64),
     defaults: (u64, f64),
     lengths_for: impl FnOnce(
         &[blapose_train::lifter::data::LifterSequence],
@@ -800,6 +811,7 @@ fn run_lifter_training(
         val_samples: a.val_samples,
         checkpoint_secs: a.checkpoint_secs,
         objective,
+        direction_weight,
         init_weights: init,
     };
     let t0 = Instant::now();

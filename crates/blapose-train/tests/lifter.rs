@@ -94,6 +94,7 @@ fn tiny_config(steps: u64) -> LifterTrainConfig {
         val_samples: 64,
         checkpoint_secs: 3600,
         objective: Objective::Mpjpe,
+        direction_weight: 1.0,
         init_weights: None,
     }
 }

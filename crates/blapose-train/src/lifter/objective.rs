@@ -99,12 +99,14 @@ impl AdjustmentGraph {
 
     /// The fine-tuning loss of `(B, 48)` predictions against `(B, 48)`
     /// targets with `(B, 16)` lengths (metres): `(total, L_direction,
-    /// L_MPJPE)`; the total is a scalar tensor to differentiate.
+    /// L_MPJPE)` with `total = direction_weight * L_direction + L_MPJPE`
+    /// (the paper's weight is 1), a scalar tensor to differentiate.
     pub fn loss(
         &self,
         pred: &Tensor,
         target: &Tensor,
         lengths: &Tensor,
+        direction_weight: f64,
     ) -> Result<(Tensor, f64, f64), TrainError> {
         let dirs = self.directions(pred)?;
         let true_dirs = self.directions(target)?.detach();
@@ -116,7 +118,7 @@ impl AdjustmentGraph {
             f64::from(l_dir.to_scalar::<f32>()?),
             f64::from(l_mpjpe.to_scalar::<f32>()?),
         );
-        Ok(((l_dir + l_mpjpe)?, d, m))
+        Ok((((l_dir * direction_weight)? + l_mpjpe)?, d, m))
     }
 }
 
@@ -169,12 +171,12 @@ mod tests {
         let l = Tensor::from_slice(&bone_lengths(&truth), (1, NUM_BONES), &Device::Cpu).unwrap();
         // Every bone twice as long, same directions: the adjustment undoes it.
         let doubled: Pose = std::array::from_fn(|j| truth[j].map(|v| 2.0 * v));
-        let (_, d, m) = g.loss(&row(&doubled), &t, &l).unwrap();
+        let (_, d, m) = g.loss(&row(&doubled), &t, &l, 1.0).unwrap();
         assert!(d < 1e-4 && m < 1e-5, "{d} {m}");
         // Other directions cost in both terms, and the gradient reaches the
         // prediction.
         let wrong = candle_core::Var::from_tensor(&row(&pose(1.3))).unwrap();
-        let (total, d, m) = g.loss(wrong.as_tensor(), &t, &l).unwrap();
+        let (total, d, m) = g.loss(wrong.as_tensor(), &t, &l, 1.0).unwrap();
         assert!(d > 0.01 && m > 0.001, "{d} {m}");
         let grads = total.backward().unwrap();
         let grad = grads.get(wrong.as_tensor()).unwrap().flatten_all().unwrap();

@@ -91,7 +91,7 @@ pub enum StreamLifter<'a> {
     /// Window by window through the trained network.
     Windows(&'a dyn LifterNet),
     /// A temporal model in the inference crate's dilated form.
-    Dilated(blapose_lifters::VideoPose3d),
+    Dilated(Box<blapose_lifters::VideoPose3d>),
 }
 
 impl<'a> StreamLifter<'a> {
@@ -105,10 +105,10 @@ impl<'a> StreamLifter<'a> {
                     candle_core::DType::F32,
                     &Device::Cpu,
                 );
-                Ok(Self::Dilated(blapose_lifters::VideoPose3d::new(
+                Ok(Self::Dilated(Box::new(blapose_lifters::VideoPose3d::new(
                     c.inference_config(),
                     vb,
-                )?))
+                )?)))
             }
             LifterArch::Mlp(_) => Ok(Self::Windows(lifter.net.as_ref())),
         }

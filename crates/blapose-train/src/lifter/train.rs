@@ -88,6 +88,9 @@ pub struct LifterTrainConfig {
     /// What the run minimises.
     #[serde(default)]
     pub objective: Objective,
+    /// Weight of `L_direction` in [`Objective::Adjusted`] (the paper: 1).
+    #[serde(default = "unit_weight")]
+    pub direction_weight: f64,
     /// Start from these weights instead of a seeded initialization
     /// (fine-tuning); the file's architecture must be `arch`.
     #[serde(default)]
@@ -108,6 +111,10 @@ impl LifterTrainConfig {
             a.checkpoint_secs = o.checkpoint_secs;
         })
     }
+}
+
+fn unit_weight() -> f64 {
+    1.0
 }
 
 /// Held-out validation (mm, 17-joint MPJPE).
@@ -238,7 +245,7 @@ fn train_step(
         (Objective::Mpjpe, _) => mpjpe_loss(&pred, &y)?,
         (Objective::Adjusted, Some(lengths)) => {
             let l = batch_lengths(lengths, &b.samples, &b.flipped)?;
-            data.graph.loss(&pred, &y, &l)?.0
+            data.graph.loss(&pred, &y, &l, cfg.direction_weight)?.0
         }
         (Objective::Adjusted, None) => {
             return Err(TrainError::InvalidArgument(
