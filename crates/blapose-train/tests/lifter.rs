@@ -219,6 +219,34 @@ fn temporal_training_loss_falls_centred_and_causal() {
         let w = weights::load(&out.weights).unwrap();
         assert_eq!(w.metadata.arch, cfg.arch);
         assert_eq!(w.net.window(), Window { frames: 9, causal });
+
+        // The contract with the server: the file this crate writes is what
+        // the serving loader reads (causal only), and it lifts the same pose.
+        let served = blapose_lifters::TrainedLifter::from_file(&out.weights);
+        if !causal {
+            assert!(served.is_err(), "a centred lifter cannot be served online");
+            let _ = std::fs::remove_dir_all(&dir);
+            continue;
+        }
+        let served = served.unwrap();
+        assert_eq!(served.name(), cfg.arch.name());
+        assert_eq!(served.receptive_field(), 9);
+        let mut window = served.window();
+        let trial = &seqs[0].trial;
+        for t in 0..9 {
+            let f = &trial.input[t * 34..(t + 1) * 34];
+            window.push(std::array::from_fn(|j| [f[2 * j], f[2 * j + 1]]));
+        }
+        let pose = served.lift(&mut window).unwrap();
+        let ours = blapose_train::lifter::predict::predict_rows(
+            w.net.as_ref(),
+            &trial.input[..9 * 34],
+            false,
+        )
+        .unwrap();
+        for (a, b) in pose.iter().flatten().zip(ours[0].iter().flatten()) {
+            assert!((a - b).abs() < 1e-4, "{a} vs {b}");
+        }
         let _ = std::fs::remove_dir_all(&dir);
     }
 }
