@@ -206,12 +206,14 @@ impl LifterArch {
     }
 }
 
-/// Provenance and conventions of a lifter weights file (the trainer's
-/// `LifterMetadata`, read back).
+/// Provenance and conventions of a lifter weights file. The trainer writes
+/// it with its own architecture type (`A`, the networks it can build) and
+/// the server reads it back with [`LifterArch`]; one struct, so the two
+/// cannot drift apart.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct LifterMetadata {
+pub struct LifterMetadata<A = LifterArch> {
     /// Architecture and size.
-    pub arch: LifterArch,
+    pub arch: A,
     /// 2D input layout (`h36m17`).
     pub keypoint_layout: String,
     /// How pixels were normalized.
@@ -227,7 +229,7 @@ pub struct LifterMetadata {
     pub extra: BTreeMap<String, String>,
 }
 
-impl LifterMetadata {
+impl<A: Serialize> LifterMetadata<A> {
     /// Flat key/value pairs for display (e.g. a server's ModelInfo):
     /// `arch` as JSON, the named fields, and `extra.*`.
     pub fn to_pairs(&self) -> BTreeMap<String, String> {

@@ -140,7 +140,7 @@ impl<'a> StreamLifter<'a> {
 mod tests {
     use super::*;
     use crate::lifter::temporal::TemporalConfig;
-    use crate::lifter::weights::LifterMetadata;
+    use crate::lifter::weights::metadata;
 
     #[test]
     fn dilated_streams_match_windowed_prediction() {
@@ -162,7 +162,7 @@ mod tests {
             let loaded = LoadedLifter {
                 net,
                 varmap,
-                metadata: LifterMetadata::new(arch, "test", 0),
+                metadata: metadata(arch, "test", 0),
             };
             let trial = EvalSequence {
                 subject: "S9".into(),

@@ -37,7 +37,7 @@ use serde::{Deserialize, Serialize};
 use super::data::{held_out_samples, random_batch, training_samples, LifterSequence, SampleIndex};
 use super::objective::{AdjustmentGraph, Objective};
 use super::predict::predict_samples;
-use super::weights::{self, named_tensors, LifterMetadata};
+use super::weights::{self, named_tensors};
 use super::{LifterArch, LifterNet, OUTPUT_DIM};
 use crate::adam::{Adam, AdamConfig};
 use crate::error::TrainError;
@@ -493,7 +493,7 @@ pub fn train(
         }
     }
     let elapsed = t_start.elapsed().as_secs_f64();
-    let mut meta = LifterMetadata::new(cfg.arch, training_data, step);
+    let mut meta = weights::metadata(cfg.arch, training_data, step);
     meta.extra
         .insert("train_config".into(), serde_json::to_string(cfg)?);
     meta.extra.insert(

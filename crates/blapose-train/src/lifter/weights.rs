@@ -10,49 +10,30 @@ use std::path::Path;
 use blapose_model::weights::{DEFAULT_INPUT_NORMALIZATION, DEFAULT_KEYPOINT_LAYOUT};
 use candle_core::Tensor;
 use candle_nn::VarMap;
-use serde::{Deserialize, Serialize};
 
 use super::{LifterArch, LifterNet};
 use crate::error::TrainError;
 
-/// Header key of the metadata JSON.
-pub const METADATA_KEY: &str = "blapose_lifter";
+pub use blapose_lifters::trained::METADATA_KEY;
 
 /// What the output of a lifter is.
 pub const OUTPUT_DESCRIPTION: &str =
     "16 joints (H36M-17 order without the pelvis, which is fixed at 0), root-relative camera space, metres";
 
-/// Provenance and conventions of a lifter weights file.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct LifterMetadata {
-    /// Architecture and size.
-    pub arch: LifterArch,
-    /// 2D input layout.
-    pub keypoint_layout: String,
-    /// How pixels were normalized.
-    pub input_normalization: String,
-    /// What the outputs are.
-    pub output: String,
-    /// Free text: subjects, detections, augmentation.
-    pub training_data: String,
-    /// Optimizer steps trained.
-    pub train_steps: u64,
-    /// Further key/value pairs (training configuration, timings, ...).
-    pub extra: BTreeMap<String, String>,
-}
+/// Provenance and conventions of a lifter weights file: the serving
+/// crate's struct over this crate's architectures.
+pub type LifterMetadata = blapose_lifters::trained::LifterMetadata<LifterArch>;
 
-impl LifterMetadata {
-    /// Metadata with the project's input conventions.
-    pub fn new(arch: LifterArch, training_data: &str, train_steps: u64) -> Self {
-        Self {
-            arch,
-            keypoint_layout: DEFAULT_KEYPOINT_LAYOUT.into(),
-            input_normalization: DEFAULT_INPUT_NORMALIZATION.into(),
-            output: OUTPUT_DESCRIPTION.into(),
-            training_data: training_data.into(),
-            train_steps,
-            extra: BTreeMap::new(),
-        }
+/// Metadata with the project's input conventions.
+pub fn metadata(arch: LifterArch, training_data: &str, train_steps: u64) -> LifterMetadata {
+    LifterMetadata {
+        arch,
+        keypoint_layout: DEFAULT_KEYPOINT_LAYOUT.into(),
+        input_normalization: DEFAULT_INPUT_NORMALIZATION.into(),
+        output: OUTPUT_DESCRIPTION.into(),
+        training_data: training_data.into(),
+        train_steps,
+        extra: BTreeMap::new(),
     }
 }
 
