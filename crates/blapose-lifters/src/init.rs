@@ -14,6 +14,9 @@
 //! around their defaults, so tests can tell a model that uses them from one
 //! that silently ignores them.
 
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, PoisonError};
+
 use candle_core::{DType, Device, Shape, Tensor};
 use candle_nn::var_builder::SimpleBackend;
 use candle_nn::{Init, VarBuilder};
@@ -145,6 +148,59 @@ impl SplitMix64 {
         let u1 = 1.0 - self.unit();
         let u2 = self.unit();
         (mean + std * (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()) as f32
+    }
+}
+
+/// Build a model on [`RandomInit::perturbed`] weights and return it with
+/// every tensor it asked for, by name (what a weights file of it would
+/// hold). For tests, benchmarks and synthetic weights files.
+pub fn record_random<M>(
+    seed: u64,
+    build: impl FnOnce(VarBuilder<'static>) -> crate::Result<M>,
+) -> crate::Result<(M, HashMap<String, Tensor>)> {
+    let seen = Arc::new(Mutex::new(HashMap::new()));
+    let recorder = Recorder {
+        inner: RandomInit::perturbed(seed),
+        seen: Arc::clone(&seen),
+    };
+    let model = build(VarBuilder::from_backend(
+        Box::new(recorder),
+        DType::F32,
+        Device::Cpu,
+    ))?;
+    let tensors = std::mem::take(&mut *seen.lock().unwrap_or_else(PoisonError::into_inner));
+    Ok((model, tensors))
+}
+
+/// A `VarBuilder` backend that keeps every tensor it hands out.
+struct Recorder {
+    inner: RandomInit,
+    seen: Arc<Mutex<HashMap<String, Tensor>>>,
+}
+
+impl SimpleBackend for Recorder {
+    fn get(
+        &self,
+        s: Shape,
+        name: &str,
+        h: Init,
+        dtype: DType,
+        dev: &Device,
+    ) -> candle_core::Result<Tensor> {
+        let t = self.inner.get(s, name, h, dtype, dev)?;
+        self.seen
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .insert(name.to_string(), t.clone());
+        Ok(t)
+    }
+
+    fn get_unchecked(&self, name: &str, dtype: DType, dev: &Device) -> candle_core::Result<Tensor> {
+        self.inner.get_unchecked(name, dtype, dev)
+    }
+
+    fn contains_tensor(&self, name: &str) -> bool {
+        self.inner.contains_tensor(name)
     }
 }
 

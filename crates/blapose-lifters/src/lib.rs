@@ -48,7 +48,7 @@ mod window;
 
 pub use anatomy::{Anatomy3d, Anatomy3dConfig, BoneLengthBranch, OnlineBoneLengths};
 pub use error::{LifterError, Result};
-pub use init::RandomInit;
+pub use init::{record_random, RandomInit};
 pub use poseformer::{PoseFormer, PoseFormerConfig};
 pub use trained::{TrainedLifter, TrainedLifterError};
 pub use videopose::{VideoPose3d, VideoPose3dConfig};

@@ -28,16 +28,14 @@
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex, PoisonError};
 
 use blapose_core::{Pose, NUM_JOINTS};
-use candle_core::{DType, Device, Shape, Tensor};
-use candle_nn::var_builder::SimpleBackend;
-use candle_nn::{Init, VarBuilder};
+use candle_core::{DType, Device, Tensor};
+use candle_nn::VarBuilder;
 use serde::{Deserialize, Serialize};
 
 use crate::error::LifterError;
-use crate::{poses_from_tensor, Lifter, RandomInit, SlidingWindow, VideoPose3d, VideoPose3dConfig};
+use crate::{poses_from_tensor, Lifter, SlidingWindow, VideoPose3d, VideoPose3dConfig};
 use crate::{Result as LifterResult, INPUT_FEATURES};
 
 /// Safetensors header key of the lifter metadata JSON (the trainer's
@@ -467,16 +465,8 @@ pub fn random_metadata(arch: VideoPoseArch, seed: u64) -> LifterMetadata {
 /// file. For tests and benchmarks that need a weights file.
 pub fn random_tensors(arch: VideoPoseArch, seed: u64) -> Result<HashMap<String, Tensor>> {
     arch.check()?;
-    let seen = Arc::new(Mutex::new(HashMap::new()));
-    let recorder = Recorder {
-        inner: RandomInit::perturbed(seed),
-        seen: seen.clone(),
-    };
-    VideoPose3d::new(
-        arch.config(),
-        VarBuilder::from_backend(Box::new(recorder), DType::F32, Device::Cpu),
-    )?;
-    let mut tensors = std::mem::take(&mut *seen.lock().unwrap_or_else(PoisonError::into_inner));
+    let (_, mut tensors) =
+        crate::init::record_random(seed, |vb| VideoPose3d::new(arch.config(), vb))?;
     for name in ["shrink.weight", "shrink.bias"] {
         if let Some(t) = tensors.get(name) {
             let rows = t.dim(0)?;
@@ -492,38 +482,6 @@ pub fn random_tensors(arch: VideoPoseArch, seed: u64) -> Result<HashMap<String, 
 /// [`random_metadata`]).
 pub fn random_weights_file(arch: VideoPoseArch, seed: u64) -> Result<Vec<u8>> {
     weights_file_bytes(&random_tensors(arch, seed)?, &random_metadata(arch, seed))
-}
-
-/// A `VarBuilder` backend that keeps every tensor it hands out.
-struct Recorder {
-    inner: RandomInit,
-    seen: Arc<Mutex<HashMap<String, Tensor>>>,
-}
-
-impl SimpleBackend for Recorder {
-    fn get(
-        &self,
-        s: Shape,
-        name: &str,
-        h: Init,
-        dtype: DType,
-        dev: &Device,
-    ) -> candle_core::Result<Tensor> {
-        let t = self.inner.get(s, name, h, dtype, dev)?;
-        self.seen
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .insert(name.to_string(), t.clone());
-        Ok(t)
-    }
-
-    fn get_unchecked(&self, name: &str, dtype: DType, dev: &Device) -> candle_core::Result<Tensor> {
-        self.inner.get_unchecked(name, dtype, dev)
-    }
-
-    fn contains_tensor(&self, name: &str) -> bool {
-        self.inner.contains_tensor(name)
-    }
 }
 
 #[cfg(test)]

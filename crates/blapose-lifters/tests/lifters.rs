@@ -7,50 +7,18 @@
 //! ~86 M parameters in all) and shared.
 
 use std::collections::HashMap;
-use std::sync::{Arc, Mutex, OnceLock};
+use std::sync::OnceLock;
 
-use candle_core::{DType, Device, Shape, Tensor};
-use candle_nn::var_builder::SimpleBackend;
-use candle_nn::{Init, VarBuilder};
+use candle_core::{DType, Device, Tensor};
+use candle_nn::VarBuilder;
 
 use blapose_lifters::anatomy::{self, REFERENCE_BONES};
 use blapose_lifters::{
-    Anatomy3d, Anatomy3dConfig, Lifter, LifterError, LifterKind, OnlineBoneLengths, PoseFormer,
-    PoseFormerConfig, RandomInit, VideoPose3d, VideoPose3dConfig,
+    record_random, Anatomy3d, Anatomy3dConfig, Lifter, LifterError, LifterKind, OnlineBoneLengths,
+    PoseFormer, PoseFormerConfig, VideoPose3d, VideoPose3dConfig,
 };
 
-/// A backend that records every tensor a constructor asks for (name and
-/// shape) and hands out [`RandomInit::perturbed`] values.
-struct Recorder {
-    inner: RandomInit,
-    seen: Arc<Mutex<HashMap<String, Tensor>>>,
-}
-
-impl SimpleBackend for Recorder {
-    fn get(
-        &self,
-        s: Shape,
-        name: &str,
-        h: Init,
-        dtype: DType,
-        dev: &Device,
-    ) -> candle_core::Result<Tensor> {
-        let t = self.inner.get(s, name, h, dtype, dev)?;
-        self.seen
-            .lock()
-            .unwrap()
-            .insert(name.to_string(), t.clone());
-        Ok(t)
-    }
-    fn get_unchecked(&self, name: &str, dtype: DType, dev: &Device) -> candle_core::Result<Tensor> {
-        self.inner.get_unchecked(name, dtype, dev)
-    }
-    fn contains_tensor(&self, name: &str) -> bool {
-        self.inner.contains_tensor(name)
-    }
-}
-
-/// A model built through a [`Recorder`], with the tensors it loaded.
+/// A model built by [`record_random`], with the tensors it loaded.
 struct Built<M> {
     model: M,
     tensors: HashMap<String, Tensor>,
@@ -60,18 +28,7 @@ fn record<M>(
     seed: u64,
     build: impl FnOnce(VarBuilder<'static>) -> blapose_lifters::Result<M>,
 ) -> Built<M> {
-    let seen = Arc::new(Mutex::new(HashMap::new()));
-    let backend = Recorder {
-        inner: RandomInit::perturbed(seed),
-        seen: Arc::clone(&seen),
-    };
-    let model = build(VarBuilder::from_backend(
-        Box::new(backend),
-        DType::F32,
-        Device::Cpu,
-    ))
-    .unwrap();
-    let tensors = std::mem::take(&mut *seen.lock().unwrap());
+    let (model, tensors) = record_random(seed, build).unwrap();
     Built { model, tensors }
 }
 
