@@ -73,6 +73,20 @@ pub fn seed_weights(varmap: &VarMap, seed: u64, output_weight: &str) -> Result<(
     Ok(())
 }
 
+/// Build a network on a fresh [`VarMap`] and draw its weights from `seed`
+/// ([`seed_weights`], `output_weight` scaled down).
+pub fn seeded<M>(
+    seed: u64,
+    output_weight: &str,
+    build: impl FnOnce(candle_nn::VarBuilder) -> Result<M, TrainError>,
+) -> Result<(M, VarMap), TrainError> {
+    let varmap = VarMap::new();
+    let vb = candle_nn::VarBuilder::from_varmap(&varmap, candle_core::DType::F32, &Device::Cpu);
+    let model = build(vb)?;
+    seed_weights(&varmap, seed, output_weight)?;
+    Ok((model, varmap))
+}
+
 /// Set the first `rows` entries along dimension 0 of each named variable
 /// to zero.
 pub fn zero_leading_rows(varmap: &VarMap, names: &[&str], rows: usize) -> Result<(), TrainError> {

@@ -21,13 +21,13 @@
 //! generator, so a run is a function of its seed.
 
 use blapose_core::Keypoints2d;
-use candle_core::{DType, Device, Tensor};
+use candle_core::{Device, Tensor};
 use candle_nn::{BatchNorm, Linear, Module, ModuleT, VarBuilder, VarMap};
 use rand::RngCore;
 use serde::{Deserialize, Serialize};
 
 use super::data::Window;
-use super::init::{apply_dropout, seed_weights};
+use super::init::{apply_dropout, seeded};
 use super::{LifterKind, LifterNet, OUTPUT_DIM};
 use crate::error::TrainError;
 use crate::synth::FRAME_DIM;
@@ -119,11 +119,7 @@ impl MlpLifter {
 
     /// A fresh model in a new [`VarMap`], initialized from `seed`.
     pub fn init(config: MlpConfig, seed: u64) -> Result<(Self, VarMap), TrainError> {
-        let varmap = VarMap::new();
-        let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
-        let model = Self::new(config, vb)?;
-        seed_weights(&varmap, seed, "output.weight")?;
-        Ok((model, varmap))
+        seeded(seed, "output.weight", |vb| Self::new(config, vb))
     }
 
     /// The size.
@@ -168,6 +164,7 @@ impl LifterNet for MlpLifter {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use candle_core::DType;
 
     #[test]
     fn paper_size_and_seeded_init() {

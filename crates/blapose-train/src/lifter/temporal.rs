@@ -22,13 +22,13 @@
 //! window, so the output belongs to the window's last frame and depends on
 //! past frames only — the variant for online use.
 
-use candle_core::{DType, Device, Tensor};
+use candle_core::Tensor;
 use candle_nn::{BatchNorm, ModuleT, VarBuilder, VarMap};
 use rand::RngCore;
 use serde::{Deserialize, Serialize};
 
 use super::data::Window;
-use super::init::{apply_dropout, seed_weights, zero_leading_rows};
+use super::init::{apply_dropout, seeded, zero_leading_rows};
 use super::{LifterKind, LifterNet, OUTPUT_DIM};
 use crate::error::TrainError;
 use crate::synth::FRAME_DIM;
@@ -215,10 +215,7 @@ impl TemporalLifter {
     /// MLP: Kaiming-normal weights, the output layer scaled down) with the
     /// pelvis rows of `shrink` at zero.
     pub fn init(config: TemporalConfig, seed: u64) -> Result<(Self, VarMap), TrainError> {
-        let varmap = VarMap::new();
-        let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
-        let model = Self::new(config, vb)?;
-        seed_weights(&varmap, seed, "shrink.weight")?;
+        let (model, varmap) = seeded(seed, "shrink.weight", |vb| Self::new(config, vb))?;
         zero_leading_rows(&varmap, &["shrink.weight", "shrink.bias"], 3)?;
         Ok((model, varmap))
     }
@@ -276,6 +273,7 @@ impl LifterNet for TemporalLifter {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use candle_core::{DType, Device};
     use crate::lifter::weights::named_tensors;
 
     fn tensors_count(vars: &VarMap) -> usize {
