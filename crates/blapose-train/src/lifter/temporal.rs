@@ -273,8 +273,8 @@ impl LifterNet for TemporalLifter {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use candle_core::{DType, Device};
     use crate::lifter::weights::named_tensors;
+    use candle_core::{DType, Device};
 
     fn tensors_count(vars: &VarMap) -> usize {
         named_tensors(vars)
