@@ -117,11 +117,7 @@ impl LifterArch {
     pub fn name(&self) -> String {
         match self {
             Self::Mlp(_) => "mlp".into(),
-            Self::Temporal(c) => format!(
-                "videopose{}{}",
-                c.receptive_field(),
-                if c.causal { "-causal" } else { "" }
-            ),
+            Self::Temporal(c) => c.served().name(),
         }
     }
 

@@ -81,13 +81,21 @@ impl TemporalConfig {
         }
     }
 
-    /// The same network for the inference crate (the server's path).
-    pub fn inference_config(&self) -> blapose_lifters::VideoPose3dConfig {
-        blapose_lifters::VideoPose3dConfig {
-            filter_widths: vec![self.filter_width; self.blocks + 1],
+    /// The size as the weights file's metadata records it, which is what
+    /// the serving crate reads back.
+    pub fn served(&self) -> blapose_lifters::trained::VideoPoseArch {
+        blapose_lifters::trained::VideoPoseArch {
+            filter_width: self.filter_width,
+            blocks: self.blocks,
             channels: self.channels,
+            dropout: self.dropout,
             causal: self.causal,
         }
+    }
+
+    /// The same network for the inference crate (the server's path).
+    pub fn inference_config(&self) -> blapose_lifters::VideoPose3dConfig {
+        self.served().config()
     }
 
     fn validate(&self) -> Result<(), TrainError> {
