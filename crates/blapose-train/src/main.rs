@@ -710,7 +710,6 @@ fn train_lifter(a: TrainLifterArgs) -> Result<()> {
 fn finetune(a: FinetuneArgs) -> Result<()> {
     use blapose_train::eval_adjust::LengthEstimates;
     let (meta, _) = blapose_train::lifter::weights::read_lifter(&a.lifter_weights)?;
-    let bigru = blapose_model::weights::load(&a.bigru_weights, blapose_model::ModelKind::BiGru)?;
     let objective = match a.objective.as_str() {
         "adjusted" => Objective::Adjusted,
         "mpjpe" => Objective::Mpjpe,
@@ -748,6 +747,8 @@ fn finetune(a: FinetuneArgs) -> Result<()> {
             return Ok(Some(hit.lengths));
         }
         let t = Instant::now();
+        let bigru =
+            blapose_model::weights::load(&a.bigru_weights, blapose_model::ModelKind::BiGru)?;
         let lengths = LengthEstimates::compute(seqs, None, Some(&bigru))?
             .bigru
             .unwrap_or_default();
