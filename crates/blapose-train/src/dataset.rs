@@ -15,6 +15,7 @@ use std::sync::Arc;
 use blapose_core::bones::{decompose, mean_bone_lengths};
 use blapose_core::camera::{normalize_keypoints, Camera};
 use blapose_core::layouts::KeypointLayout;
+use blapose_core::pose::{flip_bone_lengths, flip_keypoints_normalized};
 use blapose_core::{BoneLengths, Keypoints2d, Pose};
 use blapose_data::h36m::{H36m, Parts, ShKeypoints};
 pub use blapose_data::h36m::{TEST_SUBJECTS, TRAIN_SUBJECTS};
@@ -112,6 +113,24 @@ impl EvalSequence {
             input,
             ..self.clone()
         })
+    }
+
+    /// The same trial seen in a mirror: every frame's keypoints flipped
+    /// horizontally ([`flip_keypoints_normalized`]) and the left/right
+    /// lengths swapped, so the mirrored trial's truth is still `gt` up to
+    /// the swap. Twice is the identity.
+    pub fn mirrored(&self) -> EvalSequence {
+        use crate::synth::FRAME_DIM;
+        let mut input = Vec::with_capacity(self.input.len());
+        for frame in self.input.chunks_exact(FRAME_DIM) {
+            let kp: Keypoints2d = std::array::from_fn(|j| [frame[2 * j], frame[2 * j + 1]]);
+            input.extend(flip_keypoints_normalized(&kp).iter().flatten());
+        }
+        EvalSequence {
+            input,
+            gt: flip_bone_lengths(&self.gt),
+            ..self.clone()
+        }
     }
 }
 
@@ -359,6 +378,26 @@ mod tests {
                 .collect(),
             gt: [0.2; 16],
         }
+    }
+
+    #[test]
+    fn mirroring_flips_x_swaps_sides_and_twice_is_the_identity() {
+        let mut s = ramp(3);
+        for (i, v) in s.input.iter_mut().enumerate() {
+            *v = i as f32 * 0.01;
+        }
+        s.gt[0] = 0.13; // r_hip
+        s.gt[3] = 0.12; // l_hip
+        let m = s.mirrored();
+        assert_eq!(m.frames(), 3);
+        // Joint 1 (r_hip) lands on joint 4 (l_hip), x negated, y kept.
+        let (rx, ry) = (s.input[2], s.input[3]);
+        assert_eq!(m.input[2 * 4], -rx);
+        assert_eq!(m.input[2 * 4 + 1], ry);
+        // The pelvis stays the pelvis.
+        assert_eq!(m.input[0], -s.input[0]);
+        assert_eq!((m.gt[0], m.gt[3]), (0.12, 0.13));
+        assert_eq!(m.mirrored(), s);
     }
 
     #[test]

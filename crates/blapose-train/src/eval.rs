@@ -27,6 +27,7 @@
 use std::collections::BTreeMap;
 
 use blapose_core::metrics::ActionAggregator;
+use blapose_core::pose::flip_bone_lengths;
 use blapose_core::skeleton::{BONE_NAMES, NUM_BONES};
 use blapose_core::BoneLengths;
 use blapose_model::{LoadedWeights, OfflineBiGruEngine, OnlineGruEngine, STATE_DIM};
@@ -112,6 +113,48 @@ impl LengthEstimator for BiGruEstimator {
                 })
             })
             .collect()
+    }
+}
+
+/// Test-time flip augmentation: the mean of an estimator's estimates for
+/// each trial and for its mirror image ([`EvalSequence::mirrored`], lengths
+/// swapped back). Training flips half of its samples, so both views are in
+/// the training distribution and their errors are partly independent; the
+/// cost is a second pass.
+pub struct FlipAveraged<E> {
+    inner: E,
+}
+
+impl<E: LengthEstimator> FlipAveraged<E> {
+    /// Wrap `inner`.
+    pub fn new(inner: E) -> Self {
+        Self { inner }
+    }
+}
+
+fn mean_of_views(a: &BoneLengths, mirrored: &BoneLengths) -> BoneLengths {
+    let b = flip_bone_lengths(mirrored);
+    std::array::from_fn(|i| 0.5 * (a[i] + b[i]))
+}
+
+impl<E: LengthEstimator> LengthEstimator for FlipAveraged<E> {
+    fn estimate(&self, trials: &[EvalSequence]) -> Result<Vec<Estimate>, TrainError> {
+        let direct = self.inner.estimate(trials)?;
+        let mirrored: Vec<EvalSequence> = trials.iter().map(EvalSequence::mirrored).collect();
+        let seen_mirrored = self.inner.estimate(&mirrored)?;
+        Ok(direct
+            .into_iter()
+            .zip(seen_mirrored)
+            .map(|(a, b)| Estimate {
+                lengths: mean_of_views(&a.lengths, &b.lengths),
+                curve: a
+                    .curve
+                    .iter()
+                    .zip(&b.curve)
+                    .map(|(x, y)| mean_of_views(x, y))
+                    .collect(),
+            })
+            .collect())
     }
 }
 
@@ -539,6 +582,47 @@ pub fn markdown(r: &EvalReport) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Predicts the first frame's x coordinate of joint 1 (r_hip) as the
+    /// r_hip length and 0 elsewhere: not mirror-invariant, so the average
+    /// of the two views is visible.
+    struct FirstX;
+
+    impl LengthEstimator for FirstX {
+        fn estimate(&self, trials: &[EvalSequence]) -> Result<Vec<Estimate>, TrainError> {
+            Ok(trials
+                .iter()
+                .map(|t| {
+                    let mut l = [0.0; NUM_BONES];
+                    l[0] = t.input[2];
+                    Estimate {
+                        lengths: l,
+                        curve: vec![l],
+                    }
+                })
+                .collect())
+        }
+    }
+
+    #[test]
+    fn flip_averaging_means_the_direct_and_the_mirrored_view() {
+        let mut input = vec![0.0; FRAME_DIM];
+        input[2] = 0.3; // r_hip x
+        input[8] = 0.1; // l_hip x: r_hip's x in the mirror is -0.1
+        let trial = EvalSequence {
+            subject: "S9".into(),
+            sequence: "Walking".into(),
+            camera: "54138969".into(),
+            input,
+            gt: [0.2; NUM_BONES],
+        };
+        let est = FlipAveraged::new(FirstX).estimate(&[trial]).unwrap();
+        // Direct: r_hip 0.3. Mirrored: r_hip slot -0.1, swapped back to l_hip.
+        assert!((est[0].lengths[0] - 0.15).abs() < 1e-6);
+        assert!((est[0].lengths[3] + 0.05).abs() < 1e-6);
+        assert_eq!(est[0].curve.len(), 1);
+        assert_eq!(est[0].curve[0], est[0].lengths);
+    }
 
     #[test]
     fn chunks_cover_the_sequence() {

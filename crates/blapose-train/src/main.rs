@@ -154,6 +154,10 @@ struct EvalArgs {
     /// many frames instead of one pass over the whole sequence (0 = whole).
     #[arg(long, default_value_t = 0)]
     chunk: usize,
+    /// Test-time flip: average the estimates of each trial and of its
+    /// mirror image (twice the compute).
+    #[arg(long)]
+    flip_average: bool,
     /// Feed the model a stream of this many frames per second (the 50 Hz
     /// data linearly resampled; e.g. 25 or 60).
     #[arg(long, default_value_t = 50.0)]
@@ -592,7 +596,9 @@ fn bench_train(
 fn eval(a: EvalArgs) -> Result<()> {
     use blapose_data::h36m::{H36m, Parts, ALL_SUBJECTS, TRAIN_SUBJECTS};
     use blapose_train::dataset::{eval_sequences, subject_lengths, InputKind};
-    use blapose_train::eval::{evaluate, markdown, BiGruEstimator, GruEstimator, LengthEstimator};
+    use blapose_train::eval::{
+        evaluate, markdown, BiGruEstimator, FlipAveraged, GruEstimator, LengthEstimator,
+    };
     let root = blapose_data::data_root(a.data.clone());
     let kind: blapose_model::ModelKind = a.model.parse()?;
     let input: InputKind = a.input.parse()?;
@@ -639,15 +645,28 @@ fn eval(a: EvalArgs) -> Result<()> {
         ("training_mean", mean_of(&TRAIN_SUBJECTS)?),
         ("all_subjects_mean", mean_of(&ALL_SUBJECTS)?),
     ];
-    let estimator: Box<dyn LengthEstimator> = match kind {
-        blapose_model::ModelKind::BiGru => Box::new(BiGruEstimator::new(&weights, a.chunk)?),
-        blapose_model::ModelKind::Gru => Box::new(GruEstimator::new(&weights)?),
+    let estimator: Box<dyn LengthEstimator> = match (kind, a.flip_average) {
+        (blapose_model::ModelKind::BiGru, false) => {
+            Box::new(BiGruEstimator::new(&weights, a.chunk)?)
+        }
+        (blapose_model::ModelKind::BiGru, true) => Box::new(FlipAveraged::new(
+            BiGruEstimator::new(&weights, a.chunk)?,
+        )),
+        (blapose_model::ModelKind::Gru, false) => Box::new(GruEstimator::new(&weights)?),
+        (blapose_model::ModelKind::Gru, true) => {
+            Box::new(FlipAveraged::new(GruEstimator::new(&weights)?))
+        }
+    };
+    let model_label = if a.flip_average {
+        format!("{}+flip", kind.as_str())
+    } else {
+        kind.as_str().to_string()
     };
     let report = evaluate(
         estimator.as_ref(),
         &trials,
         &baselines,
-        kind.as_str(),
+        &model_label,
         input.name(),
         &a.weights.display().to_string(),
         &a.subjects,
