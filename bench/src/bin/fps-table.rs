@@ -43,7 +43,8 @@ use blapose_lifters::{
     poses_from_tensor, Anatomy3d, Anatomy3dConfig, Lifter, OnlineBoneLengths, PoseFormer,
     PoseFormerConfig, SlidingWindow, VideoPose3d, VideoPose3dConfig,
 };
-use blapose_model::fast::{OnlineGruEngine, StepScratch};
+use blapose_model::fast::{EngineOptions, OnlineGruEngine, StepScratch};
+use blapose_model::Precision;
 use blapose_model::{LoadedWeights, ModelKind, INPUT_DIM, OUTPUT_DIM, STATE_DIM};
 
 /// Reproduce the paper's FPS table (online, batch 1, one frame per step).
@@ -65,9 +66,23 @@ struct Args {
     /// Worker threads of the GRU engine (the lifters use candle's default).
     #[arg(long, default_value_t = 1)]
     gru_threads: usize,
+    /// Storage precision of the GRU engine's weights: f16 (the server's
+    /// default) or f32.
+    #[arg(long, default_value = "f16", value_parser = blapose_server::config::parse_precision)]
+    gru_precision: Precision,
+    /// Instruction set of the GRU engine (scalar, avx2, avx512); default:
+    /// the best this CPU supports.
+    #[arg(long)]
+    gru_isa: Option<String>,
     /// Online GRU weights (safetensors); random weights when absent.
     #[arg(long)]
     gru_weights: Option<PathBuf>,
+    /// Run each frame's GRU step concurrently with the lifter
+    /// (`rayon::join` on the same pool; the GRU reads only the 2D frame),
+    /// then adjust the lifter's pose. Default: one after the other, the
+    /// paper's protocol.
+    #[arg(long)]
+    overlap: bool,
     /// Use the centred (non-causal) VideoPose3D and Anatomy3D; same cost.
     #[arg(long)]
     centred: bool,
@@ -199,8 +214,11 @@ struct Conditions {
     thread_env: String,
     gru_threads: usize,
     gru_isa: String,
+    gru_precision: String,
     gru_weights: String,
     causal_lifters: bool,
+    /// The GRU step ran concurrently with the lifter (`--overlap`).
+    overlap: bool,
     load_average_before: String,
     load_average_after: String,
     /// Median time per frame of the adjustment alone (GRU step, running
@@ -424,10 +442,18 @@ fn lifter_row(
             // Per-step time of the adjustment part; the last `steps` are the timed ones.
             let mut adj_secs = Vec::with_capacity(args.warmup + args.steps);
             let mut m = measure(stream, args.warmup, args.steps, |f| {
-                let pose = s.step(f)?;
-                let t = Instant::now();
-                black_box(adj.adjust(f, &pose)?);
-                adj_secs.push(t.elapsed().as_secs_f64());
+                if args.overlap {
+                    let (pose, lengths) = rayon::join(|| s.step(f), || adj.lengths(f));
+                    let (pose, lengths) = (pose?, lengths?);
+                    let t = Instant::now();
+                    black_box(adjust_pose_lenient(&pose, &lengths)?);
+                    adj_secs.push(t.elapsed().as_secs_f64());
+                } else {
+                    let pose = s.step(f)?;
+                    let t = Instant::now();
+                    black_box(adj.adjust(f, &pose)?);
+                    adj_secs.push(t.elapsed().as_secs_f64());
+                }
                 Ok(())
             })?;
             let timed: f64 = adj_secs[adj_secs.len().saturating_sub(args.steps)..]
@@ -511,7 +537,14 @@ fn build_models(args: &Args, rows: &[RowKind]) -> Result<Models> {
                 )
             })
             .transpose()?,
-        gru: OnlineGruEngine::new(&weights, args.gru_threads)?,
+        gru: OnlineGruEngine::with_options(
+            &weights,
+            EngineOptions {
+                precision: args.gru_precision,
+                isa: args.gru_isa.as_deref().map(str::parse).transpose()?,
+                ..EngineOptions::threads(args.gru_threads)
+            },
+        )?,
     })
 }
 
@@ -552,11 +585,16 @@ fn markdown(report: &Report) -> String {
         c.runs, c.warmup
     ));
     s.push_str(&format!(
-        "- lifters: {} variants; adjustment = online GRU step + running mean + adjust_pose\n",
+        "- lifters: {} variants; adjustment = online GRU step + running mean + adjust_pose{}\n",
         if c.causal_lifters {
             "causal (VideoPose3D, Anatomy3D)"
         } else {
             "centred"
+        },
+        if c.overlap {
+            " (GRU step concurrent with the lifter; in-step overhead = adjust_pose only)"
+        } else {
+            " (after the lifter, one after the other)"
         }
     ));
     s.push_str(&format!(
@@ -564,8 +602,8 @@ fn markdown(report: &Report) -> String {
         c.cpu, c.logical_cpus
     ));
     s.push_str(&format!(
-        "- threads: lifters {} ({}), GRU engine {} ({}); GRU weights: {}\n",
-        c.candle_threads, c.thread_env, c.gru_threads, c.gru_isa, c.gru_weights
+        "- threads: lifters {} ({}), GRU engine {} ({}, {} weights); GRU weights: {}\n",
+        c.candle_threads, c.thread_env, c.gru_threads, c.gru_isa, c.gru_precision, c.gru_weights
     ));
     s.push_str(&format!(
         "- load average before: {}; after: {}\n",
@@ -723,12 +761,14 @@ fn main() -> Result<()> {
             thread_env,
             gru_threads: models.gru.threads(),
             gru_isa: format!("{:?}", models.gru.isa()),
+            gru_precision: format!("{:?}", models.gru.precision()),
             gru_weights: args
                 .gru_weights
                 .as_ref()
                 .map(|p| p.display().to_string())
                 .unwrap_or_else(|| format!("random (seed {})", args.seed)),
             causal_lifters: !args.centred,
+            overlap: args.overlap,
             load_average_before: load_before,
             load_average_after: load_average(),
             adjustment_alone_us: adjustment_us,
@@ -826,8 +866,10 @@ mod tests {
                 thread_env: String::new(),
                 gru_threads: 1,
                 gru_isa: "Avx512".into(),
+                gru_precision: "F16".into(),
                 gru_weights: "random".into(),
                 causal_lifters: true,
+                overlap: false,
                 load_average_before: "0 0 0".into(),
                 load_average_after: "0 0 0".into(),
                 adjustment_alone_us: 400.0,

@@ -649,9 +649,9 @@ fn eval(a: EvalArgs) -> Result<()> {
         (blapose_model::ModelKind::BiGru, false) => {
             Box::new(BiGruEstimator::new(&weights, a.chunk)?)
         }
-        (blapose_model::ModelKind::BiGru, true) => Box::new(FlipAveraged::new(
-            BiGruEstimator::new(&weights, a.chunk)?,
-        )),
+        (blapose_model::ModelKind::BiGru, true) => {
+            Box::new(FlipAveraged::new(BiGruEstimator::new(&weights, a.chunk)?))
+        }
         (blapose_model::ModelKind::Gru, false) => Box::new(GruEstimator::new(&weights)?),
         (blapose_model::ModelKind::Gru, true) => {
             Box::new(FlipAveraged::new(GruEstimator::new(&weights)?))
