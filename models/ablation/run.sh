@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# The Bi-GRU sampling-strategy / detector-noise ablation of models/README.md.
+#
+#   models/ablation/run.sh NAME STEPS --lengths L --noise N
+#
+# trains runs/ablation/NAME with the shipped recipe (only --lengths / --noise
+# differ), resuming from its checkpoint when there is one, then evaluates it on
+# S9/S11 with SH and GT 2D input into runs/ablation/NAME/eval_{sh,gt}_STEPS.*.
+# Run from the repository root after `cargo build --release -p blapose-train`;
+# the data root is $BLAPOSE_DATA or ../shared/data. The runs of the model card:
+#   run.sh true 2000 --lengths true --noise residual
+#   run.sh uniform 2000 --lengths uniform --noise residual
+#   run.sh normal 2000 --lengths normal --noise residual
+#   run.sh ansur 2000 --lengths ansur --noise residual    (then 2977)
+#   run.sh noise_none 2000 --lengths ansur --noise none   (then 2977)
+set -euo pipefail
+name=$1; steps=$2; shift 2
+bin=./target/release/blapose
+out=runs/ablation/$name
+mkdir -p "$out"
+common=(--ansur-spread 2.0 --shift-plane ground --batch 32 --seq-len 64 --lr 3e-4 --lr-decay 0.9
+  --epoch-steps 500 --head-lr-scale 0.01 --ema-decay 0.999 --val-every 200 --checkpoint-secs 300 --seed 3)
+resume=()
+[ -f "$out/checkpoint.safetensors" ] && resume=(--resume)
+RAYON_NUM_THREADS=1 "$bin" train --model bigru "${common[@]}" "$@" --steps "$steps" --out "$out" "${resume[@]}"
+for input in sh gt; do
+  "$bin" eval --model bigru --input "$input" --weights "$out/model.safetensors" \
+    --json "$out/eval_${input}_${steps}.json" > "$out/eval_${input}_${steps}.md"
+done
