@@ -15,7 +15,7 @@ use std::sync::Arc;
 use blapose_core::bones::{decompose, mean_bone_lengths};
 use blapose_core::camera::{normalize_keypoints, Camera};
 use blapose_core::layouts::KeypointLayout;
-use blapose_core::pose::{flip_bone_lengths, flip_keypoints_normalized};
+use blapose_core::pose::flip_bone_lengths;
 use blapose_core::{BoneLengths, Keypoints2d, Pose};
 use blapose_data::h36m::{H36m, Parts, ShKeypoints};
 pub use blapose_data::h36m::{TEST_SUBJECTS, TRAIN_SUBJECTS};
@@ -109,27 +109,28 @@ impl EvalSequence {
             );
             input.extend(fa.iter().zip(fb).map(|(x, y)| x + (y - x) * t));
         }
-        Ok(EvalSequence {
-            input,
-            ..self.clone()
-        })
+        Ok(self.with_input(input, self.gt))
     }
 
     /// The same trial seen in a mirror: every frame's keypoints flipped
-    /// horizontally ([`flip_keypoints_normalized`]) and the left/right
-    /// lengths swapped, so the mirrored trial's truth is still `gt` up to
-    /// the swap. Twice is the identity.
+    /// horizontally ([`crate::synth::flip_input`], the training flip) and
+    /// the left/right lengths swapped, so the mirrored trial's truth is
+    /// still `gt` up to the swap. Twice is the identity.
     pub fn mirrored(&self) -> EvalSequence {
-        use crate::synth::FRAME_DIM;
-        let mut input = Vec::with_capacity(self.input.len());
-        for frame in self.input.chunks_exact(FRAME_DIM) {
-            let kp: Keypoints2d = std::array::from_fn(|j| [frame[2 * j], frame[2 * j + 1]]);
-            input.extend(flip_keypoints_normalized(&kp).iter().flatten());
-        }
+        self.with_input(
+            crate::synth::flip_input(&self.input),
+            flip_bone_lengths(&self.gt),
+        )
+    }
+
+    /// This trial's labels with another input stream and truth.
+    fn with_input(&self, input: Vec<f32>, gt: BoneLengths) -> EvalSequence {
         EvalSequence {
+            subject: self.subject.clone(),
+            sequence: self.sequence.clone(),
+            camera: self.camera.clone(),
             input,
-            gt: flip_bone_lengths(&self.gt),
-            ..self.clone()
+            gt,
         }
     }
 }

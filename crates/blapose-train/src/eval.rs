@@ -59,6 +59,12 @@ pub trait LengthEstimator: Sync {
     fn estimate(&self, trials: &[EvalSequence]) -> Result<Vec<Estimate>, TrainError>;
 }
 
+impl<E: LengthEstimator + ?Sized> LengthEstimator for Box<E> {
+    fn estimate(&self, trials: &[EvalSequence]) -> Result<Vec<Estimate>, TrainError> {
+        (**self).estimate(trials)
+    }
+}
+
 /// The offline Bi-GRU over whole sequences (or chunks).
 pub struct BiGruEstimator {
     engine: OfflineBiGruEngine,

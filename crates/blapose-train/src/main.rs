@@ -645,22 +645,17 @@ fn eval(a: EvalArgs) -> Result<()> {
         ("training_mean", mean_of(&TRAIN_SUBJECTS)?),
         ("all_subjects_mean", mean_of(&ALL_SUBJECTS)?),
     ];
-    let estimator: Box<dyn LengthEstimator> = match (kind, a.flip_average) {
-        (blapose_model::ModelKind::BiGru, false) => {
-            Box::new(BiGruEstimator::new(&weights, a.chunk)?)
-        }
-        (blapose_model::ModelKind::BiGru, true) => {
-            Box::new(FlipAveraged::new(BiGruEstimator::new(&weights, a.chunk)?))
-        }
-        (blapose_model::ModelKind::Gru, false) => Box::new(GruEstimator::new(&weights)?),
-        (blapose_model::ModelKind::Gru, true) => {
-            Box::new(FlipAveraged::new(GruEstimator::new(&weights)?))
-        }
+    let model: Box<dyn LengthEstimator> = match kind {
+        blapose_model::ModelKind::BiGru => Box::new(BiGruEstimator::new(&weights, a.chunk)?),
+        blapose_model::ModelKind::Gru => Box::new(GruEstimator::new(&weights)?),
     };
-    let model_label = if a.flip_average {
-        format!("{}+flip", kind.as_str())
+    let (estimator, model_label): (Box<dyn LengthEstimator>, String) = if a.flip_average {
+        (
+            Box::new(FlipAveraged::new(model)),
+            format!("{}+flip", kind.as_str()),
+        )
     } else {
-        kind.as_str().to_string()
+        (model, kind.as_str().to_string())
     };
     let report = evaluate(
         estimator.as_ref(),
