@@ -13,13 +13,19 @@
 #   run.sh normal 2000 --lengths normal --noise residual
 #   run.sh ansur 2000 --lengths ansur --noise residual    (then 2977)
 #   run.sh noise_none 2000 --lengths ansur --noise none   (then 2977)
+# Continuations of the shipped Bi-GRU (warm start, the learning rate it had
+# reached at step 2977; STEPS counts from the warm start):
+#   INIT=models/bone_length_bigru.safetensors LR=1.77e-4 \
+#     run.sh cont_scale1 4000 --lengths ansur --noise residual
+#   (the same with --noise-scale 1.5 as cont_scale1.5)
 set -euo pipefail
 name=$1; steps=$2; shift 2
 bin=./target/release/blapose
 out=runs/ablation/$name
 mkdir -p "$out"
-common=(--ansur-spread 2.0 --shift-plane ground --batch 32 --seq-len 64 --lr 3e-4 --lr-decay 0.9
+common=(--ansur-spread 2.0 --shift-plane ground --batch 32 --seq-len 64 --lr "${LR:-3e-4}" --lr-decay 0.9
   --epoch-steps 500 --head-lr-scale 0.01 --ema-decay 0.999 --val-every 200 --checkpoint-secs 300 --seed 3)
+[ -n "${INIT:-}" ] && common+=(--init-weights "$INIT")
 resume=()
 [ -f "$out/checkpoint.safetensors" ] && resume=(--resume)
 RAYON_NUM_THREADS=1 "$bin" train --model bigru "${common[@]}" "$@" --steps "$steps" --out "$out" "${resume[@]}"

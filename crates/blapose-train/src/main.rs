@@ -45,6 +45,11 @@ struct TrainArgs {
     /// 2D detector-noise model: none|gaussian|residual.
     #[arg(long, default_value = "residual")]
     noise: String,
+    /// Scale the noise's deviation from the residuals' per-joint mean (1 =
+    /// as measured on the training subjects, whose detections the SH
+    /// detector was fine-tuned on).
+    #[arg(long, default_value_t = 1.0)]
+    noise_scale: f32,
     /// Run directory (log, checkpoint, weights, curve).
     #[arg(long)]
     out: PathBuf,
@@ -463,6 +468,7 @@ fn train(a: TrainArgs) -> Result<()> {
             .noise
             .parse::<blapose_train::noise::NoiseKind>()?
             .to_string(),
+        noise_scale: a.noise_scale,
         seq_len: a.seq_len,
         stride_min: a.stride_min,
         stride_max: a.stride_max,
@@ -514,8 +520,8 @@ fn train(a: TrainArgs) -> Result<()> {
         t0.elapsed().as_secs_f64()
     );
     let training_data = format!(
-        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}), noise={}, seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), flip={}",
-        cfg.lengths, cfg.ansur_spread, cfg.noise, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.shift_plane, cfg.flip_prob
+        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}), noise={} (x{}), seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), flip={}",
+        cfg.lengths, cfg.ansur_spread, cfg.noise, cfg.noise_scale, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.shift_plane, cfg.flip_prob
     );
     let pb = step_bar(cfg.steps);
     let mut progress = |step: u64, _total: u64, loss: f64, fps: f64| {

@@ -194,6 +194,19 @@ impl ResidualBank {
         }
     }
 
+    /// `r` with its deviation from the bank's per-joint mean scaled by
+    /// `scale`: the systematic joint-definition offset stays, the jitter and
+    /// the pose-dependent errors grow (`scale > 1`) or shrink. Scale 1
+    /// returns `r` bit for bit, so runs from before the scale reproduce.
+    pub fn scale_deviation(&self, r: &MetricResidual, scale: f32) -> MetricResidual {
+        if scale == 1.0 {
+            return *r;
+        }
+        std::array::from_fn(|j| {
+            std::array::from_fn(|a| self.mean[j][a] + scale * (r[j][a] - self.mean[j][a]))
+        })
+    }
+
     /// A Gaussian draw (metric units) from the fitted per-joint model.
     pub fn gaussian<R: Rng + ?Sized>(&self, rng: &mut R) -> MetricResidual {
         std::array::from_fn(|j| {
@@ -258,6 +271,10 @@ mod tests {
         let a = [[0.01f32, 0.0]; NUM_JOINTS];
         let b = [[0.03f32, 0.0]; NUM_JOINTS];
         let bank = ResidualBank::new(vec![vec![Some(vec![a, b]), None]]);
+        // Scaling keeps the mean and stretches the deviation around it.
+        let wide = bank.scale_deviation(&b, 2.0);
+        assert!((wide[5][0] - 0.04).abs() < 1e-6, "{}", wide[5][0]);
+        assert_eq!(bank.scale_deviation(&b, 1.0), b);
         assert_eq!(bank.frames(), 2);
         assert!((bank.mean()[5][0] - 0.02).abs() < 1e-6);
         assert!((bank.std()[5][0] - 0.01).abs() < 1e-6);

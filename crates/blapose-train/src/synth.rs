@@ -179,6 +179,11 @@ pub struct SynthConfig {
     pub flip_prob: f32,
     /// Detector-noise model.
     pub noise: NoiseKind,
+    /// Scale of the noise's deviation from the residuals' per-joint mean
+    /// ([`ResidualBank::scale_deviation`]; 1 = as measured). The SH
+    /// detector was fine-tuned on the training subjects, so their residuals
+    /// likely understate its errors on anyone else.
+    pub noise_scale: f32,
 }
 
 impl Default for SynthConfig {
@@ -192,6 +197,7 @@ impl Default for SynthConfig {
             min_depth: 1.5,
             flip_prob: 0.5,
             noise: NoiseKind::Residual,
+            noise_scale: 1.0,
         }
     }
 }
@@ -214,6 +220,9 @@ impl SynthConfig {
         }
         if self.min_depth.is_nan() || self.min_depth <= 0.0 {
             return bad("min_depth must be positive");
+        }
+        if !(self.noise_scale >= 0.0 && self.noise_scale.is_finite()) {
+            return bad("noise_scale must be finite and >= 0");
         }
         if !(0.0..=1.0).contains(&self.flip_prob) {
             return bad("flip_prob must be in [0, 1]");
@@ -419,6 +428,7 @@ impl SynthSource {
                 NoiseKind::None => {}
                 NoiseKind::Gaussian => {
                     let r = self.residuals.gaussian(rng);
+                    let r = self.residuals.scale_deviation(&r, cfg.noise_scale);
                     apply_residual(&mut kp, &r, depth, k.focal);
                 }
                 NoiseKind::Residual => {
@@ -427,6 +437,7 @@ impl SynthSource {
                         // track (same frames, same stride).
                         let u = start + t as f32 * stride;
                         let r = residual_at(tr, u.min((tr.len() - 1) as f32));
+                        let r = self.residuals.scale_deviation(&r, cfg.noise_scale);
                         apply_residual(&mut kp, &r, depth, k.focal);
                     }
                 }

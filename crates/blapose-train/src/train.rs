@@ -67,6 +67,10 @@ pub struct TrainConfig {
     pub ansur_spread: f32,
     /// Noise model name (also in `synth`).
     pub noise: String,
+    /// Scale of the noise around the residuals' mean
+    /// ([`SynthConfig::noise_scale`]); runs before this field used 1.
+    #[serde(default = "one")]
+    pub noise_scale: f32,
     /// Frames per training window.
     pub seq_len: usize,
     /// Smallest playback stride.
@@ -150,6 +154,7 @@ impl TrainConfig {
             min_depth: 1.5,
             flip_prob: self.flip_prob,
             noise: self.noise.parse()?,
+            noise_scale: self.noise_scale,
         };
         cfg.validate()?;
         Ok(cfg)

@@ -195,6 +195,28 @@ fn flip_is_consistent() {
 }
 
 #[test]
+fn noise_scale_stretches_the_residual_around_its_mean() {
+    let Some(f) = fixture() else { return };
+    let src = source(f, LengthStrategy::Normal);
+    let at = |noise_scale: f32| {
+        let cfg = SynthConfig {
+            seq_len: 16,
+            noise_scale,
+            ..Default::default()
+        };
+        src.sample(&cfg, &mut sample_rng(2, 3, 4)).input
+    };
+    let (x0, x1, x2) = (at(0.0), at(1.0), at(2.0));
+    // The residual enters linearly: doubling the deviation adds it again.
+    let mut moved = 0;
+    for ((a, b), c) in x0.iter().zip(&x1).zip(&x2) {
+        assert!(((c - b) - (b - a)).abs() < 1e-4, "{a} {b} {c}");
+        moved += usize::from((b - a).abs() > 1e-4);
+    }
+    assert!(moved > x0.len() / 2, "the scale changes the input");
+}
+
+#[test]
 fn samples_are_plausible_and_deterministic() {
     let Some(f) = fixture() else { return };
     let src = Arc::new(source(f, LengthStrategy::Uniform));

@@ -54,6 +54,7 @@ fn config(steps: u64) -> TrainConfig {
         kind: "gru".into(),
         lengths: "normal".into(),
         noise: "residual".into(),
+        noise_scale: 1.0,
         seq_len: 8,
         stride_min: 50.0 / 60.0,
         stride_max: 2.0,
