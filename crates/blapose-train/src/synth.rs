@@ -22,7 +22,8 @@
 //!    still tells the distance, as it does in any fixed-camera scene;
 //! 5. project with the camera's real intrinsics *and* distortion straight to
 //!    normalized screen coordinates;
-//! 6. add detector noise ([`crate::noise`]), rescaled to the new depth;
+//! 6. add detector noise ([`crate::noise`]), rescaled to the new depth
+//!    (and optionally widened around its mean, `noise_scale`);
 //! 7. flip horizontally with probability `flip_prob` (`x -> -x`, left/right
 //!    joints swapped — the noise is flipped with the sample). Lengths are
 //!    symmetric, so the target is unchanged.
@@ -424,23 +425,19 @@ impl SynthSource {
             let shifted = p.map(|j| [j[0] + shift[0], j[1] + shift[1], j[2] + shift[2]]);
             let mut kp: Keypoints2d = k.project_pose(&shifted);
             let depth = shifted[0][2];
-            match cfg.noise {
-                NoiseKind::None => {}
-                NoiseKind::Gaussian => {
-                    let r = self.residuals.gaussian(rng);
-                    let r = self.residuals.scale_deviation(&r, cfg.noise_scale);
-                    apply_residual(&mut kp, &r, depth, k.focal);
-                }
-                NoiseKind::Residual => {
-                    if let Some(tr) = track {
-                        // Aligned with the pose when it is the sample's own
-                        // track (same frames, same stride).
-                        let u = start + t as f32 * stride;
-                        let r = residual_at(tr, u.min((tr.len() - 1) as f32));
-                        let r = self.residuals.scale_deviation(&r, cfg.noise_scale);
-                        apply_residual(&mut kp, &r, depth, k.focal);
-                    }
-                }
+            let residual = match cfg.noise {
+                NoiseKind::None => None,
+                NoiseKind::Gaussian => Some(self.residuals.gaussian(rng)),
+                // Aligned with the pose when it is the sample's own track
+                // (same frames, same stride).
+                NoiseKind::Residual => track.map(|tr| {
+                    let u = start + t as f32 * stride;
+                    residual_at(tr, u.min((tr.len() - 1) as f32))
+                }),
+            };
+            if let Some(r) = residual {
+                let r = self.residuals.scale_deviation(&r, cfg.noise_scale);
+                apply_residual(&mut kp, &r, depth, k.focal);
             }
             if flipped {
                 kp = flip_keypoints_normalized(&kp);
