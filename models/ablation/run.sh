@@ -18,6 +18,10 @@
 #   INIT=models/bone_length_bigru.safetensors LR=1.77e-4 \
 #     run.sh cont_scale1 4000 --lengths ansur --noise residual
 #   (the same with --noise-scale 1.5 as cont_scale1.5)
+# Feet kept on the floor when the lengths are replaced (session 7; MODEL=gru
+# trains the online GRU instead, add its --per-frame-weight 1.0):
+#   run.sh floor 2977 --lengths ansur --noise residual --floor-contact
+#   MODEL=gru run.sh gru_floor 2004 --lengths ansur --noise residual --floor-contact --per-frame-weight 1.0
 set -euo pipefail
 name=$1; steps=$2; shift 2
 bin=./target/release/blapose
@@ -28,8 +32,9 @@ common=(--ansur-spread 2.0 --shift-plane ground --batch 32 --seq-len 64 --lr "${
 [ -n "${INIT:-}" ] && common+=(--init-weights "$INIT")
 resume=()
 [ -f "$out/checkpoint.safetensors" ] && resume=(--resume)
-RAYON_NUM_THREADS=1 "$bin" train --model bigru "${common[@]}" "$@" --steps "$steps" --out "$out" "${resume[@]}"
+model=${MODEL:-bigru}
+RAYON_NUM_THREADS=1 "$bin" train --model "$model" "${common[@]}" "$@" --steps "$steps" --out "$out" "${resume[@]}"
 for input in sh gt; do
-  "$bin" eval --model bigru --input "$input" --weights "$out/model.safetensors" \
+  "$bin" eval --model "$model" --input "$input" --weights "$out/model.safetensors" \
     --json "$out/eval_${input}_${steps}.json" > "$out/eval_${input}_${steps}.md"
 done

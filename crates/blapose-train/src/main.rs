@@ -20,7 +20,10 @@ use indicatif::{ProgressBar, ProgressStyle};
 #[command(
     name = "blapose",
     version,
-    about = "Train and evaluate the BLAPose bone-length models"
+    about = "Train and evaluate the BLAPose bone-length models",
+    // A flag given twice takes its last value, so scripts can append
+    // overrides to a fixed recipe.
+    args_override_self = true
 )]
 struct Cli {
     #[command(subcommand)]
@@ -91,6 +94,11 @@ struct TrainArgs {
     /// still tells the distance).
     #[arg(long, default_value = "camera")]
     shift_plane: String,
+    /// Keep each frame's lowest joint at its original height when the bone
+    /// lengths are replaced (otherwise longer legs push the feet through
+    /// the floor and shorter ones lift them off it).
+    #[arg(long)]
+    floor_contact: bool,
     /// Horizontal flip probability.
     #[arg(long, default_value_t = 0.5)]
     flip_prob: f32,
@@ -477,6 +485,7 @@ fn train(a: TrainArgs) -> Result<()> {
             .shift_plane
             .parse::<blapose_train::synth::ShiftPlane>()?
             .to_string(),
+        floor_contact: a.floor_contact,
         flip_prob: a.flip_prob,
         batch: a.batch,
         steps: a.steps,
@@ -520,8 +529,8 @@ fn train(a: TrainArgs) -> Result<()> {
         t0.elapsed().as_secs_f64()
     );
     let training_data = format!(
-        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}), noise={} (x{}), seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), flip={}",
-        cfg.lengths, cfg.ansur_spread, cfg.noise, cfg.noise_scale, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.shift_plane, cfg.flip_prob
+        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}), noise={} (x{}), seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), floor_contact={}, flip={}",
+        cfg.lengths, cfg.ansur_spread, cfg.noise, cfg.noise_scale, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.shift_plane, cfg.floor_contact, cfg.flip_prob
     );
     let pb = step_bar(cfg.steps);
     let mut progress = |step: u64, _total: u64, loss: f64, fps: f64| {

@@ -11,7 +11,11 @@
 //!    directions, re-normalized);
 //! 3. draw bone lengths ([`crate::lengths::LengthSampler`]) and rebuild every
 //!    frame with the sequence's directions, the drawn lengths and the
-//!    original root trajectory;
+//!    original root trajectory — lifted or lowered per frame, with
+//!    `floor_contact`, so that the pose's lowest joint stays as high as in
+//!    the original (longer legs would otherwise push the feet through the
+//!    floor, and the feet's image height, which tells the distance and so
+//!    the scale, would contradict the lengths);
 //! 4. pick one of the subject's 4 real cameras, move the whole window by one
 //!    random shift `s ~ N(0, shift_std)` (re-drawn, at most
 //!    [`MAX_SHIFT_TRIES`] times, while the root comes closer than `min_depth`
@@ -104,6 +108,26 @@ impl MotionSequence {
     }
 }
 
+/// The world height (`z`, up in Human3.6M) of a pose's lowest joint.
+pub fn lowest_height(pose: &[[f32; 3]; NUM_JOINTS]) -> f32 {
+    pose.iter().map(|j| j[2]).fold(f32::INFINITY, f32::min)
+}
+
+/// [`rebuild`] with `lengths`, then lifted (or lowered) so that its
+/// lowest joint is as high as in the pose rebuilt with the `original`
+/// lengths: feet on the floor stay on it, a jump stays a jump.
+pub fn rebuild_on_floor(
+    root: [f32; 3],
+    dirs: &BoneDirections,
+    lengths: &BoneLengths,
+    original: &BoneLengths,
+) -> [[f32; 3]; NUM_JOINTS] {
+    let mut pose = rebuild(root, dirs, lengths);
+    let lift = lowest_height(&rebuild(root, dirs, original)) - lowest_height(&pose);
+    pose.iter_mut().for_each(|j| j[2] += lift);
+    pose
+}
+
 /// In which space the per-window 3D shift is drawn.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
 pub enum ShiftPlane {
@@ -185,6 +209,9 @@ pub struct SynthConfig {
     /// detector was fine-tuned on the training subjects, so their residuals
     /// likely understate its errors on anyone else.
     pub noise_scale: f32,
+    /// Keep the lowest joint at its original height in every frame (see
+    /// the module docs, step 3).
+    pub floor_contact: bool,
 }
 
 impl Default for SynthConfig {
@@ -199,6 +226,7 @@ impl Default for SynthConfig {
             flip_prob: 0.5,
             noise: NoiseKind::Residual,
             noise_scale: 1.0,
+            floor_contact: false,
         }
     }
 }
@@ -385,7 +413,11 @@ impl SynthSource {
         for t in 0..t_len {
             let u = start + t as f32 * stride;
             let (root, dirs) = seq.at(u);
-            let world = rebuild(root, &dirs, &lengths);
+            let world = if cfg.floor_contact {
+                rebuild_on_floor(root, &dirs, &lengths, &seq.lengths)
+            } else {
+                rebuild(root, &dirs, &lengths)
+            };
             cam_poses.push(cam.world_to_camera_pose(&world));
         }
 
@@ -533,6 +565,39 @@ mod tests {
             max_up_camera > 0.5,
             "camera shift should move vertically too"
         );
+    }
+
+    #[test]
+    fn floor_contact_keeps_the_lowest_joint_at_its_height() {
+        use blapose_core::bones::{bone_lengths, decompose};
+        // A standing pose: feet 2 cm above the floor, pelvis at 0.9 m.
+        let mut pose = [[0.0f32; 3]; NUM_JOINTS];
+        let up = |z: f32, x: f32| [x, 0.1, z];
+        for (j, p) in pose.iter_mut().enumerate() {
+            *p = up(0.9 + 0.05 * j as f32, 0.01 * j as f32);
+        }
+        // Right and left legs (H36M: 1-3 right hip/knee/foot, 4-6 left).
+        pose[1] = up(0.9, -0.1);
+        pose[2] = up(0.46, -0.1);
+        pose[3] = up(0.02, -0.1);
+        pose[4] = up(0.9, 0.1);
+        pose[5] = up(0.47, 0.1);
+        pose[6] = up(0.03, 0.1);
+        let (original, dirs) = decompose(&pose).unwrap();
+        let longer = original.map(|l| l * 1.2);
+        let root = pose[0];
+        let floating = rebuild(root, &dirs, &longer);
+        assert!(lowest_height(&floating) < -0.05, "longer legs sink");
+        let grounded = rebuild_on_floor(root, &dirs, &longer, &original);
+        assert!((lowest_height(&grounded) - 0.02).abs() < 1e-5);
+        assert_eq!(
+            bone_lengths(&grounded).map(|l| (l * 1e4).round()),
+            longer.map(|l| (l * 1e4).round()),
+            "lifting keeps the new lengths"
+        );
+        // With the original lengths nothing moves.
+        let same = rebuild_on_floor(root, &dirs, &original, &original);
+        assert_eq!(same, rebuild(root, &dirs, &original));
     }
 
     #[test]

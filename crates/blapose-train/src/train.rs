@@ -83,6 +83,11 @@ pub struct TrainConfig {
     /// [`crate::synth::ShiftPlane`]); runs before this field were `camera`.
     #[serde(default = "default_shift_plane")]
     pub shift_plane: String,
+    /// Keep the lowest joint at its original height after the lengths are
+    /// replaced ([`SynthConfig::floor_contact`]); runs before this field
+    /// did not.
+    #[serde(default)]
+    pub floor_contact: bool,
     /// Flip probability.
     pub flip_prob: f32,
     /// Samples per batch.
@@ -155,6 +160,7 @@ impl TrainConfig {
             flip_prob: self.flip_prob,
             noise: self.noise.parse()?,
             noise_scale: self.noise_scale,
+            floor_contact: self.floor_contact,
         };
         cfg.validate()?;
         Ok(cfg)

@@ -217,6 +217,31 @@ fn noise_scale_stretches_the_residual_around_its_mean() {
 }
 
 #[test]
+fn floor_contact_moves_only_resized_people() {
+    let Some(f) = fixture() else { return };
+    let at = |strategy: LengthStrategy, floor_contact: bool| {
+        let cfg = SynthConfig {
+            seq_len: 16,
+            floor_contact,
+            ..Default::default()
+        };
+        source(f, strategy)
+            .sample(&cfg, &mut sample_rng(8, 1, 2))
+            .input
+    };
+    assert_eq!(
+        at(LengthStrategy::True, false),
+        at(LengthStrategy::True, true),
+        "the subject's own lengths already stand on the floor"
+    );
+    assert_ne!(
+        at(LengthStrategy::Ansur, false),
+        at(LengthStrategy::Ansur, true),
+        "drawn lengths are lifted onto the floor"
+    );
+}
+
+#[test]
 fn samples_are_plausible_and_deterministic() {
     let Some(f) = fixture() else { return };
     let src = Arc::new(source(f, LengthStrategy::Uniform));
