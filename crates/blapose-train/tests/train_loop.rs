@@ -60,6 +60,7 @@ fn config(steps: u64) -> TrainConfig {
         stride_max: 2.0,
         shift_std: 0.5,
         shift_plane: "camera".into(),
+        floor_contact: false,
         flip_prob: 0.5,
         batch: 4,
         steps,
