@@ -3,8 +3,9 @@
 #
 #   models/ablation/run.sh NAME STEPS --lengths L --noise N
 #
-# trains runs/ablation/NAME with the shipped recipe (only --lengths / --noise
-# differ), resuming from its checkpoint when there is one, then evaluates it on
+# trains runs/ablation/NAME with the session-3 recipe (the shipped one without
+# --floor-contact; the extra flags are appended, and a flag given twice takes
+# its last value), resuming from its checkpoint when there is one, then evaluates it on
 # S9/S11 with SH and GT 2D input into runs/ablation/NAME/eval_{sh,gt}_STEPS.*.
 # Run from the repository root after `cargo build --release -p blapose-train`;
 # the data root is $BLAPOSE_DATA or ../shared/data. The runs of the model card:
@@ -19,8 +20,12 @@
 #     run.sh cont_scale1 4000 --lengths ansur --noise residual
 #   (the same with --noise-scale 1.5 as cont_scale1.5)
 # Feet kept on the floor when the lengths are replaced (session 7; MODEL=gru
-# trains the online GRU instead, add its --per-frame-weight 1.0):
+# trains the online GRU instead, add its --per-frame-weight 1.0); floor and
+# gru_floor are the shipped weights:
 #   run.sh floor 2977 --lengths ansur --noise residual --floor-contact
+#   run.sh floor_seed4 2977 --lengths ansur --noise residual --floor-contact --seed 4
+#   run.sh floor_len128 2977 --lengths ansur --noise residual --floor-contact --seq-len 128 --batch 16
+#   run.sh floor_spread3 2977 --lengths ansur --noise residual --floor-contact --ansur-spread 3.0
 #   MODEL=gru run.sh gru_floor 2004 --lengths ansur --noise residual --floor-contact --per-frame-weight 1.0
 set -euo pipefail
 name=$1; steps=$2; shift 2
