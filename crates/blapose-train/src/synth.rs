@@ -42,7 +42,7 @@ use blapose_core::bones::rebuild;
 use blapose_core::camera::{Camera, NormalizedIntrinsics};
 use blapose_core::pose::flip_keypoints_normalized;
 use blapose_core::skeleton::{NUM_BONES, NUM_JOINTS};
-use blapose_core::{BoneDirections, BoneLengths, Keypoints2d};
+use blapose_core::{BoneDirections, BoneLengths, Keypoints2d, Pose};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
@@ -109,7 +109,7 @@ impl MotionSequence {
 }
 
 /// The world height (`z`, up in Human3.6M) of a pose's lowest joint.
-pub fn lowest_height(pose: &[[f32; 3]; NUM_JOINTS]) -> f32 {
+pub fn lowest_height(pose: &Pose) -> f32 {
     pose.iter().map(|j| j[2]).fold(f32::INFINITY, f32::min)
 }
 
@@ -121,7 +121,7 @@ pub fn rebuild_on_floor(
     dirs: &BoneDirections,
     lengths: &BoneLengths,
     original: &BoneLengths,
-) -> [[f32; 3]; NUM_JOINTS] {
+) -> Pose {
     let mut pose = rebuild(root, dirs, lengths);
     let lift = lowest_height(&rebuild(root, dirs, original)) - lowest_height(&pose);
     pose.iter_mut().for_each(|j| j[2] += lift);
