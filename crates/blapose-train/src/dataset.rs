@@ -21,6 +21,7 @@ use blapose_data::h36m::{H36m, Parts, ShKeypoints};
 pub use blapose_data::h36m::{TEST_SUBJECTS, TRAIN_SUBJECTS};
 use rayon::prelude::*;
 
+use crate::detector_gain::ImageBoneSums;
 use crate::error::TrainError;
 use crate::noise::{metric_residual, MetricResidual, ResidualBank};
 use crate::synth::MotionSequence;
@@ -176,6 +177,10 @@ pub struct TrainingSet {
     /// The training subjects' real SH input with their true lengths (for
     /// validation on real detector input).
     pub real_sh: Vec<EvalSequence>,
+    /// Per training subject, its detected and projected 2D bone lengths
+    /// summed over every sequence and camera (fits
+    /// [`crate::detector_gain::DetectorGain`]).
+    pub image_bones: BTreeMap<String, ImageBoneSums>,
 }
 
 impl TrainingSet {
@@ -213,6 +218,7 @@ impl TrainingSet {
             MotionSequence,
             Vec<Option<Vec<MetricResidual>>>,
             Vec<EvalSequence>,
+            ImageBoneSums,
         );
         let built: Vec<Built> = keys
             .par_iter()
@@ -225,6 +231,7 @@ impl TrainingSet {
                 let motion = decompose_sequence(s, a, poses, subject_len, cameras.clone())?;
                 let mut tracks = Vec::with_capacity(cameras.len());
                 let mut real = Vec::new();
+                let mut bones = ImageBoneSums::default();
                 for cam in cameras.iter() {
                     let Some(det) = h36m.detections(s, a, &cam.id) else {
                         tracks.push(None);
@@ -232,6 +239,7 @@ impl TrainingSet {
                     };
                     let sh = sh_to_normalized(det, cam)?;
                     tracks.push(Some(residual_track(&sh, poses, cam)));
+                    bones.merge(&image_bone_sums(&sh, poses, cam));
                     real.push(EvalSequence {
                         subject: s.to_string(),
                         sequence: a.to_string(),
@@ -240,13 +248,15 @@ impl TrainingSet {
                         gt: subject_len,
                     });
                 }
-                Ok((motion, tracks, real))
+                Ok((motion, tracks, real, bones))
             })
             .collect::<Result<_, _>>()?;
         let mut sequences = Vec::with_capacity(built.len());
         let mut tracks = Vec::with_capacity(built.len());
         let mut real_sh = Vec::new();
-        for (m, t, r) in built {
+        let mut image_bones: BTreeMap<String, ImageBoneSums> = BTreeMap::new();
+        for (m, t, r, b) in built {
+            image_bones.entry(m.subject.clone()).or_default().merge(&b);
             sequences.push(m);
             tracks.push(t);
             real_sh.extend(r);
@@ -256,6 +266,7 @@ impl TrainingSet {
             subject_lengths: lengths,
             residuals: ResidualBank::new(tracks),
             real_sh,
+            image_bones,
         })
     }
 
@@ -316,6 +327,17 @@ pub fn residual_track(sh: &[Keypoints2d], poses: &[Pose], cam: &Camera) -> Vec<M
         out.push(r);
     }
     out
+}
+
+/// 2D bone lengths of one sequence and camera, detected (`sh`, normalized)
+/// and ground truth projected, summed over the frames both streams have.
+pub fn image_bone_sums(sh: &[Keypoints2d], poses: &[Pose], cam: &Camera) -> ImageBoneSums {
+    let k = cam.normalized_intrinsics();
+    let mut sums = ImageBoneSums::default();
+    for (det, pose) in sh.iter().zip(poses) {
+        sums.add_frame(det, &k.project_pose(&cam.world_to_camera_pose(pose)));
+    }
+    sums
 }
 
 /// Evaluation inputs for `subjects`: every sequence, every camera.

@@ -295,6 +295,15 @@ impl FastNet {
         }
     }
 
+    /// Rewrite the input layer (`w`: `[256, 34]` row-major, `b`: `[256]`)
+    /// in place, e.g. to fold an input map into it.
+    pub fn map_embedding(&mut self, f: impl FnOnce(&mut [f32], &mut [f32])) {
+        let (w, b) = (self.layout.embed_w.clone(), self.layout.embed_b.clone());
+        debug_assert_eq!(w.end, b.start, "bias follows the weight");
+        let (w_part, b_part) = self.params[w.start..b.end].split_at_mut(w.len());
+        f(w_part, b_part);
+    }
+
     /// The parameters as named tensors (for the weights file).
     pub fn to_tensors(&self) -> Result<HashMap<String, Tensor>, TrainError> {
         let mut out = HashMap::new();

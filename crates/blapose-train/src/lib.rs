@@ -16,6 +16,7 @@
 pub mod adam;
 pub mod ansur;
 pub mod dataset;
+pub mod detector_gain;
 pub mod error;
 pub mod eval;
 pub mod eval_adjust;
@@ -25,6 +26,7 @@ pub mod lifter;
 pub mod loader;
 pub mod noise;
 pub mod plot;
+pub mod precondition;
 pub mod synth;
 pub mod train;
 

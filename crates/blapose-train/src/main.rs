@@ -9,6 +9,7 @@ use blapose_core::skeleton::BONE_NAMES;
 use blapose_core::BoneLengths;
 use blapose_train::ansur::{load_population, AnsurPopulation};
 use blapose_train::dataset::TrainingSet;
+use blapose_train::detector_gain::DetectorGain;
 use blapose_train::lengths::{LengthSampler, LengthStrategy, TrainingLengthStats};
 use blapose_train::lifter::objective::Objective;
 use blapose_train::synth::{SynthConfig, SynthSource};
@@ -99,6 +100,17 @@ struct TrainArgs {
     /// the floor and shorter ones lift them off it).
     #[arg(long)]
     floor_contact: bool,
+    /// Show each drawn body as the 2D detector would: per bone, only the
+    /// fraction of the change in length that the training subjects' real
+    /// detections follow (fitted on them; e.g. the hips about a third).
+    #[arg(long)]
+    detector_gain: bool,
+    /// Train on root-relative, standardized coordinates (a fixed map folded
+    /// into the first layer of the saved weights, which read raw
+    /// coordinates as always); speeds up learning the small differences
+    /// between joints.
+    #[arg(long)]
+    precondition: bool,
     /// Horizontal flip probability.
     #[arg(long, default_value_t = 0.5)]
     flip_prob: f32,
@@ -439,6 +451,11 @@ fn data_report(data: Option<PathBuf>) -> Result<()> {
             bank.mean()[j][1] * 1000.0
         );
     }
+    let gain = DetectorGain::fit(&set.subject_lengths, &set.image_bones)?;
+    println!(
+        "detector gain (SH bone change per true change, fitted on the training subjects): {}",
+        format_gains(&gain)
+    );
     let sampler = LengthSampler::new(LengthStrategy::Ansur, stats, Some(pop))?;
     let source = Arc::new(SynthSource::new(
         set.sequences.clone(),
@@ -459,6 +476,21 @@ fn data_report(data: Option<PathBuf>) -> Result<()> {
         cfg.seq_len
     );
     Ok(())
+}
+
+/// `name=gain` for every bone whose gain is not 1, or `unit`.
+fn format_gains(g: &DetectorGain) -> String {
+    if g.is_unit() {
+        return "unit".into();
+    }
+    let parts: Vec<String> = g
+        .gain
+        .iter()
+        .enumerate()
+        .filter(|(_, &v)| v != 1.0)
+        .map(|(b, v)| format!("{}={v:.2}", BONE_NAMES[b]))
+        .collect();
+    parts.join(" ")
 }
 
 fn train(a: TrainArgs) -> Result<()> {
@@ -486,6 +518,8 @@ fn train(a: TrainArgs) -> Result<()> {
             .parse::<blapose_train::synth::ShiftPlane>()?
             .to_string(),
         floor_contact: a.floor_contact,
+        detector_gain: a.detector_gain,
+        precondition: a.precondition,
         flip_prob: a.flip_prob,
         batch: a.batch,
         steps: a.steps,
@@ -517,11 +551,17 @@ fn train(a: TrainArgs) -> Result<()> {
         None
     };
     let sampler = LengthSampler::new(strategy, stats, pop)?;
-    let source = Arc::new(SynthSource::new(
-        set.sequences.clone(),
-        set.residuals.clone(),
-        sampler,
-    )?);
+    let gain = if cfg.detector_gain {
+        let g = DetectorGain::fit(&set.subject_lengths, &set.image_bones)?;
+        eprintln!("detector gain per bone: {}", format_gains(&g));
+        g
+    } else {
+        DetectorGain::unit()
+    };
+    let source = Arc::new(
+        SynthSource::new(set.sequences.clone(), set.residuals.clone(), sampler)?
+            .with_detector_gain(gain),
+    );
     eprintln!(
         "data: {} training sequences, {} real SH validation streams, loaded in {:.1}s",
         set.sequences.len(),
@@ -529,8 +569,8 @@ fn train(a: TrainArgs) -> Result<()> {
         t0.elapsed().as_secs_f64()
     );
     let training_data = format!(
-        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}), noise={} (x{}), seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), floor_contact={}, flip={}",
-        cfg.lengths, cfg.ansur_spread, cfg.noise, cfg.noise_scale, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.shift_plane, cfg.floor_contact, cfg.flip_prob
+        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}), noise={} (x{}), seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), floor_contact={}, detector_gain={}, flip={}",
+        cfg.lengths, cfg.ansur_spread, cfg.noise, cfg.noise_scale, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.shift_plane, cfg.floor_contact, format_gains(source.detector_gain()), cfg.flip_prob
     );
     let pb = step_bar(cfg.steps);
     let mut progress = |step: u64, _total: u64, loss: f64, fps: f64| {

@@ -10,7 +10,9 @@
 //!    mocap samples are linearly interpolated (root position and bone
 //!    directions, re-normalized);
 //! 3. draw bone lengths ([`crate::lengths::LengthSampler`]) and rebuild every
-//!    frame with the sequence's directions, the drawn lengths and the
+//!    frame with the sequence's directions, the drawn lengths (as the
+//!    detector shows them, [`crate::detector_gain`]; unit gains by
+//!    default) and the
 //!    original root trajectory — lifted or lowered per frame, with
 //!    `floor_contact`, so that the pose's lowest joint stays as high as in
 //!    the original (longer legs would otherwise push the feet through the
@@ -47,6 +49,7 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 
+use crate::detector_gain::DetectorGain;
 use crate::error::TrainError;
 use crate::lengths::{normal_f32, LengthSampler};
 use crate::noise::{apply_residual, residual_at, NoiseKind, ResidualBank};
@@ -269,6 +272,7 @@ pub struct SynthSource {
     cumulative: Vec<u64>,
     residuals: ResidualBank,
     sampler: LengthSampler,
+    gain: DetectorGain,
 }
 
 /// One synthetic sample.
@@ -351,7 +355,20 @@ impl SynthSource {
             cumulative,
             residuals,
             sampler,
+            gain: DetectorGain::unit(),
         })
+    }
+
+    /// Show the drawn bodies as the detector would ([`DetectorGain`]; unit
+    /// gains unless set).
+    pub fn with_detector_gain(mut self, gain: DetectorGain) -> Self {
+        self.gain = gain;
+        self
+    }
+
+    /// The detector gains the input is built with.
+    pub fn detector_gain(&self) -> &DetectorGain {
+        &self.gain
     }
 
     /// The sequences.
@@ -403,6 +420,9 @@ impl SynthSource {
         };
 
         let lengths = self.sampler.sample(&seq.lengths, rng);
+        // The input shows the body as the detector sees it; the target is
+        // the drawn lengths.
+        let shown = self.gain.shown(&seq.lengths, &lengths);
         let cam_idx = rng.random_range(0..seq.cameras.len());
         let cam = &seq.cameras[cam_idx];
         let k: NormalizedIntrinsics = cam.normalized_intrinsics();
@@ -414,9 +434,9 @@ impl SynthSource {
             let u = start + t as f32 * stride;
             let (root, dirs) = seq.at(u);
             let world = if cfg.floor_contact {
-                rebuild_on_floor(root, &dirs, &lengths, &seq.lengths)
+                rebuild_on_floor(root, &dirs, &shown, &seq.lengths)
             } else {
-                rebuild(root, &dirs, &lengths)
+                rebuild(root, &dirs, &shown)
             };
             cam_poses.push(cam.world_to_camera_pose(&world));
         }

@@ -37,6 +37,7 @@ use crate::dataset::EvalSequence;
 use crate::error::TrainError;
 use crate::fastnet::{FastNet, LossConfig};
 use crate::loader::Prefetcher;
+use crate::precondition::InputPreconditioner;
 use crate::synth::{sample_rng, Batch, SynthConfig, SynthSource, FRAME_DIM};
 
 /// Name of the checkpoint file inside the run directory.
@@ -88,6 +89,16 @@ pub struct TrainConfig {
     /// did not.
     #[serde(default)]
     pub floor_contact: bool,
+    /// Show the drawn bodies with the detector's per-bone gain fitted on
+    /// the training subjects ([`crate::detector_gain`]); runs before this
+    /// field used unit gains.
+    #[serde(default)]
+    pub detector_gain: bool,
+    /// Train on root-relative, standardized inputs and fold the map into
+    /// the first layer when saving ([`crate::precondition`]); runs before
+    /// this field read raw coordinates.
+    #[serde(default)]
+    pub precondition: bool,
     /// Flip probability.
     pub flip_prob: f32,
     /// Samples per batch.
@@ -496,10 +507,34 @@ pub fn train(
     let ckpt_path = out.join(CHECKPOINT_FILE);
     let log_path = out.join(LOG_FILE);
 
+    // The fixed validation sets, and the preconditioner fitted on the
+    // synthetic one (deterministic, so a resumed run gets the same map).
+    let mut val_synth = validation_batches(
+        &source,
+        &synth,
+        cfg.seed,
+        cfg.val_samples,
+        cfg.batch.min(64),
+    );
+    let mut val_real = real_validation_batches(real_val, cfg.val_frames, 64);
+    let pre = cfg.precondition.then(|| {
+        let all: Vec<f32> = val_synth.iter().flat_map(|b| b.inputs.clone()).collect();
+        InputPreconditioner::fit(&all)
+    });
+    if let Some(p) = &pre {
+        for b in val_synth.iter_mut().chain(val_real.iter_mut()) {
+            p.apply(&mut b.inputs);
+        }
+    }
+
     let mut net = match &cfg.init_weights {
         Some(path) => {
             let init = weights::load(Path::new(path), kind)?;
-            FastNet::from_tensors(kind, init.tensors())?
+            let mut net = FastNet::from_tensors(kind, init.tensors())?;
+            if let Some(p) = &pre {
+                net.map_embedding(|w, b| p.unfold(w, b));
+            }
+            net
         }
         None => {
             let init = LoadedWeights::random(kind, cfg.seed)?;
@@ -565,15 +600,6 @@ pub fn train(
     std::fs::write(out.join("config.json"), serde_json::to_string_pretty(cfg)?)
         .map_err(|e| TrainError::io(out, e))?;
 
-    let val_synth = validation_batches(
-        &source,
-        &synth,
-        cfg.seed,
-        cfg.val_samples,
-        cfg.batch.min(64),
-    );
-    let val_real = real_validation_batches(real_val, cfg.val_frames, 64);
-
     let t_start = Instant::now();
     let mut last_ckpt = Instant::now();
     let mut window = (0.0f64, 0usize, 0.0f64, Instant::now(), 0usize); // loss sum, n, grad sum, since, frames
@@ -602,7 +628,10 @@ pub fn train(
         append_log_row(&log_path, &row)?;
     }
     let mut step = start_step;
-    while let Some((s, batch)) = loader.next_batch() {
+    while let Some((s, mut batch)) = loader.next_batch() {
+        if let Some(p) = &pre {
+            p.apply(&mut batch.inputs);
+        }
         opt.config.lr = cfg.lr_at(s);
         let loss_cfg = LossConfig {
             running_mean_weight: cfg.per_frame_weight,
@@ -681,7 +710,11 @@ pub fn train(
         format!("{:.0}", elapsed_before + elapsed),
     );
     let weights_path = out.join(WEIGHTS_FILE);
-    let bytes = weights::to_bytes(&averaged(&net, ema.as_ref()).to_tensors()?, &meta)?;
+    let mut saved = averaged(&net, ema.as_ref());
+    if let Some(p) = &pre {
+        saved.map_embedding(|w, b| p.fold(w, b));
+    }
+    let bytes = weights::to_bytes(&saved.to_tensors()?, &meta)?;
     write_atomic(&weights_path, &bytes)?;
     Ok(TrainOutcome {
         weights: weights_path,

@@ -61,6 +61,8 @@ fn config(steps: u64) -> TrainConfig {
         shift_std: 0.5,
         shift_plane: "camera".into(),
         floor_contact: false,
+        detector_gain: false,
+        precondition: false,
         flip_prob: 0.5,
         batch: 4,
         steps,
