@@ -8,7 +8,9 @@ use blapose_train::dataset::TrainingSet;
 use blapose_train::fastnet::{FastNet, LossConfig};
 use blapose_train::lengths::{LengthSampler, LengthStrategy, TrainingLengthStats};
 use blapose_train::synth::SynthSource;
-use blapose_train::train::{train, TrainConfig, WEIGHTS_FILE};
+use blapose_train::train::{
+    real_validation_batches, train, validate, validation_batches, TrainConfig, WEIGHTS_FILE,
+};
 use rand::{Rng, SeedableRng};
 
 #[test]
@@ -198,5 +200,79 @@ fn resume_continues_exactly() {
         &mut quiet
     )
     .is_err());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_preconditioned_run_saves_weights_that_read_raw_coordinates() {
+    let Some(root) = blapose_data::test_data_root("h36m/poses_3d.npz", "precondition test") else {
+        return;
+    };
+    let set = TrainingSet::load(&root).unwrap();
+    let stats = TrainingLengthStats::from_training(&set.lengths_list()).unwrap();
+    let sampler = LengthSampler::new(LengthStrategy::Normal, stats, None).unwrap();
+    let source =
+        Arc::new(SynthSource::new(set.sequences.clone(), set.residuals.clone(), sampler).unwrap());
+    let real = &set.real_sh[..20];
+    let dir = std::env::temp_dir().join(format!("blapose-train-pre-{}", std::process::id()));
+    let mut quiet = |_: u64, _: u64, _: f64, _: f64| {};
+    let mut cfg = config(3);
+    cfg.precondition = true;
+    let run = train(&cfg, source.clone(), real, &dir, false, "test", &mut quiet).unwrap();
+    // The run validated its internal network on preconditioned inputs; the
+    // saved file, on the raw inputs, must score the same.
+    let saved = blapose_model::weights::load(dir.join(WEIGHTS_FILE), ModelKind::Gru).unwrap();
+    let net = FastNet::from_tensors(ModelKind::Gru, saved.tensors()).unwrap();
+    let synth = cfg.synth().unwrap();
+    let val_synth = validation_batches(
+        &source,
+        &synth,
+        cfg.seed,
+        cfg.val_samples,
+        cfg.batch.min(64),
+    );
+    let val_real = real_validation_batches(real, cfg.val_frames, 64);
+    let raw = validate(&net, &val_synth, &val_real);
+    for (a, b) in [
+        (raw.synth_mm, run.validation.synth_mm),
+        (raw.real_sh_mm, run.validation.real_sh_mm),
+        (raw.real_sh_running_mm, run.validation.real_sh_running_mm),
+    ] {
+        assert!((a - b).abs() < 0.01, "raw {a} mm vs preconditioned {b} mm");
+    }
+    // A warm start unfolds the file into the preconditioned space: with a
+    // zero learning rate it saves the same weights back (up to rounding).
+    let mut warm = config(1);
+    warm.precondition = true;
+    warm.lr = 0.0;
+    warm.init_weights = Some(dir.join(WEIGHTS_FILE).display().to_string());
+    train(
+        &warm,
+        source,
+        real,
+        &dir.join("warm"),
+        false,
+        "test",
+        &mut quiet,
+    )
+    .unwrap();
+    let back =
+        blapose_model::weights::load(dir.join("warm").join(WEIGHTS_FILE), ModelKind::Gru).unwrap();
+    for (name, t) in saved.tensors() {
+        let a: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
+        let b: Vec<f32> = back
+            .tensor(name)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        let worst = a
+            .iter()
+            .zip(&b)
+            .map(|(x, y)| (x - y).abs() / (1.0 + x.abs()))
+            .fold(0.0f32, f32::max);
+        assert!(worst < 1e-3, "tensor {name} moved by {worst}");
+    }
     let _ = std::fs::remove_dir_all(&dir);
 }
