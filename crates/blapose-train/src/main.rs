@@ -111,6 +111,14 @@ struct TrainArgs {
     /// between joints.
     #[arg(long)]
     precondition: bool,
+    /// Move the camera up or down by N(0, this) metres per sample: each
+    /// Human3.6M session calibrated its cameras anew, centimetres apart.
+    #[arg(long, default_value_t = 0.0)]
+    camera_height_std: f32,
+    /// Turn the camera by N(0, this) degrees about each of its axes per
+    /// sample.
+    #[arg(long, default_value_t = 0.0)]
+    camera_angle_std: f32,
     /// Horizontal flip probability.
     #[arg(long, default_value_t = 0.5)]
     flip_prob: f32,
@@ -520,6 +528,8 @@ fn train(a: TrainArgs) -> Result<()> {
         floor_contact: a.floor_contact,
         detector_gain: a.detector_gain,
         precondition: a.precondition,
+        camera_height_std: a.camera_height_std,
+        camera_angle_std_deg: a.camera_angle_std,
         flip_prob: a.flip_prob,
         batch: a.batch,
         steps: a.steps,
@@ -569,8 +579,8 @@ fn train(a: TrainArgs) -> Result<()> {
         t0.elapsed().as_secs_f64()
     );
     let training_data = format!(
-        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}), noise={} (x{}), seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), floor_contact={}, detector_gain={}, flip={}",
-        cfg.lengths, cfg.ansur_spread, cfg.noise, cfg.noise_scale, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.shift_plane, cfg.floor_contact, format_gains(source.detector_gain()), cfg.flip_prob
+        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}), noise={} (x{}), seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), floor_contact={}, detector_gain={}, camera jitter={} m / {} deg, flip={}",
+        cfg.lengths, cfg.ansur_spread, cfg.noise, cfg.noise_scale, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.shift_plane, cfg.floor_contact, format_gains(source.detector_gain()), cfg.camera_height_std, cfg.camera_angle_std_deg, cfg.flip_prob
     );
     let pb = step_bar(cfg.steps);
     let mut progress = |step: u64, _total: u64, loss: f64, fps: f64| {

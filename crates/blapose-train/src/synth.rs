@@ -215,6 +215,12 @@ pub struct SynthConfig {
     /// Keep the lowest joint at its original height in every frame (see
     /// the module docs, step 3).
     pub floor_contact: bool,
+    /// Std of a random change of the camera's height per sample, metres
+    /// (0 = the calibrated camera; see [`jitter_camera`]).
+    pub camera_height_std: f32,
+    /// Std of a random rotation of the camera about each of its axes per
+    /// sample, degrees.
+    pub camera_angle_std_deg: f32,
 }
 
 impl Default for SynthConfig {
@@ -230,6 +236,8 @@ impl Default for SynthConfig {
             noise: NoiseKind::Residual,
             noise_scale: 1.0,
             floor_contact: false,
+            camera_height_std: 0.0,
+            camera_angle_std_deg: 0.0,
         }
     }
 }
@@ -255,6 +263,10 @@ impl SynthConfig {
         }
         if !(self.noise_scale >= 0.0 && self.noise_scale.is_finite()) {
             return bad("noise_scale must be finite and >= 0");
+        }
+        let jitter = [self.camera_height_std, self.camera_angle_std_deg];
+        if !jitter.iter().all(|v| *v >= 0.0 && v.is_finite()) {
+            return bad("camera jitter must be finite and >= 0");
         }
         if !(0.0..=1.0).contains(&self.flip_prob) {
             return bad("flip_prob must be in [0, 1]");
@@ -424,7 +436,18 @@ impl SynthSource {
         // the drawn lengths.
         let shown = self.gain.shown(&seq.lengths, &lengths);
         let cam_idx = rng.random_range(0..seq.cameras.len());
-        let cam = &seq.cameras[cam_idx];
+        let jittered;
+        let cam = if cfg.camera_height_std > 0.0 || cfg.camera_angle_std_deg > 0.0 {
+            jittered = jitter_camera(
+                &seq.cameras[cam_idx],
+                cfg.camera_height_std,
+                cfg.camera_angle_std_deg,
+                rng,
+            );
+            &jittered
+        } else {
+            &seq.cameras[cam_idx]
+        };
         let k: NormalizedIntrinsics = cam.normalized_intrinsics();
         let half_h = cam.height as f32 / cam.width as f32;
 
@@ -528,6 +551,38 @@ impl SynthSource {
     }
 }
 
+/// `cam` moved up or down by `N(0, height_std)` metres and turned by
+/// `N(0, angle_std_deg)` degrees about each of its own axes (tilt, pan,
+/// roll). Each recording session of Human3.6M calibrated its cameras anew,
+/// and the same physical camera sits centimetres higher or lower from one
+/// session to the next; a model that learned the training sessions' exact
+/// camera geometry reads a new session's people as too small or too large
+/// (the floor, whose image tells the distance and so the scale, appears
+/// where a different camera would put it).
+pub fn jitter_camera<R: Rng + ?Sized>(
+    cam: &Camera,
+    height_std: f32,
+    angle_std_deg: f32,
+    rng: &mut R,
+) -> Camera {
+    let mut out = cam.clone();
+    out.center[2] += f64::from(normal_f32(rng, height_std));
+    let std = f64::from(angle_std_deg).to_radians();
+    let angles: [f64; 3] = std::array::from_fn(|_| std * f64::from(normal_f32(rng, 1.0)));
+    // Small rotation in the camera frame, applied after R (x, then y, then z).
+    let (sx, cx) = angles[0].sin_cos();
+    let (sy, cy) = angles[1].sin_cos();
+    let (sz, cz) = angles[2].sin_cos();
+    let rx = [[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]];
+    let ry = [[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]];
+    let rz = [[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]];
+    let mul = |a: &[[f64; 3]; 3], b: &[[f64; 3]; 3]| -> [[f64; 3]; 3] {
+        std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|k| a[i][k] * b[k][j]).sum()))
+    };
+    out.rotation = mul(&mul(&rz, &mul(&ry, &rx)), &cam.rotation);
+    out
+}
+
 /// Mirror a flat `T * 34` input sequence horizontally (the flip the
 /// augmentation applies); applying it twice is the identity.
 pub fn flip_input(input: &[f32]) -> Vec<f32> {
@@ -618,6 +673,27 @@ mod tests {
         // With the original lengths nothing moves.
         let same = rebuild_on_floor(root, &dirs, &original, &original);
         assert_eq!(same, rebuild(root, &dirs, &original));
+    }
+
+    #[test]
+    fn a_jittered_camera_stays_a_valid_camera_and_moves_as_asked() {
+        let cam = tilted_camera();
+        let mut rng = StdRng::seed_from_u64(3);
+        let mut heights = Vec::new();
+        for _ in 0..500 {
+            let j = jitter_camera(&cam, 0.05, 1.0, &mut rng);
+            j.validate().expect("rotation stays orthonormal");
+            assert_eq!(j.center[..2], cam.center[..2]);
+            heights.push(j.center[2] - cam.center[2]);
+            // The optical axis turns by a few degrees at most.
+            let cos: f64 = (0..3).map(|k| j.rotation[2][k] * cam.rotation[2][k]).sum();
+            assert!(cos.acos().to_degrees() < 6.0);
+        }
+        let n = heights.len() as f64;
+        let sd = (heights.iter().map(|h| h * h).sum::<f64>() / n).sqrt();
+        assert!((sd - 0.05).abs() < 0.01, "height std {sd}");
+        let same = jitter_camera(&cam, 0.0, 0.0, &mut rng);
+        assert_eq!(same.center, cam.center);
     }
 
     #[test]

@@ -99,6 +99,14 @@ pub struct TrainConfig {
     /// this field read raw coordinates.
     #[serde(default)]
     pub precondition: bool,
+    /// Per-sample camera height jitter, metres
+    /// ([`SynthConfig::camera_height_std`]); runs before this field used 0.
+    #[serde(default)]
+    pub camera_height_std: f32,
+    /// Per-sample camera rotation jitter, degrees; runs before this field
+    /// used 0.
+    #[serde(default)]
+    pub camera_angle_std_deg: f32,
     /// Flip probability.
     pub flip_prob: f32,
     /// Samples per batch.
@@ -172,6 +180,8 @@ impl TrainConfig {
             noise: self.noise.parse()?,
             noise_scale: self.noise_scale,
             floor_contact: self.floor_contact,
+            camera_height_std: self.camera_height_std,
+            camera_angle_std_deg: self.camera_angle_std_deg,
         };
         cfg.validate()?;
         Ok(cfg)

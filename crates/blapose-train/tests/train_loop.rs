@@ -65,6 +65,8 @@ fn config(steps: u64) -> TrainConfig {
         floor_contact: false,
         detector_gain: false,
         precondition: false,
+        camera_height_std: 0.0,
+        camera_angle_std_deg: 0.0,
         flip_prob: 0.5,
         batch: 4,
         steps,
