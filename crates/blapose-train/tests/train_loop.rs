@@ -113,6 +113,8 @@ fn assert_weights_within(a: &LoadedWeights, b: &LoadedWeights, tolerance: f32, w
             .map(|(x, y)| {
                 if x == y {
                     0.0
+                } else if x.is_nan() || y.is_nan() {
+                    f32::INFINITY
                 } else {
                     (x - y).abs() / (1.0 + x.abs())
                 }
