@@ -92,9 +92,7 @@ impl InputPreconditioner {
         for (row, bias) in w.chunks_exact_mut(FRAME_DIM).zip(b.iter_mut()) {
             let v: [f32; FRAME_DIM] = std::array::from_fn(|i| row[i] * self.inv_std[i]);
             *bias -= v.iter().zip(&self.mean).map(|(a, m)| a * m).sum::<f32>();
-            for i in 0..FRAME_DIM {
-                row[i] = v[i];
-            }
+            row.copy_from_slice(&v);
             // The root's coordinates also enter every relative feature.
             for c in 0..2 {
                 let others: f32 = (0..NUM_JOINTS)
