@@ -221,6 +221,9 @@ pub struct SynthConfig {
     /// Std of a random rotation of the camera about each of its axes per
     /// sample, degrees.
     pub camera_angle_std_deg: f32,
+    /// Turn each window about the vertical through its first root by a
+    /// uniform random yaw (see [`turn_about_vertical`]).
+    pub random_yaw: bool,
 }
 
 impl Default for SynthConfig {
@@ -238,6 +241,7 @@ impl Default for SynthConfig {
             floor_contact: false,
             camera_height_std: 0.0,
             camera_angle_std_deg: 0.0,
+            random_yaw: false,
         }
     }
 }
@@ -451,38 +455,61 @@ impl SynthSource {
         let k: NormalizedIntrinsics = cam.normalized_intrinsics();
         let half_h = cam.height as f32 / cam.width as f32;
 
-        // Rebuilt camera-space poses (unshifted).
-        let mut cam_poses = Vec::with_capacity(t_len);
-        for t in 0..t_len {
-            let u = start + t as f32 * stride;
-            let (root, dirs) = seq.at(u);
-            let world = if cfg.floor_contact {
-                rebuild_on_floor(root, &dirs, &shown, &seq.lengths)
-            } else {
-                rebuild(root, &dirs, &shown)
-            };
-            cam_poses.push(cam.world_to_camera_pose(&world));
-        }
-
+        // Rebuilt camera-space poses (unshifted), turned about the vertical
+        // through the window's first root by a random yaw when asked.
+        let pivot = seq.at(start).0;
+        let build = |yaw: f32| -> Vec<Pose> {
+            (0..t_len)
+                .map(|t| {
+                    let (root, dirs) = seq.at(start + t as f32 * stride);
+                    let (root, dirs) = turn_about_vertical(root, &dirs, pivot, yaw);
+                    let world = if cfg.floor_contact {
+                        rebuild_on_floor(root, &dirs, &shown, &seq.lengths)
+                    } else {
+                        rebuild(root, &dirs, &shown)
+                    };
+                    cam.world_to_camera_pose(&world)
+                })
+                .collect()
+        };
         // One 3D shift for the whole window.
-        let mut shift = [0.0f32; 3];
-        if cfg.shift_std > 0.0 {
-            for _ in 0..MAX_SHIFT_TRIES {
-                let s = cfg.shift_plane.draw(cam, cfg.shift_std, rng);
-                let ok = cam_poses.iter().all(|p| {
-                    let r = [p[0][0] + s[0], p[0][1] + s[1], p[0][2] + s[2]];
-                    if r[2] < cfg.min_depth {
-                        return false;
+        let in_view = |poses: &[Pose], s: [f32; 3]| {
+            poses.iter().all(|p| {
+                let r = [p[0][0] + s[0], p[0][1] + s[1], p[0][2] + s[2]];
+                if r[2] < cfg.min_depth {
+                    return false;
+                }
+                let q = k.project(r);
+                q[0].abs() <= 1.0 && q[1].abs() <= half_h
+            })
+        };
+        let find_shift = |poses: &[Pose], rng: &mut R| {
+            if cfg.shift_std > 0.0 {
+                for _ in 0..MAX_SHIFT_TRIES {
+                    let s = cfg.shift_plane.draw(cam, cfg.shift_std, rng);
+                    if in_view(poses, s) {
+                        return Some(s);
                     }
-                    let q = k.project(r);
-                    q[0].abs() <= 1.0 && q[1].abs() <= half_h
-                });
-                if ok {
-                    shift = s;
-                    break;
                 }
             }
+            None
+        };
+        let mut cam_poses;
+        let mut shift;
+        if cfg.random_yaw {
+            let yaw = rng.random_range(-std::f32::consts::PI..std::f32::consts::PI);
+            cam_poses = build(yaw);
+            shift = find_shift(&cam_poses, rng);
+            if shift.is_none() && !in_view(&cam_poses, [0.0; 3]) {
+                // Turned out of the picture: keep the recorded heading.
+                cam_poses = build(0.0);
+                shift = find_shift(&cam_poses, rng);
+            }
+        } else {
+            cam_poses = build(0.0);
+            shift = find_shift(&cam_poses, rng);
         }
+        let shift = shift.unwrap_or([0.0; 3]);
 
         let track = match cfg.noise {
             NoiseKind::Residual => self
@@ -549,6 +576,30 @@ impl SynthSource {
             targets,
         }
     }
+}
+
+/// `root` and `dirs` turned by `yaw` radians about the vertical (world `z`)
+/// through `pivot`: the same motion facing another way, so the four
+/// cameras see it from any side instead of the recorded ones (heights, and
+/// so the floor contact, are unchanged). `yaw = 0` returns them as they are.
+pub fn turn_about_vertical(
+    root: [f32; 3],
+    dirs: &BoneDirections,
+    pivot: [f32; 3],
+    yaw: f32,
+) -> ([f32; 3], BoneDirections) {
+    if yaw == 0.0 {
+        return (root, *dirs);
+    }
+    let (s, c) = yaw.sin_cos();
+    let turn = |x: f32, y: f32| [c * x - s * y, s * x + c * y];
+    let [x, y] = turn(root[0] - pivot[0], root[1] - pivot[1]);
+    let root = [pivot[0] + x, pivot[1] + y, root[2]];
+    let dirs = dirs.map(|d| {
+        let [x, y] = turn(d[0], d[1]);
+        [x, y, d[2]]
+    });
+    (root, dirs)
 }
 
 /// `cam` moved up or down by `N(0, height_std)` metres and turned by
@@ -694,6 +745,28 @@ mod tests {
         assert!((sd - 0.05).abs() < 0.01, "height std {sd}");
         let same = jitter_camera(&cam, 0.0, 0.0, &mut rng);
         assert_eq!(same.center, cam.center);
+    }
+
+    #[test]
+    fn a_turn_keeps_heights_lengths_and_the_pivot() {
+        let dirs: BoneDirections = std::array::from_fn(|b| {
+            let a = b as f32 * 0.4;
+            [a.cos() * 0.6, a.sin() * 0.6, 0.8]
+        });
+        let root = [1.0, 2.0, 0.9];
+        let pivot = [0.5, 1.5, 0.9];
+        let (r, d) = turn_about_vertical(root, &dirs, pivot, 1.0);
+        assert_eq!(r[2], root[2]);
+        let dist = |p: [f32; 3]| ((p[0] - pivot[0]).powi(2) + (p[1] - pivot[1]).powi(2)).sqrt();
+        assert!((dist(r) - dist(root)).abs() < 1e-5);
+        for (a, b) in d.iter().zip(&dirs) {
+            assert_eq!(a[2], b[2], "heights kept");
+            let n = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
+            assert!((n - 1.0).abs() < 1e-5, "still unit");
+        }
+        assert_eq!(turn_about_vertical(root, &dirs, pivot, 0.0), (root, dirs));
+        let (p, _) = turn_about_vertical(pivot, &dirs, pivot, 2.0);
+        assert!(dist(p) < 1e-6, "the pivot stays");
     }
 
     #[test]

@@ -107,6 +107,10 @@ pub struct TrainConfig {
     /// used 0.
     #[serde(default)]
     pub camera_angle_std_deg: f32,
+    /// Turn each window by a random yaw ([`SynthConfig::random_yaw`]); runs
+    /// before this field did not.
+    #[serde(default)]
+    pub random_yaw: bool,
     /// Flip probability.
     pub flip_prob: f32,
     /// Samples per batch.
@@ -182,6 +186,7 @@ impl TrainConfig {
             floor_contact: self.floor_contact,
             camera_height_std: self.camera_height_std,
             camera_angle_std_deg: self.camera_angle_std_deg,
+            random_yaw: self.random_yaw,
         };
         cfg.validate()?;
         Ok(cfg)

@@ -300,6 +300,36 @@ fn detector_gain_is_fitted_on_training_subjects_and_changes_only_the_input() {
 }
 
 #[test]
+fn turned_windows_stay_in_the_picture_and_keep_their_lengths() {
+    let Some(f) = fixture() else { return };
+    let src = source(f, LengthStrategy::Ansur);
+    let draw = |random_yaw: bool, i: u64| {
+        let cfg = SynthConfig {
+            seq_len: 32,
+            random_yaw,
+            ..Default::default()
+        };
+        src.sample(&cfg, &mut sample_rng(11, 0, i))
+    };
+    let mut inside = 0usize;
+    let mut points = 0usize;
+    let mut moved = 0usize;
+    for i in 0..64 {
+        let (plain, turned) = (draw(false, i), draw(true, i));
+        assert_eq!(plain.target, turned.target, "the drawn body is the same");
+        moved += usize::from(plain.input != turned.input);
+        points += turned.input.len() / 2;
+        inside += turned
+            .input
+            .chunks_exact(2)
+            .filter(|p| p[0].abs() <= 1.1 && p[1].abs() <= 1.1)
+            .count();
+    }
+    assert!(moved > 48, "most windows are turned ({moved} of 64)");
+    assert!(inside as f64 > 0.99 * points as f64, "{inside} of {points}");
+}
+
+#[test]
 fn samples_are_plausible_and_deterministic() {
     let Some(f) = fixture() else { return };
     let src = Arc::new(source(f, LengthStrategy::Uniform));

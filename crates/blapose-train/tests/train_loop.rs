@@ -67,6 +67,7 @@ fn config(steps: u64) -> TrainConfig {
         precondition: false,
         camera_height_std: 0.0,
         camera_angle_std_deg: 0.0,
+        random_yaw: false,
         flip_prob: 0.5,
         batch: 4,
         steps,
