@@ -401,6 +401,14 @@ pub struct EvalReport {
     /// close to the absolute error means the model is off in one
     /// direction for everyone, not noisy.
     pub per_bone_bias_mm: Vec<f64>,
+    /// Per subject: the mean of its trials' estimates beside its true
+    /// lengths. A model that reads people from their keypoints predicts
+    /// different people differently; one that has only learned a prior
+    /// predicts everyone alike ([`SubjectSpread`]).
+    pub per_subject_mean_prediction: BTreeMap<String, SubjectMean>,
+    /// How far apart the subjects' mean estimates are, against how far
+    /// apart they really are.
+    pub subject_spread: SubjectSpread,
     /// Every trial's estimate beside the truth (for calibration and
     /// error analysis).
     pub trial_predictions: Vec<TrialPrediction>,
@@ -427,6 +435,84 @@ pub struct TrialPrediction {
     pub predicted_m: Vec<f32>,
     /// True lengths (metres).
     pub true_m: Vec<f32>,
+}
+
+/// One subject's mean estimate.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SubjectMean {
+    /// Trials averaged.
+    pub trials: usize,
+    /// Mean of the trials' predicted lengths (metres).
+    pub predicted_m: Vec<f32>,
+    /// The subject's true lengths (metres).
+    pub true_m: Vec<f32>,
+}
+
+/// Between-subject spread per bone (standard deviation over subjects of
+/// their mean estimate, and of their true lengths), averaged over bones,
+/// mm. `predicted_mm` near 0 against a clearly positive `true_mm` means
+/// the model tells the subjects apart no better than a constant.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+pub struct SubjectSpread {
+    /// Spread of the subjects' mean estimates.
+    pub predicted_mm: f64,
+    /// Spread of their true lengths.
+    pub true_mm: f64,
+}
+
+/// Per subject: the mean estimate over its trials and its true lengths
+/// (the first trial's; a subject's lengths are the same in every trial).
+fn per_subject_mean(
+    trials: &[EvalSequence],
+    pred: &[BoneLengths],
+) -> BTreeMap<String, SubjectMean> {
+    let mut sums: BTreeMap<String, (usize, [f64; NUM_BONES], BoneLengths)> = BTreeMap::new();
+    for (t, p) in trials.iter().zip(pred) {
+        let e = sums
+            .entry(t.subject.clone())
+            .or_insert((0, [0.0; NUM_BONES], t.gt));
+        e.0 += 1;
+        for b in 0..NUM_BONES {
+            e.1[b] += f64::from(p[b]);
+        }
+    }
+    sums.into_iter()
+        .map(|(s, (n, sum, gt))| {
+            let mean = sum.iter().map(|v| (v / n as f64) as f32).collect();
+            (
+                s,
+                SubjectMean {
+                    trials: n,
+                    predicted_m: mean,
+                    true_m: gt.to_vec(),
+                },
+            )
+        })
+        .collect()
+}
+
+/// The [`SubjectSpread`] of per-subject means (zero for fewer than two
+/// subjects).
+pub fn subject_spread(means: &BTreeMap<String, SubjectMean>) -> SubjectSpread {
+    let n = means.len();
+    if n < 2 {
+        return SubjectSpread::default();
+    }
+    let spread = |get: &dyn Fn(&SubjectMean) -> &[f32]| {
+        (0..NUM_BONES)
+            .map(|b| {
+                let v: Vec<f64> = means.values().map(|m| f64::from(get(m)[b])).collect();
+                let mean = v.iter().sum::<f64>() / n as f64;
+                (v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n as f64).sqrt()
+            })
+            .sum::<f64>()
+            * 1000.0
+            / NUM_BONES as f64
+    };
+    SubjectSpread {
+        predicted_mm: spread(&|m| &m.predicted_m),
+        true_mm: spread(&|m| &m.true_m),
+    }
 }
 
 /// Mean of `pred - true` per bone over trials, mm.
@@ -462,6 +548,7 @@ pub fn evaluate(
     let seconds = t0.elapsed().as_secs_f64();
     let pred: Vec<BoneLengths> = est.iter().map(|e| e.lengths).collect();
     let summary = summarize(trials, &pred)?;
+    let per_subject_mean_prediction = per_subject_mean(trials, &pred);
     let mut base = BTreeMap::new();
     for (name, l) in baselines {
         base.insert(
@@ -496,6 +583,8 @@ pub fn evaluate(
         bone_names: BONE_NAMES.iter().map(|s| s.to_string()).collect(),
         per_action_mm: summary.per_action_mm.clone(),
         per_bone_bias_mm: per_bone_bias_mm(trials, &pred),
+        subject_spread: subject_spread(&per_subject_mean_prediction),
+        per_subject_mean_prediction,
         trial_predictions: trials
             .iter()
             .zip(&pred)
@@ -567,6 +656,22 @@ pub fn markdown(r: &EvalReport) -> String {
         s.push_str(&format!(" {name} {b:+.1};"));
     }
     s.push('\n');
+    s.push_str("\nMean estimate per subject (mm; predicted / true):\n\n| subject |");
+    for name in BONE_NAMES {
+        s.push_str(&format!(" {name} |"));
+    }
+    s.push_str("\n|---|");
+    s.push_str(&"---|".repeat(NUM_BONES));
+    for (subj, m) in &r.per_subject_mean_prediction {
+        s.push_str(&format!("\n| {subj} ({} trials) |", m.trials));
+        for (p, t) in m.predicted_m.iter().zip(&m.true_m) {
+            s.push_str(&format!(" {:.0} / {:.0} |", p * 1000.0, t * 1000.0));
+        }
+    }
+    s.push_str(&format!(
+        "\n\nSpread between subjects (std over subjects, mean over bones): predicted {:.2} mm, true {:.2} mm\n",
+        r.subject_spread.predicted_mm, r.subject_spread.true_mm
+    ));
     if !r.curve.is_empty() {
         s.push_str("\n| frames seen |");
         for c in &r.curve {
@@ -628,6 +733,29 @@ mod tests {
         assert!((est[0].lengths[3] + 0.05).abs() < 1e-6);
         assert_eq!(est[0].curve.len(), 1);
         assert_eq!(est[0].curve[0], est[0].lengths);
+    }
+
+    #[test]
+    fn a_constant_has_no_spread_between_subjects() {
+        let trial = |subject: &str, gt: f32| EvalSequence {
+            subject: subject.into(),
+            sequence: "Walking".into(),
+            camera: "54138969".into(),
+            input: vec![0.0; FRAME_DIM],
+            gt: [gt; NUM_BONES],
+        };
+        let trials = [trial("S9", 0.30), trial("S9", 0.30), trial("S11", 0.26)];
+        let constant = vec![[0.28; NUM_BONES]; 3];
+        let means = per_subject_mean(&trials, &constant);
+        assert_eq!(means["S9"].trials, 2);
+        let s = subject_spread(&means);
+        assert!(s.predicted_mm.abs() < 1e-6);
+        assert!((s.true_mm - 20.0).abs() < 1e-3, "{s:?}");
+        // Two trials of S9 at 0.30 and 0.32 average to 0.31.
+        let pred = vec![[0.30; NUM_BONES], [0.32; NUM_BONES], [0.26; NUM_BONES]];
+        let means = per_subject_mean(&trials, &pred);
+        assert!((means["S9"].predicted_m[0] - 0.31).abs() < 1e-6);
+        assert!((subject_spread(&means).predicted_mm - 25.0).abs() < 1e-3);
     }
 
     #[test]
