@@ -27,6 +27,15 @@
 #   run.sh floor_len128 2977 --lengths ansur --noise residual --floor-contact --seq-len 128 --batch 16
 #   run.sh floor_spread3 2977 --lengths ansur --noise residual --floor-contact --ansur-spread 3.0
 #   MODEL=gru run.sh gru_floor 2004 --lengths ansur --noise residual --floor-contact --per-frame-weight 1.0
+# Session 8 (one flag each on top of floor; yaw and gru_yaw are the shipped
+# weights):
+#   run.sh gain 2977 --lengths ansur --noise residual --floor-contact --detector-gain
+#   run.sh jit 2977 --lengths ansur --noise residual --floor-contact --camera-height-std 0.05 --camera-angle-std 1.0
+#   run.sh gauss 2977 --lengths ansur --noise gaussian --floor-contact
+#   run.sh pre 2977 --lengths ansur --noise residual --floor-contact --precondition
+#   run.sh prejit 2977 --lengths ansur --noise residual --floor-contact --precondition --camera-height-std 0.05 --camera-angle-std 1.0
+#   run.sh yaw 2977 --lengths ansur --noise residual --floor-contact --random-yaw
+#   MODEL=gru run.sh gru_yaw 2004 --lengths ansur --noise residual --floor-contact --per-frame-weight 1.0 --random-yaw
 set -euo pipefail
 name=$1; steps=$2; shift 2
 bin=./target/release/blapose
