@@ -238,8 +238,9 @@ impl TrainingSet {
                         continue;
                     };
                     let sh = sh_to_normalized(det, cam)?;
-                    tracks.push(Some(residual_track(&sh, poses, cam)));
-                    bones.merge(&image_bone_sums(&sh, poses, cam));
+                    let (track, sums) = detector_statistics(&sh, poses, cam);
+                    tracks.push(Some(track));
+                    bones.merge(&sums);
                     real.push(EvalSequence {
                         subject: s.to_string(),
                         sequence: a.to_string(),
@@ -311,33 +312,31 @@ pub fn decompose_sequence(
     })
 }
 
-/// Metric residuals of one sequence and camera (see [`crate::noise`]); the
-/// shorter of the two streams bounds the track, frames that give no finite
-/// residual repeat the previous one (or zero).
-pub fn residual_track(sh: &[Keypoints2d], poses: &[Pose], cam: &Camera) -> Vec<MetricResidual> {
+/// What one sequence's real detections tell about the detector, from one
+/// projection of its ground truth per frame: the metric residual track
+/// (see [`crate::noise`]; the shorter of the two streams bounds it, frames
+/// that give no finite residual repeat the previous one, or zero) and the
+/// summed detected and projected 2D bone lengths
+/// ([`crate::detector_gain`]).
+pub fn detector_statistics(
+    sh: &[Keypoints2d],
+    poses: &[Pose],
+    cam: &Camera,
+) -> (Vec<MetricResidual>, ImageBoneSums) {
     let k = cam.normalized_intrinsics();
     let n = sh.len().min(poses.len());
-    let mut out: Vec<MetricResidual> = Vec::with_capacity(n);
+    let mut track: Vec<MetricResidual> = Vec::with_capacity(n);
+    let mut sums = ImageBoneSums::default();
     for t in 0..n {
         let cp = cam.world_to_camera_pose(&poses[t]);
         let gt = k.project_pose(&cp);
+        sums.add_frame(&sh[t], &gt);
         let r = metric_residual(&sh[t], &gt, cp[0][2], k.focal)
-            .or_else(|| out.last().copied())
+            .or_else(|| track.last().copied())
             .unwrap_or([[0.0; 2]; blapose_core::NUM_JOINTS]);
-        out.push(r);
+        track.push(r);
     }
-    out
-}
-
-/// 2D bone lengths of one sequence and camera, detected (`sh`, normalized)
-/// and ground truth projected, summed over the frames both streams have.
-pub fn image_bone_sums(sh: &[Keypoints2d], poses: &[Pose], cam: &Camera) -> ImageBoneSums {
-    let k = cam.normalized_intrinsics();
-    let mut sums = ImageBoneSums::default();
-    for (det, pose) in sh.iter().zip(poses) {
-        sums.add_frame(det, &k.project_pose(&cam.world_to_camera_pose(pose)));
-    }
-    sums
+    (track, sums)
 }
 
 /// Evaluation inputs for `subjects`: every sequence, every camera.
