@@ -113,6 +113,16 @@ impl EvalSequence {
         Ok(self.with_input(input, self.gt))
     }
 
+    /// The trial joined `skip` frames in: what a model sees when a client
+    /// starts streaming in the middle of a recording. A trial no longer
+    /// than `skip` keeps its last frame, so it still has one.
+    pub fn skipped(&self, skip: usize) -> EvalSequence {
+        use crate::synth::FRAME_DIM;
+        let n = self.frames();
+        let first = skip.min(n.saturating_sub(1));
+        self.with_input(self.input[first * FRAME_DIM..].to_vec(), self.gt)
+    }
+
     /// The same trial seen in a mirror: every frame's keypoints flipped
     /// horizontally ([`crate::synth::flip_input`], the training flip) and
     /// the left/right lengths swapped, so the mirrored trial's truth is
@@ -439,5 +449,19 @@ mod tests {
         assert!(s.resampled(0.0).is_err());
         assert!(s.resampled(f32::NAN).is_err());
         assert_eq!(ramp(0).resampled(30.0).unwrap().frames(), 0);
+    }
+
+    #[test]
+    fn skipping_starts_later_and_keeps_at_least_one_frame() {
+        let s = ramp(10);
+        let late = s.skipped(4);
+        assert_eq!(late.frames(), 6);
+        assert_eq!(late.input[0], 4.0);
+        assert_eq!(late.gt, s.gt);
+        assert_eq!(s.skipped(0), s);
+        let last = s.skipped(50);
+        assert_eq!(last.frames(), 1);
+        assert_eq!(last.input[0], 9.0);
+        assert_eq!(ramp(0).skipped(3).frames(), 0);
     }
 }

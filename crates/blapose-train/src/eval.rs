@@ -409,6 +409,8 @@ pub struct EvalReport {
     /// How far apart the subjects' mean estimates are, against how far
     /// apart they really are.
     pub subject_spread: SubjectSpread,
+    /// Per view (`"subject camera"`): the mean estimate of its trials.
+    pub per_view_mean_prediction: BTreeMap<String, SubjectMean>,
     /// Every trial's estimate beside the truth (for calibration and
     /// error analysis).
     pub trial_predictions: Vec<TrialPrediction>,
@@ -460,17 +462,16 @@ pub struct SubjectSpread {
     pub true_mm: f64,
 }
 
-/// Per subject: the mean estimate over its trials and its true lengths
-/// (the first trial's; a subject's lengths are the same in every trial).
-fn per_subject_mean(
+/// Trials grouped by `key`: the mean estimate of each group and its true
+/// lengths (the first trial's; every trial of one subject has the same).
+fn grouped_mean(
     trials: &[EvalSequence],
     pred: &[BoneLengths],
+    key: impl Fn(&EvalSequence) -> String,
 ) -> BTreeMap<String, SubjectMean> {
     let mut sums: BTreeMap<String, (usize, [f64; NUM_BONES], BoneLengths)> = BTreeMap::new();
     for (t, p) in trials.iter().zip(pred) {
-        let e = sums
-            .entry(t.subject.clone())
-            .or_insert((0, [0.0; NUM_BONES], t.gt));
+        let e = sums.entry(key(t)).or_insert((0, [0.0; NUM_BONES], t.gt));
         e.0 += 1;
         for b in 0..NUM_BONES {
             e.1[b] += f64::from(p[b]);
@@ -489,6 +490,31 @@ fn per_subject_mean(
             )
         })
         .collect()
+}
+
+/// Per subject: the mean estimate over its trials and its true lengths.
+fn per_subject_mean(
+    trials: &[EvalSequence],
+    pred: &[BoneLengths],
+) -> BTreeMap<String, SubjectMean> {
+    grouped_mean(trials, pred, |t| t.subject.clone())
+}
+
+/// Per view (subject and camera, key `"S9 54138969"`): the same means.
+/// Human3.6M's cameras were calibrated again for every subject, and a
+/// model that reads size from where the feet meet the floor carries the
+/// camera's placement into its estimate; this shows it per camera.
+fn per_view_mean(trials: &[EvalSequence], pred: &[BoneLengths]) -> BTreeMap<String, SubjectMean> {
+    grouped_mean(trials, pred, |t| format!("{} {}", t.subject, t.camera))
+}
+
+impl SubjectMean {
+    /// Predicted over true total length (all 16 bones): 1 is right on
+    /// average, 0.98 a body 2 % too small.
+    pub fn size_ratio(&self) -> f64 {
+        let total = |v: &[f32]| v.iter().map(|&x| f64::from(x)).sum::<f64>();
+        total(&self.predicted_m) / total(&self.true_m)
+    }
 }
 
 /// The [`SubjectSpread`] of per-subject means (zero for fewer than two
@@ -585,6 +611,7 @@ pub fn evaluate(
         per_bone_bias_mm: per_bone_bias_mm(trials, &pred),
         subject_spread: subject_spread(&per_subject_mean_prediction),
         per_subject_mean_prediction,
+        per_view_mean_prediction: per_view_mean(trials, &pred),
         trial_predictions: trials
             .iter()
             .zip(&pred)
@@ -672,6 +699,11 @@ pub fn markdown(r: &EvalReport) -> String {
         "\n\nSpread between subjects (std over subjects, mean over bones): predicted {:.2} mm, true {:.2} mm\n",
         r.subject_spread.predicted_mm, r.subject_spread.true_mm
     ));
+    s.push_str("\nSize ratio per view (predicted / true total length over the 16 bones):\n\n| view | trials | size ratio |\n|---|---|---|");
+    for (view, m) in &r.per_view_mean_prediction {
+        s.push_str(&format!("\n| {view} | {} | {:.4} |", m.trials, m.size_ratio()));
+    }
+    s.push('\n');
     if !r.curve.is_empty() {
         s.push_str("\n| frames seen |");
         for c in &r.curve {
@@ -756,6 +788,26 @@ mod tests {
         let means = per_subject_mean(&trials, &pred);
         assert!((means["S9"].predicted_m[0] - 0.31).abs() < 1e-6);
         assert!((subject_spread(&means).predicted_mm - 25.0).abs() < 1e-3);
+        assert!((means["S11"].size_ratio() - 1.0).abs() < 1e-6);
+        assert!((means["S9"].size_ratio() - 0.31 / 0.30).abs() < 1e-6);
+    }
+
+    #[test]
+    fn views_group_by_subject_and_camera() {
+        let trial = |camera: &str| EvalSequence {
+            subject: "S9".into(),
+            sequence: "Walking".into(),
+            camera: camera.into(),
+            input: vec![0.0; FRAME_DIM],
+            gt: [0.30; NUM_BONES],
+        };
+        let trials = [trial("54138969"), trial("54138969"), trial("55011271")];
+        let pred = vec![[0.27; NUM_BONES], [0.29; NUM_BONES], [0.33; NUM_BONES]];
+        let views = per_view_mean(&trials, &pred);
+        assert_eq!(views.len(), 2);
+        assert_eq!(views["S9 54138969"].trials, 2);
+        assert!((views["S9 54138969"].size_ratio() - 0.28 / 0.30).abs() < 1e-6);
+        assert!((views["S9 55011271"].size_ratio() - 1.1).abs() < 1e-6);
     }
 
     #[test]

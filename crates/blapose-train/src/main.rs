@@ -200,6 +200,11 @@ struct EvalArgs {
     /// data linearly resampled; e.g. 25 or 60).
     #[arg(long, default_value_t = 50.0)]
     fps: f32,
+    /// Start every trial this many 50 Hz frames in (a stream joined mid-way;
+    /// shows whether an online error curve depends on the state's age or on
+    /// how the recordings begin).
+    #[arg(long, default_value_t = 0)]
+    skip_frames: usize,
     /// Evaluate only every k-th trial (quick subsets; 1 = all).
     #[arg(long, default_value_t = 1)]
     every: usize,
@@ -690,6 +695,9 @@ fn eval(a: EvalArgs) -> Result<()> {
     let mut trials = eval_sequences(&h36m, &subjects, input, &lengths)?;
     if a.every > 1 {
         trials = trials.into_iter().step_by(a.every).collect();
+    }
+    if a.skip_frames > 0 {
+        trials = trials.iter().map(|t| t.skipped(a.skip_frames)).collect();
     }
     if a.fps != blapose_train::dataset::SOURCE_FPS {
         trials = trials
