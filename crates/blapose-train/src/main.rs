@@ -124,6 +124,11 @@ struct TrainArgs {
     /// when the turned person would leave the picture).
     #[arg(long)]
     random_yaw: bool,
+    /// Draw each body's proportions and its overall size independently
+    /// (two draws of the length strategy): size then cannot be guessed
+    /// from proportions, only from the geometry of the picture.
+    #[arg(long)]
+    decouple_size: bool,
     /// Horizontal flip probability.
     #[arg(long, default_value_t = 0.5)]
     flip_prob: f32,
@@ -541,6 +546,7 @@ fn train(a: TrainArgs) -> Result<()> {
         camera_height_std: a.camera_height_std,
         camera_angle_std_deg: a.camera_angle_std,
         random_yaw: a.random_yaw,
+        decouple_size: a.decouple_size,
         flip_prob: a.flip_prob,
         batch: a.batch,
         steps: a.steps,
@@ -571,7 +577,10 @@ fn train(a: TrainArgs) -> Result<()> {
     } else {
         None
     };
-    let sampler = LengthSampler::new(strategy, stats, pop)?;
+    let mut sampler = LengthSampler::new(strategy, stats, pop)?;
+    if cfg.decouple_size {
+        sampler = sampler.with_decoupled_size();
+    }
     let gain = if cfg.detector_gain {
         let g = DetectorGain::fit(&set.subject_lengths, &set.image_bones)?;
         eprintln!("detector gain per bone: {}", format_gains(&g));
@@ -590,8 +599,8 @@ fn train(a: TrainArgs) -> Result<()> {
         t0.elapsed().as_secs_f64()
     );
     let training_data = format!(
-        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}), noise={} (x{}), seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), floor_contact={}, detector_gain={}, camera jitter={} m / {} deg, random yaw={}, flip={}",
-        cfg.lengths, cfg.ansur_spread, cfg.noise, cfg.noise_scale, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.shift_plane, cfg.floor_contact, format_gains(source.detector_gain()), cfg.camera_height_std, cfg.camera_angle_std_deg, cfg.random_yaw, cfg.flip_prob
+        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}), noise={} (x{}), seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), floor_contact={}, detector_gain={}, camera jitter={} m / {} deg, random yaw={}, size decoupled from proportions={}, flip={}",
+        cfg.lengths, cfg.ansur_spread, cfg.noise, cfg.noise_scale, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.shift_plane, cfg.floor_contact, format_gains(source.detector_gain()), cfg.camera_height_std, cfg.camera_angle_std_deg, cfg.random_yaw, cfg.decouple_size, cfg.flip_prob
     );
     let pb = step_bar(cfg.steps);
     let mut progress = |step: u64, _total: u64, loss: f64, fps: f64| {

@@ -111,6 +111,11 @@ pub struct TrainConfig {
     /// before this field did not.
     #[serde(default)]
     pub random_yaw: bool,
+    /// Draw sizes apart from proportions
+    /// ([`crate::lengths::LengthSampler::with_decoupled_size`]); runs before
+    /// this field did not.
+    #[serde(default)]
+    pub decouple_size: bool,
     /// Flip probability.
     pub flip_prob: f32,
     /// Samples per batch.

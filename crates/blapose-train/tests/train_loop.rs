@@ -68,6 +68,7 @@ fn config(steps: u64) -> TrainConfig {
         camera_height_std: 0.0,
         camera_angle_std_deg: 0.0,
         random_yaw: false,
+        decouple_size: false,
         flip_prob: 0.5,
         batch: 4,
         steps,
