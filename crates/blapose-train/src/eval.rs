@@ -701,7 +701,11 @@ pub fn markdown(r: &EvalReport) -> String {
     ));
     s.push_str("\nSize ratio per view (predicted / true total length over the 16 bones):\n\n| view | trials | size ratio |\n|---|---|---|");
     for (view, m) in &r.per_view_mean_prediction {
-        s.push_str(&format!("\n| {view} | {} | {:.4} |", m.trials, m.size_ratio()));
+        s.push_str(&format!(
+            "\n| {view} | {} | {:.4} |",
+            m.trials,
+            m.size_ratio()
+        ));
     }
     s.push('\n');
     if !r.curve.is_empty() {

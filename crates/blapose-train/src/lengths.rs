@@ -387,10 +387,15 @@ mod tests {
             }
             sxy / (sxx * syy).sqrt()
         };
-        let plain = LengthSampler::new(LengthStrategy::Ansur, s.clone(), Some(pop.clone())).unwrap();
+        let plain =
+            LengthSampler::new(LengthStrategy::Ansur, s.clone(), Some(pop.clone())).unwrap();
         assert!(correlation(&plain) > 0.9);
         let decoupled = plain.with_decoupled_size();
         assert!(decoupled.decouples_size());
-        assert!(correlation(&decoupled).abs() < 0.1, "{}", correlation(&decoupled));
+        assert!(
+            correlation(&decoupled).abs() < 0.1,
+            "{}",
+            correlation(&decoupled)
+        );
     }
 }
