@@ -36,6 +36,12 @@
 #   run.sh prejit 2977 --lengths ansur --noise residual --floor-contact --precondition --camera-height-std 0.05 --camera-angle-std 1.0
 #   run.sh yaw 2977 --lengths ansur --noise residual --floor-contact --random-yaw
 #   MODEL=gru run.sh gru_yaw 2004 --lengths ansur --noise residual --floor-contact --per-frame-weight 1.0 --random-yaw
+# Session 9 (a second seed of the shipped recipe; sizes drawn apart from
+# proportions):
+#   run.sh yaw_seed4 2977 --lengths ansur --noise residual --floor-contact --random-yaw --seed 4
+#   MODEL=gru run.sh gru_yaw_seed4 2004 --lengths ansur --noise residual --floor-contact --per-frame-weight 1.0 --random-yaw --seed 4
+#   run.sh decouple 2977 --lengths ansur --noise residual --floor-contact --random-yaw --decouple-size
+#   MODEL=gru run.sh gru_decouple 2004 --lengths ansur --noise residual --floor-contact --per-frame-weight 1.0 --random-yaw --decouple-size
 set -euo pipefail
 name=$1; steps=$2; shift 2
 bin=./target/release/blapose
