@@ -129,6 +129,11 @@ struct TrainArgs {
     /// from proportions, only from the geometry of the picture.
     #[arg(long)]
     decouple_size: bool,
+    /// Synthesize through these cameras only (ids, comma separated; default
+    /// all four). With one camera its geometry is fixed and known to the
+    /// model, which the four together are not.
+    #[arg(long, value_delimiter = ',')]
+    cameras: Vec<String>,
     /// Horizontal flip probability.
     #[arg(long, default_value_t = 0.5)]
     flip_prob: f32,
@@ -210,6 +215,10 @@ struct EvalArgs {
     /// how the recordings begin).
     #[arg(long, default_value_t = 0)]
     skip_frames: usize,
+    /// Evaluate the trials of these cameras only (ids, comma separated;
+    /// default all).
+    #[arg(long, value_delimiter = ',')]
+    cameras: Vec<String>,
     /// Evaluate only every k-th trial (quick subsets; 1 = all).
     #[arg(long, default_value_t = 1)]
     every: usize,
@@ -547,6 +556,7 @@ fn train(a: TrainArgs) -> Result<()> {
         camera_angle_std_deg: a.camera_angle_std,
         random_yaw: a.random_yaw,
         decouple_size: a.decouple_size,
+        cameras: a.cameras.clone(),
         flip_prob: a.flip_prob,
         batch: a.batch,
         steps: a.steps,
@@ -590,7 +600,8 @@ fn train(a: TrainArgs) -> Result<()> {
     };
     let source = Arc::new(
         SynthSource::new(set.sequences.clone(), set.residuals.clone(), sampler)?
-            .with_detector_gain(gain),
+            .with_detector_gain(gain)
+            .with_cameras(&cfg.cameras)?,
     );
     eprintln!(
         "data: {} training sequences, {} real SH validation streams, loaded in {:.1}s",
@@ -599,8 +610,8 @@ fn train(a: TrainArgs) -> Result<()> {
         t0.elapsed().as_secs_f64()
     );
     let training_data = format!(
-        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}), noise={} (x{}), seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), floor_contact={}, detector_gain={}, camera jitter={} m / {} deg, random yaw={}, size decoupled from proportions={}, flip={}",
-        cfg.lengths, cfg.ansur_spread, cfg.noise, cfg.noise_scale, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.shift_plane, cfg.floor_contact, format_gains(source.detector_gain()), cfg.camera_height_std, cfg.camera_angle_std_deg, cfg.random_yaw, cfg.decouple_size, cfg.flip_prob
+        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}), noise={} (x{}), seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), floor_contact={}, detector_gain={}, camera jitter={} m / {} deg, random yaw={}, size decoupled from proportions={}, cameras={}, flip={}",
+        cfg.lengths, cfg.ansur_spread, cfg.noise, cfg.noise_scale, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.shift_plane, cfg.floor_contact, format_gains(source.detector_gain()), cfg.camera_height_std, cfg.camera_angle_std_deg, cfg.random_yaw, cfg.decouple_size, if cfg.cameras.is_empty() { "all".to_string() } else { cfg.cameras.join(",") }, cfg.flip_prob
     );
     let pb = step_bar(cfg.steps);
     let mut progress = |step: u64, _total: u64, loss: f64, fps: f64| {
@@ -702,6 +713,9 @@ fn eval(a: EvalArgs) -> Result<()> {
     };
     let h36m = H36m::load(&root, &subjects, parts)?;
     let mut trials = eval_sequences(&h36m, &subjects, input, &lengths)?;
+    if !a.cameras.is_empty() {
+        trials.retain(|t| a.cameras.contains(&t.camera));
+    }
     if a.every > 1 {
         trials = trials.into_iter().step_by(a.every).collect();
     }
@@ -715,7 +729,15 @@ fn eval(a: EvalArgs) -> Result<()> {
             .collect::<Result<_, _>>()?;
     }
     if trials.is_empty() {
-        anyhow::bail!("no trials for subjects {}", a.subjects.join(","));
+        anyhow::bail!(
+            "no trials for subjects {} (cameras: {})",
+            a.subjects.join(","),
+            if a.cameras.is_empty() {
+                "all".to_string()
+            } else {
+                a.cameras.join(",")
+            }
+        );
     }
     eprintln!(
         "loaded {} trials in {:.1}s",

@@ -289,6 +289,9 @@ pub struct SynthSource {
     residuals: ResidualBank,
     sampler: LengthSampler,
     gain: DetectorGain,
+    /// Per sequence, the indices of the cameras samples may use (empty:
+    /// every camera).
+    camera_subset: Vec<Vec<usize>>,
 }
 
 /// One synthetic sample.
@@ -372,7 +375,38 @@ impl SynthSource {
             residuals,
             sampler,
             gain: DetectorGain::unit(),
+            camera_subset: Vec::new(),
         })
+    }
+
+    /// Draw samples through the cameras named in `ids` only (all when
+    /// `ids` is empty). The network sees keypoints, never which camera
+    /// took them, so over several cameras it can only learn their average
+    /// geometry (height, tilt, principal point); with one, the geometry is
+    /// fixed, which shows how much of a body's size the picture holds when
+    /// the camera is known. Every sequence must have one of the cameras.
+    pub fn with_cameras(mut self, ids: &[String]) -> Result<Self, TrainError> {
+        if ids.is_empty() {
+            self.camera_subset.clear();
+            return Ok(self);
+        }
+        let mut subset = Vec::with_capacity(self.sequences.len());
+        for seq in &self.sequences {
+            let allowed: Vec<usize> = (0..seq.cameras.len())
+                .filter(|&i| ids.contains(&seq.cameras[i].id))
+                .collect();
+            if allowed.is_empty() {
+                return Err(TrainError::InvalidArgument(format!(
+                    "{}/{} has none of the cameras {}",
+                    seq.subject,
+                    seq.action,
+                    ids.join(",")
+                )));
+            }
+            subset.push(allowed);
+        }
+        self.camera_subset = subset;
+        Ok(self)
     }
 
     /// Show the drawn bodies as the detector would ([`DetectorGain`]; unit
@@ -439,7 +473,10 @@ impl SynthSource {
         // The input shows the body as the detector sees it; the target is
         // the drawn lengths.
         let shown = self.gain.shown(&seq.lengths, &lengths);
-        let cam_idx = rng.random_range(0..seq.cameras.len());
+        let cam_idx = match self.camera_subset.get(seq_idx) {
+            Some(allowed) => allowed[rng.random_range(0..allowed.len())],
+            None => rng.random_range(0..seq.cameras.len()),
+        };
         let jittered;
         let cam = if cfg.camera_height_std > 0.0 || cfg.camera_angle_std_deg > 0.0 {
             jittered = jitter_camera(

@@ -116,6 +116,11 @@ pub struct TrainConfig {
     /// this field did not.
     #[serde(default)]
     pub decouple_size: bool,
+    /// Synthesize through these cameras only (ids; empty = all;
+    /// [`crate::synth::SynthSource::with_cameras`]); runs before this
+    /// field used all.
+    #[serde(default)]
+    pub cameras: Vec<String>,
     /// Flip probability.
     pub flip_prob: f32,
     /// Samples per batch.

@@ -330,6 +330,35 @@ fn turned_windows_stay_in_the_picture_and_keep_their_lengths() {
 }
 
 #[test]
+fn a_camera_subset_draws_through_those_cameras_only() {
+    let Some(f) = fixture() else { return };
+    let cfg = SynthConfig {
+        seq_len: 8,
+        ..Default::default()
+    };
+    let all = source(f, LengthStrategy::Ansur);
+    let one = source(f, LengthStrategy::Ansur)
+        .with_cameras(&["58860488".to_string()])
+        .unwrap();
+    let camera_of = |src: &SynthSource, i: u64| {
+        let s = src.sample(&cfg, &mut sample_rng(5, 0, i));
+        src.sequences()[s.sequence].cameras[s.camera].id.clone()
+    };
+    let seen: std::collections::BTreeSet<String> = (0..64).map(|i| camera_of(&all, i)).collect();
+    assert_eq!(seen.len(), 4, "all four cameras by default: {seen:?}");
+    assert!((0..64).all(|i| camera_of(&one, i) == "58860488"));
+    // An empty subset is every camera, drawn exactly as without one.
+    let reset = source(f, LengthStrategy::Ansur).with_cameras(&[]).unwrap();
+    assert_eq!(
+        reset.sample(&cfg, &mut sample_rng(5, 0, 3)),
+        all.sample(&cfg, &mut sample_rng(5, 0, 3))
+    );
+    assert!(source(f, LengthStrategy::Ansur)
+        .with_cameras(&["12345678".to_string()])
+        .is_err());
+}
+
+#[test]
 fn samples_are_plausible_and_deterministic() {
     let Some(f) = fixture() else { return };
     let src = Arc::new(source(f, LengthStrategy::Uniform));

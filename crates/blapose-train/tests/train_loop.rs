@@ -69,6 +69,7 @@ fn config(steps: u64) -> TrainConfig {
         camera_angle_std_deg: 0.0,
         random_yaw: false,
         decouple_size: false,
+        cameras: Vec::new(),
         flip_prob: 0.5,
         batch: 4,
         steps,
