@@ -27,6 +27,7 @@ pub mod loader;
 pub mod noise;
 pub mod plot;
 pub mod precondition;
+pub mod rectify;
 pub mod synth;
 pub mod train;
 

@@ -134,6 +134,11 @@ struct TrainArgs {
     /// model, which the four together are not.
     #[arg(long, value_delimiter = ',')]
     cameras: Vec<String>,
+    /// Research only: give the network the keypoints as a level camera at
+    /// the same place would see them (needs each view's calibration, which
+    /// the served models do not get); evaluate with `eval --rectify`.
+    #[arg(long)]
+    rectify: bool,
     /// Horizontal flip probability.
     #[arg(long, default_value_t = 0.5)]
     flip_prob: f32,
@@ -219,6 +224,10 @@ struct EvalArgs {
     /// default all).
     #[arg(long, value_delimiter = ',')]
     cameras: Vec<String>,
+    /// Rectify every trial's keypoints with its camera's calibration, for
+    /// models trained with `train --rectify`.
+    #[arg(long)]
+    rectify: bool,
     /// Evaluate only every k-th trial (quick subsets; 1 = all).
     #[arg(long, default_value_t = 1)]
     every: usize,
@@ -557,6 +566,7 @@ fn train(a: TrainArgs) -> Result<()> {
         random_yaw: a.random_yaw,
         decouple_size: a.decouple_size,
         cameras: a.cameras.clone(),
+        rectify: a.rectify,
         flip_prob: a.flip_prob,
         batch: a.batch,
         steps: a.steps,
@@ -715,6 +725,16 @@ fn eval(a: EvalArgs) -> Result<()> {
     let mut trials = eval_sequences(&h36m, &subjects, input, &lengths)?;
     if !a.cameras.is_empty() {
         trials.retain(|t| a.cameras.contains(&t.camera));
+    }
+    if a.rectify {
+        for t in &mut trials {
+            let cam = h36m
+                .cameras
+                .subject(&t.subject)
+                .and_then(|cams| cams.iter().find(|c| c.id == t.camera))
+                .ok_or_else(|| anyhow::anyhow!("no camera {} for {}", t.camera, t.subject))?;
+            t.input = blapose_train::rectify::rectify_input(&t.input, cam);
+        }
     }
     if a.every > 1 {
         trials = trials.into_iter().step_by(a.every).collect();

@@ -224,6 +224,9 @@ pub struct SynthConfig {
     /// Turn each window about the vertical through its first root by a
     /// uniform random yaw (see [`turn_about_vertical`]).
     pub random_yaw: bool,
+    /// Give the keypoints as the camera's level twin would see them
+    /// ([`crate::rectify`]; research only: needs the calibration).
+    pub rectify: bool,
 }
 
 impl Default for SynthConfig {
@@ -242,6 +245,7 @@ impl Default for SynthConfig {
             camera_height_std: 0.0,
             camera_angle_std_deg: 0.0,
             random_yaw: false,
+            rectify: false,
         }
     }
 }
@@ -577,6 +581,9 @@ impl SynthSource {
             if let Some(r) = residual {
                 let r = self.residuals.scale_deviation(&r, cfg.noise_scale);
                 apply_residual(&mut kp, &r, depth, k.focal);
+            }
+            if cfg.rectify {
+                kp = crate::rectify::rectify_normalized(&kp, cam);
             }
             if flipped {
                 kp = flip_keypoints_normalized(&kp);

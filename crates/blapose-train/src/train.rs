@@ -121,6 +121,10 @@ pub struct TrainConfig {
     /// field used all.
     #[serde(default)]
     pub cameras: Vec<String>,
+    /// Rectified keypoints ([`crate::rectify`]); runs before this field
+    /// read them as the camera gave them.
+    #[serde(default)]
+    pub rectify: bool,
     /// Flip probability.
     pub flip_prob: f32,
     /// Samples per batch.
@@ -197,6 +201,7 @@ impl TrainConfig {
             camera_height_std: self.camera_height_std,
             camera_angle_std_deg: self.camera_angle_std_deg,
             random_yaw: self.random_yaw,
+            rectify: self.rectify,
         };
         cfg.validate()?;
         Ok(cfg)

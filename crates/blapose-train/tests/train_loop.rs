@@ -70,6 +70,7 @@ fn config(steps: u64) -> TrainConfig {
         random_yaw: false,
         decouple_size: false,
         cameras: Vec::new(),
+        rectify: false,
         flip_prob: 0.5,
         batch: 4,
         steps,
