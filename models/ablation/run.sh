@@ -45,7 +45,8 @@
 #   run.sh cam54 2977 --lengths ansur --noise residual --floor-contact --random-yaw --cameras 54138969
 #   (then evaluate with `blapose eval ... --cameras 54138969`, see models/README.md)
 #   run.sh rectify 2977 --lengths ansur --noise residual --floor-contact --random-yaw --rectify
-#   (evaluate with `blapose eval ... --rectify`; the script's own evals are without it)
+#   MODEL=gru run.sh gru_rectify 2004 --lengths ansur --noise residual --floor-contact --per-frame-weight 1.0 --random-yaw --rectify
+#   (evaluate both with `blapose eval ... --rectify`; the script's own evals are without it)
 set -euo pipefail
 name=$1; steps=$2; shift 2
 bin=./target/release/blapose
