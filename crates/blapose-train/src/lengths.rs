@@ -219,20 +219,13 @@ impl LengthSampler {
         let size = self.draw(subject, rng);
         let total = |l: &BoneLengths| l.iter().sum::<f32>();
         let scale = total(&size) / total(&body);
-        let mean = &self.stats.mean;
-        std::array::from_fn(|b| {
-            if self.strategy != LengthStrategy::Uniform && self.stats.is_fixed(b) {
-                mean[b]
-            } else {
-                (body[b] * scale).max(0.3 * mean[b])
-            }
-        })
+        self.bounded(body.map(|l| l * scale))
     }
 
     /// One body of the strategy, before any decoupling.
     fn draw<R: Rng + ?Sized>(&self, subject: &BoneLengths, rng: &mut R) -> BoneLengths {
         let mean = &self.stats.mean;
-        let mut out = match self.strategy {
+        let out = match self.strategy {
             LengthStrategy::True => {
                 let mut l = *subject;
                 average_symmetric_pairs(&mut l);
@@ -255,14 +248,19 @@ impl LengthSampler {
                 None => *mean,
             },
         };
-        // A bone the training subjects all share stays fixed whatever the
-        // strategy draws for it (except `uniform`, which is defined as
-        // independent +-30% on every bone).
+        self.bounded(out)
+    }
+
+    /// A drawn body made valid: a bone the training subjects all share
+    /// stays fixed whatever the strategy draws for it (except `uniform`,
+    /// which is defined as independent +-30% on every bone), and no bone
+    /// falls below 30% of its mean (normal tails).
+    fn bounded(&self, mut out: BoneLengths) -> BoneLengths {
+        let mean = &self.stats.mean;
         for (b, l) in out.iter_mut().enumerate() {
             if self.strategy != LengthStrategy::Uniform && self.stats.is_fixed(b) {
                 *l = mean[b];
             }
-            // Guard against absurd draws (normal tails): 30% of the mean.
             *l = l.max(0.3 * mean[b]);
         }
         out

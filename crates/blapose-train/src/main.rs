@@ -519,6 +519,15 @@ fn data_report(data: Option<PathBuf>) -> Result<()> {
     Ok(())
 }
 
+/// A `--cameras` list for messages: the ids, or `all` when none is given.
+fn camera_list(ids: &[String]) -> String {
+    if ids.is_empty() {
+        "all".to_string()
+    } else {
+        ids.join(",")
+    }
+}
+
 /// `name=gain` for every bone whose gain is not 1, or `unit`.
 fn format_gains(g: &DetectorGain) -> String {
     if g.is_unit() {
@@ -621,7 +630,7 @@ fn train(a: TrainArgs) -> Result<()> {
     );
     let training_data = format!(
         "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}), noise={} (x{}), seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), floor_contact={}, detector_gain={}, camera jitter={} m / {} deg, random yaw={}, size decoupled from proportions={}, cameras={}, flip={}",
-        cfg.lengths, cfg.ansur_spread, cfg.noise, cfg.noise_scale, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.shift_plane, cfg.floor_contact, format_gains(source.detector_gain()), cfg.camera_height_std, cfg.camera_angle_std_deg, cfg.random_yaw, cfg.decouple_size, if cfg.cameras.is_empty() { "all".to_string() } else { cfg.cameras.join(",") }, cfg.flip_prob
+        cfg.lengths, cfg.ansur_spread, cfg.noise, cfg.noise_scale, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.shift_plane, cfg.floor_contact, format_gains(source.detector_gain()), cfg.camera_height_std, cfg.camera_angle_std_deg, cfg.random_yaw, cfg.decouple_size, camera_list(&cfg.cameras), cfg.flip_prob
     );
     let pb = step_bar(cfg.steps);
     let mut progress = |step: u64, _total: u64, loss: f64, fps: f64| {
@@ -726,18 +735,17 @@ fn eval(a: EvalArgs) -> Result<()> {
     if !a.cameras.is_empty() {
         trials.retain(|t| a.cameras.contains(&t.camera));
     }
+    if a.every > 1 {
+        trials = trials.into_iter().step_by(a.every).collect();
+    }
     if a.rectify {
         for t in &mut trials {
             let cam = h36m
                 .cameras
-                .subject(&t.subject)
-                .and_then(|cams| cams.iter().find(|c| c.id == t.camera))
+                .get(&t.subject, &t.camera)
                 .ok_or_else(|| anyhow::anyhow!("no camera {} for {}", t.camera, t.subject))?;
-            t.input = blapose_train::rectify::rectify_input(&t.input, cam);
+            t.input = blapose_train::rectify::LevelView::new(cam).rectify_input(&t.input);
         }
-    }
-    if a.every > 1 {
-        trials = trials.into_iter().step_by(a.every).collect();
     }
     if a.skip_frames > 0 {
         trials = trials.iter().map(|t| t.skipped(a.skip_frames)).collect();
@@ -752,11 +760,7 @@ fn eval(a: EvalArgs) -> Result<()> {
         anyhow::bail!(
             "no trials for subjects {} (cameras: {})",
             a.subjects.join(","),
-            if a.cameras.is_empty() {
-                "all".to_string()
-            } else {
-                a.cameras.join(",")
-            }
+            camera_list(&a.cameras)
         );
     }
     eprintln!(

@@ -26,56 +26,73 @@ use blapose_core::skeleton::NUM_JOINTS;
 /// Smallest forward component of a ray before it is treated as grazing.
 const MIN_FORWARD: f64 = 1e-3;
 
-/// The level frame of `cam`: right, down and forward unit vectors in world
-/// coordinates (world `z` is up).
-fn level_frame(cam: &Camera) -> [[f64; 3]; 3] {
-    let r = &cam.rotation;
-    // Optical axis in world: the third row of the world-to-camera rotation.
-    let axis = r[2];
-    let h = (axis[0] * axis[0] + axis[1] * axis[1]).sqrt().max(1e-9);
-    let forward = [axis[0] / h, axis[1] / h, 0.0];
-    // right = forward x up, with up = (0, 0, 1).
-    let right = [forward[1], -forward[0], 0.0];
-    let down = [0.0, 0.0, -1.0];
-    [right, down, forward]
+fn dot(a: &[f64; 3], b: &[f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
-/// One frame of normalized screen keypoints seen through `cam`, as its
-/// level twin would see them (see the module docs).
-pub fn rectify_normalized(kp: &Keypoints2d, cam: &Camera) -> Keypoints2d {
-    let [right, down, forward] = level_frame(cam);
-    let r = &cam.rotation;
-    let scale = [
-        cam.focal[0] * 2.0 / f64::from(cam.width),
-        cam.focal[1] * 2.0 / f64::from(cam.width),
-    ];
-    let dot = |a: &[f64; 3], b: &[f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-    kp.map(|p| {
-        let px = denormalize_screen(p, cam.width, cam.height);
-        let ray = [
-            (f64::from(px[0]) - cam.principal[0]) / cam.focal[0],
-            (f64::from(px[1]) - cam.principal[1]) / cam.focal[1],
-            1.0,
-        ];
-        // Camera to world direction: R^T ray.
-        let world: [f64; 3] = std::array::from_fn(|i| (0..3).map(|k| r[k][i] * ray[k]).sum());
-        let z = dot(&world, &forward).max(MIN_FORWARD);
-        [
-            (dot(&world, &right) / z * scale[0]) as f32,
-            (dot(&world, &down) / z * scale[1]) as f32,
-        ]
-    })
+/// The level twin of one camera, built once per camera: its right, down
+/// and forward axes expressed in the camera's own frame, so a keypoint's
+/// ray needs three dot products and no rotation.
+#[derive(Debug, Clone)]
+pub struct LevelView<'a> {
+    cam: &'a Camera,
+    /// Right, down and forward of the level frame, camera coordinates.
+    axes: [[f64; 3]; 3],
+    /// Output scale (`f * 2 / width`), like normalized screen coordinates.
+    scale: [f64; 2],
 }
 
-/// [`rectify_normalized`] for a whole stream (`frames * 34` values).
-pub fn rectify_input(input: &[f32], cam: &Camera) -> Vec<f32> {
-    input
-        .chunks_exact(2 * NUM_JOINTS)
-        .flat_map(|frame| {
-            let kp: Keypoints2d = std::array::from_fn(|j| [frame[2 * j], frame[2 * j + 1]]);
-            rectify_normalized(&kp, cam).into_iter().flatten()
+impl<'a> LevelView<'a> {
+    /// The level twin of `cam` (world `z` is up).
+    pub fn new(cam: &'a Camera) -> Self {
+        // Optical axis in world: the third row of the world-to-camera rotation.
+        let axis = cam.rotation[2];
+        let h = (axis[0] * axis[0] + axis[1] * axis[1]).sqrt().max(1e-9);
+        let forward = [axis[0] / h, axis[1] / h, 0.0];
+        // right = forward x up, with up = (0, 0, 1).
+        let right = [forward[1], -forward[0], 0.0];
+        let down = [0.0, 0.0, -1.0];
+        let in_camera = |v: [f64; 3]| cam.rotation.map(|row| dot(&row, &v));
+        Self {
+            cam,
+            axes: [in_camera(right), in_camera(down), in_camera(forward)],
+            scale: [
+                cam.focal[0] * 2.0 / f64::from(cam.width),
+                cam.focal[1] * 2.0 / f64::from(cam.width),
+            ],
+        }
+    }
+
+    /// One frame of normalized screen keypoints seen through the camera,
+    /// as its level twin would see them (see the module docs).
+    pub fn rectify(&self, kp: &Keypoints2d) -> Keypoints2d {
+        let cam = self.cam;
+        let [right, down, forward] = &self.axes;
+        kp.map(|p| {
+            let px = denormalize_screen(p, cam.width, cam.height);
+            let ray = [
+                (f64::from(px[0]) - cam.principal[0]) / cam.focal[0],
+                (f64::from(px[1]) - cam.principal[1]) / cam.focal[1],
+                1.0,
+            ];
+            let z = dot(&ray, forward).max(MIN_FORWARD);
+            [
+                (dot(&ray, right) / z * self.scale[0]) as f32,
+                (dot(&ray, down) / z * self.scale[1]) as f32,
+            ]
         })
-        .collect()
+    }
+
+    /// [`LevelView::rectify`] for a whole stream (`frames * 34` values).
+    pub fn rectify_input(&self, input: &[f32]) -> Vec<f32> {
+        input
+            .chunks_exact(2 * NUM_JOINTS)
+            .flat_map(|frame| {
+                let kp: Keypoints2d = std::array::from_fn(|j| [frame[2 * j], frame[2 * j + 1]]);
+                self.rectify(&kp).into_iter().flatten()
+            })
+            .collect()
+    }
 }
 
 #[cfg(test)]
@@ -115,7 +132,7 @@ mod tests {
     fn a_level_centred_camera_is_left_as_it_is() {
         let cam = camera(0.0, [500.0, 500.0]);
         let kp = frame_of(&cam, [[0.3, 0.0, 0.4], [-0.2, 1.0, 1.9]]);
-        let out = rectify_normalized(&kp, &cam);
+        let out = LevelView::new(&cam).rectify(&kp);
         for j in 0..2 {
             for k in 0..2 {
                 assert!((out[j][k] - kp[j][k]).abs() < 1e-4, "{out:?} {kp:?}");
@@ -130,11 +147,11 @@ mod tests {
         // point at the camera's height lands on the horizon.
         let points = [[0.3, 0.5, 0.0], [-0.1, 0.2, 1.6]];
         let level = camera(0.0, [500.0, 500.0]);
-        let want = rectify_normalized(&frame_of(&level, points), &level);
+        let want = LevelView::new(&level).rectify(&frame_of(&level, points));
         for (tilt, principal) in [(0.19, [512.0, 515.0]), (0.28, [490.0, 501.0])] {
             let cam = camera(tilt, principal);
             let raw = frame_of(&cam, points);
-            let got = rectify_normalized(&raw, &cam);
+            let got = LevelView::new(&cam).rectify(&raw);
             assert!(
                 (raw[0][1] - want[0][1]).abs() > 0.05,
                 "tilt moves the raw picture"
@@ -146,7 +163,7 @@ mod tests {
             }
             assert!(got[1][1].abs() < 1e-4, "horizon at v = 0: {}", got[1][1]);
             let stream: Vec<f32> = raw.iter().chain(raw.iter()).flatten().copied().collect();
-            let rectified = rectify_input(&stream, &cam);
+            let rectified = LevelView::new(&cam).rectify_input(&stream);
             assert_eq!(rectified.len(), stream.len());
             assert_eq!(rectified[34..36], [got[0][0], got[0][1]]);
         }

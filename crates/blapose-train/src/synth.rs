@@ -53,6 +53,7 @@ use crate::detector_gain::DetectorGain;
 use crate::error::TrainError;
 use crate::lengths::{normal_f32, LengthSampler};
 use crate::noise::{apply_residual, residual_at, NoiseKind, ResidualBank};
+use crate::rectify::LevelView;
 
 /// Values per input frame.
 pub const FRAME_DIM: usize = NUM_JOINTS * 2;
@@ -563,6 +564,7 @@ impl SynthSource {
         // Always drawn, so the flip probability does not shift later draws.
         let flipped = rng.random::<f32>() < cfg.flip_prob;
 
+        let level = cfg.rectify.then(|| LevelView::new(cam));
         let mut input = Vec::with_capacity(t_len * FRAME_DIM);
         for (t, p) in cam_poses.iter().enumerate() {
             let shifted = p.map(|j| [j[0] + shift[0], j[1] + shift[1], j[2] + shift[2]]);
@@ -582,8 +584,8 @@ impl SynthSource {
                 let r = self.residuals.scale_deviation(&r, cfg.noise_scale);
                 apply_residual(&mut kp, &r, depth, k.focal);
             }
-            if cfg.rectify {
-                kp = crate::rectify::rectify_normalized(&kp, cam);
+            if let Some(level) = &level {
+                kp = level.rectify(&kp);
             }
             if flipped {
                 kp = flip_keypoints_normalized(&kp);
