@@ -2,13 +2,14 @@
 //! binary can embed them with `include_bytes!`.
 //!
 //! A checkout without the files (weights not trained or not copied yet) still
-//! builds: the `blapose_embedded_gru` / `blapose_embedded_bigru` cfgs stay
-//! unset, the server then requires `--weights` / `--bigru-weights`, and cargo
-//! prints a warning so nobody ships such a binary by accident.
+//! builds: the `blapose_embedded_*` cfgs stay unset, the server then requires
+//! `--weights` / `--bigru-weights` (and `--rectified-*`, or
+//! `--no-camera-aware`), and cargo prints a warning so nobody ships such a
+//! binary by accident.
 
 use std::path::PathBuf;
 
-const FILES: [(&str, &str, &str); 2] = [
+const FILES: [(&str, &str, &str); 4] = [
     (
         "bone_length_gru.safetensors",
         "blapose_embedded_gru",
@@ -18,6 +19,16 @@ const FILES: [(&str, &str, &str); 2] = [
         "bone_length_bigru.safetensors",
         "blapose_embedded_bigru",
         "BLAPOSE_EMBEDDED_BIGRU",
+    ),
+    (
+        "bone_length_gru_rectified.safetensors",
+        "blapose_embedded_gru_rectified",
+        "BLAPOSE_EMBEDDED_GRU_RECTIFIED",
+    ),
+    (
+        "bone_length_bigru_rectified.safetensors",
+        "blapose_embedded_bigru_rectified",
+        "BLAPOSE_EMBEDDED_BIGRU_RECTIFIED",
     ),
 ];
 

@@ -39,6 +39,13 @@
 //! that writes its GRU state, so a frame refused at any point (lifting, the
 //! step, a takeover) leaves the window as it was. A lifter failure, even a
 //! panic, fails only the rows it concerns.
+//!
+//! **Camera-aware sessions.** Sessions opened with a camera calibration are
+//! served by a second model ([`OnlineBackends::camera_aware`]) that reads
+//! keypoints as a level camera would see them. A batch's rows are grouped by
+//! model, the camera-aware rows' inputs rectified with their session's
+//! [`blapose_core::level::LevelCamera`] as they are gathered (the lifter
+//! windows keep the keypoints as sent), and each group runs as its own step.
 
 use std::collections::{HashMap, VecDeque};
 use std::panic::{catch_unwind, AssertUnwindSafe};
@@ -228,6 +235,16 @@ impl Drop for StreamGuard {
     }
 }
 
+/// The online models a batcher runs.
+#[derive(Debug)]
+pub struct OnlineBackends<B> {
+    /// For sessions without a camera calibration.
+    pub default: B,
+    /// For sessions with one (fed rectified keypoints); `None`: the server
+    /// has no camera-aware model and refuses such sessions at open.
+    pub camera_aware: Option<B>,
+}
+
 /// Run one step on zero inputs and check the outputs are finite, so a
 /// server reports SERVING only with a model that works.
 pub fn warm_up<B: Backend>(backend: &mut B) -> Result<(), BackendError> {
@@ -258,7 +275,8 @@ pub fn warm_up_lifter(lifter: &LoadedLifter) -> Result<(), BackendError> {
 }
 
 impl Batcher {
-    /// Warm the backend up and start the batcher thread.
+    /// Warm the backend up and start the batcher thread (no camera-aware
+    /// model, no lifter).
     pub fn start<B: Backend>(backend: B, config: BatcherConfig) -> Result<Self, BackendError> {
         Self::start_with_lifter(backend, config, None)
     }
@@ -266,7 +284,20 @@ impl Batcher {
     /// [`Batcher::start`] with a server lifter for the frames of lifting
     /// sessions (warmed up too).
     pub fn start_with_lifter<B: Backend>(
-        mut backend: B,
+        backend: B,
+        config: BatcherConfig,
+        lifter: Option<Arc<LoadedLifter>>,
+    ) -> Result<Self, BackendError> {
+        let backends = OnlineBackends {
+            default: backend,
+            camera_aware: None,
+        };
+        Self::start_with(backends, config, lifter)
+    }
+
+    /// Warm every model (and the lifter) up and start the batcher thread.
+    pub fn start_with<B: Backend>(
+        mut backends: OnlineBackends<B>,
         config: BatcherConfig,
         lifter: Option<Arc<LoadedLifter>>,
     ) -> Result<Self, BackendError> {
@@ -275,7 +306,10 @@ impl Batcher {
             queue_capacity: config.queue_capacity.max(1),
             ..config
         };
-        warm_up(&mut backend)?;
+        warm_up(&mut backends.default)?;
+        if let Some(camera_aware) = &mut backends.camera_aware {
+            warm_up(camera_aware)?;
+        }
         if let Some(lifter) = &lifter {
             warm_up_lifter(lifter)?;
         }
@@ -289,7 +323,7 @@ impl Batcher {
         let worker = shared.clone();
         let thread = std::thread::Builder::new()
             .name("blapose-batcher".into())
-            .spawn(move || run(worker, backend))
+            .spawn(move || run(worker, backends))
             .map_err(|e| BackendError::Model(format!("cannot start the batcher thread: {e}")))?;
         Ok(Self {
             shared,
@@ -386,7 +420,7 @@ struct Buffers {
     lifted: Vec<Option<Pose>>,
 }
 
-fn run<B: Backend>(shared: Arc<Shared>, mut backend: B) {
+fn run<B: Backend>(shared: Arc<Shared>, mut backends: OnlineBackends<B>) {
     let max = shared.config.max_batch;
     let mut buffers = Buffers {
         inputs: vec![0.0; max * INPUT_DIM],
@@ -399,7 +433,7 @@ fn run<B: Backend>(shared: Arc<Shared>, mut backend: B) {
     };
     let mut batch: Vec<Queued> = Vec::with_capacity(max);
     while next_batch(&shared, &mut batch) {
-        run_batch(&mut backend, &mut batch, &mut buffers, &shared);
+        run_batch(&mut backends, &mut batch, &mut buffers, &shared);
     }
 }
 
@@ -460,7 +494,7 @@ fn next_batch(shared: &Shared, batch: &mut Vec<Queued>) -> bool {
 }
 
 fn run_batch<B: Backend>(
-    backend: &mut B,
+    backends: &mut OnlineBackends<B>,
     batch: &mut Vec<Queued>,
     buf: &mut Buffers,
     shared: &Shared,
@@ -479,53 +513,22 @@ fn run_batch<B: Backend>(
             }
         }
     }
-    // Gather the states of sessions still owned by the frame's stream.
-    for (i, item) in batch.iter().enumerate() {
+    for item in batch.iter() {
         metrics::queue_wait(started.saturating_duration_since(item.enqueued));
-        if answers[i].is_some() {
-            continue;
-        }
-        let st = item.job.session.lock();
-        if !st.accepts(item.job.epoch) {
-            answers[i] = Some(Err(StepError::Superseded));
-            continue;
-        }
-        let r = buf.rows.len();
-        buf.hidden[r * STATE_DIM..(r + 1) * STATE_DIM].copy_from_slice(&st.hidden);
-        drop(st);
-        buf.inputs[r * INPUT_DIM..(r + 1) * INPUT_DIM].copy_from_slice(&item.job.input);
-        buf.rows.push(i);
     }
-    let n = buf.rows.len();
-    if n > 0 {
-        let result = backend.step(
-            &buf.inputs[..n * INPUT_DIM],
-            &mut buf.hidden[..n * STATE_DIM],
-            &mut buf.lengths[..n * OUTPUT_DIM],
-            n,
-        );
-        match result {
-            // Scatter: only finite rows of sessions whose owner is unchanged.
-            Ok(()) => {
-                for (r, &i) in buf.rows.iter().enumerate() {
-                    let hidden = &buf.hidden[r * STATE_DIM..(r + 1) * STATE_DIM];
-                    let lengths = &buf.lengths[r * OUTPUT_DIM..(r + 1) * OUTPUT_DIM];
-                    answers[i] = Some(scatter(&batch[i].job, hidden, lengths, buf.lifted[i]));
-                }
-            }
-            // The engine refuses a whole batch for one bad row; isolate it by
-            // re-running the rows one at a time, so one session's problem
-            // never fails another session's frame.
-            Err(e) if n > 1 => {
-                tracing::warn!(error = %e, batch = n, "batched step failed; retrying its rows one by one");
-                for (r, &i) in buf.rows.iter().enumerate() {
-                    let input = &buf.inputs[r * INPUT_DIM..(r + 1) * INPUT_DIM];
-                    answers[i] = Some(step_alone(backend, &batch[i].job, input, buf.lifted[i]));
-                }
-            }
-            Err(e) => {
-                for &i in &buf.rows {
-                    answers[i] = Some(Err(StepError::Model(e.to_string())));
+    // The default model's rows first, then the camera-aware ones, each
+    // group one step.
+    let split = gather_rows(batch, &mut answers, buf, false);
+    let n = gather_rows(batch, &mut answers, buf, true);
+    step_rows(&mut backends.default, batch, &mut answers, buf, 0..split);
+    if split < n {
+        match &mut backends.camera_aware {
+            Some(backend) => step_rows(backend, batch, &mut answers, buf, split..n),
+            None => {
+                for &i in &buf.rows[split..n] {
+                    answers[i] = Some(Err(StepError::Model(
+                        "this server has no camera-aware model".into(),
+                    )));
                 }
             }
         }
@@ -538,6 +541,87 @@ fn run_batch<B: Backend>(
         let answer = answer.unwrap_or_else(|| Err(StepError::Model("frame was not run".into())));
         // A dropped receiver means the stream went away; nothing to do.
         let _ = item.job.reply.send(answer);
+    }
+}
+
+/// Append to the buffers the rows of sessions with (`camera_aware`) or
+/// without a camera that are still owned by the frame's stream and not yet
+/// answered, rectifying camera-aware inputs; returns the rows gathered so
+/// far.
+fn gather_rows(
+    batch: &[Queued],
+    answers: &mut [Option<StepResult>],
+    buf: &mut Buffers,
+    camera_aware: bool,
+) -> usize {
+    for (i, item) in batch.iter().enumerate() {
+        let camera = item.job.session.config().camera.as_ref();
+        if answers[i].is_some() || camera.is_some() != camera_aware {
+            continue;
+        }
+        let st = item.job.session.lock();
+        if !st.accepts(item.job.epoch) {
+            answers[i] = Some(Err(StepError::Superseded));
+            continue;
+        }
+        let r = buf.rows.len();
+        buf.hidden[r * STATE_DIM..(r + 1) * STATE_DIM].copy_from_slice(&st.hidden);
+        drop(st);
+        let input = &mut buf.inputs[r * INPUT_DIM..(r + 1) * INPUT_DIM];
+        input.copy_from_slice(&item.job.input);
+        if let Some(camera) = camera {
+            camera.level.rectify_frames(input);
+        }
+        buf.rows.push(i);
+    }
+    buf.rows.len()
+}
+
+/// Run the buffer rows `range` through `backend` as one step and answer
+/// them.
+fn step_rows<B: Backend>(
+    backend: &mut B,
+    batch: &[Queued],
+    answers: &mut [Option<StepResult>],
+    buf: &mut Buffers,
+    range: std::ops::Range<usize>,
+) {
+    let n = range.len();
+    if n == 0 {
+        return;
+    }
+    let (start, end) = (range.start, range.end);
+    let result = backend.step(
+        &buf.inputs[start * INPUT_DIM..end * INPUT_DIM],
+        &mut buf.hidden[start * STATE_DIM..end * STATE_DIM],
+        &mut buf.lengths[start * OUTPUT_DIM..end * OUTPUT_DIM],
+        n,
+    );
+    let rows = &buf.rows[range];
+    match result {
+        // Scatter: only finite rows of sessions whose owner is unchanged.
+        Ok(()) => {
+            for (r, &i) in (start..end).zip(rows) {
+                let hidden = &buf.hidden[r * STATE_DIM..(r + 1) * STATE_DIM];
+                let lengths = &buf.lengths[r * OUTPUT_DIM..(r + 1) * OUTPUT_DIM];
+                answers[i] = Some(scatter(&batch[i].job, hidden, lengths, buf.lifted[i]));
+            }
+        }
+        // The engine refuses a whole batch for one bad row; isolate it by
+        // re-running the rows one at a time, so one session's problem
+        // never fails another session's frame.
+        Err(e) if n > 1 => {
+            tracing::warn!(error = %e, batch = n, "batched step failed; retrying its rows one by one");
+            for (r, &i) in (start..end).zip(rows) {
+                let input = &buf.inputs[r * INPUT_DIM..(r + 1) * INPUT_DIM];
+                answers[i] = Some(step_alone(backend, &batch[i].job, input, buf.lifted[i]));
+            }
+        }
+        Err(e) => {
+            for &i in rows {
+                answers[i] = Some(Err(StepError::Model(e.to_string())));
+            }
+        }
     }
 }
 
@@ -772,6 +856,7 @@ mod tests {
             },
             label: String::new(),
             lifter_frames: None,
+            camera: None,
         }
     }
 
@@ -795,6 +880,48 @@ mod tests {
             },
             rx,
         )
+    }
+
+    #[tokio::test]
+    async fn camera_sessions_run_rectified_on_the_camera_aware_model() {
+        let (default, camera_aware) = (Fake::default(), Fake::default());
+        let (default_log, aware_log) = (default.log.clone(), camera_aware.log.clone());
+        let backends = OnlineBackends {
+            default,
+            camera_aware: Some(camera_aware),
+        };
+        let batcher = Batcher::start_with(backends, config(8, 50, 100), None).unwrap();
+        let (store, _g) = SessionStore::new(10, Duration::from_secs(60));
+        let level =
+            blapose_core::level::LevelCamera::new([0.0, -0.95, -0.31], [2.3, 2.3], [0.0, 0.02])
+                .unwrap();
+        let plain = store.open(session_config()).unwrap();
+        let aware = store
+            .open(SessionConfig {
+                camera: Some(crate::session::SessionCamera {
+                    calibration: Default::default(),
+                    level: level.clone(),
+                }),
+                ..session_config()
+            })
+            .unwrap();
+        let _guards = [batcher.stream_guard(), batcher.stream_guard()];
+        let (j1, r1) = job(&plain.session, plain.epoch, 0.25, 0.5);
+        let (j2, r2) = job(&aware.session, aware.epoch, 0.25, 0.5);
+        batcher.submit(j1).unwrap();
+        batcher.submit(j2).unwrap();
+        let (a, b) = (r1.await.unwrap().unwrap(), r2.await.unwrap().unwrap());
+        // What the camera-aware model must have been given.
+        let mut rectified = [0.0f32; INPUT_DIM];
+        (rectified[0], rectified[1]) = (0.25, 0.5);
+        level.rectify_frames(&mut rectified);
+        assert_ne!(rectified[..2], [0.25, 0.5]);
+        // Each log starts with its model's warm-up step.
+        assert_eq!(default_log.lock().unwrap()[1..], [vec![0.5]]);
+        assert_eq!(aware_log.lock().unwrap()[1..], [vec![rectified[1]]]);
+        assert_eq!(a.lengths[0], 0.25);
+        assert_eq!(b.lengths[0], rectified[0]);
+        batcher.close();
     }
 
     #[tokio::test]
@@ -1068,6 +1195,7 @@ mod tests {
     fn lifting_config(frames: usize) -> SessionConfig {
         SessionConfig {
             lifter_frames: Some(frames),
+            camera: None,
             ..session_config()
         }
     }

@@ -45,6 +45,15 @@ pub struct TlsFiles {
     pub key: PathBuf,
 }
 
+/// Weights of the camera-aware (rectified) model pair.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct CameraAwareWeights {
+    /// Online GRU.
+    pub gru: WeightsSource,
+    /// Offline Bi-GRU.
+    pub bigru: WeightsSource,
+}
+
 /// Everything the server needs to run; [`Default`] matches the CLI defaults
 /// except that no metrics endpoint is started (the Prometheus recorder is
 /// process-global, so in-process test servers leave it off).
@@ -56,6 +65,9 @@ pub struct ServerConfig {
     pub weights: WeightsSource,
     /// Offline Bi-GRU weights.
     pub bigru_weights: WeightsSource,
+    /// The camera-aware models (for sessions and requests that send a
+    /// camera calibration); `None`: such sessions are refused.
+    pub camera_aware: Option<CameraAwareWeights>,
     /// A trained causal lifter (`blapose train-lifter` weights file) the
     /// server runs for sessions that send 2D keypoints only; `None`: no
     /// server lifter (clients send their own 3D poses).
@@ -97,6 +109,7 @@ impl Default for ServerConfig {
             metrics_addr: None,
             weights: WeightsSource::Embedded,
             bigru_weights: WeightsSource::Embedded,
+            camera_aware: Some(CameraAwareWeights::default()),
             lifter_weights: None,
             max_sessions: DEFAULT_MAX_SESSIONS,
             session_ttl: Duration::from_secs(DEFAULT_SESSION_TTL_S),
@@ -152,6 +165,22 @@ pub struct Cli {
     /// Offline Bi-GRU weights (safetensors); default: the weights embedded in this binary.
     #[arg(long, env = "BLAPOSE_BIGRU_WEIGHTS", value_name = "FILE")]
     pub bigru_weights: Option<PathBuf>,
+
+    /// Camera-aware online GRU weights, serving sessions that send a camera
+    /// calibration; default: the embedded rectified GRU.
+    #[arg(long, env = "BLAPOSE_RECTIFIED_WEIGHTS", value_name = "FILE")]
+    pub rectified_weights: Option<PathBuf>,
+
+    /// Camera-aware offline Bi-GRU weights (AdjustSequence with a camera
+    /// calibration); default: the embedded rectified Bi-GRU.
+    #[arg(long, env = "BLAPOSE_RECTIFIED_BIGRU_WEIGHTS", value_name = "FILE")]
+    pub rectified_bigru_weights: Option<PathBuf>,
+
+    /// Serve no camera-aware models: sessions and requests that send a camera
+    /// calibration are refused with INVALID_ARGUMENT.
+    #[arg(long, env = "BLAPOSE_NO_CAMERA_AWARE",
+          conflicts_with_all = ["rectified_weights", "rectified_bigru_weights"])]
+    pub no_camera_aware: bool,
 
     /// A trained causal lifter (a `blapose train-lifter --model videopose --causal`
     /// weights file): sessions opened with server_lifter send 2D keypoints only and
@@ -259,6 +288,14 @@ impl Cli {
             bigru_weights: self
                 .bigru_weights
                 .map_or(WeightsSource::Embedded, WeightsSource::File),
+            camera_aware: (!self.no_camera_aware).then(|| CameraAwareWeights {
+                gru: self
+                    .rectified_weights
+                    .map_or(WeightsSource::Embedded, WeightsSource::File),
+                bigru: self
+                    .rectified_bigru_weights
+                    .map_or(WeightsSource::Embedded, WeightsSource::File),
+            }),
             lifter_weights: self.lifter_weights,
             max_sessions: self.max_sessions,
             session_ttl: self.session_ttl,

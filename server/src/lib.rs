@@ -59,12 +59,16 @@ use tonic::transport::server::TcpIncoming;
 use tonic::transport::{Identity, Server, ServerTlsConfig};
 use tonic_health::ServingStatus;
 
+pub use config::CameraAwareWeights;
 pub use config::{Cli, LogFormat, ServerConfig, TlsFiles, WeightsSource};
 pub use error::ServerError;
-pub use models::{embedded_bigru, embedded_gru, LoadedLifter, ModelProvider, WeightsProvider};
+pub use models::{
+    embedded_bigru, embedded_bigru_rectified, embedded_gru, embedded_gru_rectified, Family,
+    LoadedLifter, ModelProvider, WeightsProvider,
+};
 
 use auth::BearerAuth;
-use batcher::{Batcher, BatcherConfig};
+use batcher::{Batcher, BatcherConfig, OnlineBackends};
 use offline::OfflineRunner;
 use service::{AppState, PoseService};
 use session::SessionStore;
@@ -129,24 +133,43 @@ pub async fn spawn(
     config: ServerConfig,
     listener: TcpListener,
 ) -> Result<ServerHandle, ServerError> {
-    let (gru, bigru, threads, precision) = (
+    let (gru, bigru, camera_aware, threads, precision) = (
         config.weights.clone(),
         config.bigru_weights.clone(),
+        config.camera_aware.clone(),
         config.compute_threads,
         config.weight_precision,
     );
-    let provider = tokio::task::spawn_blocking(move || {
-        WeightsProvider::load(&gru, &bigru, threads, precision)
+    let provider = tokio::task::spawn_blocking(move || -> Result<_, ServerError> {
+        let provider = WeightsProvider::load(Family::Default, &gru, &bigru, threads, precision)?;
+        Ok(match camera_aware {
+            Some(w) => provider.with_camera_aware(WeightsProvider::load(
+                Family::CameraAware,
+                &w.gru,
+                &w.bigru,
+                threads,
+                precision,
+            )?),
+            None => provider,
+        })
     })
     .await
     .map_err(|e| ServerError::Task(e.to_string()))??;
-    tracing::info!(
-        gru = %provider.gru().origin,
-        gru_sha256 = %provider.gru().sha256,
-        bigru = %provider.bigru().origin,
-        bigru_sha256 = %provider.bigru().sha256,
-        "weights loaded"
-    );
+    let families = [
+        (false, Some(&provider)),
+        (true, provider.camera_aware_models()),
+    ];
+    for (camera_aware, p) in families {
+        let Some(p) = p else { continue };
+        tracing::info!(
+            camera_aware,
+            gru = %p.gru().origin,
+            gru_sha256 = %p.gru().sha256,
+            bigru = %p.bigru().origin,
+            bigru_sha256 = %p.bigru().sha256,
+            "weights loaded"
+        );
+    }
     spawn_with_provider(config, listener, Arc::new(provider)).await
 }
 
@@ -190,9 +213,15 @@ pub async fn spawn_with_provider(
     let online_provider = provider.clone();
     let batcher_lifter = lifter.clone();
     let batcher = tokio::task::spawn_blocking(move || -> Result<Batcher, ServerError> {
-        let backend = online_provider.online()?;
-        Ok(Batcher::start_with_lifter(
-            backend,
+        let backends = OnlineBackends {
+            default: online_provider.online()?,
+            camera_aware: online_provider
+                .camera_aware()
+                .map(|p| p.online())
+                .transpose()?,
+        };
+        Ok(Batcher::start_with(
+            backends,
             batcher_config,
             batcher_lifter,
         )?)

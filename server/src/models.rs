@@ -1,9 +1,13 @@
 //! Which weights the server runs and how model backends are made from them.
 //!
 //! The default weights are compiled into the binary (`include_bytes!` of
-//! `models/bone_length_{gru,bigru}.safetensors`, located by `build.rs`), so
-//! `blapose-server` serves with no arguments; `--weights` and
-//! `--bigru-weights` override them. [`ModelProvider`] is the seam between the
+//! `models/bone_length_{gru,bigru}{,_rectified}.safetensors`, located by
+//! `build.rs`), so `blapose-server` serves with no arguments; `--weights`,
+//! `--bigru-weights` and their `--rectified-*` twins override them. The
+//! rectified pair is the *camera-aware* family: it serves the sessions and
+//! requests that send a camera calibration (their keypoints rectified with
+//! [`blapose_core::level`]); [`ModelProvider::camera_aware`] is how the
+//! service reaches it. [`ModelProvider`] is the seam between the
 //! service and model execution: the real [`WeightsProvider`] builds
 //! blapose-model's fast engines, tests plug in fakes. A server lifter is
 //! never embedded: it runs only when `--lifter-weights` names a trained file
@@ -48,11 +52,89 @@ pub fn embedded_bigru() -> Option<&'static [u8]> {
     }
 }
 
+/// The embedded camera-aware (rectified) online GRU weights, if the build
+/// found them.
+pub fn embedded_gru_rectified() -> Option<&'static [u8]> {
+    #[cfg(blapose_embedded_gru_rectified)]
+    {
+        Some(include_bytes!(env!("BLAPOSE_EMBEDDED_GRU_RECTIFIED")))
+    }
+    #[cfg(not(blapose_embedded_gru_rectified))]
+    {
+        None
+    }
+}
+
+/// The embedded camera-aware (rectified) offline Bi-GRU weights, if the
+/// build found them.
+pub fn embedded_bigru_rectified() -> Option<&'static [u8]> {
+    #[cfg(blapose_embedded_bigru_rectified)]
+    {
+        Some(include_bytes!(env!("BLAPOSE_EMBEDDED_BIGRU_RECTIFIED")))
+    }
+    #[cfg(not(blapose_embedded_bigru_rectified))]
+    {
+        None
+    }
+}
+
+/// Which family a model belongs to: the default one, fed keypoints as
+/// sent, or the camera-aware one, fed them rectified with the session's
+/// calibration.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Family {
+    /// Sessions and requests without a camera calibration.
+    Default,
+    /// Sessions and requests with one (rectified keypoints).
+    CameraAware,
+}
+
+impl Family {
+    /// The family serving a session or request with (`true`) or without a
+    /// camera calibration.
+    pub fn for_camera(has_camera: bool) -> Self {
+        if has_camera {
+            Self::CameraAware
+        } else {
+            Self::Default
+        }
+    }
+
+    /// For messages.
+    fn describe(self) -> &'static str {
+        match self {
+            Self::Default => "the default models (no camera)",
+            Self::CameraAware => "the camera-aware models",
+        }
+    }
+
+    /// Suffix of the model names and weight files of this family.
+    fn suffix(self) -> &'static str {
+        match self {
+            Self::Default => "",
+            Self::CameraAware => "_rectified",
+        }
+    }
+
+    fn embedded(self, kind: ModelKind) -> (Option<&'static [u8]>, &'static str) {
+        match (self, kind) {
+            (Self::Default, ModelKind::Gru) => (embedded_gru(), "--weights"),
+            (Self::Default, ModelKind::BiGru) => (embedded_bigru(), "--bigru-weights"),
+            (Self::CameraAware, ModelKind::Gru) => {
+                (embedded_gru_rectified(), "--rectified-weights")
+            }
+            (Self::CameraAware, ModelKind::BiGru) => {
+                (embedded_bigru_rectified(), "--rectified-bigru-weights")
+            }
+        }
+    }
+}
+
 /// Why weights could not be loaded.
 #[derive(Debug, thiserror::Error)]
 pub enum WeightsError {
     /// The binary was built without default weights.
-    #[error("this binary has no embedded {kind} weights (models/ was empty at build time); pass them with {flag}")]
+    #[error("this binary has no embedded {kind} weights of this family (models/ lacked them at build time); pass them with {flag}")]
     NotEmbedded {
         /// Which model.
         kind: ModelKind,
@@ -81,6 +163,22 @@ pub enum WeightsError {
         #[source]
         source: ModelError,
     },
+    /// The file's training says it reads the other family's input
+    /// (`train_config.rectify`), e.g. default weights given as
+    /// `--rectified-weights`.
+    #[error("{kind} weights from {origin} were trained {trained} keypoints but are loaded for {family}; pass them with {flag}")]
+    WrongFamily {
+        /// Which model.
+        kind: ModelKind,
+        /// Where they came from.
+        origin: String,
+        /// How they were trained.
+        trained: &'static str,
+        /// Which family they were loaded for.
+        family: &'static str,
+        /// The flag that takes them.
+        flag: &'static str,
+    },
     /// The `--lifter-weights` file cannot be served. (The cause is part of
     /// the message, not a `source()`, so an error chain prints it once.)
     #[error("cannot serve the lifter weights {path} (--lifter-weights): {cause}")]
@@ -104,14 +202,16 @@ pub struct LoadedModel {
 }
 
 impl LoadedModel {
-    /// Read and validate weights of `kind` from `source`.
-    pub fn load(source: &WeightsSource, kind: ModelKind) -> Result<Self, WeightsError> {
+    /// Read and validate weights of `kind` from `source` (the embedded
+    /// ones of `family` for [`WeightsSource::Embedded`]).
+    pub fn load(
+        source: &WeightsSource,
+        kind: ModelKind,
+        family: Family,
+    ) -> Result<Self, WeightsError> {
         let (bytes, origin): (std::borrow::Cow<'static, [u8]>, String) = match source {
             WeightsSource::Embedded => {
-                let (embedded, flag) = match kind {
-                    ModelKind::Gru => (embedded_gru(), "--weights"),
-                    ModelKind::BiGru => (embedded_bigru(), "--bigru-weights"),
-                };
+                let (embedded, flag) = family.embedded(kind);
                 let bytes = embedded.ok_or(WeightsError::NotEmbedded { kind, flag })?;
                 (bytes.into(), "embedded".to_string())
             }
@@ -130,6 +230,24 @@ impl LoadedModel {
                 origin: origin.clone(),
                 source,
             })?;
+        // A file that records its training must match the family (files
+        // that do not, e.g. converted ones, are taken as they are).
+        if let Some(rectified) = trained_rectified(&weights) {
+            if rectified != (family == Family::CameraAware) {
+                let other = if rectified {
+                    Family::CameraAware
+                } else {
+                    Family::Default
+                };
+                return Err(WeightsError::WrongFamily {
+                    kind,
+                    origin,
+                    trained: if rectified { "on rectified" } else { "on raw" },
+                    family: family.describe(),
+                    flag: other.embedded(kind).1,
+                });
+            }
+        }
         Ok(Self {
             weights,
             origin,
@@ -137,8 +255,8 @@ impl LoadedModel {
         })
     }
 
-    /// The `ModelInfo` entry for this model.
-    pub fn describe(&self) -> pb::ModelDescription {
+    /// The `ModelInfo` entry for this model, serving `family`.
+    pub fn describe(&self, family: Family) -> pb::ModelDescription {
         let kind = self.weights.kind();
         let (model, name) = match kind {
             ModelKind::Gru => (pb::Model::OnlineGru, "bone_length_gru"),
@@ -149,14 +267,28 @@ impl LoadedModel {
         let metadata: HashMap<String, String> = self.weights.meta.to_header().into_iter().collect();
         pb::ModelDescription {
             model: model as i32,
-            name: name.to_string(),
+            name: format!("{name}{}", family.suffix()),
             parameter_count,
             hidden_size: blapose_model::HIDDEN as u32,
             weights_source: self.origin.clone(),
             weights_sha256: self.sha256.clone(),
             metadata,
+            camera_aware: family == Family::CameraAware,
         }
     }
+}
+
+/// Whether the weights were trained on rectified keypoints, when their
+/// `train_config` metadata says (files from before the option read as raw).
+fn trained_rectified(weights: &LoadedWeights) -> Option<bool> {
+    let config = weights.meta.extra.get("train_config")?;
+    let config: serde_json::Value = serde_json::from_str(config).ok()?;
+    Some(
+        config
+            .get("rectify")
+            .and_then(|v| v.as_bool())
+            .unwrap_or(false),
+    )
 }
 
 fn sha256_hex(bytes: &[u8]) -> String {
@@ -227,40 +359,63 @@ pub trait ModelProvider: Send + Sync + 'static {
     fn offline(&self) -> Result<Box<dyn SequenceBackend>, BackendError>;
     /// `ModelInfo` entries.
     fn describe(&self) -> Vec<pb::ModelDescription>;
+    /// The camera-aware models, for sessions and requests that send a
+    /// camera calibration (their backends are fed rectified keypoints);
+    /// `None` when the server has none.
+    fn camera_aware(&self) -> Option<Arc<dyn ModelProvider>> {
+        None
+    }
 }
 
 /// The real provider: blapose-model's fast engines on loaded weights,
 /// built once and shared by every backend.
 #[derive(Debug, Clone)]
 pub struct WeightsProvider {
+    family: Family,
     gru: LoadedModel,
     bigru: LoadedModel,
     online: Arc<OnlineGruEngine>,
     offline: Arc<OfflineBiGruEngine>,
+    camera_aware: Option<Arc<WeightsProvider>>,
 }
 
 /// Scratch preallocated per online backend (it grows if a batch is larger).
 const SCRATCH_BATCH: usize = 64;
 
 impl WeightsProvider {
-    /// Load both models and build their engines with `threads` workers and
-    /// the GRU weights stored at `precision`.
+    /// Load both models of `family` and build their engines with
+    /// `threads` workers and the GRU weights stored at `precision`.
     pub fn load(
+        family: Family,
         gru: &WeightsSource,
         bigru: &WeightsSource,
         threads: usize,
         precision: Precision,
     ) -> Result<Self, ServerError> {
-        let gru = LoadedModel::load(gru, ModelKind::Gru)?;
-        let bigru = LoadedModel::load(bigru, ModelKind::BiGru)?;
+        let gru = LoadedModel::load(gru, ModelKind::Gru, family)?;
+        let bigru = LoadedModel::load(bigru, ModelKind::BiGru, family)?;
         let online = engine::online_engine(&gru.weights, threads, precision)?;
         let offline = engine::offline_engine(&bigru.weights, threads, precision)?;
         Ok(Self {
+            family,
             gru,
             bigru,
             online,
             offline,
+            camera_aware: None,
         })
+    }
+
+    /// Serve `camera_aware` (a provider of [`Family::CameraAware`]) to the
+    /// sessions and requests that send a camera calibration.
+    pub fn with_camera_aware(mut self, camera_aware: WeightsProvider) -> Self {
+        self.camera_aware = Some(Arc::new(camera_aware));
+        self
+    }
+
+    /// The camera-aware models, if loaded.
+    pub fn camera_aware_models(&self) -> Option<&WeightsProvider> {
+        self.camera_aware.as_deref()
     }
 
     /// The online model's weights.
@@ -287,6 +442,62 @@ impl ModelProvider for WeightsProvider {
     }
 
     fn describe(&self) -> Vec<pb::ModelDescription> {
-        vec![self.gru.describe(), self.bigru.describe()]
+        let mut models = vec![
+            self.gru.describe(self.family),
+            self.bigru.describe(self.family),
+        ];
+        if let Some(camera_aware) = &self.camera_aware {
+            models.extend(camera_aware.describe());
+        }
+        models
+    }
+
+    fn camera_aware(&self) -> Option<Arc<dyn ModelProvider>> {
+        self.camera_aware
+            .clone()
+            .map(|p| p as Arc<dyn ModelProvider>)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn weights_load_only_for_the_family_they_were_trained_for() {
+        if embedded_gru().is_none() || embedded_gru_rectified().is_none() {
+            println!("skipping: this build has no embedded weights");
+            return;
+        }
+        let embedded = WeightsSource::Embedded;
+        for (kind, flag) in [
+            (ModelKind::Gru, "--rectified-weights"),
+            (ModelKind::BiGru, "--rectified-bigru-weights"),
+        ] {
+            assert!(LoadedModel::load(&embedded, kind, Family::Default).is_ok());
+            assert!(LoadedModel::load(&embedded, kind, Family::CameraAware).is_ok());
+            // The rectified files given as default weights, and back.
+            let dir = std::env::temp_dir().join(format!(
+                "blapose-family-{}-{}",
+                std::process::id(),
+                kind.as_str()
+            ));
+            std::fs::create_dir_all(&dir).unwrap();
+            let rectified = dir.join("rectified.safetensors");
+            std::fs::write(&rectified, Family::CameraAware.embedded(kind).0.unwrap()).unwrap();
+            let err = LoadedModel::load(&WeightsSource::File(rectified), kind, Family::Default)
+                .unwrap_err();
+            assert!(matches!(err, WeightsError::WrongFamily { .. }), "{err}");
+            assert!(err.to_string().contains(flag), "{err}");
+            let plain = dir.join("plain.safetensors");
+            std::fs::write(&plain, Family::Default.embedded(kind).0.unwrap()).unwrap();
+            let err = LoadedModel::load(&WeightsSource::File(plain), kind, Family::CameraAware)
+                .unwrap_err();
+            assert!(err.to_string().contains("trained on raw"), "{err}");
+            let _ = std::fs::remove_dir_all(&dir);
+        }
+        // Files that do not record their training load for either family.
+        let random = LoadedWeights::random(ModelKind::Gru, 1).unwrap();
+        assert_eq!(trained_rectified(&random), None);
     }
 }

@@ -35,13 +35,22 @@ type Pool<T> = Arc<Mutex<Vec<T>>>;
 /// Offline requests that may wait for a compute slot.
 pub const MAX_WAITING: usize = 64;
 
+/// Pooled backends of one model family.
+#[derive(Default, Clone)]
+struct Pools {
+    online: Pool<Box<dyn Backend>>,
+    offline: Pool<Box<dyn crate::backend::SequenceBackend>>,
+}
+
 /// Runs offline requests with bounded concurrency.
 pub struct OfflineRunner {
     provider: Arc<dyn ModelProvider>,
     permits: Arc<Semaphore>,
     admission: Arc<Semaphore>,
-    online: Pool<Box<dyn Backend>>,
-    offline: Pool<Box<dyn crate::backend::SequenceBackend>>,
+    /// Backends of the default models.
+    default: Pools,
+    /// Backends of the camera-aware models (requests with a camera).
+    camera_aware: Pools,
 }
 
 impl std::fmt::Debug for OfflineRunner {
@@ -73,8 +82,8 @@ impl OfflineRunner {
             provider,
             permits: Arc::new(Semaphore::new(concurrency.max(1))),
             admission: Arc::new(Semaphore::new(concurrency.max(1) + MAX_WAITING)),
-            online: Arc::default(),
-            offline: Arc::default(),
+            default: Pools::default(),
+            camera_aware: Pools::default(),
         }
     }
 
@@ -91,9 +100,15 @@ impl OfflineRunner {
             .acquire_owned()
             .await
             .map_err(|_| Status::unavailable("the server is shutting down"))?;
-        let provider = self.provider.clone();
-        let online = self.online.clone();
-        let offline = self.offline.clone();
+        let (provider, Pools { online, offline }) = if seq.camera.is_some() {
+            let provider = self
+                .provider
+                .camera_aware()
+                .ok_or_else(|| crate::validate::InvalidInput::NoCameraAwareModel.to_status())?;
+            (provider, self.camera_aware.clone())
+        } else {
+            (self.provider.clone(), self.default.clone())
+        };
         let started = Instant::now();
         let model = seq.model;
         let result = tokio::task::spawn_blocking(move || -> Result<AdjustedSequence, Status> {
@@ -244,6 +259,7 @@ mod tests {
             model: OfflineModel::BiGru,
             inputs: vec![0.0; INPUT_DIM],
             poses: vec![pose()],
+            camera: None,
         };
         let mut tasks = Vec::new();
         for _ in 0..(MAX_WAITING + 6) {

@@ -115,7 +115,8 @@ impl pb::pose_adjustment_server::PoseAdjustment for PoseService {
                 "AdjustSequence",
             );
         }
-        let seq = match validate::sequence(request.get_ref()) {
+        let camera_aware = self.state.provider.camera_aware().is_some();
+        let seq = match validate::sequence(request.get_ref(), camera_aware) {
             Ok(s) => s,
             Err(e) => return fail(e.to_status(), "AdjustSequence"),
         };

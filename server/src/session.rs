@@ -32,8 +32,10 @@ use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
 
 use blapose_core::layouts::KeypointLayout;
+use blapose_core::level::LevelCamera;
 use blapose_core::{BoneLengths, NUM_BONES};
 use blapose_lifters::SlidingWindow;
+use blapose_proto::v1 as pb;
 use rand::TryRngCore;
 use tokio::sync::{watch, Notify};
 use tokio::time::Instant;
@@ -125,6 +127,17 @@ pub struct InputSpec {
     pub coordinates: Coordinates,
 }
 
+/// A session's camera: the calibration as the client sent it (echoed on
+/// open and resume) and its level twin, which rectifies the keypoints for
+/// the camera-aware model.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SessionCamera {
+    /// As sent in `OpenSession.camera`.
+    pub calibration: pb::CameraCalibration,
+    /// Built from it.
+    pub level: LevelCamera,
+}
+
 /// Immutable description of a session.
 #[derive(Debug, Clone)]
 pub struct SessionConfig {
@@ -135,6 +148,9 @@ pub struct SessionConfig {
     /// `Some(frames)`: the server lifts this session's poses with a lifter
     /// whose window holds `frames` frames; `None`: the client sends them.
     pub lifter_frames: Option<usize>,
+    /// `Some`: the camera-aware model serves the session, fed its keypoints
+    /// rectified with this camera; `None`: the default model.
+    pub camera: Option<SessionCamera>,
 }
 
 impl SessionConfig {
@@ -601,6 +617,7 @@ mod tests {
             },
             label: String::new(),
             lifter_frames: None,
+            camera: None,
         }
     }
 
@@ -613,6 +630,7 @@ mod tests {
             2,
             SessionConfig {
                 lifter_frames: Some(27),
+                camera: None,
                 ..config()
             },
         );

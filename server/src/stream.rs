@@ -150,6 +150,12 @@ fn open_or_resume(
             } else {
                 None
             };
+            let camera = validate::camera(
+                open.camera.as_ref(),
+                &input,
+                state.provider.camera_aware().is_some(),
+            )
+            .map_err(|e| e.to_status())?;
             let label = truncate_label(&open.client_label);
             let attachment = state
                 .store
@@ -157,6 +163,7 @@ fn open_or_resume(
                     input,
                     label,
                     lifter_frames,
+                    camera,
                 })
                 .map_err(session_status)?;
             tracing::info!(
@@ -164,6 +171,7 @@ fn open_or_resume(
                 label = %attachment.session.config().label,
                 layout = %input.layout,
                 server_lifter = open.server_lifter,
+                camera = open.camera.is_some(),
                 "session opened"
             );
             Ok(attachment)
@@ -220,6 +228,12 @@ fn opened_response(state: &AppState, a: &Attachment) -> pb::StreamResponse {
             model: pb::Model::OnlineGru as i32,
             session_ttl_ms: u64::try_from(state.store.ttl().as_millis()).unwrap_or(u64::MAX),
             lifter: session_lifter(state, a).to_string(),
+            camera: a
+                .session
+                .config()
+                .camera
+                .as_ref()
+                .map(|c| c.calibration.clone()),
         })),
     }
 }

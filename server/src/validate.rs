@@ -12,12 +12,13 @@
 use blapose_core::bones::{self, BoneError};
 use blapose_core::camera::normalize_screen;
 use blapose_core::layouts::KeypointLayout;
+use blapose_core::level::{LevelCamera, LevelError};
 use blapose_core::skeleton::JOINT_NAMES;
 use blapose_core::{Pose, NUM_JOINTS};
 use blapose_proto::v1 as pb;
 
 use crate::backend::INPUT_DIM;
-use crate::session::{Coordinates, InputSpec};
+use crate::session::{Coordinates, InputSpec, SessionCamera};
 
 /// Largest accepted magnitude of a 2D keypoint value (pixels or normalized).
 pub const MAX_KEYPOINT_ABS: f32 = 1e6;
@@ -155,6 +156,35 @@ pub enum InvalidInput {
         /// Values per frame.
         per_frame: usize,
     },
+    /// `camera.up` does not have 3 values.
+    #[error(
+        "camera.up has {got} values, expected 3 (world up in camera x right, y down, z forward)"
+    )]
+    CameraUpCount {
+        /// Values given.
+        got: usize,
+    },
+    /// Normalized keypoints but no image size for the pixel calibration.
+    #[error("camera.image_size is required when the keypoints are normalized (the calibration is in pixels of that image)")]
+    CameraImageSizeMissing,
+    /// The calibration's image differs from the keypoints' image.
+    #[error("camera.image_size {camera_width}x{camera_height} differs from input_format.image_size {width}x{height}; leave it out or make them equal")]
+    CameraImageSizeMismatch {
+        /// The calibration's width.
+        camera_width: u32,
+        /// The calibration's height.
+        camera_height: u32,
+        /// The input's width.
+        width: u32,
+        /// The input's height.
+        height: u32,
+    },
+    /// The calibration cannot be used.
+    #[error("camera: {0}")]
+    Camera(LevelError),
+    /// A camera on a server without camera-aware models.
+    #[error("a camera calibration was sent but this server has no camera-aware models (it was started with --no-camera-aware); leave camera out")]
+    NoCameraAwareModel,
     /// A problem in one frame of a sequence.
     #[error("frame {frame}: {source}")]
     InFrame {
@@ -232,6 +262,54 @@ pub fn input_spec_to_proto(spec: &InputSpec) -> pb::InputFormat {
         layout: layout_to_proto(spec.layout) as i32,
         coordinates: Some(coordinates),
     }
+}
+
+/// Validate an optional `CameraCalibration` against the input format and
+/// build its level twin. `served` says whether the server has camera-aware
+/// models (without them a calibration is refused).
+pub fn camera(
+    calibration: Option<&pb::CameraCalibration>,
+    spec: &InputSpec,
+    served: bool,
+) -> Result<Option<SessionCamera>, InvalidInput> {
+    let Some(c) = calibration else {
+        return Ok(None);
+    };
+    if !served {
+        return Err(InvalidInput::NoCameraAwareModel);
+    }
+    let up: [f32; 3] =
+        c.up.as_slice()
+            .try_into()
+            .map_err(|_| InvalidInput::CameraUpCount { got: c.up.len() })?;
+    let (width, height) = match (spec.coordinates, c.image_size) {
+        (Coordinates::Normalized, None) => return Err(InvalidInput::CameraImageSizeMissing),
+        (Coordinates::Normalized, Some(size)) => (size.width, size.height),
+        (Coordinates::Pixels { width, height }, None) => (width, height),
+        (Coordinates::Pixels { width, height }, Some(size)) => {
+            if (size.width, size.height) != (width, height) {
+                return Err(InvalidInput::CameraImageSizeMismatch {
+                    camera_width: size.width,
+                    camera_height: size.height,
+                    width,
+                    height,
+                });
+            }
+            (width, height)
+        }
+    };
+    let level = LevelCamera::from_pixels(
+        up.map(f64::from),
+        [c.focal_x, c.focal_y].map(f64::from),
+        [c.principal_x, c.principal_y].map(f64::from),
+        width,
+        height,
+    )
+    .map_err(InvalidInput::Camera)?;
+    Ok(Some(SessionCamera {
+        calibration: c.clone(),
+        level,
+    }))
 }
 
 /// Which model an offline request runs.
@@ -414,12 +492,20 @@ pub struct ValidSequence {
     pub inputs: Vec<f32>,
     /// One pose per frame.
     pub poses: Vec<Pose>,
+    /// The request's camera: `Some` when it sent a calibration, and then
+    /// `inputs` are already rectified for the camera-aware model.
+    pub camera: Option<SessionCamera>,
 }
 
-/// Validate an `AdjustSequenceRequest`.
-pub fn sequence(req: &pb::AdjustSequenceRequest) -> Result<ValidSequence, InvalidInput> {
+/// Validate an `AdjustSequenceRequest` (`camera_aware`: whether the server
+/// has camera-aware models, see [`camera`]).
+pub fn sequence(
+    req: &pb::AdjustSequenceRequest,
+    camera_aware: bool,
+) -> Result<ValidSequence, InvalidInput> {
     let spec = input_spec(req.input_format.as_ref())?;
     let model = offline_model(req.model)?;
+    let camera = camera(req.camera.as_ref(), &spec, camera_aware)?;
     let frames = req.num_frames as usize;
     if frames == 0 {
         return Err(InvalidInput::NoFrames);
@@ -460,10 +546,14 @@ pub fn sequence(req: &pb::AdjustSequenceRequest) -> Result<ValidSequence, Invali
         inputs.extend_from_slice(&model_input(&spec, kp, conf).map_err(in_frame)?);
         poses.push(pose(&req.poses_3d[t * POSE_VALUES..(t + 1) * POSE_VALUES]).map_err(in_frame)?);
     }
+    if let Some(camera) = &camera {
+        camera.level.rectify_frames(&mut inputs);
+    }
     Ok(ValidSequence {
         model,
         inputs,
         poses,
+        camera,
     })
 }
 
@@ -741,20 +831,21 @@ mod tests {
             keypoints_2d: vec![0.1; 3 * 34],
             confidence: vec![],
             poses_3d: standing_pose().repeat(3),
+            camera: None,
         };
-        let ok = sequence(&req).unwrap();
+        let ok = sequence(&req, false).unwrap();
         assert_eq!(ok.model, OfflineModel::BiGru);
         assert_eq!(ok.inputs.len(), 3 * INPUT_DIM);
         assert_eq!(ok.poses.len(), 3);
 
         req.poses_3d[51 + 4] = f32::NAN;
-        let err = sequence(&req).unwrap_err();
+        let err = sequence(&req, false).unwrap_err();
         assert!(err.to_string().starts_with("frame 1: pose_3d:"), "{err}");
         req.poses_3d[51 + 4] = 0.0;
 
         req.num_frames = 4;
         assert!(matches!(
-            sequence(&req),
+            sequence(&req, false),
             Err(InvalidInput::SequenceLength {
                 field: "keypoints_2d",
                 got: 102,
@@ -763,20 +854,147 @@ mod tests {
             })
         ));
         req.num_frames = 0;
-        assert_eq!(sequence(&req), Err(InvalidInput::NoFrames));
+        assert_eq!(sequence(&req, false), Err(InvalidInput::NoFrames));
         req.num_frames = u32::MAX;
         assert!(matches!(
-            sequence(&req),
+            sequence(&req, false),
             Err(InvalidInput::SequenceLength { .. })
         ));
         req.num_frames = 3;
         req.confidence = vec![1.0; 5];
         assert!(matches!(
-            sequence(&req),
+            sequence(&req, false),
             Err(InvalidInput::SequenceLength {
                 field: "confidence",
                 ..
             })
         ));
+    }
+
+    fn calibration() -> pb::CameraCalibration {
+        // Looking 12 degrees down, centred principal point.
+        let tilt = 12f32.to_radians();
+        pb::CameraCalibration {
+            up: vec![0.0, -tilt.cos(), -tilt.sin()],
+            focal_x: 1150.0,
+            focal_y: 1150.0,
+            principal_x: 500.0,
+            principal_y: 500.0,
+            image_size: None,
+        }
+    }
+
+    #[test]
+    fn cameras_are_checked_against_the_input_and_the_server() {
+        let pixels = spec(
+            KeypointLayout::H36m17,
+            Coordinates::Pixels {
+                width: 1000,
+                height: 1000,
+            },
+        );
+        let normalized = spec(KeypointLayout::H36m17, Coordinates::Normalized);
+        let c = calibration();
+        assert_eq!(camera(None, &pixels, false), Ok(None));
+        let got = camera(Some(&c), &pixels, true).unwrap().unwrap();
+        assert_eq!(got.calibration, c);
+        assert_eq!(
+            camera(Some(&c), &pixels, false),
+            Err(InvalidInput::NoCameraAwareModel)
+        );
+        assert_eq!(
+            camera(Some(&c), &normalized, true),
+            Err(InvalidInput::CameraImageSizeMissing)
+        );
+        let sized = pb::CameraCalibration {
+            image_size: Some(pb::ImageSize {
+                width: 1000,
+                height: 1000,
+            }),
+            ..c.clone()
+        };
+        // The same camera, whether its image comes from the input or itself.
+        assert_eq!(
+            camera(Some(&sized), &normalized, true)
+                .unwrap()
+                .unwrap()
+                .level,
+            got.level
+        );
+        let other = pb::CameraCalibration {
+            image_size: Some(pb::ImageSize {
+                width: 1920,
+                height: 1080,
+            }),
+            ..c.clone()
+        };
+        assert!(matches!(
+            camera(Some(&other), &pixels, true),
+            Err(InvalidInput::CameraImageSizeMismatch {
+                camera_width: 1920,
+                ..
+            })
+        ));
+        let short = pb::CameraCalibration {
+            up: vec![0.0, -1.0],
+            ..c.clone()
+        };
+        assert_eq!(
+            camera(Some(&short), &pixels, true),
+            Err(InvalidInput::CameraUpCount { got: 2 })
+        );
+        for bad in [
+            pb::CameraCalibration {
+                focal_x: f32::NAN,
+                ..c.clone()
+            },
+            pb::CameraCalibration {
+                focal_y: -3.0,
+                ..c.clone()
+            },
+            pb::CameraCalibration {
+                up: vec![0.0, 0.0, 0.0],
+                ..c.clone()
+            },
+            pb::CameraCalibration {
+                up: vec![0.0, -0.1, -1.0],
+                ..c.clone()
+            },
+        ] {
+            let err = camera(Some(&bad), &pixels, true).unwrap_err();
+            assert!(matches!(err, InvalidInput::Camera(_)), "{err}");
+            assert!(err.to_string().starts_with("camera: "), "{err}");
+        }
+    }
+
+    #[test]
+    fn a_sequence_with_a_camera_is_rectified_for_the_model() {
+        let fmt = format(
+            1,
+            Some(pb::input_format::Coordinates::ImageSize(pb::ImageSize {
+                width: 1000,
+                height: 1000,
+            })),
+        );
+        let keypoints: Vec<f32> = (0..2 * 34).map(|i| 300.0 + 7.0 * i as f32).collect();
+        let mut req = pb::AdjustSequenceRequest {
+            input_format: Some(fmt),
+            model: 0,
+            num_frames: 2,
+            keypoints_2d: keypoints,
+            confidence: vec![],
+            poses_3d: standing_pose().repeat(2),
+            camera: None,
+        };
+        let plain = sequence(&req, true).unwrap();
+        req.camera = Some(calibration());
+        assert_eq!(sequence(&req, false), Err(InvalidInput::NoCameraAwareModel));
+        let rectified = sequence(&req, true).unwrap();
+        let camera = rectified.camera.clone().unwrap();
+        let mut want = plain.inputs.clone();
+        camera.level.rectify_frames(&mut want);
+        assert_eq!(rectified.inputs, want);
+        assert_ne!(rectified.inputs, plain.inputs);
+        assert_eq!(rectified.poses, plain.poses);
     }
 }

@@ -27,6 +27,8 @@ use tonic::Code;
 /// which exposes lost, repeated or reordered frames and lost state.
 struct FakeStep {
     delay: Duration,
+    /// Added to every prediction (the camera-aware fake's is 0.1).
+    offset: f32,
 }
 
 impl Backend for FakeStep {
@@ -46,38 +48,76 @@ impl Backend for FakeStep {
                 .iter_mut()
                 .enumerate()
             {
-                *y = 0.2 + 0.01 * bone as f32 + 0.001 * h[0];
+                *y = 0.2 + self.offset + 0.01 * bone as f32 + 0.001 * h[0];
             }
         }
         Ok(())
     }
 }
 
-struct FakeSeq;
+struct FakeSeq {
+    offset: f32,
+}
 
 impl SequenceBackend for FakeSeq {
     fn predict(&mut self, inputs: &[f32], frames: usize) -> Result<[f32; 16], BackendError> {
         assert_eq!(inputs.len(), frames * INPUT_DIM);
-        Ok(std::array::from_fn(|b| 0.3 + 0.001 * b as f32))
+        Ok(std::array::from_fn(|b| {
+            0.3 + self.offset + 0.001 * b as f32
+        }))
     }
 }
 
+/// The fake models; `camera_aware` adds a second family whose predictions
+/// are 0.1 larger (what sessions with a camera calibration get).
 struct Fake {
     delay: Duration,
+    offset: f32,
+    camera_aware: Option<Arc<Fake>>,
+}
+
+impl Fake {
+    fn new(delay: Duration) -> Self {
+        Self {
+            delay,
+            offset: 0.0,
+            camera_aware: None,
+        }
+    }
+
+    fn with_camera_aware(delay: Duration) -> Self {
+        Self {
+            camera_aware: Some(Arc::new(Self {
+                offset: 0.1,
+                ..Self::new(delay)
+            })),
+            ..Self::new(delay)
+        }
+    }
 }
 
 impl ModelProvider for Fake {
     fn online(&self) -> Result<Box<dyn Backend>, BackendError> {
-        Ok(Box::new(FakeStep { delay: self.delay }))
+        Ok(Box::new(FakeStep {
+            delay: self.delay,
+            offset: self.offset,
+        }))
     }
     fn offline(&self) -> Result<Box<dyn SequenceBackend>, BackendError> {
-        Ok(Box::new(FakeSeq))
+        Ok(Box::new(FakeSeq {
+            offset: self.offset,
+        }))
     }
     fn describe(&self) -> Vec<pb::ModelDescription> {
         vec![pb::ModelDescription {
             name: "fake".into(),
             ..Default::default()
         }]
+    }
+    fn camera_aware(&self) -> Option<Arc<dyn ModelProvider>> {
+        self.camera_aware
+            .clone()
+            .map(|p| p as Arc<dyn ModelProvider>)
     }
 }
 
@@ -93,8 +133,12 @@ fn config() -> ServerConfig {
 }
 
 async fn start(config: ServerConfig, delay: Duration) -> ServerHandle {
+    start_with(config, Fake::new(delay)).await
+}
+
+async fn start_with(config: ServerConfig, fake: Fake) -> ServerHandle {
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    blapose_server::spawn_with_provider(config, listener, Arc::new(Fake { delay }))
+    blapose_server::spawn_with_provider(config, listener, Arc::new(fake))
         .await
         .unwrap()
 }
@@ -130,6 +174,23 @@ fn pose() -> Vec<f32> {
 }
 
 fn open_request() -> pb::StreamRequest {
+    open_with_camera(None)
+}
+
+/// A camera looking 12 degrees down with a centred principal point.
+fn calibration() -> pb::CameraCalibration {
+    let tilt = 12f32.to_radians();
+    pb::CameraCalibration {
+        up: vec![0.0, -tilt.cos(), -tilt.sin()],
+        focal_x: 1150.0,
+        focal_y: 1150.0,
+        principal_x: 500.0,
+        principal_y: 500.0,
+        image_size: None,
+    }
+}
+
+fn open_with_camera(camera: Option<pb::CameraCalibration>) -> pb::StreamRequest {
     pb::StreamRequest {
         kind: Some(Req::Open(pb::OpenSession {
             input_format: Some(pb::InputFormat {
@@ -142,6 +203,7 @@ fn open_request() -> pb::StreamRequest {
             model: 0,
             client_label: "test".into(),
             server_lifter: false,
+            camera,
         })),
     }
 }
@@ -190,8 +252,15 @@ impl Conn {
     }
 
     async fn open(client: &mut PoseAdjustmentClient<Channel>) -> (Self, pb::SessionOpened) {
+        Self::open_with(client, open_request()).await
+    }
+
+    async fn open_with(
+        client: &mut PoseAdjustmentClient<Channel>,
+        open: pb::StreamRequest,
+    ) -> (Self, pb::SessionOpened) {
         let mut c = Self::new(client).await;
-        c.send(open_request()).await;
+        c.send(open).await;
         match c.next().await.unwrap() {
             Some(Resp::Opened(o)) => (c, o),
             other => panic!("expected opened, got {other:?}"),
@@ -593,6 +662,7 @@ async fn auth_token_and_message_size_are_enforced() {
         keypoints_2d: vec![0.0; 340],
         confidence: vec![],
         poses_3d: vec![0.0; 510],
+        camera: None,
     };
     let err = authed.adjust_sequence(big).await.unwrap_err();
     assert_eq!(err.code(), Code::OutOfRange, "{}", err.message());
@@ -654,6 +724,7 @@ async fn offline_online_model_equals_the_stream() {
         keypoints_2d: frames.iter().flat_map(|f| f.keypoints_2d.clone()).collect(),
         confidence: vec![],
         poses_3d: frames.iter().flat_map(|f| f.pose_3d.clone()).collect(),
+        camera: None,
     };
     let offline = c.adjust_sequence(req.clone()).await.unwrap().into_inner();
     assert_eq!(offline.model, pb::Model::OnlineGru as i32);
@@ -815,6 +886,10 @@ async fn real_engines_serve_random_weights_from_files() {
     let mut cfg = config();
     cfg.weights = blapose_server::WeightsSource::File(paths[0].clone());
     cfg.bigru_weights = blapose_server::WeightsSource::File(paths[1].clone());
+    cfg.camera_aware = Some(blapose_server::CameraAwareWeights {
+        gru: blapose_server::WeightsSource::File(paths[0].clone()),
+        bigru: blapose_server::WeightsSource::File(paths[1].clone()),
+    });
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let server = blapose_server::spawn(cfg, listener).await.unwrap();
     let mut c = client(server.local_addr()).await;
@@ -823,7 +898,20 @@ async fn real_engines_serve_random_weights_from_files() {
         .await
         .unwrap()
         .into_inner();
-    assert_eq!(info.models.len(), 2);
+    let names: Vec<(&str, bool)> = info
+        .models
+        .iter()
+        .map(|m| (m.name.as_str(), m.camera_aware))
+        .collect();
+    assert_eq!(
+        names,
+        [
+            ("bone_length_gru", false),
+            ("bone_length_bigru", false),
+            ("bone_length_gru_rectified", true),
+            ("bone_length_bigru_rectified", true),
+        ]
+    );
     for m in &info.models {
         assert_eq!(m.parameter_count, 2_390_784);
         assert_eq!(m.hidden_size, 512);
@@ -850,10 +938,157 @@ async fn real_engines_serve_random_weights_from_files() {
     server.shutdown().await.unwrap();
     let missing = ServerConfig {
         weights: blapose_server::WeightsSource::File(dir.join("nope.safetensors")),
+        camera_aware: None,
         ..config()
     };
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let err = blapose_server::spawn(missing, listener).await.unwrap_err();
     assert!(err.to_string().contains("nope.safetensors"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sessions_with_a_camera_get_the_camera_aware_model() {
+    let server = start_with(config(), Fake::with_camera_aware(Duration::ZERO)).await;
+    let mut c = client(server.local_addr()).await;
+    let (mut plain, opened) = Conn::open(&mut c).await;
+    assert_eq!(opened.camera, None);
+    let (mut aware, opened) = Conn::open_with(&mut c, open_with_camera(Some(calibration()))).await;
+    assert_eq!(opened.camera, Some(calibration()));
+    // Interleaved, so the two families share batches.
+    for i in 0..4 {
+        plain.send(frame(i)).await;
+        aware.send(frame(i)).await;
+    }
+    for n in 1..=4 {
+        let (p, a) = (plain.frame().await, aware.frame().await);
+        assert_eq!((p.frames_seen, a.frames_seen), (n, n));
+        for b in 0..16 {
+            assert!((p.bone_lengths[b] - expected_mean(b, n)).abs() < 1e-6);
+            assert!((a.bone_lengths[b] - (expected_mean(b, n) + 0.1)).abs() < 1e-6);
+        }
+    }
+    // A resumed session keeps its camera and its model.
+    drop(aware);
+    let (mut resumed, opened) = Conn::open_with(
+        &mut c,
+        request(Req::Resume(pb::ResumeSession {
+            session_id: opened.session_id.clone(),
+        })),
+    )
+    .await;
+    assert_eq!(opened.camera, Some(calibration()));
+    resumed.send(frame(9)).await;
+    let f = resumed.frame().await;
+    assert_eq!(f.frames_seen, 5);
+    assert!((f.bone_lengths[0] - (expected_mean(0, 5) + 0.1)).abs() < 1e-6);
+
+    // Offline: the camera picks the camera-aware Bi-GRU.
+    let mut req = pb::AdjustSequenceRequest {
+        input_format: Some(pb::InputFormat {
+            layout: pb::KeypointLayout::H36m17 as i32,
+            coordinates: Some(pb::input_format::Coordinates::ImageSize(pb::ImageSize {
+                width: 1000,
+                height: 1000,
+            })),
+        }),
+        model: 0,
+        num_frames: 2,
+        keypoints_2d: (0..68).map(|i| 400.0 + i as f32).collect(),
+        confidence: vec![],
+        poses_3d: pose().repeat(2),
+        camera: None,
+    };
+    let plain_seq = c.adjust_sequence(req.clone()).await.unwrap().into_inner();
+    assert!((plain_seq.bone_lengths[0] - 0.3).abs() < 1e-6);
+    req.camera = Some(calibration());
+    let aware_seq = c.adjust_sequence(req).await.unwrap().into_inner();
+    assert!((aware_seq.bone_lengths[0] - 0.4).abs() < 1e-6);
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_or_unserved_cameras_are_refused_at_open() {
+    let server = start_with(config(), Fake::with_camera_aware(Duration::ZERO)).await;
+    let mut c = client(server.local_addr()).await;
+    let bad = [
+        (
+            pb::CameraCalibration {
+                up: vec![0.0, -1.0],
+                ..calibration()
+            },
+            "camera.up has 2 values",
+        ),
+        (
+            pb::CameraCalibration {
+                focal_x: f32::NAN,
+                ..calibration()
+            },
+            "camera: focal",
+        ),
+        (
+            pb::CameraCalibration {
+                up: vec![0.0, -0.1, -1.0],
+                ..calibration()
+            },
+            "degrees from the horizon",
+        ),
+        (
+            pb::CameraCalibration {
+                image_size: Some(pb::ImageSize {
+                    width: 640,
+                    height: 480,
+                }),
+                ..calibration()
+            },
+            "differs from input_format.image_size",
+        ),
+    ];
+    for (camera, message) in bad {
+        let mut conn = Conn::new(&mut c).await;
+        conn.send(open_with_camera(Some(camera))).await;
+        let status = conn.status().await;
+        assert_eq!(status.code(), Code::InvalidArgument);
+        assert!(status.message().contains(message), "{}", status.message());
+    }
+    // Nothing was opened, and a good session still works.
+    let (mut conn, _) = Conn::open_with(&mut c, open_with_camera(Some(calibration()))).await;
+    conn.send(frame(0)).await;
+    assert_eq!(conn.frame().await.frames_seen, 1);
+    server.shutdown().await.unwrap();
+
+    // A server without camera-aware models refuses a camera, stream and
+    // offline alike, and serves everything else.
+    let server = start(config(), Duration::ZERO).await;
+    let mut c = client(server.local_addr()).await;
+    let mut conn = Conn::new(&mut c).await;
+    conn.send(open_with_camera(Some(calibration()))).await;
+    let status = conn.status().await;
+    assert_eq!(status.code(), Code::InvalidArgument);
+    assert!(
+        status.message().contains("no camera-aware models"),
+        "{}",
+        status.message()
+    );
+    let req = pb::AdjustSequenceRequest {
+        input_format: Some(pb::InputFormat {
+            layout: pb::KeypointLayout::H36m17 as i32,
+            coordinates: Some(pb::input_format::Coordinates::ImageSize(pb::ImageSize {
+                width: 1000,
+                height: 1000,
+            })),
+        }),
+        model: 0,
+        num_frames: 1,
+        keypoints_2d: vec![400.0; 34],
+        confidence: vec![],
+        poses_3d: pose(),
+        camera: Some(calibration()),
+    };
+    let err = c.adjust_sequence(req).await.unwrap_err();
+    assert_eq!(err.code(), Code::InvalidArgument);
+    let (mut conn, _) = Conn::open(&mut c).await;
+    conn.send(frame(0)).await;
+    assert_eq!(conn.frame().await.frames_seen, 1);
+    server.shutdown().await.unwrap();
 }

@@ -31,7 +31,7 @@ use blapose_model::weights::{self, LoadedWeights};
 use blapose_model::{
     ModelKind, OfflineBiGruEngine, OnlineGruEngine, INPUT_DIM, OUTPUT_DIM, STATE_DIM,
 };
-use blapose_server::{ServerConfig, ServerHandle, WeightsSource};
+use blapose_server::{CameraAwareWeights, ServerConfig, ServerHandle, WeightsSource};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
@@ -86,6 +86,10 @@ pub fn test_config() -> ServerConfig {
     ServerConfig {
         weights: WeightsSource::File(dir.join("gru.safetensors")),
         bigru_weights: WeightsSource::File(dir.join("bigru.safetensors")),
+        camera_aware: Some(CameraAwareWeights {
+            gru: WeightsSource::File(dir.join("gru.safetensors")),
+            bigru: WeightsSource::File(dir.join("bigru.safetensors")),
+        }),
         metrics_addr: None,
         max_sessions: 1024,
         session_ttl: Duration::from_secs(30),

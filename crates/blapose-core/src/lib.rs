@@ -13,6 +13,7 @@
 pub mod bones;
 pub mod camera;
 pub mod layouts;
+pub mod level;
 pub mod metrics;
 pub mod pose;
 pub mod skeleton;

@@ -73,6 +73,23 @@ pub struct EvalSequence {
     pub gt: BoneLengths,
 }
 
+/// Rectify every stream's keypoints with its camera
+/// ([`blapose_core::level`]), as models trained with `--rectify` read them;
+/// `camera(subject, id)` finds each stream's calibration.
+pub fn rectify_streams<'a>(
+    streams: &mut [EvalSequence],
+    camera: impl Fn(&str, &str) -> Option<&'a Camera>,
+) -> Result<(), TrainError> {
+    for t in streams {
+        let cam = camera(&t.subject, &t.camera)
+            .ok_or_else(|| TrainError::Data(format!("no camera {} for {}", t.camera, t.subject)))?;
+        blapose_core::level::LevelCamera::from_camera(cam)
+            .map_err(|e| TrainError::Data(format!("{} camera {}: {e}", t.subject, t.camera)))?
+            .rectify_frames(&mut t.input);
+    }
+    Ok(())
+}
+
 impl EvalSequence {
     /// Number of frames.
     pub fn frames(&self) -> usize {

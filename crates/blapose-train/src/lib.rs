@@ -27,7 +27,6 @@ pub mod loader;
 pub mod noise;
 pub mod plot;
 pub mod precondition;
-pub mod rectify;
 pub mod synth;
 pub mod train;
 

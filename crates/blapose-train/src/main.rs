@@ -8,7 +8,7 @@ use anyhow::Result;
 use blapose_core::skeleton::BONE_NAMES;
 use blapose_core::BoneLengths;
 use blapose_train::ansur::{load_population, AnsurPopulation};
-use blapose_train::dataset::TrainingSet;
+use blapose_train::dataset::{rectify_streams, TrainingSet};
 use blapose_train::detector_gain::DetectorGain;
 use blapose_train::lengths::{LengthSampler, LengthStrategy, TrainingLengthStats};
 use blapose_train::lifter::objective::Objective;
@@ -134,9 +134,10 @@ struct TrainArgs {
     /// model, which the four together are not.
     #[arg(long, value_delimiter = ',')]
     cameras: Vec<String>,
-    /// Research only: give the network the keypoints as a level camera at
-    /// the same place would see them (needs each view's calibration, which
-    /// the served models do not get); evaluate with `eval --rectify`.
+    /// Give the network the keypoints as a level camera at the same place
+    /// would see them (blapose_core::level): such a model needs each view's
+    /// calibration, which the server gets from a session's `camera`;
+    /// evaluate with `eval --rectify`.
     #[arg(long)]
     rectify: bool,
     /// Horizontal flip probability.
@@ -622,6 +623,9 @@ fn train(a: TrainArgs) -> Result<()> {
             .with_detector_gain(gain)
             .with_cameras(&cfg.cameras)?,
     );
+    if cfg.rectify {
+        source.check_rectifiable()?;
+    }
     eprintln!(
         "data: {} training sequences, {} real SH validation streams, loaded in {:.1}s",
         set.sequences.len(),
@@ -637,10 +641,20 @@ fn train(a: TrainArgs) -> Result<()> {
         pb.set_position(step);
         pb.set_message(format!("loss {loss:.2} mm, {fps:.0} frames/s"));
     };
+    // The real validation streams as the model reads them.
+    let mut real_sh = std::borrow::Cow::Borrowed(&set.real_sh[..]);
+    if cfg.rectify {
+        rectify_streams(real_sh.to_mut(), |subject, id| {
+            set.sequences
+                .iter()
+                .find(|s| s.subject == subject)
+                .and_then(|s| s.cameras.iter().find(|c| c.id == id))
+        })?;
+    }
     let outcome = blapose_train::train::train(
         &cfg,
         source,
-        &set.real_sh,
+        &real_sh,
         &a.out,
         a.resume,
         &training_data,
@@ -739,13 +753,7 @@ fn eval(a: EvalArgs) -> Result<()> {
         trials = trials.into_iter().step_by(a.every).collect();
     }
     if a.rectify {
-        for t in &mut trials {
-            let cam = h36m
-                .cameras
-                .get(&t.subject, &t.camera)
-                .ok_or_else(|| anyhow::anyhow!("no camera {} for {}", t.camera, t.subject))?;
-            t.input = blapose_train::rectify::LevelView::new(cam).rectify_input(&t.input);
-        }
+        rectify_streams(&mut trials, |subject, id| h36m.cameras.get(subject, id))?;
     }
     if a.skip_frames > 0 {
         trials = trials.iter().map(|t| t.skipped(a.skip_frames)).collect();

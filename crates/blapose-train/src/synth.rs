@@ -42,6 +42,7 @@ use std::sync::Arc;
 
 use blapose_core::bones::rebuild;
 use blapose_core::camera::{Camera, NormalizedIntrinsics};
+use blapose_core::level::LevelCamera;
 use blapose_core::pose::flip_keypoints_normalized;
 use blapose_core::skeleton::{NUM_BONES, NUM_JOINTS};
 use blapose_core::{BoneDirections, BoneLengths, Keypoints2d, Pose};
@@ -53,7 +54,6 @@ use crate::detector_gain::DetectorGain;
 use crate::error::TrainError;
 use crate::lengths::{normal_f32, LengthSampler};
 use crate::noise::{apply_residual, residual_at, NoiseKind, ResidualBank};
-use crate::rectify::LevelView;
 
 /// Values per input frame.
 pub const FRAME_DIM: usize = NUM_JOINTS * 2;
@@ -226,7 +226,7 @@ pub struct SynthConfig {
     /// uniform random yaw (see [`turn_about_vertical`]).
     pub random_yaw: bool,
     /// Give the keypoints as the camera's level twin would see them
-    /// ([`crate::rectify`]; research only: needs the calibration).
+    /// ([`blapose_core::level`]; such models need the camera's calibration).
     pub rectify: bool,
 }
 
@@ -414,6 +414,19 @@ impl SynthSource {
         Ok(self)
     }
 
+    /// Check that every camera can be rectified ([`LevelCamera`]), as
+    /// `SynthConfig::rectify` needs.
+    pub fn check_rectifiable(&self) -> Result<(), TrainError> {
+        for seq in &self.sequences {
+            for cam in seq.cameras.iter() {
+                LevelCamera::from_camera(cam).map_err(|e| {
+                    TrainError::Data(format!("{} camera {}: {e}", seq.subject, cam.id))
+                })?;
+            }
+        }
+        Ok(())
+    }
+
     /// Show the drawn bodies as the detector would ([`DetectorGain`]; unit
     /// gains unless set).
     pub fn with_detector_gain(mut self, gain: DetectorGain) -> Self {
@@ -564,7 +577,12 @@ impl SynthSource {
         // Always drawn, so the flip probability does not shift later draws.
         let flipped = rng.random::<f32>() < cfg.flip_prob;
 
-        let level = cfg.rectify.then(|| LevelView::new(cam));
+        // Every camera was checked by `check_rectifiable` (jitter of a few
+        // degrees cannot make one steeper than the 60-degree limit).
+        let level = cfg
+            .rectify
+            .then(|| LevelCamera::from_camera(cam))
+            .and_then(Result::ok);
         let mut input = Vec::with_capacity(t_len * FRAME_DIM);
         for (t, p) in cam_poses.iter().enumerate() {
             let shifted = p.map(|j| [j[0] + shift[0], j[1] + shift[1], j[2] + shift[2]]);

@@ -121,7 +121,7 @@ pub struct TrainConfig {
     /// field used all.
     #[serde(default)]
     pub cameras: Vec<String>,
-    /// Rectified keypoints ([`crate::rectify`]); runs before this field
+    /// Rectified keypoints ([`blapose_core::level`]); runs before this field
     /// read them as the camera gave them.
     #[serde(default)]
     pub rectify: bool,

@@ -2,14 +2,15 @@
 //!
 //! `models/subset_check.json` (written when the weights are shipped) holds
 //! `{"every": k, "bigru_sh_mm": x, "gru_sh_mm": y}`: the headline error of
-//! `blapose eval --model M --input sh --every k` on S9/S11. Skips when the
-//! data, the weights or that file are absent.
+//! `blapose eval --model M --input sh --every k` on S9/S11, and the same
+//! for the camera-aware pair (`*_rectified_sh_mm`, evaluated with
+//! `--rectify`). Skips when the data, the weights or that file are absent.
 
 use std::path::Path;
 
 use blapose_data::h36m::{H36m, Parts, ALL_SUBJECTS, TEST_SUBJECTS};
 use blapose_model::ModelKind;
-use blapose_train::dataset::{eval_sequences, subject_lengths, InputKind};
+use blapose_train::dataset::{eval_sequences, rectify_streams, subject_lengths, InputKind};
 use blapose_train::eval::{evaluate, BiGruEstimator, GruEstimator, LengthEstimator};
 
 #[test]
@@ -38,6 +39,8 @@ fn shipped_weights_reproduce_the_model_card() {
         .into_iter()
         .step_by(every)
         .collect();
+    let mut rectified = trials.clone();
+    rectify_streams(&mut rectified, |subject, id| h.cameras.get(subject, id)).unwrap();
     for (kind, file, key) in [
         (
             ModelKind::BiGru,
@@ -45,9 +48,24 @@ fn shipped_weights_reproduce_the_model_card() {
             "bigru_sh_mm",
         ),
         (ModelKind::Gru, "bone_length_gru.safetensors", "gru_sh_mm"),
+        (
+            ModelKind::BiGru,
+            "bone_length_bigru_rectified.safetensors",
+            "bigru_rectified_sh_mm",
+        ),
+        (
+            ModelKind::Gru,
+            "bone_length_gru_rectified.safetensors",
+            "gru_rectified_sh_mm",
+        ),
     ] {
         let Some(expected) = spec[key].as_f64() else {
             continue;
+        };
+        let trials = if key.contains("rectified") {
+            &rectified
+        } else {
+            &trials
         };
         let weights =
             blapose_model::weights::load(models.join(file), kind).expect("shipped weights load");
@@ -55,7 +73,7 @@ fn shipped_weights_reproduce_the_model_card() {
             ModelKind::BiGru => Box::new(BiGruEstimator::new(&weights, 0).unwrap()),
             ModelKind::Gru => Box::new(GruEstimator::new(&weights).unwrap()),
         };
-        let r = evaluate(est.as_ref(), &trials, &[], kind.as_str(), "sh", file, &[]).unwrap();
+        let r = evaluate(est.as_ref(), trials, &[], kind.as_str(), "sh", file, &[]).unwrap();
         assert!(
             (r.mean_bone_error_mm - expected).abs() < 0.05,
             "{file}: {:.3} mm on the subset, model card says {expected:.3}",

@@ -34,7 +34,11 @@ fn mean(evals: &[Evaluation], f: impl Fn(&Evaluation) -> (f64, f64)) -> (f64, f6
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn replaying_the_examples_improves_them() {
-    if blapose_server::embedded_gru().is_none() || blapose_server::embedded_bigru().is_none() {
+    if blapose_server::embedded_gru().is_none()
+        || blapose_server::embedded_bigru().is_none()
+        || blapose_server::embedded_gru_rectified().is_none()
+        || blapose_server::embedded_bigru_rectified().is_none()
+    {
         println!("skipping example replay: the server was built without embedded weights (models/ is empty)");
         return;
     }
@@ -43,6 +47,7 @@ async fn replaying_the_examples_improves_them() {
     let config = ServerConfig {
         weights: WeightsSource::Embedded,
         bigru_weights: WeightsSource::Embedded,
+        camera_aware: Some(Default::default()),
         ..blapose_tests::test_config()
     };
     let server = TestServer::start(config).await;

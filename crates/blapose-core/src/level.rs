@@ -1,0 +1,335 @@
+//! Keypoints as a level camera would see them ("rectified" keypoints).
+//!
+//! The one cue to a person's absolute size in a single view is where the
+//! feet meet the floor: the further below the horizon, the nearer the
+//! person. Where the horizon lies in the picture depends on the camera's
+//! tilt and principal point, which a network fed raw keypoints is never
+//! told (Human3.6M's four cameras differ by 10.7-16 degrees of tilt, and a
+//! model trained over all of them learns an average geometry). Rectifying
+//! turns each keypoint's viewing ray into the frame of a *level* camera at
+//! the same place and heading (world vertical up, the optical axis turned
+//! to the horizontal), so the horizon is always the line `v = 0`. What is
+//! left unknown is the camera's height.
+//!
+//! All a rectification needs is the camera's intrinsics and the direction
+//! of world "up" in camera coordinates (`x` right, `y` down, `z` forward):
+//! for a calibrated camera with world-to-camera rotation `R` and world `z`
+//! up that is `R`'s third column; a phone gives it as minus its gravity
+//! vector. The trainer builds a [`LevelCamera`] from each Human3.6M camera
+//! ([`LevelCamera::from_camera`]), the server from a session's calibration
+//! ([`LevelCamera::new`]); both then share one [`LevelCamera::rectify`].
+//!
+//! Input and output are normalized screen coordinates
+//! ([`crate::camera::normalize_screen`]), the output scaled like them
+//! (`x * f * 2 / width`), so for a level camera with a centred principal
+//! point it is the identity. Lens distortion is ignored (the keypoint's
+//! pixel is taken as the undistorted one): at Human3.6M's `k1 = -0.2` that
+//! moves points near the image edge by a few percent, the same in training
+//! and serving.
+
+use crate::camera::Camera;
+use crate::pose::Keypoints2d;
+use crate::skeleton::NUM_JOINTS;
+
+/// Smallest forward component of a ray before it is treated as grazing.
+const MIN_FORWARD: f64 = 1e-3;
+
+/// Steepest accepted optical axis, in degrees above or below the horizon.
+/// Past it the level twin's heading is ill-defined (straight down it is
+/// undefined) and people fill little of a level camera's view.
+pub const MAX_TILT_DEG: f64 = 60.0;
+
+/// Why a calibration cannot be rectified.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum LevelError {
+    /// A value is NaN or infinite.
+    #[error("{field} is not finite")]
+    NonFinite {
+        /// Which value.
+        field: &'static str,
+    },
+    /// The up direction has (almost) no length.
+    #[error("the up direction {up:?} has no length")]
+    ZeroUp {
+        /// The direction given.
+        up: [f64; 3],
+    },
+    /// A focal length is not positive.
+    #[error("focal lengths must be positive, got {focal:?}")]
+    InvalidFocal {
+        /// The focal lengths given.
+        focal: [f64; 2],
+    },
+    /// The image size has a zero side.
+    #[error("image size must be positive, got {width}x{height}")]
+    InvalidImageSize {
+        /// Width in pixels.
+        width: u32,
+        /// Height in pixels.
+        height: u32,
+    },
+    /// The optical axis is too close to vertical.
+    #[error("the optical axis is {tilt_deg:.1} degrees from the horizon; at most {MAX_TILT_DEG} is supported")]
+    TooSteep {
+        /// Angle between the optical axis and the horizontal plane.
+        tilt_deg: f64,
+    },
+}
+
+fn dot(a: &[f64; 3], b: &[f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+fn cross(a: &[f64; 3], b: &[f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+fn finite(field: &'static str, values: &[f64]) -> Result<(), LevelError> {
+    if values.iter().all(|v| v.is_finite()) {
+        Ok(())
+    } else {
+        Err(LevelError::NonFinite { field })
+    }
+}
+
+/// The level twin of one camera, built once per camera: its right, down and
+/// forward axes in the camera's own frame (so a keypoint's ray needs three
+/// dot products and no rotation) and the intrinsics in normalized units.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LevelCamera {
+    /// Right, down and forward of the level frame, camera coordinates.
+    axes: [[f64; 3]; 3],
+    /// `[fx, fy]` in normalized units (`f * 2 / width`).
+    focal: [f64; 2],
+    /// `[cx, cy]` in normalized screen coordinates.
+    principal: [f64; 2],
+}
+
+impl LevelCamera {
+    /// The level twin of a camera with world `up` given in camera
+    /// coordinates (any non-zero length) and intrinsics in normalized
+    /// units: `focal` is `f * 2 / width`, `principal` the principal point
+    /// in normalized screen coordinates.
+    pub fn new(up: [f64; 3], focal: [f64; 2], principal: [f64; 2]) -> Result<Self, LevelError> {
+        finite("up", &up)?;
+        finite("focal", &focal)?;
+        finite("principal", &principal)?;
+        if !(focal[0] > 0.0 && focal[1] > 0.0) {
+            return Err(LevelError::InvalidFocal { focal });
+        }
+        let norm = dot(&up, &up).sqrt();
+        if !(norm > 1e-9) {
+            return Err(LevelError::ZeroUp { up });
+        }
+        let up = up.map(|v| v / norm);
+        // The optical axis (camera z) with its vertical part removed.
+        let horizontal = [-up[0] * up[2], -up[1] * up[2], 1.0 - up[2] * up[2]];
+        let tilt_deg = up[2].clamp(-1.0, 1.0).asin().to_degrees().abs();
+        if tilt_deg > MAX_TILT_DEG {
+            return Err(LevelError::TooSteep { tilt_deg });
+        }
+        let h = dot(&horizontal, &horizontal).sqrt();
+        let forward = horizontal.map(|v| v / h);
+        let right = cross(&forward, &up);
+        let down = up.map(|v| -v);
+        Ok(Self {
+            axes: [right, down, forward],
+            focal,
+            principal,
+        })
+    }
+
+    /// [`LevelCamera::new`] with intrinsics in pixels of a `width` x
+    /// `height` image (what a calibration tool reports).
+    pub fn from_pixels(
+        up: [f64; 3],
+        focal: [f64; 2],
+        principal: [f64; 2],
+        width: u32,
+        height: u32,
+    ) -> Result<Self, LevelError> {
+        if width == 0 || height == 0 {
+            return Err(LevelError::InvalidImageSize { width, height });
+        }
+        let (w, h) = (f64::from(width), f64::from(height));
+        Self::new(
+            up,
+            [focal[0] / w * 2.0, focal[1] / w * 2.0],
+            [principal[0] / w * 2.0 - 1.0, principal[1] / w * 2.0 - h / w],
+        )
+    }
+
+    /// The level twin of a calibrated camera whose world `z` is up (the
+    /// Human3.6M convention).
+    pub fn from_camera(cam: &Camera) -> Result<Self, LevelError> {
+        let up = cam.rotation.map(|row| row[2]);
+        Self::from_pixels(up, cam.focal, cam.principal, cam.width, cam.height)
+    }
+
+    /// One frame of normalized screen keypoints seen through the camera,
+    /// as its level twin would see them (see the module docs).
+    pub fn rectify(&self, kp: &Keypoints2d) -> Keypoints2d {
+        let [right, down, forward] = &self.axes;
+        kp.map(|p| {
+            let ray = [
+                (f64::from(p[0]) - self.principal[0]) / self.focal[0],
+                (f64::from(p[1]) - self.principal[1]) / self.focal[1],
+                1.0,
+            ];
+            let z = dot(&ray, forward).max(MIN_FORWARD);
+            [
+                (dot(&ray, right) / z * self.focal[0]) as f32,
+                (dot(&ray, down) / z * self.focal[1]) as f32,
+            ]
+        })
+    }
+
+    /// [`LevelCamera::rectify`] in place over whole frames of `17 * 2`
+    /// values each (a stream, or one frame).
+    pub fn rectify_frames(&self, frames: &mut [f32]) {
+        for frame in frames.chunks_exact_mut(2 * NUM_JOINTS) {
+            let kp: Keypoints2d = std::array::from_fn(|j| [frame[2 * j], frame[2 * j + 1]]);
+            for (out, value) in frame
+                .iter_mut()
+                .zip(self.rectify(&kp).into_iter().flatten())
+            {
+                *out = value;
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::normalize_screen;
+
+    fn camera(tilt: f64, principal: [f64; 2]) -> Camera {
+        // Looking along world +y, tilted down by `tilt` radians.
+        let (c, s) = (tilt.cos(), tilt.sin());
+        Camera {
+            id: "test".into(),
+            rotation: [[1.0, 0.0, 0.0], [0.0, -s, -c], [0.0, c, -s]],
+            center: [0.0, -5.0, 1.6],
+            focal: [1145.0, 1145.0],
+            principal,
+            radial: [0.0; 3],
+            tangential: [0.0; 2],
+            width: 1000,
+            height: 1000,
+        }
+    }
+
+    fn frame_of(cam: &Camera, world: [[f64; 3]; 2]) -> Keypoints2d {
+        let mut kp = [[0.0f32; 2]; 17];
+        for (j, p) in world.iter().enumerate() {
+            kp[j] = normalize_screen(
+                cam.project_world_to_pixels(*p).map(|v| v as f32),
+                cam.width,
+                cam.height,
+            );
+        }
+        kp
+    }
+
+    fn level(cam: &Camera) -> LevelCamera {
+        LevelCamera::from_camera(cam).unwrap()
+    }
+
+    #[test]
+    fn a_level_centred_camera_is_left_as_it_is() {
+        let cam = camera(0.0, [500.0, 500.0]);
+        let kp = frame_of(&cam, [[0.3, 0.0, 0.4], [-0.2, 1.0, 1.9]]);
+        let out = level(&cam).rectify(&kp);
+        for j in 0..2 {
+            for k in 0..2 {
+                assert!((out[j][k] - kp[j][k]).abs() < 1e-4, "{out:?} {kp:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn tilt_and_principal_point_no_longer_move_the_picture() {
+        // The same two world points seen by a level camera and by tilted
+        // ones with other principal points rectify to the same place; the
+        // point at the camera's height lands on the horizon.
+        let points = [[0.3, 0.5, 0.0], [-0.1, 0.2, 1.6]];
+        let level_cam = camera(0.0, [500.0, 500.0]);
+        let want = level(&level_cam).rectify(&frame_of(&level_cam, points));
+        for (tilt, principal) in [(0.19, [512.0, 515.0]), (0.28, [490.0, 501.0])] {
+            let cam = camera(tilt, principal);
+            let raw = frame_of(&cam, points);
+            let got = level(&cam).rectify(&raw);
+            assert!(
+                (raw[0][1] - want[0][1]).abs() > 0.05,
+                "tilt moves the raw picture"
+            );
+            for j in 0..2 {
+                for k in 0..2 {
+                    assert!((got[j][k] - want[j][k]).abs() < 1e-4, "{got:?} {want:?}");
+                }
+            }
+            assert!(got[1][1].abs() < 1e-4, "horizon at v = 0: {}", got[1][1]);
+            let mut stream: Vec<f32> = raw.iter().chain(raw.iter()).flatten().copied().collect();
+            level(&cam).rectify_frames(&mut stream);
+            assert_eq!(stream[34..36], [got[0][0], got[0][1]]);
+        }
+    }
+
+    #[test]
+    fn roll_about_the_optical_axis_is_undone() {
+        // The same camera rolled by 20 degrees about its optical axis: the
+        // up direction tells the rectification which way is up.
+        let cam = camera(0.2, [500.0, 500.0]);
+        let points = [[0.4, 0.3, 0.1], [-0.3, 0.6, 1.2]];
+        let want = level(&cam).rectify(&frame_of(&cam, points));
+        let (c, s) = (20f64.to_radians().cos(), 20f64.to_radians().sin());
+        let roll = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]];
+        let rotation: [[f64; 3]; 3] = std::array::from_fn(|i| {
+            std::array::from_fn(|j| (0..3).map(|k| roll[i][k] * cam.rotation[k][j]).sum())
+        });
+        let rolled = Camera {
+            rotation,
+            principal: [500.0, 500.0],
+            ..cam.clone()
+        };
+        let got = level(&rolled).rectify(&frame_of(&rolled, points));
+        for j in 0..2 {
+            for k in 0..2 {
+                assert!((got[j][k] - want[j][k]).abs() < 1e-4, "{got:?} {want:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn bad_calibrations_are_named() {
+        let ok = ([0.0, -1.0, 0.0], [1.0, 1.0], [0.0, 0.0]);
+        assert!(LevelCamera::new(ok.0, ok.1, ok.2).is_ok());
+        assert_eq!(
+            LevelCamera::new([0.0, f64::NAN, 0.0], ok.1, ok.2),
+            Err(LevelError::NonFinite { field: "up" })
+        );
+        assert!(matches!(
+            LevelCamera::new([0.0; 3], ok.1, ok.2),
+            Err(LevelError::ZeroUp { .. })
+        ));
+        assert!(matches!(
+            LevelCamera::new(ok.0, [0.0, 1.0], ok.2),
+            Err(LevelError::InvalidFocal { .. })
+        ));
+        // Looking 70 degrees down.
+        let steep = [0.0, -20f64.to_radians().sin(), -70f64.to_radians().sin()];
+        assert!(matches!(
+            LevelCamera::new(steep, ok.1, ok.2),
+            Err(LevelError::TooSteep { tilt_deg }) if (tilt_deg - 70.0).abs() < 0.5
+        ));
+        assert!(matches!(
+            LevelCamera::from_pixels(ok.0, [1000.0; 2], [500.0; 2], 0, 10),
+            Err(LevelError::InvalidImageSize { .. })
+        ));
+    }
+}
