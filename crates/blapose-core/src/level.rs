@@ -122,7 +122,7 @@ impl LevelCamera {
             return Err(LevelError::InvalidFocal { focal });
         }
         let norm = dot(&up, &up).sqrt();
-        if !(norm > 1e-9) {
+        if norm <= 1e-9 {
             return Err(LevelError::ZeroUp { up });
         }
         let up = up.map(|v| v / norm);

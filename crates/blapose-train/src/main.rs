@@ -633,8 +633,8 @@ fn train(a: TrainArgs) -> Result<()> {
         t0.elapsed().as_secs_f64()
     );
     let training_data = format!(
-        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}), noise={} (x{}), seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), floor_contact={}, detector_gain={}, camera jitter={} m / {} deg, random yaw={}, size decoupled from proportions={}, cameras={}, flip={}",
-        cfg.lengths, cfg.ansur_spread, cfg.noise, cfg.noise_scale, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.shift_plane, cfg.floor_contact, format_gains(source.detector_gain()), cfg.camera_height_std, cfg.camera_angle_std_deg, cfg.random_yaw, cfg.decouple_size, camera_list(&cfg.cameras), cfg.flip_prob
+        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}), noise={} (x{}), seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), floor_contact={}, detector_gain={}, camera jitter={} m / {} deg, random yaw={}, size decoupled from proportions={}, cameras={}, rectified={}, flip={}",
+        cfg.lengths, cfg.ansur_spread, cfg.noise, cfg.noise_scale, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.shift_plane, cfg.floor_contact, format_gains(source.detector_gain()), cfg.camera_height_std, cfg.camera_angle_std_deg, cfg.random_yaw, cfg.decouple_size, camera_list(&cfg.cameras), cfg.rectify, cfg.flip_prob
     );
     let pb = step_bar(cfg.steps);
     let mut progress = |step: u64, _total: u64, loss: f64, fps: f64| {

@@ -731,6 +731,12 @@ pub fn train(
     let elapsed = t_start.elapsed().as_secs_f64();
     let mut meta = WeightsMetadata::new(kind);
     meta.training_data = training_data.to_string();
+    if cfg.rectify {
+        meta.input_normalization = format!(
+            "rectified (blapose_core::level: as a level camera at the same place sees them) {}",
+            meta.input_normalization
+        );
+    }
     meta.version = format!("blapose-train {}", env!("CARGO_PKG_VERSION"));
     meta.extra
         .insert("train_config".into(), serde_json::to_string(cfg)?);
