@@ -31,6 +31,20 @@ use crate::camera::Camera;
 use crate::pose::Keypoints2d;
 use crate::skeleton::NUM_JOINTS;
 
+/// Camera height (metres above the floor) that height-normalized models'
+/// estimates refer to: about the mean of Human3.6M's training cameras
+/// (1.46-1.63 m). A rectified picture from a camera `k` times higher is
+/// exactly the picture of the scene `1/k` times the size from this height
+/// (similar triangles about the camera centre), so such a model predicts
+/// lengths as if seen from here and [`height_scale`] brings them back.
+pub const REFERENCE_CAMERA_HEIGHT: f64 = 1.56;
+
+/// What a height-normalized estimate is multiplied by for a camera
+/// `camera_height` metres above the floor.
+pub fn height_scale(camera_height: f64) -> f64 {
+    camera_height / REFERENCE_CAMERA_HEIGHT
+}
+
 /// Smallest forward component of a ray before it is treated as grazing.
 const MIN_FORWARD: f64 = 1e-3;
 

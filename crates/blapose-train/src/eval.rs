@@ -164,6 +164,47 @@ impl<E: LengthEstimator> LengthEstimator for FlipAveraged<E> {
     }
 }
 
+/// Camera-height correction for models trained on rectified keypoints
+/// ([`blapose_core::level`]): a scene seen from a camera `k` times higher
+/// looks exactly like the scene `1/k` times the size seen from the
+/// training cameras' height, so the estimate is scaled by the view's camera
+/// height over that reference. `scales` maps `(subject, camera)` to that
+/// ratio.
+pub struct HeightCorrected<E> {
+    inner: E,
+    scales: BTreeMap<(String, String), f32>,
+}
+
+impl<E: LengthEstimator> HeightCorrected<E> {
+    /// Wrap `inner` with one scale per view.
+    pub fn new(inner: E, scales: BTreeMap<(String, String), f32>) -> Self {
+        Self { inner, scales }
+    }
+}
+
+impl<E: LengthEstimator> LengthEstimator for HeightCorrected<E> {
+    fn estimate(&self, trials: &[EvalSequence]) -> Result<Vec<Estimate>, TrainError> {
+        let est = self.inner.estimate(trials)?;
+        trials
+            .iter()
+            .zip(est)
+            .map(|(t, e)| {
+                let k = *self
+                    .scales
+                    .get(&(t.subject.clone(), t.camera.clone()))
+                    .ok_or_else(|| {
+                        TrainError::Data(format!("no camera height for {} {}", t.subject, t.camera))
+                    })?;
+                let scale = |l: &BoneLengths| l.map(|v| v * k);
+                Ok(Estimate {
+                    lengths: scale(&e.lengths),
+                    curve: e.curve.iter().map(scale).collect(),
+                })
+            })
+            .collect()
+    }
+}
+
 /// The online GRU's running mean of per-frame predictions.
 pub struct GruEstimator {
     engine: OnlineGruEngine,

@@ -140,6 +140,12 @@ struct TrainArgs {
     /// evaluate with `eval --rectify`.
     #[arg(long)]
     rectify: bool,
+    /// With --rectify: targets as seen from a camera at the reference height
+    /// (1.56 m), so every target agrees with its rectified picture; such a
+    /// model's estimates are scaled by the camera's height (`eval
+    /// --height-correction`, the server's CameraCalibration.height).
+    #[arg(long, requires = "rectify")]
+    height_normalized: bool,
     /// Horizontal flip probability.
     #[arg(long, default_value_t = 0.5)]
     flip_prob: f32,
@@ -221,6 +227,12 @@ struct EvalArgs {
     /// how the recordings begin).
     #[arg(long, default_value_t = 0)]
     skip_frames: usize,
+    /// With --rectify: scale each view's estimate by its camera's height
+    /// over the reference height 1.56 m (blapose_core::level::height_scale),
+    /// for models trained with `--height-normalized` (a rectified model
+    /// cannot see the height; the scene scales with it).
+    #[arg(long, requires = "rectify")]
+    height_correction: bool,
     /// Evaluate the trials of these cameras only (ids, comma separated;
     /// default all).
     #[arg(long, value_delimiter = ',')]
@@ -577,6 +589,7 @@ fn train(a: TrainArgs) -> Result<()> {
         decouple_size: a.decouple_size,
         cameras: a.cameras.clone(),
         rectify: a.rectify,
+        height_normalized: a.height_normalized,
         flip_prob: a.flip_prob,
         batch: a.batch,
         steps: a.steps,
@@ -633,8 +646,8 @@ fn train(a: TrainArgs) -> Result<()> {
         t0.elapsed().as_secs_f64()
     );
     let training_data = format!(
-        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}), noise={} (x{}), seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), floor_contact={}, detector_gain={}, camera jitter={} m / {} deg, random yaw={}, size decoupled from proportions={}, cameras={}, rectified={}, flip={}",
-        cfg.lengths, cfg.ansur_spread, cfg.noise, cfg.noise_scale, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.shift_plane, cfg.floor_contact, format_gains(source.detector_gain()), cfg.camera_height_std, cfg.camera_angle_std_deg, cfg.random_yaw, cfg.decouple_size, camera_list(&cfg.cameras), cfg.rectify, cfg.flip_prob
+        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}), noise={} (x{}), seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), floor_contact={}, detector_gain={}, camera jitter={} m / {} deg, random yaw={}, size decoupled from proportions={}, cameras={}, rectified={}, height-normalized={}, flip={}",
+        cfg.lengths, cfg.ansur_spread, cfg.noise, cfg.noise_scale, cfg.seq_len, cfg.stride_min, cfg.stride_max, cfg.shift_std, cfg.shift_plane, cfg.floor_contact, format_gains(source.detector_gain()), cfg.camera_height_std, cfg.camera_angle_std_deg, cfg.random_yaw, cfg.decouple_size, camera_list(&cfg.cameras), cfg.rectify, cfg.height_normalized, cfg.flip_prob
     );
     let pb = step_bar(cfg.steps);
     let mut progress = |step: u64, _total: u64, loss: f64, fps: f64| {
@@ -643,13 +656,23 @@ fn train(a: TrainArgs) -> Result<()> {
     };
     // The real validation streams as the model reads them.
     let mut real_sh = std::borrow::Cow::Borrowed(&set.real_sh[..]);
+    let camera = |subject: &str, id: &str| {
+        set.sequences
+            .iter()
+            .find(|s| s.subject == subject)
+            .and_then(|s| s.cameras.iter().find(|c| c.id == id))
+    };
     if cfg.rectify {
-        rectify_streams(real_sh.to_mut(), |subject, id| {
-            set.sequences
-                .iter()
-                .find(|s| s.subject == subject)
-                .and_then(|s| s.cameras.iter().find(|c| c.id == id))
-        })?;
+        rectify_streams(real_sh.to_mut(), camera)?;
+    }
+    if cfg.height_normalized {
+        // Their targets as the model is asked for them.
+        for t in real_sh.to_mut() {
+            let cam = camera(&t.subject, &t.camera)
+                .ok_or_else(|| anyhow::anyhow!("no camera {} for {}", t.camera, t.subject))?;
+            let k = (1.0 / blapose_core::level::height_scale(cam.center[2])) as f32;
+            t.gt = t.gt.map(|l| l * k);
+        }
     }
     let outcome = blapose_train::train::train(
         &cfg,
@@ -726,7 +749,8 @@ fn eval(a: EvalArgs) -> Result<()> {
     use blapose_data::h36m::{H36m, Parts, ALL_SUBJECTS, TRAIN_SUBJECTS};
     use blapose_train::dataset::{eval_sequences, subject_lengths, InputKind};
     use blapose_train::eval::{
-        evaluate, markdown, BiGruEstimator, FlipAveraged, GruEstimator, LengthEstimator,
+        evaluate, markdown, BiGruEstimator, FlipAveraged, GruEstimator, HeightCorrected,
+        LengthEstimator,
     };
     let root = blapose_data::data_root(a.data.clone());
     let kind: blapose_model::ModelKind = a.model.parse()?;
@@ -798,6 +822,25 @@ fn eval(a: EvalArgs) -> Result<()> {
         )
     } else {
         (model, kind.as_str().to_string())
+    };
+    let (estimator, model_label): (Box<dyn LengthEstimator>, String) = if a.height_correction {
+        let mut scales = std::collections::BTreeMap::new();
+        for t in &trials {
+            let cam = h36m
+                .cameras
+                .get(&t.subject, &t.camera)
+                .ok_or_else(|| anyhow::anyhow!("no camera {} for {}", t.camera, t.subject))?;
+            scales.insert(
+                (t.subject.clone(), t.camera.clone()),
+                blapose_core::level::height_scale(cam.center[2]) as f32,
+            );
+        }
+        (
+            Box::new(HeightCorrected::new(estimator, scales)),
+            format!("{model_label}+height"),
+        )
+    } else {
+        (estimator, model_label)
     };
     let report = evaluate(
         estimator.as_ref(),

@@ -42,7 +42,7 @@ use std::sync::Arc;
 
 use blapose_core::bones::rebuild;
 use blapose_core::camera::{Camera, NormalizedIntrinsics};
-use blapose_core::level::LevelCamera;
+use blapose_core::level::{height_scale, LevelCamera};
 use blapose_core::pose::flip_keypoints_normalized;
 use blapose_core::skeleton::{NUM_BONES, NUM_JOINTS};
 use blapose_core::{BoneDirections, BoneLengths, Keypoints2d, Pose};
@@ -228,6 +228,12 @@ pub struct SynthConfig {
     /// Give the keypoints as the camera's level twin would see them
     /// ([`blapose_core::level`]; such models need the camera's calibration).
     pub rectify: bool,
+    /// Targets as seen from a camera at
+    /// [`blapose_core::level::REFERENCE_CAMERA_HEIGHT`]: the drawn lengths
+    /// times that height over the sample camera's, so every target agrees
+    /// with what the rectified picture shows; estimates are scaled back with
+    /// the camera's height ([`blapose_core::level::height_scale`]).
+    pub height_normalized: bool,
 }
 
 impl Default for SynthConfig {
@@ -247,6 +253,7 @@ impl Default for SynthConfig {
             camera_angle_std_deg: 0.0,
             random_yaw: false,
             rectify: false,
+            height_normalized: false,
         }
     }
 }
@@ -257,6 +264,9 @@ impl SynthConfig {
         let bad = |m: &str| Err(TrainError::InvalidArgument(m.to_string()));
         if self.seq_len == 0 {
             return bad("seq_len must be positive");
+        }
+        if self.height_normalized && !self.rectify {
+            return bad("height-normalized targets need rectified keypoints (--rectify)");
         }
         if !(self.stride_min > 0.0
             && self.stride_max >= self.stride_min
@@ -612,7 +622,12 @@ impl SynthSource {
         }
         Sample {
             input,
-            target: lengths,
+            target: if cfg.height_normalized {
+                let k = (1.0 / height_scale(cam.center[2])) as f32;
+                lengths.map(|l| l * k)
+            } else {
+                lengths
+            },
             sequence: seq_idx,
             camera: cam_idx,
             stride,

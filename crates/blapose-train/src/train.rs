@@ -125,6 +125,11 @@ pub struct TrainConfig {
     /// read them as the camera gave them.
     #[serde(default)]
     pub rectify: bool,
+    /// Height-normalized targets
+    /// ([`crate::synth::SynthConfig::height_normalized`]); runs before this
+    /// field had raw targets.
+    #[serde(default)]
+    pub height_normalized: bool,
     /// Flip probability.
     pub flip_prob: f32,
     /// Samples per batch.
@@ -202,6 +207,7 @@ impl TrainConfig {
             camera_angle_std_deg: self.camera_angle_std_deg,
             random_yaw: self.random_yaw,
             rectify: self.rectify,
+            height_normalized: self.height_normalized,
         };
         cfg.validate()?;
         Ok(cfg)

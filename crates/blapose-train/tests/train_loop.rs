@@ -71,6 +71,7 @@ fn config(steps: u64) -> TrainConfig {
         decouple_size: false,
         cameras: Vec::new(),
         rectify: false,
+        height_normalized: false,
         flip_prob: 0.5,
         batch: 4,
         steps,
