@@ -777,6 +777,10 @@ fn scatter(job: &FrameJob, hidden: &[f32], lengths: &[f32], lifted: Option<Pose>
     st.hidden.copy_from_slice(hidden);
     let mut prediction = [0.0f32; OUTPUT_DIM];
     prediction.copy_from_slice(lengths);
+    if let Some(camera) = &job.session.config().camera {
+        // A height-normalized model's lengths, back at the camera's height.
+        prediction = prediction.map(|v| v * camera.length_scale);
+    }
     st.lengths.add(&prediction);
     Ok(StepOutput {
         lengths: st.estimate().unwrap_or(prediction),
@@ -901,6 +905,7 @@ mod tests {
                 camera: Some(crate::session::SessionCamera {
                     calibration: Default::default(),
                     level: level.clone(),
+                    length_scale: 1.0,
                 }),
                 ..session_config()
             })

@@ -179,6 +179,14 @@ pub enum WeightsError {
         /// The flag that takes them.
         flag: &'static str,
     },
+    /// One of a family's models is height-normalized and the other is not.
+    #[error("the GRU ({gru}) and the Bi-GRU ({bigru}) of a family must both be height-normalized or neither (train_config height_normalized)")]
+    MixedHeightNormalization {
+        /// The GRU's origin.
+        gru: String,
+        /// The Bi-GRU's origin.
+        bigru: String,
+    },
     /// The `--lifter-weights` file cannot be served. (The cause is part of
     /// the message, not a `source()`, so an error chain prints it once.)
     #[error("cannot serve the lifter weights {path} (--lifter-weights): {cause}")]
@@ -278,17 +286,23 @@ impl LoadedModel {
     }
 }
 
-/// Whether the weights were trained on rectified keypoints, when their
-/// `train_config` metadata says (files from before the option read as raw).
-fn trained_rectified(weights: &LoadedWeights) -> Option<bool> {
+/// A boolean of the weights' `train_config` metadata: `None` when the file
+/// records no training configuration, `false` when it predates the option.
+fn train_flag(weights: &LoadedWeights, flag: &str) -> Option<bool> {
     let config = weights.meta.extra.get("train_config")?;
     let config: serde_json::Value = serde_json::from_str(config).ok()?;
-    Some(
-        config
-            .get("rectify")
-            .and_then(|v| v.as_bool())
-            .unwrap_or(false),
-    )
+    Some(config.get(flag).and_then(|v| v.as_bool()).unwrap_or(false))
+}
+
+/// Whether the weights were trained on rectified keypoints, when they say.
+fn trained_rectified(weights: &LoadedWeights) -> Option<bool> {
+    train_flag(weights, "rectify")
+}
+
+/// Whether the weights predict lengths as seen from the reference camera
+/// height (`train --height-normalized`); files that do not say are not.
+fn trained_height_normalized(weights: &LoadedWeights) -> bool {
+    train_flag(weights, "height_normalized").unwrap_or(false)
 }
 
 fn sha256_hex(bytes: &[u8]) -> String {
@@ -365,6 +379,12 @@ pub trait ModelProvider: Send + Sync + 'static {
     fn camera_aware(&self) -> Option<Arc<dyn ModelProvider>> {
         None
     }
+    /// Whether these models predict lengths as seen from
+    /// [`blapose_core::level::REFERENCE_CAMERA_HEIGHT`] (trained with
+    /// `--height-normalized`), so a session's camera height scales them.
+    fn height_normalized(&self) -> bool {
+        false
+    }
 }
 
 /// The real provider: blapose-model's fast engines on loaded weights,
@@ -377,6 +397,7 @@ pub struct WeightsProvider {
     online: Arc<OnlineGruEngine>,
     offline: Arc<OfflineBiGruEngine>,
     camera_aware: Option<Arc<WeightsProvider>>,
+    height_normalized: bool,
 }
 
 /// Scratch preallocated per online backend (it grows if a batch is larger).
@@ -394,6 +415,14 @@ impl WeightsProvider {
     ) -> Result<Self, ServerError> {
         let gru = LoadedModel::load(gru, ModelKind::Gru, family)?;
         let bigru = LoadedModel::load(bigru, ModelKind::BiGru, family)?;
+        let height_normalized = trained_height_normalized(&gru.weights);
+        if height_normalized != trained_height_normalized(&bigru.weights) {
+            return Err(WeightsError::MixedHeightNormalization {
+                gru: gru.origin,
+                bigru: bigru.origin,
+            }
+            .into());
+        }
         let online = engine::online_engine(&gru.weights, threads, precision)?;
         let offline = engine::offline_engine(&bigru.weights, threads, precision)?;
         Ok(Self {
@@ -403,6 +432,7 @@ impl WeightsProvider {
             online,
             offline,
             camera_aware: None,
+            height_normalized,
         })
     }
 
@@ -456,6 +486,10 @@ impl ModelProvider for WeightsProvider {
         self.camera_aware
             .clone()
             .map(|p| p as Arc<dyn ModelProvider>)
+    }
+
+    fn height_normalized(&self) -> bool {
+        self.height_normalized
     }
 }
 

@@ -139,6 +139,9 @@ impl OfflineRunner {
                     result?
                 }
             };
+            let scale = seq.camera.as_ref().map_or(1.0, |c| c.length_scale);
+            let lengths: Vec<BoneLengths> =
+                lengths.into_iter().map(|l| l.map(|v| v * scale)).collect();
             let poses =
                 bones::adjust_sequence_per_frame(&seq.poses, &lengths, ZeroBonePolicy::Error)
                     .map_err(|e| Status::internal(format!("adjustment failed: {e}")))?;

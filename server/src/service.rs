@@ -115,7 +115,11 @@ impl pb::pose_adjustment_server::PoseAdjustment for PoseService {
                 "AdjustSequence",
             );
         }
-        let camera_aware = self.state.provider.camera_aware().is_some();
+        let camera_aware = self
+            .state
+            .provider
+            .camera_aware()
+            .map(|p| p.height_normalized());
         let seq = match validate::sequence(request.get_ref(), camera_aware) {
             Ok(s) => s,
             Err(e) => return fail(e.to_status(), "AdjustSequence"),

@@ -136,6 +136,10 @@ pub struct SessionCamera {
     pub calibration: pb::CameraCalibration,
     /// Built from it.
     pub level: LevelCamera,
+    /// What the camera-aware model's per-frame estimates are multiplied by:
+    /// the camera height over the reference height for height-normalized
+    /// models given a height, else 1.
+    pub length_scale: f32,
 }
 
 /// Immutable description of a session.

@@ -153,7 +153,7 @@ fn open_or_resume(
             let camera = validate::camera(
                 open.camera.as_ref(),
                 &input,
-                state.provider.camera_aware().is_some(),
+                state.provider.camera_aware().map(|p| p.height_normalized()),
             )
             .map_err(|e| e.to_status())?;
             let label = truncate_label(&open.client_label);

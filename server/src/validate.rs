@@ -182,6 +182,9 @@ pub enum InvalidInput {
     /// The calibration cannot be used.
     #[error("camera: {0}")]
     Camera(LevelError),
+    /// The camera height is not 0 (unknown) or a plausible height.
+    #[error("camera.height {0} is not 0 (not given) or a height of {MIN_CAMERA_HEIGHT} to {MAX_CAMERA_HEIGHT} m")]
+    CameraHeight(f32),
     /// A camera on a server without camera-aware models.
     #[error("a camera calibration was sent but this server has no camera-aware models (it was started with --no-camera-aware); leave camera out")]
     NoCameraAwareModel,
@@ -264,20 +267,36 @@ pub fn input_spec_to_proto(spec: &InputSpec) -> pb::InputFormat {
     }
 }
 
+/// Lowest accepted camera height, metres.
+pub const MIN_CAMERA_HEIGHT: f32 = 0.3;
+/// Highest accepted camera height, metres.
+pub const MAX_CAMERA_HEIGHT: f32 = 10.0;
+
 /// Validate an optional `CameraCalibration` against the input format and
-/// build its level twin. `served` says whether the server has camera-aware
-/// models (without them a calibration is refused).
+/// build its level twin. `served` is `None` when the server has no
+/// camera-aware models (a calibration is then refused), else whether they
+/// are height-normalized (their estimates are then scaled by the camera's
+/// height, [`blapose_core::level::height_scale`]).
 pub fn camera(
     calibration: Option<&pb::CameraCalibration>,
     spec: &InputSpec,
-    served: bool,
+    served: Option<bool>,
 ) -> Result<Option<SessionCamera>, InvalidInput> {
     let Some(c) = calibration else {
         return Ok(None);
     };
-    if !served {
+    let Some(height_normalized) = served else {
         return Err(InvalidInput::NoCameraAwareModel);
+    };
+    let height = c.height;
+    if height != 0.0 && !(MIN_CAMERA_HEIGHT..=MAX_CAMERA_HEIGHT).contains(&height) {
+        return Err(InvalidInput::CameraHeight(height));
     }
+    let length_scale = if height_normalized && height > 0.0 {
+        blapose_core::level::height_scale(f64::from(height)) as f32
+    } else {
+        1.0
+    };
     let up: [f32; 3] =
         c.up.as_slice()
             .try_into()
@@ -309,6 +328,7 @@ pub fn camera(
     Ok(Some(SessionCamera {
         calibration: c.clone(),
         level,
+        length_scale,
     }))
 }
 
@@ -497,11 +517,11 @@ pub struct ValidSequence {
     pub camera: Option<SessionCamera>,
 }
 
-/// Validate an `AdjustSequenceRequest` (`camera_aware`: whether the server
-/// has camera-aware models, see [`camera`]).
+/// Validate an `AdjustSequenceRequest` (`camera_aware`: the server's
+/// camera-aware models, see [`camera`]).
 pub fn sequence(
     req: &pb::AdjustSequenceRequest,
-    camera_aware: bool,
+    camera_aware: Option<bool>,
 ) -> Result<ValidSequence, InvalidInput> {
     let spec = input_spec(req.input_format.as_ref())?;
     let model = offline_model(req.model)?;
@@ -833,19 +853,19 @@ mod tests {
             poses_3d: standing_pose().repeat(3),
             camera: None,
         };
-        let ok = sequence(&req, false).unwrap();
+        let ok = sequence(&req, None).unwrap();
         assert_eq!(ok.model, OfflineModel::BiGru);
         assert_eq!(ok.inputs.len(), 3 * INPUT_DIM);
         assert_eq!(ok.poses.len(), 3);
 
         req.poses_3d[51 + 4] = f32::NAN;
-        let err = sequence(&req, false).unwrap_err();
+        let err = sequence(&req, None).unwrap_err();
         assert!(err.to_string().starts_with("frame 1: pose_3d:"), "{err}");
         req.poses_3d[51 + 4] = 0.0;
 
         req.num_frames = 4;
         assert!(matches!(
-            sequence(&req, false),
+            sequence(&req, None),
             Err(InvalidInput::SequenceLength {
                 field: "keypoints_2d",
                 got: 102,
@@ -854,16 +874,16 @@ mod tests {
             })
         ));
         req.num_frames = 0;
-        assert_eq!(sequence(&req, false), Err(InvalidInput::NoFrames));
+        assert_eq!(sequence(&req, None), Err(InvalidInput::NoFrames));
         req.num_frames = u32::MAX;
         assert!(matches!(
-            sequence(&req, false),
+            sequence(&req, None),
             Err(InvalidInput::SequenceLength { .. })
         ));
         req.num_frames = 3;
         req.confidence = vec![1.0; 5];
         assert!(matches!(
-            sequence(&req, false),
+            sequence(&req, None),
             Err(InvalidInput::SequenceLength {
                 field: "confidence",
                 ..
@@ -881,6 +901,7 @@ mod tests {
             principal_x: 500.0,
             principal_y: 500.0,
             image_size: None,
+            height: 0.0,
         }
     }
 
@@ -895,15 +916,15 @@ mod tests {
         );
         let normalized = spec(KeypointLayout::H36m17, Coordinates::Normalized);
         let c = calibration();
-        assert_eq!(camera(None, &pixels, false), Ok(None));
-        let got = camera(Some(&c), &pixels, true).unwrap().unwrap();
+        assert_eq!(camera(None, &pixels, None), Ok(None));
+        let got = camera(Some(&c), &pixels, Some(false)).unwrap().unwrap();
         assert_eq!(got.calibration, c);
         assert_eq!(
-            camera(Some(&c), &pixels, false),
+            camera(Some(&c), &pixels, None),
             Err(InvalidInput::NoCameraAwareModel)
         );
         assert_eq!(
-            camera(Some(&c), &normalized, true),
+            camera(Some(&c), &normalized, Some(false)),
             Err(InvalidInput::CameraImageSizeMissing)
         );
         let sized = pb::CameraCalibration {
@@ -915,7 +936,7 @@ mod tests {
         };
         // The same camera, whether its image comes from the input or itself.
         assert_eq!(
-            camera(Some(&sized), &normalized, true)
+            camera(Some(&sized), &normalized, Some(false))
                 .unwrap()
                 .unwrap()
                 .level,
@@ -929,7 +950,7 @@ mod tests {
             ..c.clone()
         };
         assert!(matches!(
-            camera(Some(&other), &pixels, true),
+            camera(Some(&other), &pixels, Some(false)),
             Err(InvalidInput::CameraImageSizeMismatch {
                 camera_width: 1920,
                 ..
@@ -940,7 +961,7 @@ mod tests {
             ..c.clone()
         };
         assert_eq!(
-            camera(Some(&short), &pixels, true),
+            camera(Some(&short), &pixels, Some(false)),
             Err(InvalidInput::CameraUpCount { got: 2 })
         );
         for bad in [
@@ -961,7 +982,7 @@ mod tests {
                 ..c.clone()
             },
         ] {
-            let err = camera(Some(&bad), &pixels, true).unwrap_err();
+            let err = camera(Some(&bad), &pixels, Some(false)).unwrap_err();
             assert!(matches!(err, InvalidInput::Camera(_)), "{err}");
             assert!(err.to_string().starts_with("camera: "), "{err}");
         }
@@ -986,10 +1007,10 @@ mod tests {
             poses_3d: standing_pose().repeat(2),
             camera: None,
         };
-        let plain = sequence(&req, true).unwrap();
+        let plain = sequence(&req, Some(false)).unwrap();
         req.camera = Some(calibration());
-        assert_eq!(sequence(&req, false), Err(InvalidInput::NoCameraAwareModel));
-        let rectified = sequence(&req, true).unwrap();
+        assert_eq!(sequence(&req, None), Err(InvalidInput::NoCameraAwareModel));
+        let rectified = sequence(&req, Some(false)).unwrap();
         let camera = rectified.camera.clone().unwrap();
         let mut want = plain.inputs.clone();
         camera.level.rectify_frames(&mut want);

@@ -74,6 +74,7 @@ struct Fake {
     delay: Duration,
     offset: f32,
     camera_aware: Option<Arc<Fake>>,
+    height_normalized: bool,
 }
 
 impl Fake {
@@ -82,6 +83,7 @@ impl Fake {
             delay,
             offset: 0.0,
             camera_aware: None,
+            height_normalized: false,
         }
     }
 
@@ -118,6 +120,9 @@ impl ModelProvider for Fake {
         self.camera_aware
             .clone()
             .map(|p| p as Arc<dyn ModelProvider>)
+    }
+    fn height_normalized(&self) -> bool {
+        self.height_normalized
     }
 }
 
@@ -173,6 +178,17 @@ fn pose() -> Vec<f32> {
     joints.iter().flatten().copied().collect()
 }
 
+/// H36M-17 keypoints in pixels of a 1000 x 1000 image.
+fn pixel_format() -> pb::InputFormat {
+    pb::InputFormat {
+        layout: pb::KeypointLayout::H36m17 as i32,
+        coordinates: Some(pb::input_format::Coordinates::ImageSize(pb::ImageSize {
+            width: 1000,
+            height: 1000,
+        })),
+    }
+}
+
 fn open_request() -> pb::StreamRequest {
     open_with_camera(None)
 }
@@ -187,24 +203,38 @@ fn calibration() -> pb::CameraCalibration {
         principal_x: 500.0,
         principal_y: 500.0,
         image_size: None,
+        height: 0.0,
     }
 }
 
 fn open_with_camera(camera: Option<pb::CameraCalibration>) -> pb::StreamRequest {
     pb::StreamRequest {
         kind: Some(Req::Open(pb::OpenSession {
-            input_format: Some(pb::InputFormat {
-                layout: pb::KeypointLayout::H36m17 as i32,
-                coordinates: Some(pb::input_format::Coordinates::ImageSize(pb::ImageSize {
-                    width: 1000,
-                    height: 1000,
-                })),
-            }),
+            input_format: Some(pixel_format()),
             model: 0,
             client_label: "test".into(),
             server_lifter: false,
             camera,
         })),
+    }
+}
+
+/// An AdjustSequence request (Bi-GRU) of the frames `frame(0..n)` sends.
+fn sequence_request(n: u64, camera: Option<pb::CameraCalibration>) -> pb::AdjustSequenceRequest {
+    let frames: Vec<pb::Frame> = (0..n)
+        .map(|i| match frame(i).kind {
+            Some(Req::Frame(f)) => f,
+            _ => unreachable!(),
+        })
+        .collect();
+    pb::AdjustSequenceRequest {
+        input_format: Some(pixel_format()),
+        model: 0,
+        num_frames: n as u32,
+        keypoints_2d: frames.iter().flat_map(|f| f.keypoints_2d.clone()).collect(),
+        confidence: vec![],
+        poses_3d: frames.iter().flat_map(|f| f.pose_3d.clone()).collect(),
+        camera,
     }
 }
 
@@ -705,26 +735,9 @@ async fn offline_online_model_equals_the_stream() {
         conn.send(frame(i)).await;
         streamed.push(conn.frame().await);
     }
-    let frames: Vec<pb::Frame> = (0..n)
-        .map(|i| match frame(i).kind {
-            Some(Req::Frame(f)) => f,
-            _ => unreachable!(),
-        })
-        .collect();
     let mut req = pb::AdjustSequenceRequest {
-        input_format: Some(pb::InputFormat {
-            layout: pb::KeypointLayout::H36m17 as i32,
-            coordinates: Some(pb::input_format::Coordinates::ImageSize(pb::ImageSize {
-                width: 1000,
-                height: 1000,
-            })),
-        }),
         model: pb::Model::OnlineGru as i32,
-        num_frames: n as u32,
-        keypoints_2d: frames.iter().flat_map(|f| f.keypoints_2d.clone()).collect(),
-        confidence: vec![],
-        poses_3d: frames.iter().flat_map(|f| f.pose_3d.clone()).collect(),
-        camera: None,
+        ..sequence_request(n, None)
     };
     let offline = c.adjust_sequence(req.clone()).await.unwrap().into_inner();
     assert_eq!(offline.model, pb::Model::OnlineGru as i32);
@@ -984,21 +997,7 @@ async fn sessions_with_a_camera_get_the_camera_aware_model() {
     assert!((f.bone_lengths[0] - (expected_mean(0, 5) + 0.1)).abs() < 1e-6);
 
     // Offline: the camera picks the camera-aware Bi-GRU.
-    let mut req = pb::AdjustSequenceRequest {
-        input_format: Some(pb::InputFormat {
-            layout: pb::KeypointLayout::H36m17 as i32,
-            coordinates: Some(pb::input_format::Coordinates::ImageSize(pb::ImageSize {
-                width: 1000,
-                height: 1000,
-            })),
-        }),
-        model: 0,
-        num_frames: 2,
-        keypoints_2d: (0..68).map(|i| 400.0 + i as f32).collect(),
-        confidence: vec![],
-        poses_3d: pose().repeat(2),
-        camera: None,
-    };
+    let mut req = sequence_request(2, None);
     let plain_seq = c.adjust_sequence(req.clone()).await.unwrap().into_inner();
     assert!((plain_seq.bone_lengths[0] - 0.3).abs() < 1e-6);
     req.camera = Some(calibration());
@@ -1043,6 +1042,13 @@ async fn bad_or_unserved_cameras_are_refused_at_open() {
             },
             "differs from input_format.image_size",
         ),
+        (
+            pb::CameraCalibration {
+                height: 40.0,
+                ..calibration()
+            },
+            "camera.height 40",
+        ),
     ];
     for (camera, message) in bad {
         let mut conn = Conn::new(&mut c).await;
@@ -1070,25 +1076,55 @@ async fn bad_or_unserved_cameras_are_refused_at_open() {
         "{}",
         status.message()
     );
-    let req = pb::AdjustSequenceRequest {
-        input_format: Some(pb::InputFormat {
-            layout: pb::KeypointLayout::H36m17 as i32,
-            coordinates: Some(pb::input_format::Coordinates::ImageSize(pb::ImageSize {
-                width: 1000,
-                height: 1000,
-            })),
-        }),
-        model: 0,
-        num_frames: 1,
-        keypoints_2d: vec![400.0; 34],
-        confidence: vec![],
-        poses_3d: pose(),
-        camera: Some(calibration()),
-    };
+    let req = sequence_request(1, Some(calibration()));
     let err = c.adjust_sequence(req).await.unwrap_err();
     assert_eq!(err.code(), Code::InvalidArgument);
     let (mut conn, _) = Conn::open(&mut c).await;
     conn.send(frame(0)).await;
     assert_eq!(conn.frame().await.frames_seen, 1);
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn height_normalized_models_are_scaled_by_the_camera_height() {
+    let mut fake = Fake::with_camera_aware(Duration::ZERO);
+    fake.camera_aware = Some(Arc::new(Fake {
+        offset: 0.1,
+        height_normalized: true,
+        ..Fake::new(Duration::ZERO)
+    }));
+    let server = start_with(config(), fake).await;
+    let mut c = client(server.local_addr()).await;
+    let scale = 1.3 / blapose_core::level::REFERENCE_CAMERA_HEIGHT as f32;
+    for (height, k) in [(1.3, scale), (0.0, 1.0)] {
+        let camera = pb::CameraCalibration {
+            height,
+            ..calibration()
+        };
+        let (mut conn, _) = Conn::open_with(&mut c, open_with_camera(Some(camera.clone()))).await;
+        for i in 0..3 {
+            conn.send(frame(i)).await;
+        }
+        for n in 1..=3 {
+            let f = conn.frame().await;
+            for b in 0..16 {
+                let want = (expected_mean(b, n) + 0.1) * k;
+                assert!((f.bone_lengths[b] - want).abs() < 1e-6, "height {height}");
+            }
+        }
+        let seq = c
+            .adjust_sequence(sequence_request(2, Some(camera)))
+            .await
+            .unwrap()
+            .into_inner();
+        assert!(
+            (seq.bone_lengths[0] - 0.4 * k).abs() < 1e-6,
+            "height {height}"
+        );
+    }
+    // The default models never scale.
+    let (mut conn, _) = Conn::open(&mut c).await;
+    conn.send(frame(0)).await;
+    assert!((conn.frame().await.bone_lengths[0] - expected_mean(0, 1)).abs() < 1e-6);
     server.shutdown().await.unwrap();
 }
