@@ -19,7 +19,8 @@ use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint};
 use crate::error::ClientError;
 use crate::session::Session;
 use crate::types::{
-    lengths_from_flat, pose_from_flat, InputFormat, ModelChoice, ModelInfo, SessionSummary,
+    lengths_from_flat, pose_from_flat, CameraCalibration, InputFormat, ModelChoice, ModelInfo,
+    SessionSummary,
 };
 
 /// Default server address (the server's own default `--addr`).
@@ -120,7 +121,9 @@ impl tonic::service::Interceptor for BearerAuth {
 /// The generated stub with authentication applied.
 pub(crate) type Stub = PoseAdjustmentClient<InterceptedService<Channel, BearerAuth>>;
 
-/// How to open a session (see [`Client::open_session_with`]).
+/// How to open a session (see [`Client::open_session_with`]). Build it
+/// from `SessionOptions::default()` (`..Default::default()` in a literal)
+/// so code keeps compiling when options are added.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct SessionOptions<'a> {
     /// Label for the server's logs.
@@ -128,6 +131,29 @@ pub struct SessionOptions<'a> {
     /// Let the server lift the poses from the keypoints (it must have been
     /// started with a lifter; see `ModelInfo::lifter`).
     pub server_lifter: bool,
+    /// The camera's calibration: `Some` asks for the camera-aware online
+    /// model (the server must have one, see
+    /// [`ModelDescription::camera_aware`](crate::ModelDescription::camera_aware));
+    /// `None` (the default) gets the default model.
+    pub camera: Option<CameraCalibration>,
+}
+
+impl<'a> SessionOptions<'a> {
+    /// These options with `camera` as the session's calibration.
+    pub fn with_camera(self, camera: Option<CameraCalibration>) -> Self {
+        SessionOptions { camera, ..self }
+    }
+
+    /// The `OpenSession` message [`Client::open_session_with`] sends.
+    pub fn to_proto(&self, input_format: InputFormat) -> pb::OpenSession {
+        pb::OpenSession {
+            input_format: Some(input_format.to_proto()),
+            model: pb::Model::OnlineGru as i32,
+            client_label: self.label.unwrap_or_default().to_string(),
+            server_lifter: self.server_lifter,
+            camera: self.camera.as_ref().map(CameraCalibration::to_proto),
+        }
+    }
 }
 
 /// A connected blapose client. Clone it freely: clones share the connection.
@@ -160,6 +186,54 @@ pub struct SequenceInput<'a> {
     pub confidence: &'a [f32],
     /// `T` lifted poses.
     pub poses_3d: &'a [Pose],
+    /// Optional camera calibration: `Some` runs the camera-aware model of
+    /// the chosen kind (the server must have one), `None` the default one.
+    pub camera: Option<CameraCalibration>,
+}
+
+impl<'a> SequenceInput<'a> {
+    /// A sequence's arrays and camera (its `camera`, if any, is sent).
+    pub fn from_sequence(seq: &'a crate::sequence::Sequence) -> Self {
+        SequenceInput {
+            input_format: seq.input_format,
+            keypoints_2d: &seq.keypoints_2d,
+            confidence: &seq.confidence,
+            poses_3d: &seq.pose_3d,
+            camera: seq.camera,
+        }
+    }
+
+    /// The `AdjustSequence` request [`Client::adjust_sequence`] sends;
+    /// `InvalidInput` when there are no frames or the keypoint count does
+    /// not match them.
+    pub fn to_proto(&self, model: ModelChoice) -> Result<pb::AdjustSequenceRequest, ClientError> {
+        let t = self.poses_3d.len();
+        let j = self.input_format.layout.num_joints();
+        if t == 0 {
+            return Err(ClientError::InvalidInput(
+                "the sequence has no frames".into(),
+            ));
+        }
+        if self.keypoints_2d.len() != t * j * 2 {
+            return Err(ClientError::InvalidInput(format!(
+                "{} keypoint values for {t} frames of {j} joints (expected {})",
+                self.keypoints_2d.len(),
+                t * j * 2
+            )));
+        }
+        let num_frames = u32::try_from(t).map_err(|_| {
+            ClientError::InvalidInput(format!("{t} frames is too many for one call"))
+        })?;
+        Ok(pb::AdjustSequenceRequest {
+            input_format: Some(self.input_format.to_proto()),
+            model: model.to_proto() as i32,
+            num_frames,
+            keypoints_2d: self.keypoints_2d.to_vec(),
+            confidence: self.confidence.to_vec(),
+            poses_3d: self.poses_3d.as_flattened().as_flattened().to_vec(),
+            camera: self.camera.as_ref().map(CameraCalibration::to_proto),
+        })
+    }
 }
 
 fn build_endpoint(config: &ClientConfig) -> Result<Endpoint, ClientError> {
@@ -299,7 +373,7 @@ impl Client {
             input_format,
             &SessionOptions {
                 label,
-                server_lifter: false,
+                ..SessionOptions::default()
             },
         )
         .await
@@ -309,24 +383,31 @@ impl Client {
     /// `server_lifter`, the server lifts every pose itself: frames carry
     /// keypoints only (`FrameInput::pose_3d` = `None`) and
     /// [`SessionInfo::lifter`](crate::SessionInfo::lifter) names the lifter;
-    /// a server without a lifter answers INVALID_ARGUMENT.
+    /// a server without a lifter answers INVALID_ARGUMENT. With a `camera`,
+    /// the camera-aware model serves the session and
+    /// [`SessionInfo::camera`](crate::SessionInfo::camera) echoes the
+    /// calibration; a bad calibration, or a server without camera-aware
+    /// models, answers INVALID_ARGUMENT (the calibration is not checked
+    /// locally: the server is the authority on what it accepts).
     pub async fn open_session_with(
         &self,
         input_format: InputFormat,
         options: &SessionOptions<'_>,
     ) -> Result<Session, ClientError> {
-        let open = pb::OpenSession {
-            input_format: Some(input_format.to_proto()),
-            model: pb::Model::OnlineGru as i32,
-            client_label: options.label.unwrap_or_default().to_string(),
-            server_lifter: options.server_lifter,
-        };
+        let open = options.to_proto(input_format);
         let session = Session::start(self, pb::stream_request::Kind::Open(open)).await?;
         // A server that predates server lifters ignores the request; the
         // session would then expect poses the client does not send.
         if options.server_lifter && session.info().lifter.is_none() {
             return Err(ClientError::Protocol(
                 "server_lifter was requested but the server opened a session that expects client poses (a server without lifter support?)".into(),
+            ));
+        }
+        // Likewise a server that predates camera calibrations would serve
+        // the session with the default model without saying so.
+        if options.camera.is_some() && session.info().camera.is_none() {
+            return Err(ClientError::Protocol(
+                "a camera calibration was sent but the server opened a session without one (a server without camera support?); open it without the camera for the default model".into(),
             ));
         }
         Ok(session)
@@ -360,37 +441,15 @@ impl Client {
         SessionSummary::from_close_response(session_id, resp)
     }
 
-    /// Adjust a whole sequence in one call.
+    /// Adjust a whole sequence in one call (with `input.camera`, by the
+    /// camera-aware model of `model`'s kind).
     pub async fn adjust_sequence(
         &self,
         input: SequenceInput<'_>,
         model: ModelChoice,
     ) -> Result<OfflineAdjustment, ClientError> {
+        let msg = input.to_proto(model)?;
         let t = input.poses_3d.len();
-        let j = input.input_format.layout.num_joints();
-        if t == 0 {
-            return Err(ClientError::InvalidInput(
-                "the sequence has no frames".into(),
-            ));
-        }
-        if input.keypoints_2d.len() != t * j * 2 {
-            return Err(ClientError::InvalidInput(format!(
-                "{} keypoint values for {t} frames of {j} joints (expected {})",
-                input.keypoints_2d.len(),
-                t * j * 2
-            )));
-        }
-        let num_frames = u32::try_from(t).map_err(|_| {
-            ClientError::InvalidInput(format!("{t} frames is too many for one call"))
-        })?;
-        let msg = pb::AdjustSequenceRequest {
-            input_format: Some(input.input_format.to_proto()),
-            model: model.to_proto() as i32,
-            num_frames,
-            keypoints_2d: input.keypoints_2d.to_vec(),
-            confidence: input.confidence.to_vec(),
-            poses_3d: input.poses_3d.as_flattened().as_flattened().to_vec(),
-        };
         self.adjust_sequence_raw(msg)
             .await
             .and_then(|resp| offline_from_proto(resp, t))
@@ -474,6 +533,67 @@ mod tests {
         ));
         assert!(BearerAuth::new(Some("secret")).unwrap().header.is_some());
         assert!(BearerAuth::new(None).unwrap().header.is_none());
+    }
+
+    fn calibration() -> CameraCalibration {
+        CameraCalibration {
+            up: [0.0, -0.99, 0.1],
+            focal: [1150.0, 1150.0],
+            principal: [500.0, 500.0],
+            image_size: None,
+            height: Some(1.6),
+        }
+    }
+
+    #[test]
+    fn open_session_sends_the_camera_only_when_given() {
+        use blapose_core::layouts::KeypointLayout;
+        let format = InputFormat::pixels(KeypointLayout::Coco17, 640, 480);
+        let plain = SessionOptions {
+            label: Some("cam0"),
+            ..SessionOptions::default()
+        };
+        let open = plain.to_proto(format);
+        assert_eq!(open.camera, None);
+        assert_eq!(open.client_label, "cam0");
+        assert_eq!(open.input_format, Some(format.to_proto()));
+        let with = plain.with_camera(Some(calibration()));
+        assert_eq!(with.label, Some("cam0"));
+        assert_eq!(with.to_proto(format).camera, Some(calibration().to_proto()));
+        assert_eq!(with.with_camera(None).to_proto(format).camera, None);
+    }
+
+    #[test]
+    fn adjust_sequence_sends_the_sequences_camera() {
+        use crate::sequence::Sequence;
+        use blapose_core::layouts::KeypointLayout;
+        let mut seq = Sequence {
+            input_format: InputFormat::pixels(KeypointLayout::H36m17, 1000, 1000),
+            keypoints_2d: vec![500.0; 2 * 17 * 2],
+            confidence: Vec::new(),
+            pose_3d: vec![[[0.0; 3]; 17]; 2],
+            gt_3d: None,
+            fps: None,
+            camera: None,
+        };
+        let req = SequenceInput::from_sequence(&seq)
+            .to_proto(ModelChoice::OfflineBiGru)
+            .unwrap();
+        assert_eq!((req.camera, req.num_frames), (None, 2));
+        seq.camera = Some(calibration());
+        let input = SequenceInput::from_sequence(&seq);
+        assert_eq!(input.camera, Some(calibration()));
+        let req = input.to_proto(ModelChoice::OnlineGru).unwrap();
+        assert_eq!(req.camera, Some(calibration().to_proto()));
+        assert_eq!(req.model, pb::Model::OnlineGru as i32);
+        let short = SequenceInput {
+            keypoints_2d: &seq.keypoints_2d[1..],
+            ..input
+        };
+        assert!(matches!(
+            short.to_proto(ModelChoice::OnlineGru),
+            Err(ClientError::InvalidInput(_))
+        ));
     }
 
     #[tokio::test]

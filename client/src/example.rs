@@ -17,7 +17,12 @@
 //!    distortion, 1.4 m high, about 5 m from the subject, looking at the
 //!    clip's mean pelvis position at 50 degrees off the perpendicular of the
 //!    direction of travel, moved back until every joint of every frame lies
-//!    40 px inside the image.
+//!    40 px inside the image. Its calibration is part of the replay file
+//!    (`camera_up`, the third column of its rotation; `camera_focal`;
+//!    `camera_principal`; `camera_height`, its centre's z, 1.4 m, since the
+//!    CMU floor is at z = 0), so replaying an example uses the server's
+//!    camera-aware models; the distortion is not (the protocol takes
+//!    keypoints as undistorted pixels, and this lens is mild).
 //! 3. **2D keypoints** ("detections"): the ground-truth skeleton projected
 //!    with that camera plus Gaussian noise, [`ExampleConfig::noise_px`] per
 //!    coordinate, 1.5 times that for wrists and ankles (detectors find
@@ -48,7 +53,7 @@ use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
 
 use crate::sequence::{Sequence, SequenceError};
-use crate::types::{InputFormat, KeypointLayout};
+use crate::types::{CameraCalibration, InputFormat, KeypointLayout};
 
 /// Bone lengths (metres) of the example person in the Human3.6M joint
 /// convention, bone order of [`blapose_core::skeleton::BONE_NAMES`]: hip
@@ -179,10 +184,11 @@ pub struct Example {
 }
 
 impl Example {
-    /// The replay arrays plus the camera and true lengths, for transparency
-    /// (extra keys are ignored by replay readers): `camera_R` (3,3),
-    /// `camera_center` (3,), `camera_focal` (2,), `camera_principal` (2,),
-    /// `camera_k` (3,), `camera_p` (2,), `gt_bone_lengths` (16,).
+    /// The replay arrays (the calibration `camera_up`, `camera_focal`,
+    /// `camera_principal` and `camera_height` among them) plus, for transparency, the rest of
+    /// the camera and the true lengths (extra keys are ignored by replay
+    /// readers): `camera_R` (3,3), `camera_center` (3,), `camera_k` (3,),
+    /// `camera_p` (2,), `gt_bone_lengths` (16,).
     pub fn to_npz(&self) -> Result<Npz, ExampleError> {
         self.sequence.validate()?;
         let mut npz = self.sequence.to_npz()?;
@@ -198,8 +204,6 @@ impl Example {
         let f = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<_>>();
         npz.insert("camera_R", arr(vec![3, 3], f(c.rotation.as_flattened()))?);
         npz.insert("camera_center", arr(vec![3], f(&c.center))?);
-        npz.insert("camera_focal", arr(vec![2], f(&c.focal))?);
-        npz.insert("camera_principal", arr(vec![2], f(&c.principal))?);
         npz.insert("camera_k", arr(vec![3], f(&c.radial))?);
         npz.insert("camera_p", arr(vec![2], f(&c.tangential))?);
         npz.insert(
@@ -404,6 +408,7 @@ pub fn make_example(
         pose_3d: lifted,
         gt_3d: Some(gt_cam),
         fps: Some(50.0),
+        camera: Some(CameraCalibration::from_camera(&camera)),
     };
     sequence.validate()?;
     Ok(Example {
@@ -507,6 +512,68 @@ mod tests {
         );
     }
 
+    /// `R`'s third column, the direction of world +Z in camera coordinates.
+    fn third_column(r: &[[f64; 3]; 3]) -> [f64; 3] {
+        [r[0][2], r[1][2], r[2][2]]
+    }
+
+    #[test]
+    fn example_carries_its_cameras_calibration() {
+        let world = walk(30);
+        let ex = make_example("test/walk", &world, &ExampleConfig::default()).unwrap();
+        let cal = ex.sequence.camera.expect("an example has a calibration");
+        let up = third_column(&ex.camera.rotation);
+        // The same as moving a world point straight up, seen by the camera.
+        let a = ex.camera.world_to_camera([0.1, 0.2, 1.0]);
+        let b = ex.camera.world_to_camera([0.1, 0.2, 2.0]);
+        for k in 0..3 {
+            assert!((f64::from(cal.up[k]) - up[k]).abs() < 1e-6, "{cal:?}");
+            assert!((up[k] - (b[k] - a[k])).abs() < 1e-9);
+        }
+        assert!(cal.up[1] < -0.9, "a near-level camera: up is mostly -y");
+        assert_eq!(cal.focal, [FOCAL_PX as f32; 2]);
+        assert_eq!(cal.principal, [IMAGE_SIZE as f32 / 2.0; 2]);
+        assert_eq!(cal.image_size, Some((IMAGE_SIZE, IMAGE_SIZE)));
+        assert_eq!(cal.height, Some(ex.camera.center[2] as f32));
+        assert_eq!(cal.height, Some(CAMERA_HEIGHT as f32));
+        // Written with the replay keys, and read back as the same camera.
+        let arrays = ex.to_npz().unwrap();
+        let back = Sequence::from_npz(&arrays, None).unwrap();
+        assert_eq!(back.camera, Some(cal));
+        assert_eq!(back, ex.sequence);
+    }
+
+    /// The committed examples carry a calibration whose `up` is the third
+    /// column of the example camera's rotation (`camera_R`, row-major) and
+    /// whose `camera_height` is the camera centre's z (`camera_center`).
+    #[test]
+    fn committed_examples_carry_their_cameras_calibration() {
+        let examples = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples");
+        for (_, stem, _) in CLIPS {
+            let path = examples.join(format!("{stem}.npz"));
+            let arrays = blapose_data::read_npz(&path).unwrap();
+            let r = arrays.get_shaped("camera_R", &[Some(3), Some(3)]).unwrap();
+            let r = r.data();
+            let seq = Sequence::load(&path, None).unwrap();
+            let cal = seq
+                .camera
+                .unwrap_or_else(|| panic!("{stem} has no calibration"));
+            assert_eq!(cal.up, [r[2], r[5], r[8]], "{stem}");
+            assert_ne!(cal.up, [r[6], r[7], r[8]], "{stem}: a row, not the column");
+            assert_eq!(cal.focal, [FOCAL_PX as f32; 2], "{stem}");
+            assert_eq!(cal.principal, [IMAGE_SIZE as f32 / 2.0; 2], "{stem}");
+            assert_eq!(cal.image_size, Some((IMAGE_SIZE, IMAGE_SIZE)), "{stem}");
+            // The height is the camera centre's z (floor at z = 0).
+            let center = arrays.get_shaped("camera_center", &[Some(3)]).unwrap();
+            let height = arrays.scalar("camera_height").unwrap();
+            assert_eq!(height, center.data()[2], "{stem}");
+            assert_eq!(cal.height, Some(center.data()[2]), "{stem}");
+            assert_eq!(cal.height, Some(CAMERA_HEIGHT as f32), "{stem}");
+            let norm = cal.up.iter().map(|v| v * v).sum::<f32>().sqrt();
+            assert!((norm - 1.0).abs() < 1e-5, "{stem}: |up| = {norm}");
+        }
+    }
+
     #[test]
     fn generation_is_deterministic_per_clip() {
         let world = walk(20);
@@ -524,6 +591,10 @@ mod tests {
             "image_size",
             "layout",
             "camera_R",
+            "camera_up",
+            "camera_focal",
+            "camera_principal",
+            "camera_height",
             "gt_bone_lengths",
         ] {
             assert!(arrays.contains(key), "{key}");

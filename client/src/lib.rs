@@ -4,8 +4,12 @@
 //! client opens one, streams frames (2D keypoints plus a lifter's 3D pose)
 //! and gets every pose back rebuilt with the estimated bone lengths. A
 //! server started with a lifter can also lift the poses itself: open the
-//! session with [`SessionOptions::server_lifter`] and send keypoints only. This
-//! crate hides the protobuf messages behind types from [`blapose_core`]:
+//! session with [`SessionOptions::server_lifter`] and send keypoints only. A
+//! client that knows its camera's calibration ([`CameraCalibration`]) can
+//! send it ([`SessionOptions::camera`], [`SequenceInput::camera`], or a
+//! replay file's `camera_*` arrays, the optional `camera_height` among
+//! them) to be served by the server's camera-aware models. This crate hides the protobuf messages behind types
+//! from [`blapose_core`]:
 //!
 //! ```no_run
 //! # async fn demo() -> Result<(), blapose_client::ClientError> {
@@ -23,7 +27,7 @@
 //!
 //! Modules: [`client`] (connection, unary calls), [`session`] (the
 //! bidirectional stream), [`types`] (typed messages), [`sequence`] (replay
-//! files), [`replay`] (whole-sequence drivers), [`report`] (before/after
+//! files), [`replay`](mod@replay) (whole-sequence drivers), [`report`] (before/after
 //! metrics) and [`example`] (the licence-clean example generator).
 
 pub mod client;
@@ -45,6 +49,7 @@ pub use report::{evaluate, Evaluation, PoseMetrics};
 pub use sequence::{Sequence, SequenceError};
 pub use session::{EventReceiver, FrameRejection, FrameSender, Session, SessionEvent};
 pub use types::{
-    AdjustedFrame, Coordinates, FrameInput, InputFormat, KeypointLayout, LiftedPose,
-    LifterDescription, ModelChoice, ModelDescription, ModelInfo, SessionInfo, SessionSummary,
+    AdjustedFrame, CameraCalibration, CameraError, Coordinates, FrameInput, InputFormat,
+    KeypointLayout, LiftedPose, LifterDescription, ModelChoice, ModelDescription, ModelInfo,
+    SessionInfo, SessionSummary, MAX_CAMERA_HEIGHT, MIN_CAMERA_HEIGHT,
 };

@@ -74,7 +74,10 @@ enum Command {
     /// to each frame (bone_lengths, T x 16) are written as an npz. When the
     /// file has gt_3d, MPJPE, P-MPJPE and bone-length error are printed
     /// before and after the adjustment. With --server-lifter only the 2D
-    /// keypoints are sent and the server's lifter produces the poses.
+    /// keypoints are sent and the server's lifter produces the poses. A
+    /// file with a camera calibration (camera_up, camera_focal,
+    /// camera_principal) is served by the camera-aware model unless
+    /// --no-camera is given.
     Replay {
         #[command(flatten)]
         io: IoArgs,
@@ -96,6 +99,9 @@ enum Command {
         server_lifter: bool,
     },
     /// Adjust a replay file with one offline call (Bi-GRU by default).
+    ///
+    /// A file with a camera calibration is served by the camera-aware model
+    /// of the chosen kind unless --no-camera is given.
     Adjust {
         #[command(flatten)]
         io: IoArgs,
@@ -116,7 +122,10 @@ enum Command {
 struct IoArgs {
     /// Replay file (npz): keypoints_2d (T,J,2) pixels, pose_3d (T,17,3)
     /// metres, image_size [w,h]; optional layout code (1 h36m17, 2 sh16,
-    /// 3 coco17), gt_3d (T,17,3), confidence (T,J).
+    /// 3 coco17), gt_3d (T,17,3), confidence (T,J), fps, and a camera
+    /// calibration: camera_up (3,) world up in camera axes, camera_focal
+    /// [fx,fy] and camera_principal [cx,cy] in pixels (all three or none),
+    /// plus optionally camera_height, metres above the floor (0.3 to 10).
     file: PathBuf,
     /// Write adjusted_3d and bone_lengths to this npz.
     #[arg(long)]
@@ -127,6 +136,21 @@ struct IoArgs {
     /// Keypoint layout, overriding the file's (h36m17, sh16, coco17).
     #[arg(long)]
     layout: Option<KeypointLayout>,
+    /// Do not send the file's camera calibration: the server's default
+    /// (not camera-aware) models serve the sequence.
+    #[arg(long)]
+    no_camera: bool,
+}
+
+impl IoArgs {
+    /// The replay file, without its camera when --no-camera is given.
+    fn load(&self) -> Result<Sequence> {
+        let mut seq = Sequence::load(&self.file, self.layout)?;
+        if self.no_camera {
+            seq.camera = None;
+        }
+        Ok(seq)
+    }
 }
 
 fn seconds(v: f64, what: &str) -> Result<Duration> {
@@ -172,6 +196,15 @@ fn finish(io: &IoArgs, seq: &Sequence, result: &Adjusted) -> Result<()> {
         result.elapsed.as_secs_f64(),
         result.frames_per_second()
     );
+    match &result.camera {
+        Some(camera) => println!("served by the camera-aware model (camera calibration: {camera})"),
+        None if io.no_camera => {
+            println!(
+                "served by the default model (--no-camera: the file's calibration was not sent)"
+            )
+        }
+        None => println!("served by the default model (no camera calibration in the file)"),
+    }
     // The poses the adjustment started from: the server lifter's, or the
     // file's own.
     let before = match &result.lifter {
@@ -228,7 +261,7 @@ async fn run(cli: Cli) -> Result<()> {
             label,
             server_lifter,
         } => {
-            let seq = Sequence::load(&io.file, io.layout)?;
+            let seq = io.load()?;
             let client = connect(&cli.connection).await?;
             let bar = progress_bar(seq.len());
             let options = ReplayOptions {
@@ -249,7 +282,7 @@ async fn run(cli: Cli) -> Result<()> {
             finish(&io, &seq, &result)
         }
         Command::Adjust { io, model } => {
-            let seq = Sequence::load(&io.file, io.layout)?;
+            let seq = io.load()?;
             let client = connect(&cli.connection).await?;
             let result = adjust_offline(&client, &seq, model).await?;
             finish(&io, &seq, &result)
@@ -352,6 +385,49 @@ mod tests {
         assert!(
             Cli::try_parse_from(["blapose-client", "adjust", "x.npz", "--server-lifter"]).is_err(),
             "the offline call has no server lifter"
+        );
+    }
+
+    #[test]
+    fn no_camera_flag_parses_for_replay_and_adjust() {
+        for command in ["replay", "adjust"] {
+            let io = |cli: Cli| match cli.command {
+                Command::Replay { io, .. } | Command::Adjust { io, .. } => io,
+                other => panic!("{other:?}"),
+            };
+            let default = Cli::try_parse_from(["blapose-client", command, "x.npz"]).unwrap();
+            assert!(
+                !io(default).no_camera,
+                "{command}: the camera is sent by default"
+            );
+            let cli =
+                Cli::try_parse_from(["blapose-client", command, "x.npz", "--no-camera"]).unwrap();
+            assert!(io(cli).no_camera, "{command}");
+        }
+        assert!(Cli::try_parse_from(["blapose-client", "info", "--no-camera"]).is_err());
+    }
+
+    #[test]
+    fn no_camera_drops_the_files_calibration() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/cmu_02_02_walk.npz");
+        let file = path.to_str().unwrap();
+        let io = |args: &[&str]| match Cli::try_parse_from(args).unwrap().command {
+            Command::Replay { io, .. } | Command::Adjust { io, .. } => io,
+            other => panic!("{other:?}"),
+        };
+        let with = io(&["blapose-client", "replay", file]).load().unwrap();
+        assert!(with.camera.is_some(), "the example carries a calibration");
+        let without = io(&["blapose-client", "adjust", file, "--no-camera"])
+            .load()
+            .unwrap();
+        assert_eq!(without.camera, None);
+        assert_eq!(
+            Sequence {
+                camera: None,
+                ..with
+            },
+            without,
+            "only the camera is dropped"
         );
     }
 }

@@ -9,6 +9,11 @@
 //! the server lifts each frame from the keypoints, and every answer must
 //! name the lifter and carry its pose. [`adjust_offline`] does the same job
 //! (with the file's poses) in one unary call.
+//!
+//! Both send the sequence's camera calibration when it has one
+//! ([`Sequence::camera`]), so the server's camera-aware models serve it;
+//! clear `camera` first for the default models. [`Adjusted::camera`] says
+//! which family it was.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -20,7 +25,7 @@ use crate::client::{Client, SequenceInput, SessionOptions};
 use crate::error::ClientError;
 use crate::sequence::Sequence;
 use crate::session::SessionEvent;
-use crate::types::{ModelChoice, SessionSummary};
+use crate::types::{CameraCalibration, ModelChoice, SessionSummary};
 
 /// How to stream a sequence.
 #[derive(Debug, Clone)]
@@ -67,6 +72,12 @@ pub struct Adjusted {
     pub elapsed: Duration,
     /// The session (stream only; it is closed at the end).
     pub session: Option<SessionSummary>,
+    /// The camera calibration the serving model was given: `Some` when the
+    /// camera-aware model adjusted the sequence, `None` for the default
+    /// one. For a stream it is the session's, as the server echoed it; the
+    /// offline answer does not echo it, so there it is the one sent (a
+    /// server refuses a calibration it cannot serve).
+    pub camera: Option<CameraCalibration>,
 }
 
 impl Adjusted {
@@ -76,8 +87,9 @@ impl Adjusted {
     }
 }
 
-/// Stream `seq` frame by frame on a new session, pipelined, then close the
-/// session. `progress` is called with the number of frames answered so far.
+/// Stream `seq` frame by frame on a new session (with `seq.camera`, if
+/// any), pipelined, then close the session. `progress` is called with the
+/// number of frames answered so far.
 pub async fn replay(
     client: &Client,
     seq: &Sequence,
@@ -88,12 +100,14 @@ pub async fn replay(
     let session_options = SessionOptions {
         label: options.label.as_deref(),
         server_lifter: options.server_lifter,
+        camera: seq.camera,
     };
     let session = client
         .open_session_with(seq.input_format, &session_options)
         .await?;
     let (info, sender, mut receiver) = session.split();
     let lifter = info.lifter.clone();
+    let camera = info.camera;
     let total = seq.len();
     let window = Arc::new(Semaphore::new(options.window.max(1)));
 
@@ -201,22 +215,18 @@ pub async fn replay(
         lifted,
         elapsed: started.elapsed(),
         session: Some(summary),
+        camera,
     })
 }
 
-/// Adjust `seq` with one `AdjustSequence` call.
+/// Adjust `seq` with one `AdjustSequence` call (with `seq.camera`, if any).
 pub async fn adjust_offline(
     client: &Client,
     seq: &Sequence,
     model: ModelChoice,
 ) -> Result<Adjusted, ClientError> {
     let started = Instant::now();
-    let input = SequenceInput {
-        input_format: seq.input_format,
-        keypoints_2d: &seq.keypoints_2d,
-        confidence: &seq.confidence,
-        poses_3d: &seq.pose_3d,
-    };
+    let input = SequenceInput::from_sequence(seq);
     let result = client.adjust_sequence(input, model).await?;
     Ok(Adjusted {
         model: result.model,
@@ -226,5 +236,6 @@ pub async fn adjust_offline(
         lifted: Vec::new(),
         elapsed: started.elapsed(),
         session: None,
+        camera: seq.camera,
     })
 }

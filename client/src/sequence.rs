@@ -12,6 +12,10 @@
 //! | `gt_3d`        | `(T, 17, 3)`| optional ground truth, same frame as `pose_3d`   |
 //! | `confidence`   | `(T, J)`    | optional per-joint detector confidence (>= 0)    |
 //! | `fps`          | `()`/`(1,)` | optional frame rate of the recording             |
+//! | `camera_up`    | `(3,)`      | optional: world up in camera axes (x right, y down, z forward) |
+//! | `camera_focal` | `(2,)`      | optional: `[fx, fy]` focal lengths in pixels, > 0 |
+//! | `camera_principal` | `(2,)`  | optional: `[cx, cy]` principal point in pixels   |
+//! | `camera_height` | `()`/`(1,)` | optional: camera height above the floor, metres (0.3 to 10) |
 //!
 //! An npz of float32 arrays cannot hold a string, so the layout is a numeric
 //! code equal to the protocol's `KeypointLayout` number: `1` = H36M-17,
@@ -19,9 +23,24 @@
 //! array it is inferred from `J`: 17 joints = H36M-17, 16 = SH-16 (COCO-17
 //! files must say so, since COCO also has 17 joints).
 //!
+//! The `camera_*` arrays are the camera's calibration
+//! ([`CameraCalibration`], for `image_size`-pixel keypoints): `camera_up`,
+//! `camera_focal` and `camera_principal` all three or none, and
+//! `camera_height` optional but only with those three. `camera_up` is the
+//! direction of world "up" in camera coordinates, any non-zero length; for a
+//! camera with world-to-camera rotation `R` and world z up it is `R`'s third
+//! column. `camera_height` is the camera's height above the floor in metres
+//! (with world z up and the floor at z = 0, its centre's z), 0.3 to 10;
+//! leave the key out when it is unknown (a 0 is refused, not read as
+//! "unknown"). Height-normalized camera-aware models scale their estimates
+//! by it (assuming 1.56 m without it); other models ignore it. A file with a
+//! calibration is served by the server's camera-aware models unless the
+//! client is told not to send it (`--no-camera`).
+//!
 //! Loading checks everything a server would refuse (shapes, frame counts,
-//! non-finite values, image size) and names the key, frame and joint, so a
-//! bad file fails before any network traffic.
+//! non-finite values, image size, a partial or invalid calibration) and
+//! names the key, frame and joint, so a bad file fails before any network
+//! traffic.
 
 use std::path::{Path, PathBuf};
 
@@ -31,7 +50,8 @@ use blapose_core::{BoneLengths, Pose};
 use blapose_data::npz::{read_npz, write_npz, Array, Npz, NpzError};
 
 use crate::types::{
-    layout_code, layout_from_code, Coordinates, FrameInput, InputFormat, KeypointLayout,
+    layout_code, layout_from_code, CameraCalibration, CameraError, Coordinates, FrameInput,
+    InputFormat, KeypointLayout,
 };
 
 /// Key of the 2D keypoints.
@@ -48,6 +68,18 @@ pub const KEY_GT_3D: &str = "gt_3d";
 pub const KEY_CONFIDENCE: &str = "confidence";
 /// Key of the optional frame rate.
 pub const KEY_FPS: &str = "fps";
+/// Key of the optional camera's up direction `(3,)` (camera coordinates).
+pub const KEY_CAMERA_UP: &str = "camera_up";
+/// Key of the optional camera's focal lengths `(2,)`, pixels.
+pub const KEY_CAMERA_FOCAL: &str = "camera_focal";
+/// Key of the optional camera's principal point `(2,)`, pixels.
+pub const KEY_CAMERA_PRINCIPAL: &str = "camera_principal";
+/// Key of the optional camera height above the floor `()` or `(1,)`,
+/// metres; only together with [`CAMERA_KEYS`].
+pub const KEY_CAMERA_HEIGHT: &str = "camera_height";
+/// The camera keys, all present or all absent ([`KEY_CAMERA_HEIGHT`] may
+/// join them).
+pub const CAMERA_KEYS: [&str; 3] = [KEY_CAMERA_UP, KEY_CAMERA_FOCAL, KEY_CAMERA_PRINCIPAL];
 /// Output key: adjusted poses `(T, 17, 3)`.
 pub const KEY_ADJUSTED: &str = "adjusted_3d";
 /// Output key: bone lengths applied to each frame `(T, 16)`.
@@ -116,6 +148,25 @@ pub enum SequenceError {
         /// Joint index.
         joint: usize,
     },
+    /// Some of the camera keys are present, but not all (or
+    /// `camera_height` without them).
+    #[error("{missing} is missing: {KEY_CAMERA_UP}, {KEY_CAMERA_FOCAL} and {KEY_CAMERA_PRINCIPAL} come together, and {KEY_CAMERA_HEIGHT} needs them (found {found})")]
+    PartialCamera {
+        /// The first absent key of [`CAMERA_KEYS`].
+        missing: &'static str,
+        /// The camera keys present (`camera_height` included),
+        /// comma-separated.
+        found: String,
+    },
+    /// The camera calibration has a bad value.
+    #[error("{key}: {error}")]
+    Camera {
+        /// The key at fault (`camera_up`, `camera_focal`, `camera_principal`,
+        /// `camera_height` or `image_size`).
+        key: &'static str,
+        /// What is wrong.
+        error: CameraError,
+    },
     /// Results and sequence lengths disagree when writing.
     #[error("{poses} adjusted poses but {lengths} rows of bone lengths")]
     OutputMismatch {
@@ -154,6 +205,21 @@ pub struct Sequence {
     pub gt_3d: Option<Vec<Pose>>,
     /// Frame rate of the recording, if known.
     pub fps: Option<f32>,
+    /// The camera's calibration, if known (sent to the server, which then
+    /// serves the sequence with its camera-aware models). Its image size is
+    /// the keypoints' (`None` or equal for pixel keypoints).
+    pub camera: Option<CameraCalibration>,
+}
+
+/// The replay-file key of a calibration field.
+fn camera_key(error: &CameraError) -> &'static str {
+    match error.field() {
+        "up" => KEY_CAMERA_UP,
+        "focal" => KEY_CAMERA_FOCAL,
+        "principal" => KEY_CAMERA_PRINCIPAL,
+        "height" => KEY_CAMERA_HEIGHT,
+        _ => KEY_IMAGE_SIZE,
+    }
 }
 
 fn first_non_finite(values: &[f32], per_frame: usize, per_joint: usize) -> Option<(usize, usize)> {
@@ -277,6 +343,14 @@ impl Sequence {
                 });
             }
         }
+        if let Some(camera) = &self.camera {
+            camera
+                .validate_for(self.input_format.coordinates)
+                .map_err(|error| SequenceError::Camera {
+                    key: camera_key(&error),
+                    error,
+                })?;
+        }
         Ok(())
     }
 
@@ -352,6 +426,7 @@ impl Sequence {
         } else {
             None
         };
+        let camera = camera_from_npz(npz, (size[0] as u32, size[1] as u32))?;
         let seq = Sequence {
             input_format,
             keypoints_2d: kp.data().to_vec(),
@@ -359,6 +434,7 @@ impl Sequence {
             pose_3d,
             gt_3d,
             fps,
+            camera,
         };
         seq.validate()?;
         Ok(seq)
@@ -420,6 +496,26 @@ impl Sequence {
         if let Some(fps) = self.fps {
             npz.insert(KEY_FPS, Array::new(vec![1], vec![fps]).map_err(npz_err)?);
         }
+        if let Some(c) = &self.camera {
+            npz.insert(
+                KEY_CAMERA_UP,
+                Array::new(vec![3], c.up.to_vec()).map_err(npz_err)?,
+            );
+            npz.insert(
+                KEY_CAMERA_FOCAL,
+                Array::new(vec![2], c.focal.to_vec()).map_err(npz_err)?,
+            );
+            npz.insert(
+                KEY_CAMERA_PRINCIPAL,
+                Array::new(vec![2], c.principal.to_vec()).map_err(npz_err)?,
+            );
+            if let Some(height) = c.height {
+                npz.insert(
+                    KEY_CAMERA_HEIGHT,
+                    Array::new(vec![1], vec![height]).map_err(npz_err)?,
+                );
+            }
+        }
         Ok(npz)
     }
 
@@ -432,6 +528,60 @@ impl Sequence {
             error: source,
         })
     }
+}
+
+/// The calibration in `npz`'s camera keys (`None` without any), for
+/// keypoints in pixels of an image of `image_size`. Values are checked by
+/// [`Sequence::validate`].
+fn camera_from_npz(
+    npz: &Npz,
+    image_size: (u32, u32),
+) -> Result<Option<CameraCalibration>, SequenceError> {
+    let present: Vec<&str> = CAMERA_KEYS
+        .into_iter()
+        .chain([KEY_CAMERA_HEIGHT])
+        .filter(|k| npz.contains(k))
+        .collect();
+    if present.is_empty() {
+        return Ok(None);
+    }
+    if let Some(missing) = CAMERA_KEYS.into_iter().find(|k| !npz.contains(k)) {
+        return Err(SequenceError::PartialCamera {
+            missing,
+            found: present.join(", "),
+        });
+    }
+    Ok(Some(CameraCalibration {
+        up: camera_array(npz, KEY_CAMERA_UP)?,
+        focal: camera_array(npz, KEY_CAMERA_FOCAL)?,
+        principal: camera_array(npz, KEY_CAMERA_PRINCIPAL)?,
+        image_size: Some(image_size),
+        height: if npz.contains(KEY_CAMERA_HEIGHT) {
+            Some(npz.scalar(KEY_CAMERA_HEIGHT).map_err(npz_err)?)
+        } else {
+            None
+        },
+    }))
+}
+
+/// An npz error from arrays not (yet) tied to a file.
+fn npz_err(error: NpzError) -> SequenceError {
+    SequenceError::Npz {
+        path: PathBuf::from("<arrays>"),
+        error,
+    }
+}
+
+/// The `(N,)` array `key` as a fixed-size array.
+fn camera_array<const N: usize>(npz: &Npz, key: &str) -> Result<[f32; N], SequenceError> {
+    let array = npz.get_shaped(key, &[Some(N)]).map_err(npz_err)?;
+    array.data().try_into().map_err(|_| {
+        npz_err(NpzError::Shape {
+            key: key.to_owned(),
+            expected: format!("({N},)"),
+            actual: array.shape().to_vec(),
+        })
+    })
 }
 
 /// Write an adjustment result: `adjusted_3d` `(T, 17, 3)` and `bone_lengths`
@@ -662,6 +812,259 @@ mod tests {
             matches!(e, SequenceError::NegativeConfidence { frame: 1, joint: 3 }),
             "{e}"
         );
+    }
+
+    fn with_camera(mut n: Npz) -> Npz {
+        n.insert(
+            KEY_CAMERA_UP,
+            Array::new(vec![3], vec![0.02, -0.97, 0.24]).unwrap(),
+        );
+        n.insert(
+            KEY_CAMERA_FOCAL,
+            Array::new(vec![2], vec![1150.0, 1148.5]).unwrap(),
+        );
+        n.insert(
+            KEY_CAMERA_PRINCIPAL,
+            Array::new(vec![2], vec![500.0, 501.0]).unwrap(),
+        );
+        n
+    }
+
+    #[test]
+    fn camera_keys_load_and_round_trip() {
+        let s = Sequence::from_npz(&npz(2, 17), None).unwrap();
+        assert_eq!(s.camera, None, "no camera keys, no calibration");
+        assert!(CAMERA_KEYS.iter().all(|k| !s.to_npz().unwrap().contains(k)));
+
+        let s = Sequence::from_npz(&with_camera(npz(3, 17)), None).unwrap();
+        let expected = CameraCalibration {
+            up: [0.02, -0.97, 0.24],
+            focal: [1150.0, 1148.5],
+            principal: [500.0, 501.0],
+            image_size: Some((1000, 1002)),
+            height: None,
+        };
+        assert_eq!(s.camera, Some(expected));
+        assert!(!s.to_npz().unwrap().contains(KEY_CAMERA_HEIGHT));
+        let arrays = s.to_npz().unwrap();
+        assert_eq!(arrays.get(KEY_CAMERA_UP).unwrap().shape(), &[3]);
+        assert_eq!(
+            arrays.get(KEY_CAMERA_UP).unwrap().data(),
+            &[0.02, -0.97, 0.24]
+        );
+        assert_eq!(
+            arrays.get(KEY_CAMERA_FOCAL).unwrap().data(),
+            &[1150.0, 1148.5]
+        );
+        assert_eq!(
+            arrays.get(KEY_CAMERA_PRINCIPAL).unwrap().data(),
+            &[500.0, 501.0]
+        );
+
+        let dir = std::env::temp_dir().join(format!("blapose-client-cam-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("cam.npz");
+        s.save(&path).unwrap();
+        let back = Sequence::load(&path, None).unwrap();
+        assert_eq!(back, s);
+        assert_eq!(back.camera, Some(expected));
+        // A calibration set in code is saved and read back the same.
+        let mut other = Sequence::from_npz(&npz(2, 16), None).unwrap();
+        other.camera = Some(CameraCalibration {
+            up: [0.0, -1.0, 0.0],
+            ..expected
+        });
+        other.save(&path).unwrap();
+        assert_eq!(Sequence::load(&path, None).unwrap(), other);
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    fn with_height(mut n: Npz, shape: Vec<usize>, height: f32) -> Npz {
+        n.insert(KEY_CAMERA_HEIGHT, Array::new(shape, vec![height]).unwrap());
+        n
+    }
+
+    #[test]
+    fn camera_height_loads_and_round_trips() {
+        for shape in [vec![1], vec![]] {
+            let n = with_height(with_camera(npz(3, 17)), shape.clone(), 1.4);
+            let s = Sequence::from_npz(&n, None).unwrap();
+            let cal = s.camera.expect("a calibration");
+            assert_eq!(cal.height, Some(1.4), "shape {shape:?}");
+            assert_eq!(cal.up, [0.02, -0.97, 0.24]);
+            let arrays = s.to_npz().unwrap();
+            let h = arrays.get(KEY_CAMERA_HEIGHT).unwrap();
+            assert_eq!((h.shape(), h.data()), (&[1][..], &[1.4][..]));
+            assert_eq!(Sequence::from_npz(&arrays, None).unwrap(), s);
+        }
+
+        let dir =
+            std::env::temp_dir().join(format!("blapose-client-height-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("height.npz");
+        let s =
+            Sequence::from_npz(&with_height(with_camera(npz(2, 17)), vec![], 2.25), None).unwrap();
+        s.save(&path).unwrap();
+        let back = Sequence::load(&path, None).unwrap();
+        assert_eq!(back, s);
+        assert_eq!(back.camera.unwrap().height, Some(2.25));
+        // A height set in code is written; clearing it drops the key.
+        let mut other = s.clone();
+        other.camera = other.camera.map(|c| CameraCalibration {
+            height: Some(0.75),
+            ..c
+        });
+        other.save(&path).unwrap();
+        assert_eq!(Sequence::load(&path, None).unwrap(), other);
+        other.camera = other
+            .camera
+            .map(|c| CameraCalibration { height: None, ..c });
+        other.save(&path).unwrap();
+        assert!(!read_npz(&path).unwrap().contains(KEY_CAMERA_HEIGHT));
+        assert_eq!(Sequence::load(&path, None).unwrap(), other);
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn camera_height_without_the_calibration_is_refused() {
+        // Alone: the first calibration key is named, the height as found.
+        let n = with_height(npz(2, 17), vec![1], 1.4);
+        let e = Sequence::from_npz(&n, None).unwrap_err();
+        assert!(
+            matches!(&e, SequenceError::PartialCamera { missing: KEY_CAMERA_UP, found } if found == KEY_CAMERA_HEIGHT),
+            "{e}"
+        );
+        let text = e.to_string();
+        assert!(
+            text.starts_with("camera_up is missing") && text.contains("found camera_height"),
+            "{text}"
+        );
+        // With some of the three: the first absent one is named.
+        for missing in CAMERA_KEYS {
+            let mut n = with_height(with_camera(npz(2, 17)), vec![1], 1.4);
+            n.remove(missing).unwrap();
+            let e = Sequence::from_npz(&n, None).unwrap_err();
+            assert!(
+                matches!(&e, SequenceError::PartialCamera { missing: m, found } if *m == missing && found.contains(KEY_CAMERA_HEIGHT)),
+                "{e}"
+            );
+        }
+    }
+
+    #[test]
+    fn bad_camera_heights_are_refused_naming_the_key() {
+        for height in [f32::NAN, f32::INFINITY, 0.1, 50.0, 0.0, -1.4] {
+            let n = with_height(with_camera(npz(2, 17)), vec![1], height);
+            let e = Sequence::from_npz(&n, None).unwrap_err();
+            assert!(
+                matches!(&e, SequenceError::Camera { key: KEY_CAMERA_HEIGHT, error } if error.field() == "height"),
+                "{height}: {e}"
+            );
+            assert!(e.to_string().starts_with("camera_height: "), "{e}");
+        }
+        // Wrong shape: an npz error naming the key.
+        let mut n = with_camera(npz(2, 17));
+        n.insert(
+            KEY_CAMERA_HEIGHT,
+            Array::new(vec![2], vec![1.4, 1.5]).unwrap(),
+        );
+        let e = Sequence::from_npz(&n, None).unwrap_err().to_string();
+        assert!(e.contains("camera_height") && e.contains("(1,)"), "{e}");
+        // A bad height set in code is refused before writing.
+        let mut s = Sequence::from_npz(&with_camera(npz(2, 17)), None).unwrap();
+        s.camera = s.camera.map(|c| CameraCalibration {
+            height: Some(50.0),
+            ..c
+        });
+        assert!(matches!(
+            s.validate(),
+            Err(SequenceError::Camera {
+                key: KEY_CAMERA_HEIGHT,
+                error: CameraError::Height(_)
+            })
+        ));
+    }
+
+    #[test]
+    fn a_partial_camera_is_refused_naming_the_missing_key() {
+        for missing in CAMERA_KEYS {
+            let mut n = with_camera(npz(2, 17));
+            n.remove(missing).unwrap();
+            let e = Sequence::from_npz(&n, None).unwrap_err();
+            assert!(
+                matches!(&e, SequenceError::PartialCamera { missing: m, .. } if *m == missing),
+                "{e}"
+            );
+            assert!(e.to_string().starts_with(missing), "{e}");
+        }
+        // Only one key present: the first absent one is named.
+        let mut n = npz(2, 17);
+        n.insert(
+            KEY_CAMERA_PRINCIPAL,
+            Array::new(vec![2], vec![500.0, 500.0]).unwrap(),
+        );
+        let e = Sequence::from_npz(&n, None).unwrap_err().to_string();
+        assert!(
+            e.contains("camera_up is missing") && e.contains("found camera_principal"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn bad_camera_values_are_refused_naming_the_key() {
+        let cases: [(&str, Vec<f32>, &str); 8] = [
+            (KEY_CAMERA_FOCAL, vec![0.0, 1150.0], KEY_CAMERA_FOCAL),
+            (KEY_CAMERA_FOCAL, vec![1150.0, -1.0], KEY_CAMERA_FOCAL),
+            (KEY_CAMERA_FOCAL, vec![f32::NAN, 1150.0], KEY_CAMERA_FOCAL),
+            (
+                KEY_CAMERA_FOCAL,
+                vec![f32::INFINITY, 1150.0],
+                KEY_CAMERA_FOCAL,
+            ),
+            (KEY_CAMERA_UP, vec![0.0, f32::NAN, 0.0], KEY_CAMERA_UP),
+            (KEY_CAMERA_UP, vec![0.0, 0.0, 0.0], KEY_CAMERA_UP),
+            (
+                KEY_CAMERA_PRINCIPAL,
+                vec![500.0, f32::NEG_INFINITY],
+                KEY_CAMERA_PRINCIPAL,
+            ),
+            (
+                KEY_CAMERA_PRINCIPAL,
+                vec![f32::NAN, 500.0],
+                KEY_CAMERA_PRINCIPAL,
+            ),
+        ];
+        for (key, values, named) in cases {
+            let mut n = with_camera(npz(2, 17));
+            n.insert(key, Array::new(vec![values.len()], values.clone()).unwrap());
+            let e = Sequence::from_npz(&n, None).unwrap_err();
+            assert!(
+                matches!(&e, SequenceError::Camera { key: k, .. } if *k == named),
+                "{key} = {values:?}: {e}"
+            );
+            assert!(e.to_string().starts_with(named), "{e}");
+        }
+        // Wrong shapes are npz errors naming the key.
+        let mut n = with_camera(npz(2, 17));
+        n.insert(KEY_CAMERA_UP, Array::new(vec![2], vec![0.0, -1.0]).unwrap());
+        let e = Sequence::from_npz(&n, None).unwrap_err().to_string();
+        assert!(e.contains("camera_up") && e.contains("(3)"), "{e}");
+        // A calibration set in code must match the keypoints' image.
+        let mut s = Sequence::from_npz(&with_camera(npz(2, 17)), None).unwrap();
+        s.camera = s.camera.map(|c| CameraCalibration {
+            image_size: Some((1002, 1000)),
+            ..c
+        });
+        assert!(matches!(
+            s.validate(),
+            Err(SequenceError::Camera {
+                key: KEY_IMAGE_SIZE,
+                error: CameraError::ImageSizeMismatch { .. }
+            })
+        ));
+        assert!(s
+            .save(std::env::temp_dir().join("never-written.npz"))
+            .is_err());
     }
 
     #[test]

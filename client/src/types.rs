@@ -12,6 +12,7 @@ use std::fmt;
 use std::str::FromStr;
 use std::time::Duration;
 
+use blapose_core::camera::Camera;
 use blapose_core::skeleton::{NUM_BONES, NUM_JOINTS};
 use blapose_core::{BoneLengths, Pose};
 use blapose_proto::v1 as pb;
@@ -116,6 +117,232 @@ impl InputFormat {
             layout,
             coordinates,
         })
+    }
+}
+
+/// A camera's calibration, for the server's camera-aware models.
+///
+/// A session (or offline request) that sends one is served by the
+/// camera-aware models: the server turns its keypoints into what a level
+/// camera at the same place would see before the model reads them. Lens
+/// distortion is ignored (keypoints are taken as undistorted pixels).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CameraCalibration {
+    /// Direction of world "up" (against gravity) in camera coordinates
+    /// (x right, y down, z along the optical axis), any non-zero length:
+    /// for world-to-camera rotation `R` and world z up, `R`'s third column.
+    pub up: [f32; 3],
+    /// `[fx, fy]` focal lengths in pixels, both > 0.
+    pub focal: [f32; 2],
+    /// `[cx, cy]` principal point in pixels.
+    pub principal: [f32; 2],
+    /// `(width, height)` of the image these pixel values refer to. Required
+    /// with normalized keypoints; with pixel keypoints `None` means the
+    /// input format's size, and a size given must equal it.
+    pub image_size: Option<(u32, u32)>,
+    /// The camera's height above the floor in metres, [`MIN_CAMERA_HEIGHT`]
+    /// to [`MAX_CAMERA_HEIGHT`]; `None` = not given (0 on the wire). A
+    /// rectified picture does not show it (seen from a camera k times
+    /// higher, a scene looks like one k times smaller): camera-aware models
+    /// trained height-normalized predict lengths as seen from 1.56 m and
+    /// the server scales them by `height / 1.56`, assuming 1.56 m when it is
+    /// not given. Other models ignore it.
+    pub height: Option<f32>,
+}
+
+/// Lowest camera height the protocol accepts, metres.
+pub const MIN_CAMERA_HEIGHT: f32 = 0.3;
+/// Highest camera height the protocol accepts, metres.
+pub const MAX_CAMERA_HEIGHT: f32 = 10.0;
+
+/// Why a [`CameraCalibration`] cannot be used.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+pub enum CameraError {
+    /// A value is NaN or infinite.
+    #[error("{field} is not finite")]
+    NonFinite {
+        /// Which field: `up`, `focal`, `principal` or `height`.
+        field: &'static str,
+    },
+    /// The up direction has no length.
+    #[error("up {0:?} has no length (it must be a direction)")]
+    ZeroUp([f32; 3]),
+    /// A focal length is not positive.
+    #[error("focal lengths must be > 0, got {0:?}")]
+    Focal([f32; 2]),
+    /// The height is outside [`MIN_CAMERA_HEIGHT`]..=[`MAX_CAMERA_HEIGHT`].
+    #[error("height {0} m is not a camera height of {MIN_CAMERA_HEIGHT} to {MAX_CAMERA_HEIGHT} m (leave it out when unknown)")]
+    Height(f32),
+    /// The image size has a zero side.
+    #[error("image_size must be positive, got {width}x{height}")]
+    ImageSize {
+        /// Width in pixels.
+        width: u32,
+        /// Height in pixels.
+        height: u32,
+    },
+    /// Normalized keypoints, but no image size to relate them to pixels.
+    #[error("image_size is required with normalized keypoints (the calibration is in pixels)")]
+    ImageSizeMissing,
+    /// The calibration's image size differs from the pixel keypoints'.
+    #[error("image_size {camera_width}x{camera_height} differs from the keypoints' image size {width}x{height}")]
+    ImageSizeMismatch {
+        /// The calibration's width.
+        camera_width: u32,
+        /// The calibration's height.
+        camera_height: u32,
+        /// The keypoints' width.
+        width: u32,
+        /// The keypoints' height.
+        height: u32,
+    },
+}
+
+impl CameraError {
+    /// The calibration field at fault: `up`, `focal`, `principal`,
+    /// `image_size` or `height`.
+    pub const fn field(&self) -> &'static str {
+        match self {
+            CameraError::NonFinite { field } => field,
+            CameraError::ZeroUp(_) => "up",
+            CameraError::Focal(_) => "focal",
+            CameraError::Height(_) => "height",
+            CameraError::ImageSize { .. }
+            | CameraError::ImageSizeMissing
+            | CameraError::ImageSizeMismatch { .. } => "image_size",
+        }
+    }
+}
+
+impl CameraCalibration {
+    /// The calibration of `camera`: `up` is the third column of its
+    /// world-to-camera rotation, the image size its resolution and the
+    /// height its centre's z. This assumes world z up with the floor at
+    /// z = 0 (as in Human3.6M and the CMU examples); for another world
+    /// frame, set `up` and `height` yourself. Values are rounded to `f32`;
+    /// distortion is dropped.
+    pub fn from_camera(camera: &Camera) -> Self {
+        let r = &camera.rotation;
+        CameraCalibration {
+            up: [r[0][2], r[1][2], r[2][2]].map(|v| v as f32),
+            focal: camera.focal.map(|v| v as f32),
+            principal: camera.principal.map(|v| v as f32),
+            image_size: Some((camera.width, camera.height)),
+            height: Some(camera.center[2] as f32),
+        }
+    }
+
+    /// Check the values the protocol requires: everything finite, `up`
+    /// non-zero, focal lengths > 0, a given image size positive, a given
+    /// height within [`MIN_CAMERA_HEIGHT`]..=[`MAX_CAMERA_HEIGHT`]. (The
+    /// server also refuses an optical axis more than 60 degrees off the
+    /// horizon; that is left to it.)
+    pub fn validate(&self) -> Result<(), CameraError> {
+        let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
+        for (field, values) in [
+            ("up", &self.up[..]),
+            ("focal", &self.focal[..]),
+            ("principal", &self.principal[..]),
+        ] {
+            if !finite(values) {
+                return Err(CameraError::NonFinite { field });
+            }
+        }
+        if self.up.iter().all(|&v| v == 0.0) {
+            return Err(CameraError::ZeroUp(self.up));
+        }
+        if !self.focal.iter().all(|&f| f > 0.0) {
+            return Err(CameraError::Focal(self.focal));
+        }
+        if let Some((width, height)) = self.image_size {
+            if width == 0 || height == 0 {
+                return Err(CameraError::ImageSize { width, height });
+            }
+        }
+        if let Some(height) = self.height {
+            if !height.is_finite() {
+                return Err(CameraError::NonFinite { field: "height" });
+            }
+            if !(MIN_CAMERA_HEIGHT..=MAX_CAMERA_HEIGHT).contains(&height) {
+                return Err(CameraError::Height(height));
+            }
+        }
+        Ok(())
+    }
+
+    /// [`validate`](Self::validate), and check that the image size fits
+    /// keypoints in `coordinates`: required for normalized ones, equal to
+    /// theirs (or absent) for pixels.
+    pub fn validate_for(&self, coordinates: Coordinates) -> Result<(), CameraError> {
+        self.validate()?;
+        match (coordinates, self.image_size) {
+            (Coordinates::Normalized, None) => Err(CameraError::ImageSizeMissing),
+            (Coordinates::Pixels { width, height }, Some((cw, ch)))
+                if (cw, ch) != (width, height) =>
+            {
+                Err(CameraError::ImageSizeMismatch {
+                    camera_width: cw,
+                    camera_height: ch,
+                    width,
+                    height,
+                })
+            }
+            _ => Ok(()),
+        }
+    }
+
+    /// The wire message.
+    pub fn to_proto(&self) -> pb::CameraCalibration {
+        pb::CameraCalibration {
+            up: self.up.to_vec(),
+            focal_x: self.focal[0],
+            focal_y: self.focal[1],
+            principal_x: self.principal[0],
+            principal_y: self.principal[1],
+            image_size: self
+                .image_size
+                .map(|(width, height)| pb::ImageSize { width, height }),
+            height: self.height.unwrap_or(0.0),
+        }
+    }
+
+    /// Parse the wire message (as echoed by the server). Only the shape is
+    /// checked (`up` must have 3 values); see [`validate`](Self::validate).
+    /// A height of 0 is "not given" (`None`).
+    pub fn from_proto(msg: &pb::CameraCalibration) -> Result<Self, ClientError> {
+        let up: [f32; 3] = msg.up.as_slice().try_into().map_err(|_| {
+            ClientError::Protocol(format!("camera.up has {} values, expected 3", msg.up.len()))
+        })?;
+        Ok(CameraCalibration {
+            up,
+            focal: [msg.focal_x, msg.focal_y],
+            principal: [msg.principal_x, msg.principal_y],
+            image_size: msg.image_size.map(|s| (s.width, s.height)),
+            height: (msg.height != 0.0).then_some(msg.height),
+        })
+    }
+}
+
+impl fmt::Display for CameraCalibration {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "up [{:.3}, {:.3}, {:.3}], focal [{}, {}] px, principal [{}, {}] px",
+            self.up[0],
+            self.up[1],
+            self.up[2],
+            self.focal[0],
+            self.focal[1],
+            self.principal[0],
+            self.principal[1]
+        )?;
+        if let Some((w, h)) = self.image_size {
+            write!(f, ", image {w}x{h}")?;
+        }
+        if let Some(height) = self.height {
+            write!(f, ", height {height} m")?;
+        }
+        Ok(())
     }
 }
 
@@ -285,6 +512,9 @@ pub struct SessionInfo {
     /// The server lifter lifting this session's poses; `None` when the
     /// client sends them.
     pub lifter: Option<String>,
+    /// The session's camera calibration as opened: `Some` when the session
+    /// is served by the camera-aware model, `None` for the default one.
+    pub camera: Option<CameraCalibration>,
 }
 
 impl SessionInfo {
@@ -305,6 +535,11 @@ impl SessionInfo {
             model,
             ttl: Duration::from_millis(msg.session_ttl_ms),
             lifter: (!msg.lifter.is_empty()).then_some(msg.lifter),
+            camera: msg
+                .camera
+                .as_ref()
+                .map(CameraCalibration::from_proto)
+                .transpose()?,
         })
     }
 }
@@ -359,6 +594,9 @@ pub struct ModelDescription {
     pub weights_sha256: String,
     /// Safetensors metadata.
     pub metadata: BTreeMap<String, String>,
+    /// True: serves the sessions and requests that send a
+    /// [`CameraCalibration`]; false: the others.
+    pub camera_aware: bool,
 }
 
 /// The server's lifter (sessions may ask it to lift their poses).
@@ -421,6 +659,7 @@ impl ModelInfo {
                     weights_source: m.weights_source,
                     weights_sha256: m.weights_sha256,
                     metadata: m.metadata.into_iter().collect(),
+                    camera_aware: m.camera_aware,
                 })
                 .collect(),
             layouts: msg
@@ -468,8 +707,22 @@ impl fmt::Display for ModelInfo {
         )?;
         for m in &self.models {
             let kind = m.model.map_or("unknown", |k| k.as_str());
-            writeln!(f, "model {kind}:")?;
+            let family = if m.camera_aware {
+                " (camera-aware)"
+            } else {
+                ""
+            };
+            writeln!(f, "model {kind}{family}:")?;
             writeln!(f, "  name:       {}", m.name)?;
+            writeln!(
+                f,
+                "  camera:     {}",
+                if m.camera_aware {
+                    "aware (serves sessions and requests that send a camera calibration)"
+                } else {
+                    "default (serves sessions and requests without a camera calibration)"
+                }
+            )?;
             writeln!(f, "  parameters: {}", m.parameter_count)?;
             writeln!(f, "  hidden:     {}", m.hidden_size)?;
             writeln!(
@@ -646,6 +899,316 @@ mod tests {
         assert_eq!(p.frame_index, 9);
         let keypoints_only = FrameInput { pose_3d: None, ..f };
         assert!(keypoints_only.to_proto().pose_3d.is_empty());
+    }
+
+    fn calibration() -> CameraCalibration {
+        CameraCalibration {
+            up: [0.01, -0.98, 0.2],
+            focal: [1145.5, 1146.25],
+            principal: [512.5, 515.0],
+            image_size: Some((1000, 1002)),
+            height: Some(1.75),
+        }
+    }
+
+    #[test]
+    fn camera_calibration_round_trips_through_the_wire_message() {
+        let c = calibration();
+        let msg = c.to_proto();
+        assert_eq!(msg.up, vec![0.01, -0.98, 0.2]);
+        assert_eq!((msg.focal_x, msg.focal_y), (1145.5, 1146.25));
+        assert_eq!((msg.principal_x, msg.principal_y), (512.5, 515.0));
+        assert_eq!(
+            msg.image_size,
+            Some(pb::ImageSize {
+                width: 1000,
+                height: 1002
+            })
+        );
+        assert_eq!(msg.height, 1.75);
+        assert_eq!(CameraCalibration::from_proto(&msg).unwrap(), c);
+        let no_size = CameraCalibration {
+            image_size: None,
+            ..c
+        };
+        assert_eq!(no_size.to_proto().image_size, None);
+        assert_eq!(
+            CameraCalibration::from_proto(&no_size.to_proto()).unwrap(),
+            no_size
+        );
+        for up in [vec![], vec![0.0, -1.0], vec![0.0, -1.0, 0.0, 1.0]] {
+            let msg = pb::CameraCalibration { up, ..msg.clone() };
+            let err = CameraCalibration::from_proto(&msg).unwrap_err();
+            assert!(
+                matches!(&err, ClientError::Protocol(m) if m.contains("camera.up")),
+                "{err}"
+            );
+        }
+    }
+
+    #[test]
+    fn camera_height_is_sent_as_zero_when_not_given() {
+        let c = calibration();
+        // Given: sent as is, read back as Some.
+        let msg = c.to_proto();
+        assert_eq!(msg.height, 1.75);
+        let back = CameraCalibration::from_proto(&msg).unwrap();
+        assert_eq!(back.height, Some(1.75));
+        // Not given: 0 on the wire, None again when read back.
+        let unknown = CameraCalibration { height: None, ..c };
+        let msg = unknown.to_proto();
+        assert_eq!(msg.height, 0.0);
+        assert_eq!(
+            CameraCalibration::from_proto(&msg).unwrap(),
+            unknown,
+            "0 is read as not given"
+        );
+        // A message that leaves the field out (older senders) has no height.
+        let old = pb::CameraCalibration {
+            up: vec![0.0, -1.0, 0.0],
+            focal_x: 1000.0,
+            focal_y: 1000.0,
+            ..Default::default()
+        };
+        assert_eq!(CameraCalibration::from_proto(&old).unwrap().height, None);
+        // Any other value is kept for validate to judge.
+        let odd = pb::CameraCalibration {
+            height: 50.0,
+            ..c.to_proto()
+        };
+        assert_eq!(
+            CameraCalibration::from_proto(&odd).unwrap().height,
+            Some(50.0)
+        );
+    }
+
+    #[test]
+    fn camera_height_is_checked_and_named() {
+        let c = calibration();
+        for ok in [
+            None,
+            Some(MIN_CAMERA_HEIGHT),
+            Some(1.4),
+            Some(MAX_CAMERA_HEIGHT),
+        ] {
+            CameraCalibration { height: ok, ..c }
+                .validate()
+                .unwrap_or_else(|e| panic!("{ok:?}: {e}"));
+        }
+        for bad in [
+            f32::NAN,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            0.1,
+            50.0,
+            0.0,
+            -1.4,
+            0.29,
+            10.01,
+        ] {
+            let cal = CameraCalibration {
+                height: Some(bad),
+                ..c
+            };
+            let err = cal.validate().unwrap_err();
+            assert_eq!(err.field(), "height", "{bad}: {err}");
+            assert!(err.to_string().contains("height"), "{err}");
+            if bad.is_finite() {
+                assert_eq!(err, CameraError::Height(bad));
+            } else {
+                assert_eq!(err, CameraError::NonFinite { field: "height" });
+            }
+            // validate_for checks it too.
+            assert_eq!(cal.validate_for(Coordinates::Normalized).unwrap_err(), err);
+        }
+    }
+
+    #[test]
+    fn camera_display_shows_the_height_when_given() {
+        let c = calibration();
+        let text = c.to_string();
+        assert!(text.ends_with(", image 1000x1002, height 1.75 m"), "{text}");
+        let text = CameraCalibration { height: None, ..c }.to_string();
+        assert!(!text.contains("height"), "{text}");
+        assert!(text.ends_with(", image 1000x1002"), "{text}");
+    }
+
+    #[test]
+    fn camera_values_are_checked_and_the_field_named() {
+        let c = calibration();
+        c.validate().unwrap();
+        let cases = [
+            (
+                CameraCalibration {
+                    focal: [0.0, 1000.0],
+                    ..c
+                },
+                "focal",
+            ),
+            (
+                CameraCalibration {
+                    focal: [1000.0, -3.0],
+                    ..c
+                },
+                "focal",
+            ),
+            (
+                CameraCalibration {
+                    focal: [f32::NAN, 1000.0],
+                    ..c
+                },
+                "focal",
+            ),
+            (
+                CameraCalibration {
+                    up: [0.0, f32::INFINITY, 0.0],
+                    ..c
+                },
+                "up",
+            ),
+            (CameraCalibration { up: [0.0; 3], ..c }, "up"),
+            (
+                CameraCalibration {
+                    principal: [500.0, f32::NEG_INFINITY],
+                    ..c
+                },
+                "principal",
+            ),
+            (
+                CameraCalibration {
+                    image_size: Some((0, 1000)),
+                    ..c
+                },
+                "image_size",
+            ),
+        ];
+        for (bad, field) in cases {
+            let err = bad.validate().unwrap_err();
+            assert_eq!(err.field(), field, "{bad:?}: {err}");
+            assert!(err.to_string().contains(field), "{err}");
+        }
+        // The image size against the keypoints' coordinates.
+        c.validate_for(Coordinates::Pixels {
+            width: 1000,
+            height: 1002,
+        })
+        .unwrap();
+        c.validate_for(Coordinates::Normalized).unwrap();
+        assert!(matches!(
+            c.validate_for(Coordinates::Pixels {
+                width: 1002,
+                height: 1000
+            }),
+            Err(CameraError::ImageSizeMismatch { .. })
+        ));
+        let no_size = CameraCalibration {
+            image_size: None,
+            ..c
+        };
+        no_size
+            .validate_for(Coordinates::Pixels {
+                width: 640,
+                height: 480,
+            })
+            .unwrap();
+        assert_eq!(
+            no_size.validate_for(Coordinates::Normalized),
+            Err(CameraError::ImageSizeMissing)
+        );
+    }
+
+    #[test]
+    fn calibration_from_a_camera_takes_the_third_column_as_up() {
+        // Looking along world +y, tilted 10 degrees down: R is not
+        // symmetric, so a row would give a different vector.
+        let (s, c) = 10f64.to_radians().sin_cos();
+        let forward = [0.0, c, -s];
+        let right = [1.0, 0.0, 0.0];
+        let down = [0.0, -s, -c];
+        let camera = Camera {
+            id: "t".into(),
+            rotation: [right, down, forward],
+            center: [0.0, -5.0, 1.4],
+            focal: [1150.0, 1149.0],
+            principal: [500.0, 499.0],
+            radial: [0.0; 3],
+            tangential: [0.0; 2],
+            width: 1000,
+            height: 998,
+        };
+        camera.validate().unwrap();
+        let cal = CameraCalibration::from_camera(&camera);
+        // World up (0, 0, 1) as a direction in camera coordinates.
+        let a = camera.world_to_camera([0.3, 0.2, 1.0]);
+        let b = camera.world_to_camera([0.3, 0.2, 2.0]);
+        for k in 0..3 {
+            assert!(
+                (f64::from(cal.up[k]) - (b[k] - a[k])).abs() < 1e-6,
+                "{:?} vs {:?}",
+                cal.up,
+                [b[0] - a[0], b[1] - a[1], b[2] - a[2]]
+            );
+        }
+        assert!(cal.up[1] < 0.0, "up points to smaller image y");
+        assert_eq!(cal.focal, [1150.0, 1149.0]);
+        assert_eq!(cal.principal, [500.0, 499.0]);
+        assert_eq!(cal.image_size, Some((1000, 998)));
+        // World z up with the floor at z = 0: the centre's z.
+        assert_eq!(cal.height, Some(1.4));
+        let high = Camera {
+            center: [0.0, -5.0, 3.25],
+            ..camera.clone()
+        };
+        assert_eq!(CameraCalibration::from_camera(&high).height, Some(3.25));
+        cal.validate().unwrap();
+    }
+
+    #[test]
+    fn session_info_and_model_info_carry_the_camera_family() {
+        let opened = pb::SessionOpened {
+            session_id: "ab".into(),
+            input_format: Some(InputFormat::pixels(KeypointLayout::H36m17, 1000, 1002).to_proto()),
+            model: pb::Model::OnlineGru as i32,
+            ..Default::default()
+        };
+        assert_eq!(
+            SessionInfo::from_proto(opened.clone()).unwrap().camera,
+            None
+        );
+        let with_camera = pb::SessionOpened {
+            camera: Some(calibration().to_proto()),
+            ..opened.clone()
+        };
+        assert_eq!(
+            SessionInfo::from_proto(with_camera).unwrap().camera,
+            Some(calibration())
+        );
+        let broken = pb::SessionOpened {
+            camera: Some(pb::CameraCalibration::default()),
+            ..opened
+        };
+        assert!(matches!(
+            SessionInfo::from_proto(broken),
+            Err(ClientError::Protocol(_))
+        ));
+
+        let model = |camera_aware| pb::ModelDescription {
+            model: pb::Model::OnlineGru as i32,
+            name: "bone_length_gru".into(),
+            camera_aware,
+            ..Default::default()
+        };
+        let info = ModelInfo::from_proto(pb::ModelInfoResponse {
+            models: vec![model(false), model(true)],
+            ..Default::default()
+        });
+        let aware: Vec<bool> = info.models.iter().map(|m| m.camera_aware).collect();
+        assert_eq!(aware, [false, true]);
+        let text = info.to_string();
+        assert!(text.contains("model gru:"), "{text}");
+        assert!(text.contains("model gru (camera-aware):"), "{text}");
+        assert_eq!(text.matches("camera:     aware").count(), 1, "{text}");
+        assert_eq!(text.matches("camera:     default").count(), 1, "{text}");
     }
 
     #[test]

@@ -20,9 +20,12 @@ use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 use std::time::Duration;
 
-use blapose_client::{Client, ClientConfig, Coordinates, KeypointLayout, Sequence};
+use blapose_client::{
+    CameraCalibration, Client, ClientConfig, Coordinates, KeypointLayout, Sequence,
+};
 use blapose_core::bones::adjust_pose;
 use blapose_core::camera::normalize_screen;
+use blapose_core::level::LevelCamera;
 use blapose_core::skeleton::NUM_BONES;
 use blapose_core::{BoneLengths, Keypoints2d, Pose};
 use blapose_lifters::trained::{self, VideoPoseArch};
@@ -287,6 +290,20 @@ pub fn synthetic_sequence(seed: u64, frames: usize, layout: KeypointLayout) -> S
         gt_3d: Some(pose_3d.clone()),
         pose_3d,
         fps: Some(50.0),
+        camera: None,
+    }
+}
+
+/// A camera 14 degrees down, off-centre principal point, for the
+/// synthetic sequences' 1000 x 1002 images.
+pub fn test_camera() -> CameraCalibration {
+    let tilt = 14f32.to_radians();
+    CameraCalibration {
+        up: [0.02, -tilt.cos(), -tilt.sin()],
+        focal: [1150.0, 1148.0],
+        principal: [508.0, 497.0],
+        image_size: None,
+        height: Some(1.45),
     }
 }
 
@@ -318,7 +335,10 @@ impl Reference {
         }
     }
 
-    /// Normalized Human3.6M-17 model input of every frame (`T x 34`).
+    /// Normalized Human3.6M-17 model input of every frame (`T x 34`),
+    /// rectified with the sequence's camera when it has one (the test
+    /// server's camera-aware models are the same random weights, so a
+    /// calibrated session differs only by that).
     pub fn model_inputs(seq: &Sequence) -> Vec<f32> {
         let layout = seq.input_format.layout;
         let per_frame = layout.num_joints() * 2;
@@ -334,7 +354,30 @@ impl Reference {
                 out.extend_from_slice(&n);
             }
         }
+        if let Some(camera) = &seq.camera {
+            Reference::level_camera(seq, camera).rectify_frames(&mut out);
+        }
         out
+    }
+
+    /// The level twin the server builds from a session's calibration.
+    fn level_camera(seq: &Sequence, camera: &CameraCalibration) -> LevelCamera {
+        let (width, height) = camera
+            .image_size
+            .unwrap_or(match seq.input_format.coordinates {
+                Coordinates::Pixels { width, height } => (width, height),
+                Coordinates::Normalized => {
+                    panic!("a normalized sequence's camera needs an image size")
+                }
+            });
+        LevelCamera::from_pixels(
+            camera.up.map(f64::from),
+            camera.focal.map(f64::from),
+            camera.principal.map(f64::from),
+            width,
+            height,
+        )
+        .expect("valid camera")
     }
 
     /// Online results for `seq` from a fresh state: adjusted poses and the

@@ -36,6 +36,7 @@ fn open_request(
             model: model as i32,
             client_label: "hostile".into(),
             server_lifter: false,
+            camera: None,
         })),
     }
 }
@@ -395,6 +396,7 @@ async fn bad_offline_requests_are_invalid_argument() {
         keypoints_2d: seq.keypoints_2d.clone(),
         confidence: vec![],
         poses_3d: seq.pose_3d.as_flattened().as_flattened().to_vec(),
+        camera: None,
     };
     client
         .adjust_sequence_raw(good.clone())

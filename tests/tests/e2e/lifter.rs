@@ -31,6 +31,7 @@ fn lifting() -> SessionOptions<'static> {
     SessionOptions {
         label: Some("lifting"),
         server_lifter: true,
+        ..Default::default()
     }
 }
 

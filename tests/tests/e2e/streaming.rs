@@ -7,7 +7,8 @@ use blapose_client::{
     adjust_offline, replay, KeypointLayout, ModelChoice, ReplayOptions, SessionEvent,
 };
 use blapose_tests::{
-    lengths_diff, pose_diff, synthetic_sequence, test_config, Reference, TestServer, TOLERANCE,
+    lengths_diff, pose_diff, synthetic_sequence, test_camera, test_config, Reference, TestServer,
+    TOLERANCE,
 };
 use tokio::task::JoinSet;
 
@@ -30,7 +31,11 @@ async fn concurrent_sessions_match_the_library_path() {
         let client = client.clone();
         let layout = layouts[s as usize % layouts.len()];
         tasks.spawn(async move {
-            let seq = synthetic_sequence(1000 + s, FRAMES, layout);
+            let mut seq = synthetic_sequence(1000 + s, FRAMES, layout);
+            // Every other session sends a camera: the camera-aware model.
+            if s % 2 == 1 {
+                seq.camera = Some(test_camera());
+            }
             let options = ReplayOptions {
                 window: 8,
                 label: Some(format!("e2e-{s}")),
@@ -54,6 +59,7 @@ async fn concurrent_sessions_match_the_library_path() {
                 "session {s} frame {t}: pose diff {dp}, length diff {dl}"
             );
         }
+        assert_eq!(result.camera, seq.camera, "session {s} echoes its camera");
         let summary = result.session.expect("stream result has a session");
         assert_eq!(summary.frames_seen, FRAMES as u64);
         let last = summary.bone_lengths.expect("final lengths");
@@ -123,12 +129,14 @@ async fn offline_rpc_matches_the_library_path() {
     let server = TestServer::start(test_config()).await;
     let client = server.client().await;
     let reference = Reference::new();
-    for (seed, layout) in [
-        (11, KeypointLayout::H36m17),
-        (12, KeypointLayout::Sh16),
-        (13, KeypointLayout::Coco17),
+    for (seed, layout, camera) in [
+        (11, KeypointLayout::H36m17, None),
+        (12, KeypointLayout::Sh16, None),
+        (13, KeypointLayout::Coco17, None),
+        (14, KeypointLayout::H36m17, Some(test_camera())),
     ] {
-        let seq = synthetic_sequence(seed, 75, layout);
+        let mut seq = synthetic_sequence(seed, 75, layout);
+        seq.camera = camera;
 
         let bigru = adjust_offline(&client, &seq, ModelChoice::OfflineBiGru)
             .await
@@ -143,6 +151,14 @@ async fn offline_rpc_matches_the_library_path() {
             );
         }
         assert_eq!(bigru.adjusted.len(), seq.len());
+        if seq.camera.is_some() {
+            // The rectification changed what the model read.
+            let plain = blapose_client::Sequence {
+                camera: None,
+                ..seq.clone()
+            };
+            assert!(lengths_diff(&reference.offline(&plain).1, &lengths) > 1e-4);
+        }
 
         // The online model through the offline RPC gives what a stream gives.
         let gru = adjust_offline(&client, &seq, ModelChoice::OnlineGru)
