@@ -375,8 +375,10 @@ async fn model_info_describes_the_server_lifter() {
         "{:?}",
         l.metadata
     );
-    // The bone-length models are described as before.
-    assert_eq!(info.models.len(), 2);
+    // The bone-length models are described as before: the default pair and
+    // the camera-aware pair.
+    assert_eq!(info.models.len(), 4);
+    assert_eq!(info.models.iter().filter(|m| m.camera_aware).count(), 2);
     let text = format!("{}", client.model_info().await.expect("info"));
     assert!(text.contains(TEST_LIFTER_NAME), "{text}");
     server.shutdown().await;
