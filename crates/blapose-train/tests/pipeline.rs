@@ -359,6 +359,39 @@ fn a_camera_subset_draws_through_those_cameras_only() {
 }
 
 #[test]
+fn height_normalized_targets_are_seen_from_the_reference_height() {
+    let Some(f) = fixture() else { return };
+    let src = source(f, LengthStrategy::Ansur);
+    let rectified = SynthConfig {
+        seq_len: 8,
+        rectify: true,
+        ..Default::default()
+    };
+    let normalized = SynthConfig {
+        height_normalized: true,
+        ..rectified
+    };
+    for i in 0..16 {
+        let plain = src.sample(&rectified, &mut sample_rng(7, 0, i));
+        let scaled = src.sample(&normalized, &mut sample_rng(7, 0, i));
+        // Same picture, same camera; the target as a 1.56 m camera sees it.
+        assert_eq!(plain.input, scaled.input);
+        let cam = &src.sequences()[plain.sequence].cameras[plain.camera];
+        let k = (blapose_core::level::REFERENCE_CAMERA_HEIGHT / cam.center[2]) as f32;
+        assert!((k - 1.0).abs() > 1e-3, "Human3.6M cameras are not at 1.56 m");
+        for (p, s) in plain.target.iter().zip(&scaled.target) {
+            assert!((p * k - s).abs() < 1e-6, "{p} * {k} vs {s}");
+        }
+    }
+    // Only with rectified keypoints.
+    let bad = SynthConfig {
+        rectify: false,
+        ..normalized
+    };
+    assert!(bad.validate().is_err());
+}
+
+#[test]
 fn samples_are_plausible_and_deterministic() {
     let Some(f) = fixture() else { return };
     let src = Arc::new(source(f, LengthStrategy::Uniform));
