@@ -33,9 +33,9 @@
 //! (with world z up and the floor at z = 0, its centre's z), 0.3 to 10;
 //! leave the key out when it is unknown (a 0 is refused, not read as
 //! "unknown"). Height-normalized camera-aware models scale their estimates
-//! by it (assuming 1.56 m without it); other models ignore it. A file with a
-//! calibration is served by the server's camera-aware models unless the
-//! client is told not to send it (`--no-camera`).
+//! by it (assuming 1.56 m without it); other models ignore it. The CLI sends a
+//! file's calibration only when told to (`--camera`); the server's
+//! camera-aware models then serve it.
 //!
 //! Loading checks everything a server would refuse (shapes, frame counts,
 //! non-finite values, image size, a partial or invalid calibration) and
