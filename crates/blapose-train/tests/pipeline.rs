@@ -378,7 +378,10 @@ fn height_normalized_targets_are_seen_from_the_reference_height() {
         assert_eq!(plain.input, scaled.input);
         let cam = &src.sequences()[plain.sequence].cameras[plain.camera];
         let k = (blapose_core::level::REFERENCE_CAMERA_HEIGHT / cam.center[2]) as f32;
-        assert!((k - 1.0).abs() > 1e-3, "Human3.6M cameras are not at 1.56 m");
+        assert!(
+            (k - 1.0).abs() > 1e-3,
+            "Human3.6M cameras are not at 1.56 m"
+        );
         for (p, s) in plain.target.iter().zip(&scaled.target) {
             assert!((p * k - s).abs() < 1e-6, "{p} * {k} vs {s}");
         }
