@@ -16,6 +16,12 @@
 //! across sessions like the GRU step) and adjusted as a client's pose would
 //! be. Without the flag nothing about serving changes.
 //!
+//! Sessions and offline requests that send their camera's calibration
+//! (`CameraCalibration`) are served by a second, camera-aware model pair
+//! ([`models::Family::CameraAware`]): their keypoints are rectified to what a
+//! level camera at the same place would see (`blapose_core::level`) before
+//! the GRU step, in the same batcher as every other session.
+//!
 //! Module map, one concern each:
 //! [`config`] (flags and [`ServerConfig`]), [`session`] (store, TTL, resume),
 //! [`batcher`] (queue and batched steps on a dedicated thread), [`backend`]
