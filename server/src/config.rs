@@ -26,6 +26,13 @@ pub enum WeightsSource {
     File(PathBuf),
 }
 
+impl WeightsSource {
+    /// The file a weights flag names, or the embedded weights without one.
+    pub fn from_flag(path: Option<PathBuf>) -> Self {
+        path.map_or(Self::Embedded, Self::File)
+    }
+}
+
 /// Log output format.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, ValueEnum)]
 pub enum LogFormat {
@@ -282,19 +289,11 @@ impl Cli {
         };
         ServerConfig {
             metrics_addr: (!self.no_metrics).then_some(self.metrics_addr),
-            weights: self
-                .weights
-                .map_or(WeightsSource::Embedded, WeightsSource::File),
-            bigru_weights: self
-                .bigru_weights
-                .map_or(WeightsSource::Embedded, WeightsSource::File),
+            weights: WeightsSource::from_flag(self.weights),
+            bigru_weights: WeightsSource::from_flag(self.bigru_weights),
             camera_aware: (!self.no_camera_aware).then(|| CameraAwareWeights {
-                gru: self
-                    .rectified_weights
-                    .map_or(WeightsSource::Embedded, WeightsSource::File),
-                bigru: self
-                    .rectified_bigru_weights
-                    .map_or(WeightsSource::Embedded, WeightsSource::File),
+                gru: WeightsSource::from_flag(self.rectified_weights),
+                bigru: WeightsSource::from_flag(self.rectified_bigru_weights),
             }),
             lifter_weights: self.lifter_weights,
             max_sessions: self.max_sessions,

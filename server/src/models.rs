@@ -28,55 +28,51 @@ use crate::config::WeightsSource;
 use crate::engine;
 use crate::error::ServerError;
 
-/// The embedded online GRU weights, if the build found them.
-pub fn embedded_gru() -> Option<&'static [u8]> {
-    #[cfg(blapose_embedded_gru)]
-    {
-        Some(include_bytes!(env!("BLAPOSE_EMBEDDED_GRU")))
-    }
-    #[cfg(not(blapose_embedded_gru))]
-    {
-        None
-    }
+/// `pub fn $name() -> Option<&'static [u8]>`: the weights file `build.rs`
+/// found for `$cfg` (its path in the environment variable `$env`), or
+/// `None` when the build had none.
+macro_rules! embedded_weights {
+    ($(#[$doc:meta])* $name:ident, $cfg:ident, $env:literal) => {
+        $(#[$doc])*
+        pub fn $name() -> Option<&'static [u8]> {
+            #[cfg($cfg)]
+            {
+                Some(include_bytes!(env!($env)))
+            }
+            #[cfg(not($cfg))]
+            {
+                None
+            }
+        }
+    };
 }
 
-/// The embedded offline Bi-GRU weights, if the build found them.
-pub fn embedded_bigru() -> Option<&'static [u8]> {
-    #[cfg(blapose_embedded_bigru)]
-    {
-        Some(include_bytes!(env!("BLAPOSE_EMBEDDED_BIGRU")))
-    }
-    #[cfg(not(blapose_embedded_bigru))]
-    {
-        None
-    }
-}
-
-/// The embedded camera-aware (rectified) online GRU weights, if the build
-/// found them.
-pub fn embedded_gru_rectified() -> Option<&'static [u8]> {
-    #[cfg(blapose_embedded_gru_rectified)]
-    {
-        Some(include_bytes!(env!("BLAPOSE_EMBEDDED_GRU_RECTIFIED")))
-    }
-    #[cfg(not(blapose_embedded_gru_rectified))]
-    {
-        None
-    }
-}
-
-/// The embedded camera-aware (rectified) offline Bi-GRU weights, if the
-/// build found them.
-pub fn embedded_bigru_rectified() -> Option<&'static [u8]> {
-    #[cfg(blapose_embedded_bigru_rectified)]
-    {
-        Some(include_bytes!(env!("BLAPOSE_EMBEDDED_BIGRU_RECTIFIED")))
-    }
-    #[cfg(not(blapose_embedded_bigru_rectified))]
-    {
-        None
-    }
-}
+embedded_weights!(
+    /// The embedded online GRU weights, if the build found them.
+    embedded_gru,
+    blapose_embedded_gru,
+    "BLAPOSE_EMBEDDED_GRU"
+);
+embedded_weights!(
+    /// The embedded offline Bi-GRU weights, if the build found them.
+    embedded_bigru,
+    blapose_embedded_bigru,
+    "BLAPOSE_EMBEDDED_BIGRU"
+);
+embedded_weights!(
+    /// The embedded camera-aware (rectified) online GRU weights, if the
+    /// build found them.
+    embedded_gru_rectified,
+    blapose_embedded_gru_rectified,
+    "BLAPOSE_EMBEDDED_GRU_RECTIFIED"
+);
+embedded_weights!(
+    /// The embedded camera-aware (rectified) offline Bi-GRU weights, if the
+    /// build found them.
+    embedded_bigru_rectified,
+    blapose_embedded_bigru_rectified,
+    "BLAPOSE_EMBEDDED_BIGRU_RECTIFIED"
+);
 
 /// Which family a model belongs to: the default one, fed keypoints as
 /// sent, or the camera-aware one, fed them rectified with the session's
@@ -90,16 +86,6 @@ pub enum Family {
 }
 
 impl Family {
-    /// The family serving a session or request with (`true`) or without a
-    /// camera calibration.
-    pub fn for_camera(has_camera: bool) -> Self {
-        if has_camera {
-            Self::CameraAware
-        } else {
-            Self::Default
-        }
-    }
-
     /// For messages.
     fn describe(self) -> &'static str {
         match self {

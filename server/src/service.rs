@@ -43,6 +43,16 @@ pub struct AppState {
     pub max_message_bytes: usize,
 }
 
+impl AppState {
+    /// The server's camera-aware models as [`validate::camera`] needs them:
+    /// `None` without any, else whether they are height-normalized.
+    pub fn camera_models(&self) -> Option<bool> {
+        self.provider
+            .camera_aware()
+            .map(|models| models.height_normalized())
+    }
+}
+
 impl std::fmt::Debug for AppState {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("AppState")
@@ -115,12 +125,7 @@ impl pb::pose_adjustment_server::PoseAdjustment for PoseService {
                 "AdjustSequence",
             );
         }
-        let camera_aware = self
-            .state
-            .provider
-            .camera_aware()
-            .map(|p| p.height_normalized());
-        let seq = match validate::sequence(request.get_ref(), camera_aware) {
+        let seq = match validate::sequence(request.get_ref(), self.state.camera_models()) {
             Ok(s) => s,
             Err(e) => return fail(e.to_status(), "AdjustSequence"),
         };

@@ -150,12 +150,8 @@ fn open_or_resume(
             } else {
                 None
             };
-            let camera = validate::camera(
-                open.camera.as_ref(),
-                &input,
-                state.provider.camera_aware().map(|p| p.height_normalized()),
-            )
-            .map_err(|e| e.to_status())?;
+            let camera = validate::camera(open.camera.as_ref(), &input, state.camera_models())
+                .map_err(|e| e.to_status())?;
             let label = truncate_label(&open.client_label);
             let attachment = state
                 .store
