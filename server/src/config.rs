@@ -91,6 +91,10 @@ pub struct ServerConfig {
     /// Frames that may wait in the batcher queue (all sessions together);
     /// beyond it frames are refused with RESOURCE_EXHAUSTED.
     pub queue_capacity: usize,
+    /// How long a new stream may take to send its first message (open or
+    /// resume) before it is ended with DEADLINE_EXCEEDED; without a limit a
+    /// silent client would hold its stream forever.
+    pub open_timeout: Duration,
     /// Frames one stream may have in flight before the server stops reading
     /// from it (HTTP/2 flow control then pushes back on the client).
     pub max_inflight_per_stream: usize,
@@ -123,6 +127,7 @@ impl Default for ServerConfig {
             max_batch: DEFAULT_MAX_BATCH,
             max_queue_delay: Duration::from_micros(DEFAULT_MAX_QUEUE_DELAY_US),
             queue_capacity: DEFAULT_QUEUE_CAPACITY,
+            open_timeout: Duration::from_secs(DEFAULT_OPEN_TIMEOUT_S),
             max_inflight_per_stream: DEFAULT_MAX_INFLIGHT,
             compute_threads: DEFAULT_COMPUTE_THREADS,
             weight_precision: Precision::F16,
@@ -143,6 +148,7 @@ const DEFAULT_MAX_INFLIGHT: usize = 64;
 const DEFAULT_COMPUTE_THREADS: usize = 1;
 const DEFAULT_MAX_MESSAGE_BYTES: usize = 4 * 1024 * 1024;
 const DEFAULT_SHUTDOWN_GRACE_S: u64 = 10;
+const DEFAULT_OPEN_TIMEOUT_S: u64 = 10;
 
 /// blapose-server: streaming BLAPose bone-length adjustment over gRPC.
 ///
@@ -218,6 +224,10 @@ pub struct Cli {
           value_parser = clap::value_parser!(u32).range(1..).map(|v| v as usize))]
     pub queue_capacity: usize,
 
+    /// How long a new stream may take to send its open or resume request; then DEADLINE_EXCEEDED.
+    #[arg(long, env = "BLAPOSE_OPEN_TIMEOUT", default_value = "10s", value_parser = parse_open_timeout)]
+    pub open_timeout: Duration,
+
     /// Frames one stream may have in flight before the server stops reading it (flow control).
     #[arg(long, env = "BLAPOSE_MAX_INFLIGHT_PER_STREAM", default_value_t = DEFAULT_MAX_INFLIGHT,
           value_parser = clap::value_parser!(u32).range(1..).map(|v| v as usize))]
@@ -275,12 +285,54 @@ pub struct Cli {
     #[arg(long, env = "BLAPOSE_SHUTDOWN_GRACE", default_value = "10s", value_parser = parse_duration)]
     pub shutdown_grace: Duration,
 
-    /// Act as a health-check client instead: query grpc.health.v1 at --addr, exit 0 if SERVING, else 1.
+    /// Act as a health-check client instead: query grpc.health.v1 at --addr, exit 0 if SERVING,
+    /// else 1. With --tls-cert it connects over TLS (see --tls-ca, --tls-domain).
     #[arg(long)]
     pub health_check: bool,
+
+    /// For --health-check over TLS: PEM of the CA to trust; default: the certificates in
+    /// --tls-cert (right for a self-signed certificate or a file with the full chain).
+    #[arg(long, env = "BLAPOSE_TLS_CA", value_name = "PEM")]
+    pub tls_ca: Option<PathBuf>,
+
+    /// For --health-check over TLS: the name to verify the server's certificate against
+    /// (one of its DNS names); default: localhost.
+    #[arg(long, env = "BLAPOSE_TLS_DOMAIN", value_name = "NAME")]
+    pub tls_domain: Option<String>,
 }
 
+/// How `--health-check` connects to a server with TLS on: it verifies the
+/// server's certificate as any client would (blapose-client takes the same
+/// `--tls-ca` and `--tls-domain`), trusting `ca` and checking `domain`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct HealthCheckTls {
+    /// PEM certificates to trust.
+    pub ca: PathBuf,
+    /// The name the certificate must be valid for.
+    pub domain: String,
+}
+
+/// The name `--health-check` checks the certificate against by default: it
+/// connects to the server's own port on the loopback interface.
+pub const DEFAULT_HEALTH_CHECK_DOMAIN: &str = "localhost";
+
 impl Cli {
+    /// How `--health-check` reaches a server these flags start: over TLS
+    /// when `--tls-cert` is set (the server then speaks nothing else),
+    /// trusting `--tls-ca` or else the certificate file itself, for the name
+    /// `--tls-domain` or else `localhost`; `None`: plaintext.
+    pub fn health_check_tls(&self) -> Option<HealthCheckTls> {
+        let cert = self.tls_cert.as_ref()?;
+        Some(HealthCheckTls {
+            ca: self.tls_ca.clone().unwrap_or_else(|| cert.clone()),
+            domain: self
+                .tls_domain
+                .clone()
+                .filter(|d| !d.is_empty())
+                .unwrap_or_else(|| DEFAULT_HEALTH_CHECK_DOMAIN.to_string()),
+        })
+    }
+
     /// The library configuration these flags describe.
     pub fn into_config(self) -> ServerConfig {
         let tls = match (self.tls_cert, self.tls_key) {
@@ -301,6 +353,7 @@ impl Cli {
             max_batch: self.max_batch,
             max_queue_delay: self.max_queue_delay,
             queue_capacity: self.queue_capacity,
+            open_timeout: self.open_timeout,
             max_inflight_per_stream: self.max_inflight_per_stream,
             compute_threads: self.compute_threads,
             weight_precision: self.weight_precision,
@@ -316,6 +369,15 @@ impl Cli {
 pub fn parse_precision(text: &str) -> Result<Precision, String> {
     text.parse()
         .map_err(|e: blapose_model::ModelError| e.to_string())
+}
+
+/// Parse `--open-timeout`: a [`parse_duration`] above zero (a zero
+/// deadline would refuse every stream).
+pub fn parse_open_timeout(text: &str) -> Result<Duration, String> {
+    match parse_duration(text)? {
+        Duration::ZERO => Err(format!("{text:?}: the open timeout must be above zero")),
+        d => Ok(d),
+    }
 }
 
 /// Parse a duration such as `60s`, `500ms`, `250us`, `5m`, `1h` or a bare
@@ -382,6 +444,8 @@ mod tests {
         assert_eq!(cfg.max_inflight_per_stream, def.max_inflight_per_stream);
         assert_eq!(cfg.max_message_bytes, def.max_message_bytes);
         assert_eq!(cfg.shutdown_grace, def.shutdown_grace);
+        assert_eq!(cfg.open_timeout, def.open_timeout);
+        assert_eq!(def.open_timeout, Duration::from_secs(10));
         assert_eq!(cfg.weights, WeightsSource::Embedded);
         assert_eq!(cfg.lifter_weights, None, "no server lifter unless asked");
         assert_eq!(def.lifter_weights, None);
@@ -432,6 +496,57 @@ mod tests {
             panic!("f8 is refused");
         };
         assert!(err.to_string().contains("f32 or f16"), "{err}");
+    }
+
+    #[test]
+    fn health_check_speaks_tls_exactly_when_the_server_does() {
+        let plain = Cli::try_parse_from(["blapose-server", "--health-check"]).unwrap();
+        assert_eq!(plain.health_check_tls(), None);
+        let tls = Cli::try_parse_from([
+            "blapose-server",
+            "--health-check",
+            "--tls-cert",
+            "c.pem",
+            "--tls-key",
+            "k.pem",
+        ])
+        .unwrap();
+        assert_eq!(
+            tls.health_check_tls(),
+            Some(HealthCheckTls {
+                ca: PathBuf::from("c.pem"),
+                domain: "localhost".into()
+            }),
+            "trusts the server's own certificate, for localhost"
+        );
+        let tls = Cli::try_parse_from([
+            "blapose-server",
+            "--health-check",
+            "--tls-cert",
+            "c.pem",
+            "--tls-key",
+            "k.pem",
+            "--tls-ca",
+            "ca.pem",
+            "--tls-domain",
+            "pose.example.com",
+        ])
+        .unwrap();
+        assert_eq!(
+            tls.health_check_tls(),
+            Some(HealthCheckTls {
+                ca: PathBuf::from("ca.pem"),
+                domain: "pose.example.com".into()
+            })
+        );
+    }
+
+    #[test]
+    fn open_timeout_parses_and_zero_is_refused() {
+        let cli = Cli::try_parse_from(["blapose-server", "--open-timeout", "250ms"]).unwrap();
+        assert_eq!(cli.into_config().open_timeout, Duration::from_millis(250));
+        assert!(Cli::try_parse_from(["blapose-server", "--open-timeout", "0"]).is_err());
+        assert!(Cli::try_parse_from(["blapose-server", "--open-timeout", "0s"]).is_err());
     }
 
     #[test]

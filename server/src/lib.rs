@@ -66,7 +66,7 @@ use tonic::transport::{Identity, Server, ServerTlsConfig};
 use tonic_health::ServingStatus;
 
 pub use config::CameraAwareWeights;
-pub use config::{Cli, LogFormat, ServerConfig, TlsFiles, WeightsSource};
+pub use config::{Cli, HealthCheckTls, LogFormat, ServerConfig, TlsFiles, WeightsSource};
 pub use error::ServerError;
 pub use models::{
     embedded_bigru, embedded_bigru_rectified, embedded_gru, embedded_gru_rectified, Family,
@@ -245,6 +245,7 @@ pub async fn spawn_with_provider(
         provider,
         lifter,
         draining: shutdown.child_token(),
+        open_timeout: config.open_timeout,
         max_inflight_per_stream: config.max_inflight_per_stream.max(1),
         max_message_bytes: config.max_message_bytes,
     });
@@ -349,11 +350,11 @@ pub async fn serve(
 }
 
 /// Query `grpc.health.v1` at `addr` (overall status). `Ok(true)` when
-/// SERVING. With `tls_ca`, connect over TLS trusting that PEM certificate
-/// (use the server's own certificate when it is self-signed).
+/// SERVING. With `tls`, connect over TLS and verify the server's certificate
+/// against `tls.ca` for the name `tls.domain` (see [`Cli::health_check_tls`]).
 pub async fn probe_health(
     addr: SocketAddr,
-    tls_ca: Option<&std::path::Path>,
+    tls: Option<&HealthCheckTls>,
 ) -> Result<bool, ServerError> {
     use tonic_health::pb::{
         health_check_response::ServingStatus as S, health_client::HealthClient, HealthCheckRequest,
@@ -370,19 +371,19 @@ pub async fn probe_health(
     } else {
         addr
     };
-    let scheme = if tls_ca.is_some() { "https" } else { "http" };
+    let scheme = if tls.is_some() { "https" } else { "http" };
     let mut endpoint = tonic::transport::Endpoint::from_shared(format!("{scheme}://{host}"))
         .map_err(ServerError::from)?
         .connect_timeout(Duration::from_secs(3))
         .timeout(Duration::from_secs(3));
-    if let Some(ca) = tls_ca {
-        let pem = std::fs::read(ca)
-            .map_err(|e| ServerError::Tls(format!("cannot read {}: {e}", ca.display())))?;
+    if let Some(tls) = tls {
+        let pem = std::fs::read(&tls.ca)
+            .map_err(|e| ServerError::Tls(format!("cannot read {}: {e}", tls.ca.display())))?;
         endpoint = endpoint
             .tls_config(
                 tonic::transport::ClientTlsConfig::new()
                     .ca_certificate(tonic::transport::Certificate::from_pem(pem))
-                    .domain_name("localhost"),
+                    .domain_name(tls.domain.clone()),
             )
             .map_err(ServerError::from)?;
     }

@@ -7,7 +7,8 @@ use clap::Parser;
 async fn main() -> anyhow::Result<()> {
     let cli = blapose_server::Cli::parse();
     if cli.health_check {
-        let serving = blapose_server::probe_health(cli.addr, cli.tls_cert.as_deref()).await;
+        let tls = cli.health_check_tls();
+        let serving = blapose_server::probe_health(cli.addr, tls.as_ref()).await;
         match serving {
             Ok(true) => std::process::exit(0),
             Ok(false) => {

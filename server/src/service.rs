@@ -37,6 +37,8 @@ pub struct AppState {
     pub lifter: Option<Arc<LoadedLifter>>,
     /// Cancelled when shutdown begins: streams stop reading and drain.
     pub draining: CancellationToken,
+    /// How long a new stream may take to send its open or resume.
+    pub open_timeout: std::time::Duration,
     /// Per-stream pipelining bound.
     pub max_inflight_per_stream: usize,
     /// Request size limit (reported by ModelInfo).

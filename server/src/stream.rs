@@ -78,8 +78,16 @@ pub async fn run(
     mut inbound: Streaming<pb::StreamRequest>,
     tx: mpsc::Sender<Outbound>,
 ) {
+    // A stream that never sends its first message would hold its task and
+    // connection slot forever: the open or resume has a deadline.
+    let open_timeout = state.open_timeout;
+    let first = async {
+        tokio::time::timeout(open_timeout, inbound.message())
+            .await
+            .unwrap_or_else(|_| Err(no_open_in_time(open_timeout)))
+    };
     let attachment = tokio::select! {
-        first = inbound.message() => match open_or_resume(&state, first) {
+        first = first => match open_or_resume(&state, first) {
             Ok(a) => a,
             Err(status) => {
                 metrics::error(status.code(), "Stream");
@@ -117,10 +125,23 @@ pub async fn run(
     .await;
 }
 
-fn shutting_down() -> Status {
+/// The status a stream ends with at shutdown. Sessions live in this
+/// server's memory only, so they end with it: resuming elsewhere (or here
+/// after a restart) finds no session.
+pub fn shutting_down() -> Status {
     Status::unavailable(
-        "the server is shutting down; resume or reopen the session on another server",
+        "the server is shutting down: every frame it received was answered, and its sessions \
+         end with it; reconnect later (or to another server) and open a new session",
     )
+}
+
+/// The status a stream ends with when its first message did not arrive
+/// within `waited` (`--open-timeout`).
+pub fn no_open_in_time(waited: std::time::Duration) -> Status {
+    Status::deadline_exceeded(format!(
+        "no open or resume request within {waited:?} of the stream starting \
+         (--open-timeout): send it as the first message"
+    ))
 }
 
 fn open_or_resume(

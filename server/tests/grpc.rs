@@ -555,6 +555,83 @@ async fn protocol_errors_end_the_stream_with_the_right_code() {
     server.shutdown().await.unwrap();
 }
 
+/// A stream that never sends its first message is ended at the open
+/// deadline, with a status that names the wait; an opened stream idle for
+/// longer is not affected (the deadline is for the first message only).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stream_that_never_opens_ends_at_the_open_deadline() {
+    let mut cfg = config();
+    cfg.open_timeout = Duration::from_millis(100);
+    let server = start(cfg, Duration::ZERO).await;
+    let mut c = client(server.local_addr()).await;
+    // Opened before the silent stream starts, so idle at least as long.
+    let (mut opened, _) = Conn::open(&mut c).await;
+    let mut silent = Conn::new(&mut c).await;
+    let status = silent.status().await;
+    assert_eq!(status.code(), Code::DeadlineExceeded, "{}", status.message());
+    assert!(
+        status.message().contains("no open or resume request within 100ms"),
+        "{}",
+        status.message()
+    );
+    opened.send(frame(0)).await;
+    assert_eq!(opened.frame().await.frames_seen, 1);
+    server.shutdown().await.unwrap();
+}
+
+/// A message that is not a valid protobuf of the method's request type is
+/// refused by tonic's decoder before any handler runs: INTERNAL, as in
+/// other gRPC implementations (the server README's error table says so).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_undecodable_message_is_internal() {
+    use blapose_proto::codec::SmallBufferCodec;
+    use tonic::codegen::http::uri::PathAndQuery;
+    let server = start(config(), Duration::ZERO).await;
+    let channel = tonic::transport::Endpoint::from_shared(format!("http://{}", server.local_addr()))
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    // A `Frame` has a varint at field 1, where `StreamRequest` and
+    // `AdjustSequenceRequest` have a message: their decoders refuse it.
+    let bogus = pb::Frame {
+        frame_index: 7,
+        ..Default::default()
+    };
+    let mut grpc = tonic::client::Grpc::new(channel);
+    grpc.ready().await.unwrap();
+    let stream = grpc
+        .streaming(
+            tonic::Request::new(tokio_stream::iter([bogus.clone()])),
+            PathAndQuery::from_static("/blapose.v1.PoseAdjustment/Stream"),
+            SmallBufferCodec::<pb::Frame, pb::StreamResponse>::default(),
+        )
+        .await;
+    let status = match stream {
+        Err(status) => status,
+        Ok(response) => response
+            .into_inner()
+            .message()
+            .await
+            .expect_err("an undecodable first message ends the stream"),
+    };
+    assert_eq!(status.code(), Code::Internal, "{}", status.message());
+    assert!(status.message().contains("decode"), "{}", status.message());
+
+    grpc.ready().await.unwrap();
+    let status = grpc
+        .unary(
+            tonic::Request::new(bogus),
+            PathAndQuery::from_static("/blapose.v1.PoseAdjustment/AdjustSequence"),
+            SmallBufferCodec::<pb::Frame, pb::AdjustSequenceResponse>::default(),
+        )
+        .await
+        .expect_err("an undecodable request is refused");
+    assert_eq!(status.code(), Code::Internal, "{}", status.message());
+    assert!(status.message().contains("decode"), "{}", status.message());
+    server.shutdown().await.unwrap();
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_dropped_stream_can_be_resumed_and_a_live_one_is_taken_over() {
     let server = start(config(), Duration::ZERO).await;
@@ -792,6 +869,15 @@ async fn shutdown_answers_frames_already_received() {
         }
     };
     assert_eq!(status.code(), Code::Unavailable, "{}", status.message());
+    // The text is true: sessions live in this server's memory and end with
+    // it, so there is nothing to resume elsewhere.
+    assert!(
+        status.message().contains("its sessions end with it")
+            && status.message().contains("open a new session")
+            && !status.message().contains("resume"),
+        "{}",
+        status.message()
+    );
     assert_eq!(
         answered, 40,
         "every frame received before shutdown is answered"

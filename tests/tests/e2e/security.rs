@@ -1,7 +1,7 @@
 //! Security: the bearer-token check and TLS, end to end through the client.
 
 use blapose_client::{Client, ClientConfig, KeypointLayout, TlsOptions};
-use blapose_server::{ServerConfig, TlsFiles};
+use blapose_server::{HealthCheckTls, ServerConfig, TlsFiles};
 use blapose_tests::{synthetic_sequence, test_config, TestServer};
 use tonic::Code;
 
@@ -111,6 +111,85 @@ async fn tls_with_a_private_ca() {
     let mut plain = ClientConfig::new(format!("http://127.0.0.1:{port}"));
     plain.connect_attempts = 1;
     assert!(is_refused(plain).await, "plaintext reached a TLS server");
+    server.shutdown().await;
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// `blapose-server --health-check` reaches a TLS server over TLS, as
+/// [`blapose_server::Cli::health_check_tls`] configures it from the flags
+/// that started the server: trusting the server's own certificate for
+/// `localhost` by default, or `--tls-ca` for `--tls-domain` (a private CA's
+/// certificate for another name).
+#[tokio::test]
+async fn health_check_reaches_a_tls_server() {
+    let dir = std::env::temp_dir().join(format!("blapose-tests-health-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let path = |name: &str| dir.join(name);
+    let check = |addr, ca: &str, domain: &str| {
+        let tls = HealthCheckTls {
+            ca: path(ca),
+            domain: domain.to_string(),
+        };
+        async move {
+            blapose_server::probe_health(addr, Some(&tls))
+                .await
+                .map_err(|e| e.to_string())
+        }
+    };
+
+    // 1. A self-signed certificate for localhost: the defaults (trust the
+    // certificate file, check "localhost") work.
+    let certified =
+        rcgen::generate_simple_self_signed(vec!["localhost".to_string()]).expect("certificate");
+    std::fs::write(path("self.pem"), certified.cert.pem()).expect("write cert");
+    std::fs::write(path("self.key"), certified.signing_key.serialize_pem()).expect("write key");
+    let server = TestServer::start(ServerConfig {
+        tls: Some(TlsFiles {
+            cert: path("self.pem"),
+            key: path("self.key"),
+        }),
+        ..test_config()
+    })
+    .await;
+    assert_eq!(check(server.addr, "self.pem", "localhost").await, Ok(true));
+    // What failed before: a plaintext check of a TLS server.
+    assert!(blapose_server::probe_health(server.addr, None)
+        .await
+        .is_err());
+    server.shutdown().await;
+
+    // 2. A private CA's certificate for another name, the file holding the
+    // server's certificate only.
+    let ca_key = rcgen::KeyPair::generate().expect("CA key");
+    let mut ca_params = rcgen::CertificateParams::new(Vec::<String>::new()).expect("CA params");
+    ca_params.is_ca = rcgen::IsCa::Ca(rcgen::BasicConstraints::Unconstrained);
+    let ca = rcgen::CertifiedIssuer::self_signed(ca_params, ca_key).expect("CA");
+    let leaf_key = rcgen::KeyPair::generate().expect("key");
+    let leaf = rcgen::CertificateParams::new(vec!["pose.example.test".to_string()])
+        .expect("params")
+        .signed_by(&leaf_key, &ca)
+        .expect("certificate");
+    std::fs::write(path("ca.pem"), ca.pem()).expect("write CA");
+    std::fs::write(path("leaf.pem"), leaf.pem()).expect("write cert");
+    std::fs::write(path("leaf.key"), leaf_key.serialize_pem()).expect("write key");
+    let server = TestServer::start(ServerConfig {
+        tls: Some(TlsFiles {
+            cert: path("leaf.pem"),
+            key: path("leaf.key"),
+        }),
+        ..test_config()
+    })
+    .await;
+    // Without the CA, or for the wrong name, the certificate is refused.
+    assert!(check(server.addr, "leaf.pem", "localhost").await.is_err());
+    assert!(check(server.addr, "ca.pem", "localhost").await.is_err());
+    assert!(check(server.addr, "leaf.pem", "pose.example.test")
+        .await
+        .is_err());
+    assert_eq!(
+        check(server.addr, "ca.pem", "pose.example.test").await,
+        Ok(true)
+    );
     server.shutdown().await;
     std::fs::remove_dir_all(&dir).ok();
 }
