@@ -28,11 +28,10 @@
 //! Modules: [`client`] (connection, unary calls), [`session`] (the
 //! bidirectional stream), [`types`] (typed messages), [`sequence`] (replay
 //! files), [`replay`](mod@replay) (whole-sequence drivers), [`report`] (before/after
-//! metrics) and [`example`] (the licence-clean example generator).
+//! metrics).
 
 pub mod client;
 pub mod error;
-pub mod example;
 pub mod replay;
 pub mod report;
 pub mod sequence;
@@ -44,7 +43,7 @@ pub use client::{
     DEFAULT_SERVER,
 };
 pub use error::ClientError;
-pub use replay::{adjust_offline, replay, Adjusted, ReplayOptions};
+pub use replay::{adjust_offline, replay, replay_session, Adjusted, ReplayOptions};
 pub use report::{evaluate, Evaluation, PoseMetrics};
 pub use sequence::{Sequence, SequenceError};
 pub use session::{EventReceiver, FrameRejection, FrameSender, Session, SessionEvent};

@@ -17,4 +17,4 @@ pub mod npz;
 pub mod root;
 
 pub use npz::{read_npz, write_npz, Array, Npz, NpzError};
-pub use root::{data_root, test_data_root, DATA_ENV};
+pub use root::{data_root, running_in_ci, test_data_root, DATA_ENV};

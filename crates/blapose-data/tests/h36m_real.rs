@@ -97,7 +97,7 @@ fn for_each_frame(
 }
 
 #[test]
-fn all_poses_load_in_seconds() {
+fn all_poses_load() {
     let Some(all) = all_poses() else { return };
     let n: usize = all.poses.values().map(|a| a.len()).sum();
     let frames: usize = all
@@ -116,11 +116,6 @@ fn all_poses_load_in_seconds() {
     assert!(
         !all.poses["S9"].contains_key("Discussion 1"),
         "README: S9 Discussion 1 is missing"
-    );
-    assert!(
-        all.elapsed < Duration::from_secs(10),
-        "loading took {:?}",
-        all.elapsed
     );
 }
 

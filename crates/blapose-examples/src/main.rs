@@ -1,18 +1,18 @@
 //! `make-example`: build the licence-clean replay examples under `examples/`
-//! from the CMU motion clips (see `blapose_client::example` for the recipe).
+//! from the CMU motion clips (see the `blapose_examples` library for the recipe).
 //!
 //! ```text
-//! cargo run --release -p blapose-client --bin make-example -- \
+//! cargo run --release -p blapose-examples --bin make-example -- \
 //!     --cmu ../shared/data/cmu/cmu_h36m17.npz --out examples/
 //! ```
 
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
-use blapose_client::example::{clip_name_and_stature, make_example, ExampleConfig};
 use blapose_client::report::pose_metrics;
 use blapose_core::bones::adjust_sequence;
 use blapose_data::npz::{read_npz, write_npz};
+use blapose_examples::{clip_name_and_stature, make_example, ExampleConfig};
 use clap::Parser;
 
 /// Build replay examples (2D keypoints from a synthetic camera, a plausibly

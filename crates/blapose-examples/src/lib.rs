@@ -52,8 +52,8 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
 
-use crate::sequence::{Sequence, SequenceError};
-use crate::types::{CameraCalibration, InputFormat, KeypointLayout};
+use blapose_client::sequence::{Sequence, SequenceError};
+use blapose_client::types::{CameraCalibration, InputFormat, KeypointLayout};
 
 /// Bone lengths (metres) of the example person in the Human3.6M joint
 /// convention, bone order of [`blapose_core::skeleton::BONE_NAMES`]: hip
@@ -548,7 +548,7 @@ mod tests {
     /// whose `camera_height` is the camera centre's z (`camera_center`).
     #[test]
     fn committed_examples_carry_their_cameras_calibration() {
-        let examples = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples");
+        let examples = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../examples");
         for (_, stem, _) in CLIPS {
             let path = examples.join(format!("{stem}.npz"));
             let arrays = blapose_data::read_npz(&path).unwrap();
@@ -611,7 +611,7 @@ mod tests {
             return;
         };
         let cmu = blapose_data::read_npz(root.join("cmu/cmu_h36m17.npz")).unwrap();
-        let examples = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples");
+        let examples = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../examples");
         for (key, stem, _) in CLIPS {
             let (name, stature) = clip_name_and_stature(key);
             assert_eq!(name, stem);
