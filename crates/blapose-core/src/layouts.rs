@@ -61,10 +61,20 @@
 //! thorax 4.7 px, head 15.0 px. This bounds the error from below: real COCO
 //! hips sit lower and wider than Human3.6M's and a real nose is not
 //! Human3.6M's neck_nose, offsets this data cannot measure.
+//!
+//! # Input formats
+//!
+//! A client's keypoints are a layout plus a unit: pixels of an image of a
+//! known size, or normalized screen coordinates
+//! ([`crate::camera::normalize_screen`]). [`Coordinates`] and
+//! [`InputFormat`] are that pair, defined here once so the client library
+//! (which builds them) and the server (which validates and echoes them)
+//! share one type; `blapose-proto` converts them to and from the wire.
 
 use std::fmt;
 use std::str::FromStr;
 
+use crate::camera::normalize_screen;
 use crate::pose::Keypoints2d;
 use crate::skeleton::{joint_index, JOINT_NAMES, NUM_JOINTS};
 
@@ -306,6 +316,53 @@ fn coco17_to_h36m(points: &[[f32; 2]]) -> Keypoints2d {
     out
 }
 
+/// How keypoints are expressed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Coordinates {
+    /// Pixels of an image of this size (both > 0 where a format is
+    /// validated).
+    Pixels {
+        /// Image width in pixels.
+        width: u32,
+        /// Image height in pixels.
+        height: u32,
+    },
+    /// Already normalized screen coordinates (`x/w*2-1`, `y/w*2-h/w`).
+    Normalized,
+}
+
+impl Coordinates {
+    /// A point given in these coordinates, in normalized screen
+    /// coordinates: [`normalize_screen`] for pixels, unchanged otherwise.
+    #[inline]
+    pub fn normalize(self, point: [f32; 2]) -> [f32; 2] {
+        match self {
+            Coordinates::Pixels { width, height } => normalize_screen(point, width, height),
+            Coordinates::Normalized => point,
+        }
+    }
+}
+
+/// Layout plus coordinate convention of a session's (or a sequence's)
+/// keypoints; fixed for a session's life.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct InputFormat {
+    /// Joint order.
+    pub layout: KeypointLayout,
+    /// Pixels or normalized coordinates.
+    pub coordinates: Coordinates,
+}
+
+impl InputFormat {
+    /// Pixel keypoints of an image `width` x `height`.
+    pub const fn pixels(layout: KeypointLayout, width: u32, height: u32) -> Self {
+        InputFormat {
+            layout,
+            coordinates: Coordinates::Pixels { width, height },
+        }
+    }
+}
+
 impl fmt::Display for KeypointLayout {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(self.name())
@@ -351,6 +408,18 @@ mod tests {
         ));
         assert_eq!(KeypointLayout::Sh16.num_joints(), 16);
         assert_eq!(KeypointLayout::Coco17.num_joints(), 17);
+    }
+
+    #[test]
+    fn coordinates_normalize_pixels_only() {
+        let p = [250.0, 480.0];
+        let pixels = InputFormat::pixels(KeypointLayout::Sh16, 1000, 1002);
+        assert_eq!(pixels.layout, KeypointLayout::Sh16);
+        assert_eq!(
+            pixels.coordinates.normalize(p),
+            normalize_screen(p, 1000, 1002)
+        );
+        assert_eq!(Coordinates::Normalized.normalize(p), p);
     }
 
     #[test]

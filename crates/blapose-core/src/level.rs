@@ -26,8 +26,15 @@
 //! pixel is taken as the undistorted one): at Human3.6M's `k1 = -0.2` that
 //! moves points near the image edge by a few percent, the same in training
 //! and serving.
+//!
+//! The checks a calibration's values must pass ([`check_calibration`],
+//! [`check_image_size`], [`calibration_image_size`]) and the accepted
+//! camera heights ([`MIN_CAMERA_HEIGHT`] to [`MAX_CAMERA_HEIGHT`]) live here
+//! too, once: the server refuses what they refuse, and the client library
+//! runs the same checks before it sends a calibration.
 
 use crate::camera::Camera;
+use crate::layouts::Coordinates;
 use crate::pose::Keypoints2d;
 use crate::skeleton::NUM_JOINTS;
 
@@ -53,13 +60,31 @@ const MIN_FORWARD: f64 = 1e-3;
 /// undefined) and people fill little of a level camera's view.
 pub const MAX_TILT_DEG: f64 = 60.0;
 
-/// Why a calibration cannot be rectified.
+/// Lowest camera height (metres above the floor) a calibration may give.
+pub const MIN_CAMERA_HEIGHT: f32 = 0.3;
+/// Highest camera height (metres above the floor) a calibration may give.
+pub const MAX_CAMERA_HEIGHT: f32 = 10.0;
+
+/// Whether `height` metres is a camera height a calibration may give
+/// ([`MIN_CAMERA_HEIGHT`] to [`MAX_CAMERA_HEIGHT`]; never NaN). The wire's
+/// 0 ("not given") is the caller's to handle.
+pub fn is_camera_height(height: f32) -> bool {
+    (MIN_CAMERA_HEIGHT..=MAX_CAMERA_HEIGHT).contains(&height)
+}
+
+/// A calibration value that no camera can have. The checks behind it
+/// ([`check_calibration`], [`check_image_size`],
+/// [`calibration_image_size`]) are the protocol's, shared by the server
+/// (which also needs a [`LevelCamera`], so it refuses [`LevelError::TooSteep`]
+/// too) and the client library (which checks a calibration before sending
+/// it, leaving the tilt to the server). Each names its value in its own
+/// words; this error carries what they need.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum LevelError {
+pub enum CalibrationError {
     /// A value is NaN or infinite.
     #[error("{field} is not finite")]
     NonFinite {
-        /// Which value.
+        /// Which value: `up`, `focal` or `principal`.
         field: &'static str,
     },
     /// The up direction has (almost) no length.
@@ -82,6 +107,30 @@ pub enum LevelError {
         /// Height in pixels.
         height: u32,
     },
+    /// Normalized keypoints, but no image size to relate them to the
+    /// calibration's pixels.
+    #[error("an image size is required with normalized keypoints (the calibration is in pixels)")]
+    ImageSizeMissing,
+    /// The calibration's image size differs from the pixel keypoints'.
+    #[error("the calibration's image size {camera_width}x{camera_height} differs from the keypoints' {width}x{height}")]
+    ImageSizeMismatch {
+        /// The calibration's width.
+        camera_width: u32,
+        /// The calibration's height.
+        camera_height: u32,
+        /// The keypoints' width.
+        width: u32,
+        /// The keypoints' height.
+        height: u32,
+    },
+}
+
+/// Why a calibration cannot be rectified.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum LevelError {
+    /// A value no camera can have.
+    #[error(transparent)]
+    Calibration(#[from] CalibrationError),
     /// The optical axis is too close to vertical.
     #[error("the optical axis is {tilt_deg:.1} degrees from the horizon; at most {MAX_TILT_DEG} is supported")]
     TooSteep {
@@ -89,6 +138,65 @@ pub enum LevelError {
         tilt_deg: f64,
     },
 }
+
+/// Check a calibration's values, in pixels or normalized units alike:
+/// everything finite (`up`, then `focal`, then `principal`), focal lengths
+/// positive, `up` of non-zero length. The tilt is not checked.
+pub fn check_calibration(
+    up: [f64; 3],
+    focal: [f64; 2],
+    principal: [f64; 2],
+) -> Result<(), CalibrationError> {
+    finite("up", &up)?;
+    finite("focal", &focal)?;
+    finite("principal", &principal)?;
+    if !(focal[0] > 0.0 && focal[1] > 0.0) {
+        return Err(CalibrationError::InvalidFocal { focal });
+    }
+    if dot(&up, &up).sqrt() <= MIN_UP_NORM {
+        return Err(CalibrationError::ZeroUp { up });
+    }
+    Ok(())
+}
+
+/// Check a calibration's image size: both sides positive.
+pub fn check_image_size(width: u32, height: u32) -> Result<(), CalibrationError> {
+    if width == 0 || height == 0 {
+        Err(CalibrationError::InvalidImageSize { width, height })
+    } else {
+        Ok(())
+    }
+}
+
+/// The image size a calibration's pixels refer to, for keypoints in
+/// `coordinates`: `given` by the calibration, required with normalized
+/// keypoints; with pixel keypoints the keypoints' image, which a `given`
+/// size must equal. (Not checked for zero sides: see [`check_image_size`].)
+pub fn calibration_image_size(
+    coordinates: Coordinates,
+    given: Option<(u32, u32)>,
+) -> Result<(u32, u32), CalibrationError> {
+    match (coordinates, given) {
+        (Coordinates::Normalized, None) => Err(CalibrationError::ImageSizeMissing),
+        (Coordinates::Normalized, Some(size)) => Ok(size),
+        (Coordinates::Pixels { width, height }, None) => Ok((width, height)),
+        (Coordinates::Pixels { width, height }, Some((cw, ch))) => {
+            if (cw, ch) == (width, height) {
+                Ok((width, height))
+            } else {
+                Err(CalibrationError::ImageSizeMismatch {
+                    camera_width: cw,
+                    camera_height: ch,
+                    width,
+                    height,
+                })
+            }
+        }
+    }
+}
+
+/// Length of an up direction below which it is taken as having none.
+const MIN_UP_NORM: f64 = 1e-9;
 
 fn dot(a: &[f64; 3], b: &[f64; 3]) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
@@ -102,11 +210,11 @@ fn cross(a: &[f64; 3], b: &[f64; 3]) -> [f64; 3] {
     ]
 }
 
-fn finite(field: &'static str, values: &[f64]) -> Result<(), LevelError> {
+fn finite(field: &'static str, values: &[f64]) -> Result<(), CalibrationError> {
     if values.iter().all(|v| v.is_finite()) {
         Ok(())
     } else {
-        Err(LevelError::NonFinite { field })
+        Err(CalibrationError::NonFinite { field })
     }
 }
 
@@ -129,16 +237,8 @@ impl LevelCamera {
     /// units: `focal` is `f * 2 / width`, `principal` the principal point
     /// in normalized screen coordinates.
     pub fn new(up: [f64; 3], focal: [f64; 2], principal: [f64; 2]) -> Result<Self, LevelError> {
-        finite("up", &up)?;
-        finite("focal", &focal)?;
-        finite("principal", &principal)?;
-        if !(focal[0] > 0.0 && focal[1] > 0.0) {
-            return Err(LevelError::InvalidFocal { focal });
-        }
+        check_calibration(up, focal, principal)?;
         let norm = dot(&up, &up).sqrt();
-        if norm <= 1e-9 {
-            return Err(LevelError::ZeroUp { up });
-        }
         let up = up.map(|v| v / norm);
         // The optical axis (camera z) with its vertical part removed.
         let horizontal = [-up[0] * up[2], -up[1] * up[2], 1.0 - up[2] * up[2]];
@@ -166,9 +266,7 @@ impl LevelCamera {
         width: u32,
         height: u32,
     ) -> Result<Self, LevelError> {
-        if width == 0 || height == 0 {
-            return Err(LevelError::InvalidImageSize { width, height });
-        }
+        check_image_size(width, height)?;
         let (w, h) = (f64::from(width), f64::from(height));
         Self::new(
             up,
@@ -325,15 +423,17 @@ mod tests {
         assert!(LevelCamera::new(ok.0, ok.1, ok.2).is_ok());
         assert_eq!(
             LevelCamera::new([0.0, f64::NAN, 0.0], ok.1, ok.2),
-            Err(LevelError::NonFinite { field: "up" })
+            Err(CalibrationError::NonFinite { field: "up" }.into())
         );
         assert!(matches!(
             LevelCamera::new([0.0; 3], ok.1, ok.2),
-            Err(LevelError::ZeroUp { .. })
+            Err(LevelError::Calibration(CalibrationError::ZeroUp { .. }))
         ));
         assert!(matches!(
             LevelCamera::new(ok.0, [0.0, 1.0], ok.2),
-            Err(LevelError::InvalidFocal { .. })
+            Err(LevelError::Calibration(
+                CalibrationError::InvalidFocal { .. }
+            ))
         ));
         // Looking 70 degrees down.
         let steep = [0.0, -20f64.to_radians().sin(), -70f64.to_radians().sin()];
@@ -343,7 +443,51 @@ mod tests {
         ));
         assert!(matches!(
             LevelCamera::from_pixels(ok.0, [1000.0; 2], [500.0; 2], 0, 10),
-            Err(LevelError::InvalidImageSize { .. })
+            Err(LevelError::Calibration(
+                CalibrationError::InvalidImageSize { .. }
+            ))
         ));
+    }
+
+    #[test]
+    fn camera_heights_are_the_protocol_limits() {
+        for ok in [MIN_CAMERA_HEIGHT, 1.56, MAX_CAMERA_HEIGHT] {
+            assert!(is_camera_height(ok), "{ok}");
+        }
+        for bad in [0.0, 0.29, 10.01, -1.4, f32::NAN, f32::INFINITY] {
+            assert!(!is_camera_height(bad), "{bad}");
+        }
+    }
+
+    #[test]
+    fn the_image_size_must_fit_the_keypoints() {
+        let pixels = Coordinates::Pixels {
+            width: 1000,
+            height: 1002,
+        };
+        assert_eq!(calibration_image_size(pixels, None), Ok((1000, 1002)));
+        assert_eq!(
+            calibration_image_size(pixels, Some((1000, 1002))),
+            Ok((1000, 1002))
+        );
+        assert_eq!(
+            calibration_image_size(pixels, Some((1002, 1000))),
+            Err(CalibrationError::ImageSizeMismatch {
+                camera_width: 1002,
+                camera_height: 1000,
+                width: 1000,
+                height: 1002
+            })
+        );
+        assert_eq!(
+            calibration_image_size(Coordinates::Normalized, Some((640, 480))),
+            Ok((640, 480))
+        );
+        assert_eq!(
+            calibration_image_size(Coordinates::Normalized, None),
+            Err(CalibrationError::ImageSizeMissing)
+        );
+        assert_eq!(check_image_size(640, 480), Ok(()));
+        assert!(check_image_size(0, 480).is_err());
     }
 }

@@ -2,7 +2,10 @@
 //!
 //! Nothing here knows about neural networks or I/O formats: it is the
 //! Human3.6M skeleton, the bone decomposition that BLAPose adjusts, the
-//! Human3.6M camera model, the evaluation metrics and the 2D keypoint layouts.
+//! Human3.6M camera model, the evaluation metrics and the 2D keypoint layouts
+//! (with the input formats client and server share). One non-geometric
+//! module, [`isa`], is here because both crates with CPU kernels need it and
+//! this is the one crate they both depend on.
 //! Keeping it dependency-light lets the server, the trainer and the benchmarks
 //! share exactly one definition of each.
 //!
@@ -12,6 +15,7 @@
 
 pub mod bones;
 pub mod camera;
+pub mod isa;
 pub mod layouts;
 pub mod level;
 pub mod metrics;

@@ -76,6 +76,15 @@ pub fn poses_as_flat(poses: &[Pose]) -> &[f32] {
     poses.as_flattened().as_flattened()
 }
 
+/// Copy exactly `17 * 3` values, joint-major, into a pose; `None` for any
+/// other length.
+pub fn pose_from_flat(flat: &[f32]) -> Option<Pose> {
+    let flat: &[f32; NUM_JOINTS * 3] = flat.try_into().ok()?;
+    Some(std::array::from_fn(|j| {
+        [flat[3 * j], flat[3 * j + 1], flat[3 * j + 2]]
+    }))
+}
+
 /// Copy a flat `f32` buffer of `T * 17 * 3` values into poses; `None` when
 /// the length is not a multiple of 51.
 pub fn poses_from_flat(flat: &[f32]) -> Option<Vec<Pose>> {
@@ -83,11 +92,7 @@ pub fn poses_from_flat(flat: &[f32]) -> Option<Vec<Pose>> {
     if !flat.len().is_multiple_of(N) {
         return None;
     }
-    Some(
-        flat.chunks_exact(N)
-            .map(|c| std::array::from_fn(|j| [c[3 * j], c[3 * j + 1], c[3 * j + 2]]))
-            .collect(),
-    )
+    flat.chunks_exact(N).map(pose_from_flat).collect()
 }
 
 /// Copy a flat `f32` buffer of `T * 17 * 2` values into keypoint frames;
@@ -123,6 +128,9 @@ mod tests {
         assert_eq!(flat[51 + 3 * 2 + 1], 2.0);
         assert_eq!(poses_from_flat(flat).unwrap(), poses);
         assert!(poses_from_flat(&flat[1..]).is_none());
+        assert_eq!(pose_from_flat(&flat[51..102]), Some(poses[1]));
+        assert!(pose_from_flat(&flat[..50]).is_none());
+        assert!(pose_from_flat(&flat[..102]).is_none());
         assert!(keypoints_from_flat(&[0.0; 33]).is_none());
         assert_eq!(keypoints_from_flat(&[1.0; 68]).unwrap().len(), 2);
     }

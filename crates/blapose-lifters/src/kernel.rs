@@ -13,10 +13,12 @@
 //! large enough to pay for the hand-off.
 //!
 //! The kernel is one generic Rust loop nest compiled three times — for
-//! AVX-512, for AVX2+FMA, and portably — and picked at run time, so one
+//! AVX-512, for AVX2+FMA, and portably — and picked at run time by
+//! blapose-core's [`Isa`] (the one the bone-length engines use too), so one
 //! binary runs anywhere. Results match a plain dot product up to the
 //! rounding of the summation order (tested against candle).
 
+use blapose_core::isa::Isa;
 use rayon::prelude::*;
 
 /// Panel width (columns per panel): four AVX-512 vectors.
@@ -26,35 +28,6 @@ pub(crate) const MR: usize = 6;
 
 /// Work (multiply-adds) below which a product runs on the calling thread.
 const PARALLEL_MIN_MACS: usize = 1 << 20;
-
-/// Instruction set of the micro-kernel.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Isa {
-    Portable,
-    #[cfg(target_arch = "x86_64")]
-    Avx2,
-    #[cfg(target_arch = "x86_64")]
-    Avx512,
-}
-
-impl Isa {
-    fn detect() -> Self {
-        #[cfg(target_arch = "x86_64")]
-        {
-            if std::arch::is_x86_feature_detected!("avx512f")
-                && std::arch::is_x86_feature_detected!("fma")
-            {
-                return Isa::Avx512;
-            }
-            if std::arch::is_x86_feature_detected!("avx2")
-                && std::arch::is_x86_feature_detected!("fma")
-            {
-                return Isa::Avx2;
-            }
-        }
-        Isa::Portable
-    }
-}
 
 /// A `K x N` matrix packed into zero-padded `K x NR` column panels.
 #[derive(Debug, Clone)]
@@ -150,7 +123,8 @@ fn panel_product(isa: Isa, x: &[f32], k: usize, panel: &[f32], bias: &[f32; NR],
         Isa::Avx512 => unsafe { panel_avx512(x, k, panel, bias, out) },
         #[cfg(target_arch = "x86_64")]
         Isa::Avx2 => unsafe { panel_avx2(x, k, panel, bias, out) },
-        Isa::Portable => panel_rows::<false, 1>(x, k, panel, bias, out),
+        // Elsewhere `detect` never yields a SIMD level.
+        _ => panel_rows::<false, 1>(x, k, panel, bias, out),
     }
 }
 
@@ -304,7 +278,7 @@ mod tests {
         let w: Vec<f32> = (0..k * n).map(|i| (i as f32 * 0.11).cos()).collect();
         let mut packed = PackedMatrix::new(&w, k, n);
         let best = packed.matmul(&x, None);
-        packed.isa = Isa::Portable;
+        packed.isa = Isa::Scalar;
         let portable = packed.matmul(&x, None);
         let err = best
             .iter()

@@ -11,6 +11,7 @@ use std::collections::VecDeque;
 
 use candle_core::{Device, Tensor};
 
+use blapose_core::pose::pose_from_flat;
 use blapose_core::{Keypoints2d, Pose, NUM_JOINTS};
 
 use crate::error::{expect_dims, Result};
@@ -119,9 +120,10 @@ pub fn keypoints_tensor(frames: &[Keypoints2d]) -> Result<Tensor> {
 pub fn poses_from_tensor(t: &Tensor) -> Result<Vec<Pose>> {
     expect_dims(t, "poses", &[None, Some(NUM_JOINTS), Some(3)])?;
     let flat: Vec<f32> = t.flatten_all()?.to_vec1()?;
+    // `(B, 17, 3)` was checked: whole poses, each of the right length.
     Ok(flat
         .chunks_exact(NUM_JOINTS * 3)
-        .map(|p| std::array::from_fn(|j| [p[3 * j], p[3 * j + 1], p[3 * j + 2]]))
+        .filter_map(pose_from_flat)
         .collect())
 }
 

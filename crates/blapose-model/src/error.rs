@@ -139,3 +139,11 @@ pub enum ModelError {
     #[error(transparent)]
     Candle(#[from] candle_core::Error),
 }
+
+/// An instruction set this CPU lacks (or a name that is none) is a bad
+/// engine configuration; the message is the instruction set's own.
+impl From<blapose_core::isa::IsaError> for ModelError {
+    fn from(e: blapose_core::isa::IsaError) -> Self {
+        ModelError::Config(e.to_string())
+    }
+}

@@ -69,6 +69,19 @@ impl ModelKind {
             ModelKind::BiGru => "bigru",
         }
     }
+
+    /// `Ok` if `found` is this kind, else [`ModelError::WrongKind`]: what
+    /// loading a file and building an engine both check.
+    pub fn expect(self, found: ModelKind) -> Result<(), ModelError> {
+        if found == self {
+            Ok(())
+        } else {
+            Err(ModelError::WrongKind {
+                expected: self,
+                found,
+            })
+        }
+    }
 }
 
 impl std::fmt::Display for ModelKind {

@@ -317,12 +317,7 @@ pub fn load_bytes(bytes: &[u8], expected: ModelKind) -> Result<LoadedWeights, Mo
     let (_, header) = safetensors::SafeTensors::read_metadata(bytes)
         .map_err(|e| ModelError::InvalidFile(e.to_string()))?;
     let meta = WeightsMetadata::from_header(header.metadata().as_ref().unwrap_or(&HashMap::new()))?;
-    if meta.kind != expected {
-        return Err(ModelError::WrongKind {
-            expected,
-            found: meta.kind,
-        });
-    }
+    expected.expect(meta.kind)?;
     let st = safetensors::SafeTensors::deserialize(bytes)
         .map_err(|e| ModelError::InvalidFile(e.to_string()))?;
     let mut tensors = HashMap::new();

@@ -6,9 +6,11 @@
 //! so the proto file stays the single source of truth. Both the server stub
 //! ([`v1::pose_adjustment_server`]) and the client stub
 //! ([`v1::pose_adjustment_client`]) live here; read the proto for the meaning
-//! of every field.
+//! of every field. [`convert`] maps the generated layout and input-format
+//! types to blapose-core's, once for both ends.
 
 pub mod codec;
+pub mod convert;
 
 /// Package `blapose.v1`.
 pub mod v1 {

@@ -8,15 +8,16 @@
 //! instruction set of the CPU ([`Isa`]). They agree with the reference
 //! candle models to 1e-4 (tests in `tests/fast_agreement.rs`).
 
-mod isa;
 pub(crate) mod kernel;
-pub(crate) mod linalg;
+pub mod linalg;
 pub(crate) mod math;
 mod offline;
 mod online;
 pub(crate) mod pack;
 
-pub use isa::Isa;
+/// The instruction set, shared with blapose-lifters' kernels (see
+/// [`blapose_core::isa`] for why it lives there).
+pub use blapose_core::isa::{Isa, IsaError};
 pub use offline::OfflineBiGruEngine;
 pub use online::{OnlineGruEngine, StepScratch};
 pub use pack::Precision;
@@ -54,7 +55,7 @@ impl EngineOptions {
     }
 
     fn resolved_isa(&self) -> Result<Isa, ModelError> {
-        self.isa.unwrap_or_else(Isa::detect).require()
+        Ok(self.isa.unwrap_or_else(Isa::detect).require()?)
     }
 }
 

@@ -67,12 +67,7 @@ impl OfflineBiGruEngine {
     /// Build with explicit [`EngineOptions`] (the precision applies to the
     /// recurrent weights; the batched input projection stays f32).
     pub fn with_options(weights: &LoadedWeights, opts: EngineOptions) -> Result<Self, ModelError> {
-        if weights.kind() != ModelKind::BiGru {
-            return Err(ModelError::WrongKind {
-                expected: ModelKind::BiGru,
-                found: weights.kind(),
-            });
-        }
+        ModelKind::BiGru.expect(weights.kind())?;
         let isa = opts.resolved_isa()?;
         let threads = opts.threads;
         let names = GruNames::for_kind(ModelKind::BiGru);

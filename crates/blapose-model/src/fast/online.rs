@@ -178,12 +178,7 @@ impl OnlineGruEngine {
 
     /// Build with explicit [`EngineOptions`].
     pub fn with_options(weights: &LoadedWeights, opts: EngineOptions) -> Result<Self, ModelError> {
-        if weights.kind() != ModelKind::Gru {
-            return Err(ModelError::WrongKind {
-                expected: ModelKind::Gru,
-                found: weights.kind(),
-            });
-        }
+        ModelKind::Gru.expect(weights.kind())?;
         let isa = opts.resolved_isa()?;
         let threads = opts.threads;
         let pack = |n: &GruNames| -> Result<PackedGru, ModelError> {
