@@ -21,13 +21,12 @@ use blapose_data::h36m::{H36m, Parts, ShKeypoints};
 pub use blapose_data::h36m::{TEST_SUBJECTS, TRAIN_SUBJECTS};
 use rayon::prelude::*;
 
-use crate::detector_gain::ImageBoneSums;
 use crate::error::TrainError;
 use crate::noise::{metric_residual, MetricResidual, ResidualBank};
 use crate::synth::MotionSequence;
 
-/// Which 2D input an evaluation feeds the model.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+/// Which 2D input an evaluation feeds the model (`--input`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, clap::ValueEnum)]
 pub enum InputKind {
     /// Real Stacked Hourglass detections mapped to 17 joints.
     Sh,
@@ -41,19 +40,6 @@ impl InputKind {
         match self {
             Self::Sh => "sh",
             Self::Gt => "gt",
-        }
-    }
-}
-
-impl std::str::FromStr for InputKind {
-    type Err = TrainError;
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s {
-            "sh" => Ok(Self::Sh),
-            "gt" => Ok(Self::Gt),
-            _ => Err(TrainError::InvalidArgument(format!(
-                "unknown input {s:?} (sh|gt)"
-            ))),
         }
     }
 }
@@ -204,10 +190,6 @@ pub struct TrainingSet {
     /// The training subjects' real SH input with their true lengths (for
     /// validation on real detector input).
     pub real_sh: Vec<EvalSequence>,
-    /// Per training subject, its detected and projected 2D bone lengths
-    /// summed over every sequence and camera (fits
-    /// [`crate::detector_gain::DetectorGain`]).
-    pub image_bones: BTreeMap<String, ImageBoneSums>,
 }
 
 impl TrainingSet {
@@ -245,7 +227,6 @@ impl TrainingSet {
             MotionSequence,
             Vec<Option<Vec<MetricResidual>>>,
             Vec<EvalSequence>,
-            ImageBoneSums,
         );
         let built: Vec<Built> = keys
             .par_iter()
@@ -258,16 +239,13 @@ impl TrainingSet {
                 let motion = decompose_sequence(s, a, poses, subject_len, cameras.clone())?;
                 let mut tracks = Vec::with_capacity(cameras.len());
                 let mut real = Vec::new();
-                let mut bones = ImageBoneSums::default();
                 for cam in cameras.iter() {
                     let Some(det) = h36m.detections(s, a, &cam.id) else {
                         tracks.push(None);
                         continue;
                     };
                     let sh = sh_to_normalized(det, cam)?;
-                    let (track, sums) = detector_statistics(&sh, poses, cam);
-                    tracks.push(Some(track));
-                    bones.merge(&sums);
+                    tracks.push(Some(residual_track(&sh, poses, cam)));
                     real.push(EvalSequence {
                         subject: s.to_string(),
                         sequence: a.to_string(),
@@ -276,15 +254,13 @@ impl TrainingSet {
                         gt: subject_len,
                     });
                 }
-                Ok((motion, tracks, real, bones))
+                Ok((motion, tracks, real))
             })
             .collect::<Result<_, _>>()?;
         let mut sequences = Vec::with_capacity(built.len());
         let mut tracks = Vec::with_capacity(built.len());
         let mut real_sh = Vec::new();
-        let mut image_bones: BTreeMap<String, ImageBoneSums> = BTreeMap::new();
-        for (m, t, r, b) in built {
-            image_bones.entry(m.subject.clone()).or_default().merge(&b);
+        for (m, t, r) in built {
             sequences.push(m);
             tracks.push(t);
             real_sh.extend(r);
@@ -294,7 +270,6 @@ impl TrainingSet {
             subject_lengths: lengths,
             residuals: ResidualBank::new(tracks),
             real_sh,
-            image_bones,
         })
     }
 
@@ -339,31 +314,23 @@ pub fn decompose_sequence(
     })
 }
 
-/// What one sequence's real detections tell about the detector, from one
-/// projection of its ground truth per frame: the metric residual track
-/// (see [`crate::noise`]; the shorter of the two streams bounds it, frames
-/// that give no finite residual repeat the previous one, or zero) and the
-/// summed detected and projected 2D bone lengths
-/// ([`crate::detector_gain`]).
-pub fn detector_statistics(
-    sh: &[Keypoints2d],
-    poses: &[Pose],
-    cam: &Camera,
-) -> (Vec<MetricResidual>, ImageBoneSums) {
+/// The metric residual track of one sequence's real detections against
+/// one projection of its ground truth per frame (see [`crate::noise`]; the
+/// shorter of the two streams bounds it, frames that give no finite
+/// residual repeat the previous one, or zero).
+pub fn residual_track(sh: &[Keypoints2d], poses: &[Pose], cam: &Camera) -> Vec<MetricResidual> {
     let k = cam.normalized_intrinsics();
     let n = sh.len().min(poses.len());
     let mut track: Vec<MetricResidual> = Vec::with_capacity(n);
-    let mut sums = ImageBoneSums::default();
     for t in 0..n {
         let cp = cam.world_to_camera_pose(&poses[t]);
         let gt = k.project_pose(&cp);
-        sums.add_frame(&sh[t], &gt);
         let r = metric_residual(&sh[t], &gt, cp[0][2], k.focal)
             .or_else(|| track.last().copied())
             .unwrap_or([[0.0; 2]; blapose_core::NUM_JOINTS]);
         track.push(r);
     }
-    (track, sums)
+    track
 }
 
 /// Evaluation inputs for `subjects`: every sequence, every camera.

@@ -1,4 +1,6 @@
-//! Bone-length evaluation on the standard protocol.
+//! Bone-length evaluation on the standard protocol: one implementation of
+//! it, so every number in the model card, the shipped-weights test and a
+//! new run's report is computed the same way.
 //!
 //! Every (sequence, camera) of the evaluated subjects is one *trial*: the
 //! model reads the whole 2D stream and gives one estimate of the subject's
@@ -6,11 +8,11 @@
 //! bones (mm).
 //!
 //! * **Offline Bi-GRU**: one pass over the whole sequence
-//!   ([`OfflineBiGruEngine`]), or, with `chunk > 0`, the mean of the
-//!   estimates of consecutive `chunk`-frame windows.
+//!   ([`OfflineBiGruEngine`]).
 //! * **Online GRU**: the serving estimate, i.e. the running mean of the
 //!   per-frame predictions over all frames seen ([`OnlineGruEngine`],
-//!   trials stepped in lockstep batches); its error after the whole
+//!   trials stepped in lockstep batches; the mean is the server's own
+//!   [`RunningMean`], so the two cannot drift apart); its error after the whole
 //!   sequence is the headline, and the error after `n` frames for `n` in
 //!   [`CURVE_FRAMES`] is the curve (a trial shorter than `n` contributes its
 //!   final estimate).
@@ -30,7 +32,7 @@ use blapose_core::metrics::ActionAggregator;
 use blapose_core::pose::flip_bone_lengths;
 use blapose_core::skeleton::{BONE_NAMES, NUM_BONES};
 use blapose_core::BoneLengths;
-use blapose_model::{LoadedWeights, OfflineBiGruEngine, OnlineGruEngine, STATE_DIM};
+use blapose_model::{LoadedWeights, OfflineBiGruEngine, OnlineGruEngine, RunningMean, STATE_DIM};
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -65,31 +67,18 @@ impl<E: LengthEstimator + ?Sized> LengthEstimator for Box<E> {
     }
 }
 
-/// The offline Bi-GRU over whole sequences (or chunks).
+/// The offline Bi-GRU over whole sequences.
 pub struct BiGruEstimator {
     engine: OfflineBiGruEngine,
-    chunk: usize,
 }
 
 impl BiGruEstimator {
-    /// From Bi-GRU weights; `chunk = 0` reads each sequence in one pass.
-    pub fn new(weights: &LoadedWeights, chunk: usize) -> Result<Self, TrainError> {
+    /// From Bi-GRU weights.
+    pub fn new(weights: &LoadedWeights) -> Result<Self, TrainError> {
         Ok(Self {
             engine: OfflineBiGruEngine::new(weights, 1)?,
-            chunk,
         })
     }
-}
-
-/// Window starts covering `frames` with windows of `chunk` (last one aligned
-/// to the end); one window when `chunk` is 0 or covers everything.
-pub fn chunk_starts(frames: usize, chunk: usize) -> Vec<usize> {
-    if chunk == 0 || frames <= chunk {
-        return vec![0];
-    }
-    let mut starts: Vec<usize> = (0..frames - chunk).step_by(chunk).collect();
-    starts.push(frames - chunk);
-    starts
 }
 
 impl LengthEstimator for BiGruEstimator {
@@ -97,24 +86,8 @@ impl LengthEstimator for BiGruEstimator {
         trials
             .par_iter()
             .map(|t| {
-                let n = t.frames();
-                let len = if self.chunk == 0 {
-                    n
-                } else {
-                    self.chunk.min(n)
-                };
-                let starts = chunk_starts(n, self.chunk);
-                let mut acc = [0.0f32; NUM_BONES];
-                for &s in &starts {
-                    let p = self
-                        .engine
-                        .predict(&t.input[s * FRAME_DIM..(s + len) * FRAME_DIM])?;
-                    for (a, v) in acc.iter_mut().zip(p) {
-                        *a += v;
-                    }
-                }
                 Ok(Estimate {
-                    lengths: acc.map(|v| v / starts.len() as f32),
+                    lengths: self.engine.predict(&t.input)?,
                     curve: Vec::new(),
                 })
             })
@@ -233,7 +206,7 @@ impl GruEstimator {
         let mut hidden = vec![0.0f32; b * STATE_DIM];
         let mut out = vec![0.0f32; b * NUM_BONES];
         let mut input = vec![0.0f32; b * FRAME_DIM];
-        let mut sums = vec![[0.0f64; NUM_BONES]; b];
+        let mut means = vec![RunningMean::new(); b];
         let mut curves = vec![Vec::with_capacity(CURVE_FRAMES.len()); b];
         let mut running: Vec<Vec<BoneLengths>> = group
             .iter()
@@ -252,11 +225,11 @@ impl GruEstimator {
                 if t >= tr.frames() {
                     continue;
                 }
-                for j in 0..NUM_BONES {
-                    sums[i][j] += f64::from(out[i * NUM_BONES + j]);
-                }
+                let frame: &BoneLengths = out[i * NUM_BONES..(i + 1) * NUM_BONES]
+                    .try_into()
+                    .map_err(|_| TrainError::Data("model output is not 16 lengths".into()))?;
+                let mean = means[i].push(frame);
                 let seen = t + 1;
-                let mean: BoneLengths = std::array::from_fn(|j| (sums[i][j] / seen as f64) as f32);
                 for &n in &CURVE_FRAMES {
                     if seen == n || (seen == tr.frames() && n > seen) {
                         curves[i].push(mean);
@@ -271,9 +244,8 @@ impl GruEstimator {
             .into_iter()
             .enumerate()
             .map(|(i, r)| {
-                let n = group[i].frames() as f64;
                 let e = Estimate {
-                    lengths: std::array::from_fn(|j| (sums[i][j] / n) as f32),
+                    lengths: means[i].mean().unwrap_or([0.0; NUM_BONES]),
                     curve: std::mem::take(&mut curves[i]),
                 };
                 (e, r)
@@ -853,13 +825,5 @@ mod tests {
         assert_eq!(views["S9 54138969"].trials, 2);
         assert!((views["S9 54138969"].size_ratio() - 0.28 / 0.30).abs() < 1e-6);
         assert!((views["S9 55011271"].size_ratio() - 1.1).abs() < 1e-6);
-    }
-
-    #[test]
-    fn chunks_cover_the_sequence() {
-        assert_eq!(chunk_starts(10, 0), vec![0]);
-        assert_eq!(chunk_starts(10, 20), vec![0]);
-        assert_eq!(chunk_starts(10, 4), vec![0, 4, 6]);
-        assert_eq!(chunk_starts(8, 4), vec![0, 4]);
     }
 }

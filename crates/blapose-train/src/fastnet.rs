@@ -1,5 +1,6 @@
 //! The training hot loop: both bone-length networks with a hand-written
-//! backward pass (BPTT) on plain `f32` buffers and `gemm`.
+//! backward pass (BPTT) on plain `f32` buffers and GEMMs (blapose-model's
+//! `fast::linalg`, the one wrapper of the `gemm` crate).
 //!
 //! Why not candle autograd: the reference models in `blapose-model` build a
 //! graph of ~15 small ops per time step; on this 2-core CPU a training step
@@ -24,78 +25,14 @@ use std::collections::HashMap;
 use std::ops::Range;
 
 use blapose_core::skeleton::NUM_BONES;
+use blapose_model::fast::linalg::matmul_t;
 use blapose_model::names::{GruNames, EMBED_BIAS, EMBED_WEIGHT, FC_WEIGHT};
 use blapose_model::symmetry::averaging_matrix;
 use blapose_model::{ModelKind, DROPOUT, EMBED_DIM, FEATURES, GATES, HIDDEN, INPUT_DIM};
 use candle_core::{Device, Tensor};
-use gemm::Parallelism;
 use rand::Rng;
 
 use crate::error::TrainError;
-
-/// `C (m x n) [+]= op(A) (m x k) * op(B) (k x n)`, all row-major; `ta`/`tb`
-/// mean the stored matrix is the transpose (`A` stored `k x m`, `B` stored
-/// `n x k`).
-#[allow(clippy::too_many_arguments)]
-pub fn matmul(
-    c: &mut [f32],
-    a: &[f32],
-    b: &[f32],
-    m: usize,
-    k: usize,
-    n: usize,
-    ta: bool,
-    tb: bool,
-    accumulate: bool,
-    threads: usize,
-) {
-    assert!(
-        c.len() >= m * n && a.len() >= m * k && b.len() >= k * n,
-        "matmul: buffers too small"
-    );
-    if m == 0 || n == 0 {
-        return;
-    }
-    if k == 0 {
-        if !accumulate {
-            c[..m * n].fill(0.0);
-        }
-        return;
-    }
-    let (a_rs, a_cs) = if ta { (1, m as isize) } else { (k as isize, 1) };
-    let (b_rs, b_cs) = if tb { (1, k as isize) } else { (n as isize, 1) };
-    let par = if threads > 1 {
-        Parallelism::Rayon(threads)
-    } else {
-        Parallelism::None
-    };
-    // SAFETY: the asserts above bound every index gemm touches: A is read at
-    // i*a_rs + l*a_cs < m*k, B at l*b_rs + j*b_cs < k*n, C written at
-    // i*n + j < m*n; the three buffers are distinct borrows.
-    unsafe {
-        gemm::gemm(
-            m,
-            n,
-            k,
-            c.as_mut_ptr(),
-            1,
-            n as isize,
-            accumulate,
-            a.as_ptr(),
-            a_cs,
-            a_rs,
-            b.as_ptr(),
-            b_cs,
-            b_rs,
-            1.0,
-            1.0,
-            false,
-            false,
-            false,
-            par,
-        );
-    }
-}
 
 #[inline(always)]
 fn sigmoid(x: f32) -> f32 {
@@ -295,15 +232,6 @@ impl FastNet {
         }
     }
 
-    /// Rewrite the input layer (`w`: `[256, 34]` row-major, `b`: `[256]`)
-    /// in place, e.g. to fold an input map into it.
-    pub fn map_embedding(&mut self, f: impl FnOnce(&mut [f32], &mut [f32])) {
-        let (w, b) = (self.layout.embed_w.clone(), self.layout.embed_b.clone());
-        debug_assert_eq!(w.end, b.start, "bias follows the weight");
-        let (w_part, b_part) = self.params[w.start..b.end].split_at_mut(w.len());
-        f(w_part, b_part);
-    }
-
     /// The parameters as named tensors (for the weights file).
     pub fn to_tensors(&self) -> Result<HashMap<String, Tensor>, TrainError> {
         let mut out = HashMap::new();
@@ -473,8 +401,13 @@ impl FastNet {
                 grad[self.layout.embed_w.start..].split_at_mut(self.layout.embed_w.len());
             (w, &mut rest[..self.layout.embed_b.len()])
         };
-        matmul(
-            gw, &de, &fw.x, EMBED_DIM, rows, INPUT_DIM, true, false, false, 2,
+        matmul_t(
+            gw,
+            (&de, true),
+            (&fw.x, false),
+            (EMBED_DIM, rows, INPUT_DIM),
+            false,
+            2,
         );
         for r in 0..rows {
             for (g, d) in gb_.iter_mut().zip(&de[r * EMBED_DIM..(r + 1) * EMBED_DIM]) {
@@ -522,15 +455,11 @@ impl FastNet {
         }
         let p = &self.params;
         let mut e = vec![0.0f32; rows * EMBED_DIM];
-        matmul(
+        matmul_t(
             &mut e,
-            &xt,
-            &p[self.layout.embed_w.clone()],
-            rows,
-            INPUT_DIM,
-            EMBED_DIM,
-            false,
-            true,
+            (&xt, false),
+            (&p[self.layout.embed_w.clone()], true),
+            (rows, INPUT_DIM, EMBED_DIM),
             false,
             2,
         );
@@ -582,15 +511,11 @@ impl FastNet {
         let p = &self.params;
         let rows = batch * steps;
         let mut gi = vec![0.0f32; rows * GATES];
-        matmul(
+        matmul_t(
             &mut gi,
-            e,
-            &p[lay.w_ih.clone()],
-            rows,
-            EMBED_DIM,
-            GATES,
-            false,
-            true,
+            (e, false),
+            (&p[lay.w_ih.clone()], true),
+            (rows, EMBED_DIM, GATES),
             false,
             1,
         );
@@ -616,8 +541,13 @@ impl FastNet {
             let t = if reverse { steps - 1 - s } else { s };
             let (done, next) = c.hs.split_at_mut((s + 1) * bh);
             let h = &done[s * bh..];
-            matmul(
-                &mut gh, h, w_hh, batch, HIDDEN, GATES, false, true, false, 1,
+            matmul_t(
+                &mut gh,
+                (h, false),
+                (w_hh, true),
+                (batch, HIDDEN, GATES),
+                false,
+                1,
             );
             let h_next = &mut next[..bh];
             for b in 0..batch {
@@ -696,15 +626,11 @@ impl FastNet {
                 }
             }
             // dh_prev += dGH_s W_hh   ([B,1536] x [1536,512])
-            matmul(
+            matmul_t(
                 &mut dh_prev,
-                &dgh[s * batch * GATES..(s + 1) * batch * GATES],
-                w_hh,
-                batch,
-                GATES,
-                HIDDEN,
-                false,
-                false,
+                (&dgh[s * batch * GATES..(s + 1) * batch * GATES], false),
+                (w_hh, false),
+                (batch, GATES, HIDDEN),
                 true,
                 1,
             );
@@ -716,16 +642,19 @@ impl FastNet {
         let (g_hh, rest) = rest.split_at_mut(n_hh);
         let (g_bih, g_bhh) = rest.split_at_mut(GATES);
         // dW_ih = dGI^T E ; dW_hh = dGH^T H_prev (states before each step).
-        matmul(g_ih, &dgi, e, GATES, rows, EMBED_DIM, true, false, false, 1);
-        matmul(
-            g_hh,
-            &dgh,
-            &c.hs[..steps * bh],
-            GATES,
-            rows,
-            HIDDEN,
-            true,
+        matmul_t(
+            g_ih,
+            (&dgi, true),
+            (e, false),
+            (GATES, rows, EMBED_DIM),
             false,
+            1,
+        );
+        matmul_t(
+            g_hh,
+            (&dgh, true),
+            (&c.hs[..steps * bh], false),
+            (GATES, rows, HIDDEN),
             false,
             1,
         );
@@ -736,8 +665,13 @@ impl FastNet {
             }
         }
         let mut de = vec![0.0f32; rows * EMBED_DIM];
-        matmul(
-            &mut de, &dgi, w_ih, rows, GATES, EMBED_DIM, false, false, false, 1,
+        matmul_t(
+            &mut de,
+            (&dgi, false),
+            (w_ih, false),
+            (rows, GATES, EMBED_DIM),
+            false,
+            1,
         );
         de
     }
@@ -779,15 +713,11 @@ impl FastNet {
     fn head_forward(&self, feats: &[f32], rows: usize) -> (Vec<f32>, Vec<f32>) {
         let act: Vec<f32> = feats.iter().map(|&v| sigmoid(v)).collect();
         let mut p = vec![0.0f32; rows * NUM_BONES];
-        matmul(
+        matmul_t(
             &mut p,
-            &act,
-            &self.params[self.layout.fc_w.clone()],
-            rows,
-            FEATURES,
-            NUM_BONES,
-            false,
-            true,
+            (&act, false),
+            (&self.params[self.layout.fc_w.clone()], true),
+            (rows, FEATURES, NUM_BONES),
             false,
             1,
         );
@@ -812,28 +742,20 @@ impl FastNet {
                     .sum();
             }
         }
-        matmul(
+        matmul_t(
             &mut grad[self.layout.fc_w.clone()],
-            &dp,
-            act,
-            NUM_BONES,
-            rows,
-            FEATURES,
-            true,
-            false,
+            (&dp, true),
+            (act, false),
+            (NUM_BONES, rows, FEATURES),
             true,
             2,
         );
         let mut df = vec![0.0f32; rows * FEATURES];
-        matmul(
+        matmul_t(
             &mut df,
-            &dp,
-            &self.params[self.layout.fc_w.clone()],
-            rows,
-            NUM_BONES,
-            FEATURES,
-            false,
-            false,
+            (&dp, false),
+            (&self.params[self.layout.fc_w.clone()], false),
+            (rows, NUM_BONES, FEATURES),
             false,
             2,
         );

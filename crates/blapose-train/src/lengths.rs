@@ -16,15 +16,6 @@
 //!   and mean-aligned to the training subjects ([`crate::ansur`]), which keeps
 //!   the natural correlations between bones.
 //!
-//! **Size apart from proportions** ([`LengthSampler::with_decoupled_size`]):
-//! in a real population, proportions go with size (taller people have
-//! relatively longer legs), so a model trained on one can guess a body's
-//! *size* from its *proportions*, which 2D keypoints show without any
-//! depth. Whether Human3.6M's skeletons follow the same rule is another
-//! matter; with decoupling each body takes its proportions from one draw
-//! and its overall size (the sum of its 16 lengths) from another, so size
-//! can only be read from the geometry of the picture.
-//!
 //! **No test statistics.** Every statistic is computed by
 //! [`TrainingLengthStats::from_training`] from the lengths of the training
 //! subjects handed to it, and the data loader only ever hands it S1 S5 S6 S7
@@ -36,6 +27,7 @@ use blapose_core::skeleton::{NUM_BONES, SYMMETRIC_BONE_PAIRS};
 use blapose_core::BoneLengths;
 use rand::Rng;
 use rand_distr::{Distribution, Normal, StandardNormal};
+use serde::{Deserialize, Serialize};
 
 use crate::ansur::AnsurPopulation;
 use crate::error::TrainError;
@@ -44,8 +36,10 @@ use crate::error::TrainError;
 /// the training subjects (Human3.6M's head bone is 0.115 m for everyone).
 pub const FIXED_BONE_STD: f32 = 5e-4;
 
-/// Which lengths the synthetic sequences are rebuilt with.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+/// Which lengths the synthetic sequences are rebuilt with (`--lengths`;
+/// the same spelling in a run's configuration).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
 pub enum LengthStrategy {
     /// The subject's own lengths.
     True,
@@ -75,20 +69,6 @@ impl LengthStrategy {
 impl std::fmt::Display for LengthStrategy {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str(self.name())
-    }
-}
-
-impl std::str::FromStr for LengthStrategy {
-    type Err = TrainError;
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        Self::ALL
-            .into_iter()
-            .find(|k| k.name() == s)
-            .ok_or_else(|| {
-                TrainError::InvalidArgument(format!(
-                    "unknown length strategy {s:?} (true|uniform|normal|ansur)"
-                ))
-            })
     }
 }
 
@@ -153,7 +133,6 @@ pub struct LengthSampler {
     strategy: LengthStrategy,
     stats: TrainingLengthStats,
     ansur: Option<AnsurPopulation>,
-    decouple_size: bool,
 }
 
 /// For each bone, the bone whose draw it shares: the right bone of a
@@ -182,21 +161,7 @@ impl LengthSampler {
             strategy,
             stats,
             ansur,
-            decouple_size: false,
         })
-    }
-
-    /// Draw each body's proportions and its overall size independently
-    /// (see the module docs): the proportions of one draw scaled to the
-    /// total length of another.
-    pub fn with_decoupled_size(mut self) -> Self {
-        self.decouple_size = true;
-        self
-    }
-
-    /// Whether sizes are drawn apart from proportions.
-    pub fn decouples_size(&self) -> bool {
-        self.decouple_size
     }
 
     /// The strategy.
@@ -212,18 +177,6 @@ impl LengthSampler {
     /// Draw the lengths for one sequence whose subject's own lengths are
     /// `subject`. Always symmetric; never non-positive.
     pub fn sample<R: Rng + ?Sized>(&self, subject: &BoneLengths, rng: &mut R) -> BoneLengths {
-        let body = self.draw(subject, rng);
-        if !self.decouple_size {
-            return body;
-        }
-        let size = self.draw(subject, rng);
-        let total = |l: &BoneLengths| l.iter().sum::<f32>();
-        let scale = total(&size) / total(&body);
-        self.bounded(body.map(|l| l * scale))
-    }
-
-    /// One body of the strategy, before any decoupling.
-    fn draw<R: Rng + ?Sized>(&self, subject: &BoneLengths, rng: &mut R) -> BoneLengths {
         let mean = &self.stats.mean;
         let out = match self.strategy {
             LengthStrategy::True => {
@@ -336,64 +289,17 @@ mod tests {
     #[test]
     fn ansur_needs_a_population() {
         assert!(LengthSampler::new(LengthStrategy::Ansur, stats(), None).is_err());
-        assert!("bogus".parse::<LengthStrategy>().is_err());
-        assert_eq!(
-            "ansur".parse::<LengthStrategy>().unwrap(),
-            LengthStrategy::Ansur
-        );
     }
 
     #[test]
-    fn decoupled_sizes_do_not_follow_proportions() {
-        // A population where size and proportions go together: the bigger
-        // the body, the longer its legs relative to the rest.
-        let s = stats();
-        let people: Vec<BoneLengths> = (0..200)
-            .map(|i| {
-                let size = 0.9 + 0.2 * i as f32 / 199.0;
-                let mut l = s.mean.map(|v| v * size);
-                for b in [1, 2, 4, 5] {
-                    l[b] *= size;
-                }
-                l[9] = 0.115;
-                l
-            })
-            .collect();
-        let pop = AnsurPopulation::calibrate(&people, &s).unwrap();
-        let leg_share = |l: &BoneLengths| (l[1] + l[2]) / l.iter().sum::<f32>();
-        let correlation = |sampler: &LengthSampler| {
-            let mut rng = rand::rngs::StdRng::seed_from_u64(3);
-            let draws: Vec<(f64, f64)> = (0..3000)
-                .map(|_| {
-                    let l = sampler.sample(&s.mean, &mut rng);
-                    for &(r, le) in &SYMMETRIC_BONE_PAIRS {
-                        assert_eq!(l[r], l[le]);
-                    }
-                    assert_eq!(l[9], 0.115, "fixed bone stays fixed");
-                    (f64::from(l.iter().sum::<f32>()), f64::from(leg_share(&l)))
-                })
-                .collect();
-            let n = draws.len() as f64;
-            let (mx, my) = draws
-                .iter()
-                .fold((0.0, 0.0), |(a, b), (x, y)| (a + x / n, b + y / n));
-            let (mut sxy, mut sxx, mut syy) = (0.0, 0.0, 0.0);
-            for (x, y) in &draws {
-                sxy += (x - mx) * (y - my);
-                sxx += (x - mx).powi(2);
-                syy += (y - my).powi(2);
-            }
-            sxy / (sxx * syy).sqrt()
-        };
-        let plain =
-            LengthSampler::new(LengthStrategy::Ansur, s.clone(), Some(pop.clone())).unwrap();
-        assert!(correlation(&plain) > 0.9);
-        let decoupled = plain.with_decoupled_size();
-        assert!(decoupled.decouples_size());
-        assert!(
-            correlation(&decoupled).abs() < 0.1,
-            "{}",
-            correlation(&decoupled)
-        );
+    fn flag_config_and_display_spellings_agree() {
+        use clap::ValueEnum;
+        for k in LengthStrategy::ALL {
+            let flag = k.to_possible_value().unwrap();
+            assert_eq!(flag.get_name(), k.name());
+            assert_eq!(serde_json::to_value(k).unwrap(), k.name());
+            assert_eq!(k.to_string(), k.name());
+        }
+        assert!(LengthStrategy::from_str("bogus", false).is_err());
     }
 }

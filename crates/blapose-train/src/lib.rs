@@ -4,7 +4,12 @@
 //! - [`lengths`], [`ansur`]: what bone lengths synthetic sequences get;
 //! - [`noise`]: 2D detector-noise models fitted to real detections;
 //! - [`synth`], [`loader`]: the augmentation pipeline and batch prefetching;
-//! - [`adam`]: the optimizer with checkpointable state;
+//! - [`dataset`]: Human3.6M as training and evaluation read it;
+//! - [`train`], [`fastnet`]: the bone-length training loop and its
+//!   hand-written network; [`run`]: the run directory, schedule and log
+//!   every trainer shares; [`adam`]: the optimizer with checkpointable
+//!   state;
+//! - [`eval`]: the bone-length evaluation protocol; [`plot`]: curves;
 //! - [`lifter`]: 2D-to-3D lifters trained on the real detections;
 //! - [`eval_adjust`]: lifter accuracy before and after the bone-length
 //!   adjustment (the paper's Tables 2 and 3).
@@ -16,7 +21,6 @@
 pub mod adam;
 pub mod ansur;
 pub mod dataset;
-pub mod detector_gain;
 pub mod error;
 pub mod eval;
 pub mod eval_adjust;
@@ -26,7 +30,7 @@ pub mod lifter;
 pub mod loader;
 pub mod noise;
 pub mod plot;
-pub mod precondition;
+pub mod run;
 pub mod synth;
 pub mod train;
 

@@ -23,15 +23,16 @@ use blapose_core::skeleton::NUM_JOINTS;
 use blapose_core::Keypoints2d;
 use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
-
-use crate::error::TrainError;
+use serde::{Deserialize, Serialize};
 
 /// Residual norms above this (metric units, metres at the subject) are
 /// clamped to it.
 pub const MAX_RESIDUAL_M: f32 = 0.3;
 
-/// Which noise is added to the synthetic 2D input.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+/// Which noise is added to the synthetic 2D input (`--noise`; the same
+/// spelling in a run's configuration).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
 pub enum NoiseKind {
     /// Clean projections.
     None,
@@ -55,20 +56,6 @@ impl NoiseKind {
 impl std::fmt::Display for NoiseKind {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str(self.name())
-    }
-}
-
-impl std::str::FromStr for NoiseKind {
-    type Err = TrainError;
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s {
-            "none" => Ok(Self::None),
-            "gaussian" => Ok(Self::Gaussian),
-            "residual" => Ok(Self::Residual),
-            _ => Err(TrainError::InvalidArgument(format!(
-                "unknown noise model {s:?} (none|gaussian|residual)"
-            ))),
-        }
     }
 }
 
@@ -194,19 +181,6 @@ impl ResidualBank {
         }
     }
 
-    /// `r` with its deviation from the bank's per-joint mean scaled by
-    /// `scale`: the systematic joint-definition offset stays, the jitter and
-    /// the pose-dependent errors grow (`scale > 1`) or shrink. Scale 1
-    /// returns `r` bit for bit, so runs from before the scale reproduce.
-    pub fn scale_deviation(&self, r: &MetricResidual, scale: f32) -> MetricResidual {
-        if scale == 1.0 {
-            return *r;
-        }
-        std::array::from_fn(|j| {
-            std::array::from_fn(|a| self.mean[j][a] + scale * (r[j][a] - self.mean[j][a]))
-        })
-    }
-
     /// A Gaussian draw (metric units) from the fitted per-joint model.
     pub fn gaussian<R: Rng + ?Sized>(&self, rng: &mut R) -> MetricResidual {
         std::array::from_fn(|j| {
@@ -245,6 +219,16 @@ mod tests {
     use super::*;
 
     #[test]
+    fn flag_config_and_display_spellings_agree() {
+        use clap::ValueEnum;
+        for k in NoiseKind::value_variants() {
+            assert_eq!(k.to_possible_value().unwrap().get_name(), k.name());
+            assert_eq!(serde_json::to_value(k).unwrap(), k.name());
+            assert_eq!(k.to_string(), k.name());
+        }
+    }
+
+    #[test]
     fn residual_round_trips_through_depth() {
         let gt: Keypoints2d = std::array::from_fn(|j| [j as f32 * 0.01, 0.1]);
         let mut sh = gt;
@@ -271,10 +255,6 @@ mod tests {
         let a = [[0.01f32, 0.0]; NUM_JOINTS];
         let b = [[0.03f32, 0.0]; NUM_JOINTS];
         let bank = ResidualBank::new(vec![vec![Some(vec![a, b]), None]]);
-        // Scaling keeps the mean and stretches the deviation around it.
-        let wide = bank.scale_deviation(&b, 2.0);
-        assert!((wide[5][0] - 0.04).abs() < 1e-6, "{}", wide[5][0]);
-        assert_eq!(bank.scale_deviation(&b, 1.0), b);
         assert_eq!(bank.frames(), 2);
         assert!((bank.mean()[5][0] - 0.02).abs() < 1e-6);
         assert!((bank.std()[5][0] - 0.01).abs() < 1e-6);

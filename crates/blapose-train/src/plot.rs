@@ -1,12 +1,14 @@
 //! Plots: the training curve and the online model's error against frames
-//! seen (SVG through plotters, no system fonts needed for SVG text).
+//! seen (SVG through plotters, no system fonts needed for SVG text), so a
+//! run's curve and the model card's figures come from the logs and reports
+//! themselves rather than from a separate tool.
 
 use std::path::Path;
 
 use plotters::prelude::*;
 
 use crate::error::TrainError;
-use crate::train::read_log_column;
+use crate::run::read_log_column;
 
 fn plot_err<E: std::fmt::Display>(e: E) -> TrainError {
     TrainError::Plot(e.to_string())

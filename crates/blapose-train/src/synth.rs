@@ -10,9 +10,7 @@
 //!    mocap samples are linearly interpolated (root position and bone
 //!    directions, re-normalized);
 //! 3. draw bone lengths ([`crate::lengths::LengthSampler`]) and rebuild every
-//!    frame with the sequence's directions, the drawn lengths (as the
-//!    detector shows them, [`crate::detector_gain`]; unit gains by
-//!    default) and the
+//!    frame with the sequence's directions, the drawn lengths and the
 //!    original root trajectory — lifted or lowered per frame, with
 //!    `floor_contact`, so that the pose's lowest joint stays as high as in
 //!    the original (longer legs would otherwise push the feet through the
@@ -28,8 +26,7 @@
 //!    still tells the distance, as it does in any fixed-camera scene;
 //! 5. project with the camera's real intrinsics *and* distortion straight to
 //!    normalized screen coordinates;
-//! 6. add detector noise ([`crate::noise`]), rescaled to the new depth
-//!    (and optionally widened around its mean, `noise_scale`);
+//! 6. add detector noise ([`crate::noise`]), rescaled to the new depth;
 //! 7. flip horizontally with probability `flip_prob` (`x -> -x`, left/right
 //!    joints swapped — the noise is flipped with the sample). Lengths are
 //!    symmetric, so the target is unchanged.
@@ -49,8 +46,8 @@ use blapose_core::{BoneDirections, BoneLengths, Keypoints2d, Pose};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
 
-use crate::detector_gain::DetectorGain;
 use crate::error::TrainError;
 use crate::lengths::{normal_f32, LengthSampler};
 use crate::noise::{apply_residual, residual_at, NoiseKind, ResidualBank};
@@ -132,8 +129,12 @@ pub fn rebuild_on_floor(
     pose
 }
 
-/// In which space the per-window 3D shift is drawn.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+/// In which space the per-window 3D shift is drawn (`--shift-plane`; the
+/// same spelling in a run's configuration).
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize, clap::ValueEnum,
+)]
+#[serde(rename_all = "lowercase")]
 pub enum ShiftPlane {
     /// `N(0, std)` on all three camera axes (the paper's reference code).
     #[default]
@@ -176,19 +177,6 @@ impl std::fmt::Display for ShiftPlane {
     }
 }
 
-impl std::str::FromStr for ShiftPlane {
-    type Err = TrainError;
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s {
-            "camera" => Ok(Self::Camera),
-            "ground" => Ok(Self::Ground),
-            _ => Err(TrainError::InvalidArgument(format!(
-                "unknown shift plane {s:?} (camera|ground)"
-            ))),
-        }
-    }
-}
-
 /// Knobs of the augmentation (see the module docs).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SynthConfig {
@@ -208,20 +196,9 @@ pub struct SynthConfig {
     pub flip_prob: f32,
     /// Detector-noise model.
     pub noise: NoiseKind,
-    /// Scale of the noise's deviation from the residuals' per-joint mean
-    /// ([`ResidualBank::scale_deviation`]; 1 = as measured). The SH
-    /// detector was fine-tuned on the training subjects, so their residuals
-    /// likely understate its errors on anyone else.
-    pub noise_scale: f32,
     /// Keep the lowest joint at its original height in every frame (see
     /// the module docs, step 3).
     pub floor_contact: bool,
-    /// Std of a random change of the camera's height per sample, metres
-    /// (0 = the calibrated camera; see [`jitter_camera`]).
-    pub camera_height_std: f32,
-    /// Std of a random rotation of the camera about each of its axes per
-    /// sample, degrees.
-    pub camera_angle_std_deg: f32,
     /// Turn each window about the vertical through its first root by a
     /// uniform random yaw (see [`turn_about_vertical`]).
     pub random_yaw: bool,
@@ -247,10 +224,7 @@ impl Default for SynthConfig {
             min_depth: 1.5,
             flip_prob: 0.5,
             noise: NoiseKind::Residual,
-            noise_scale: 1.0,
             floor_contact: false,
-            camera_height_std: 0.0,
-            camera_angle_std_deg: 0.0,
             random_yaw: false,
             rectify: false,
             height_normalized: false,
@@ -280,13 +254,6 @@ impl SynthConfig {
         if self.min_depth.is_nan() || self.min_depth <= 0.0 {
             return bad("min_depth must be positive");
         }
-        if !(self.noise_scale >= 0.0 && self.noise_scale.is_finite()) {
-            return bad("noise_scale must be finite and >= 0");
-        }
-        let jitter = [self.camera_height_std, self.camera_angle_std_deg];
-        if !jitter.iter().all(|v| *v >= 0.0 && v.is_finite()) {
-            return bad("camera jitter must be finite and >= 0");
-        }
         if !(0.0..=1.0).contains(&self.flip_prob) {
             return bad("flip_prob must be in [0, 1]");
         }
@@ -303,7 +270,6 @@ pub struct SynthSource {
     cumulative: Vec<u64>,
     residuals: ResidualBank,
     sampler: LengthSampler,
-    gain: DetectorGain,
     /// Per sequence, the indices of the cameras samples may use (empty:
     /// every camera).
     camera_subset: Vec<Vec<usize>>,
@@ -389,7 +355,6 @@ impl SynthSource {
             cumulative,
             residuals,
             sampler,
-            gain: DetectorGain::unit(),
             camera_subset: Vec::new(),
         })
     }
@@ -435,18 +400,6 @@ impl SynthSource {
             }
         }
         Ok(())
-    }
-
-    /// Show the drawn bodies as the detector would ([`DetectorGain`]; unit
-    /// gains unless set).
-    pub fn with_detector_gain(mut self, gain: DetectorGain) -> Self {
-        self.gain = gain;
-        self
-    }
-
-    /// The detector gains the input is built with.
-    pub fn detector_gain(&self) -> &DetectorGain {
-        &self.gain
     }
 
     /// The sequences.
@@ -498,25 +451,17 @@ impl SynthSource {
         };
 
         let lengths = self.sampler.sample(&seq.lengths, rng);
-        // The input shows the body as the detector sees it; the target is
-        // the drawn lengths.
-        let shown = self.gain.shown(&seq.lengths, &lengths);
+        // The body is rebuilt with `subject + (drawn - subject)`, which can
+        // differ from the drawn lengths in the last bit: the form every
+        // shipped model was trained with, kept so that runs reproduce bit
+        // for bit. The target is the drawn lengths.
+        let shown: BoneLengths =
+            std::array::from_fn(|b| seq.lengths[b] + (lengths[b] - seq.lengths[b]));
         let cam_idx = match self.camera_subset.get(seq_idx) {
             Some(allowed) => allowed[rng.random_range(0..allowed.len())],
             None => rng.random_range(0..seq.cameras.len()),
         };
-        let jittered;
-        let cam = if cfg.camera_height_std > 0.0 || cfg.camera_angle_std_deg > 0.0 {
-            jittered = jitter_camera(
-                &seq.cameras[cam_idx],
-                cfg.camera_height_std,
-                cfg.camera_angle_std_deg,
-                rng,
-            );
-            &jittered
-        } else {
-            &seq.cameras[cam_idx]
-        };
+        let cam = &seq.cameras[cam_idx];
         let k: NormalizedIntrinsics = cam.normalized_intrinsics();
         let half_h = cam.height as f32 / cam.width as f32;
 
@@ -587,8 +532,7 @@ impl SynthSource {
         // Always drawn, so the flip probability does not shift later draws.
         let flipped = rng.random::<f32>() < cfg.flip_prob;
 
-        // Every camera was checked by `check_rectifiable` (jitter of a few
-        // degrees cannot make one steeper than the 60-degree limit).
+        // Every camera was checked by `check_rectifiable`.
         let level = cfg
             .rectify
             .then(|| LevelCamera::from_camera(cam))
@@ -609,7 +553,6 @@ impl SynthSource {
                 }),
             };
             if let Some(r) = residual {
-                let r = self.residuals.scale_deviation(&r, cfg.noise_scale);
                 apply_residual(&mut kp, &r, depth, k.focal);
             }
             if let Some(level) = &level {
@@ -679,38 +622,6 @@ pub fn turn_about_vertical(
         [x, y, d[2]]
     });
     (root, dirs)
-}
-
-/// `cam` moved up or down by `N(0, height_std)` metres and turned by
-/// `N(0, angle_std_deg)` degrees about each of its own axes (tilt, pan,
-/// roll). Each recording session of Human3.6M calibrated its cameras anew,
-/// and the same physical camera sits centimetres higher or lower from one
-/// session to the next; a model that learned the training sessions' exact
-/// camera geometry reads a new session's people as too small or too large
-/// (the floor, whose image tells the distance and so the scale, appears
-/// where a different camera would put it).
-pub fn jitter_camera<R: Rng + ?Sized>(
-    cam: &Camera,
-    height_std: f32,
-    angle_std_deg: f32,
-    rng: &mut R,
-) -> Camera {
-    let mut out = cam.clone();
-    out.center[2] += f64::from(normal_f32(rng, height_std));
-    let std = f64::from(angle_std_deg).to_radians();
-    let angles: [f64; 3] = std::array::from_fn(|_| std * f64::from(normal_f32(rng, 1.0)));
-    // Small rotation in the camera frame, applied after R (x, then y, then z).
-    let (sx, cx) = angles[0].sin_cos();
-    let (sy, cy) = angles[1].sin_cos();
-    let (sz, cz) = angles[2].sin_cos();
-    let rx = [[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]];
-    let ry = [[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]];
-    let rz = [[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]];
-    let mul = |a: &[[f64; 3]; 3], b: &[[f64; 3]; 3]| -> [[f64; 3]; 3] {
-        std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|k| a[i][k] * b[k][j]).sum()))
-    };
-    out.rotation = mul(&mul(&rz, &mul(&ry, &rx)), &cam.rotation);
-    out
 }
 
 /// Mirror a flat `T * 34` input sequence horizontally (the flip the
@@ -806,27 +717,6 @@ mod tests {
     }
 
     #[test]
-    fn a_jittered_camera_stays_a_valid_camera_and_moves_as_asked() {
-        let cam = tilted_camera();
-        let mut rng = StdRng::seed_from_u64(3);
-        let mut heights = Vec::new();
-        for _ in 0..500 {
-            let j = jitter_camera(&cam, 0.05, 1.0, &mut rng);
-            j.validate().expect("rotation stays orthonormal");
-            assert_eq!(j.center[..2], cam.center[..2]);
-            heights.push(j.center[2] - cam.center[2]);
-            // The optical axis turns by a few degrees at most.
-            let cos: f64 = (0..3).map(|k| j.rotation[2][k] * cam.rotation[2][k]).sum();
-            assert!(cos.acos().to_degrees() < 6.0);
-        }
-        let n = heights.len() as f64;
-        let sd = (heights.iter().map(|h| h * h).sum::<f64>() / n).sqrt();
-        assert!((sd - 0.05).abs() < 0.01, "height std {sd}");
-        let same = jitter_camera(&cam, 0.0, 0.0, &mut rng);
-        assert_eq!(same.center, cam.center);
-    }
-
-    #[test]
     fn a_turn_keeps_heights_lengths_and_the_pivot() {
         let dirs: BoneDirections = std::array::from_fn(|b| {
             let a = b as f32 * 0.4;
@@ -849,10 +739,13 @@ mod tests {
     }
 
     #[test]
-    fn shift_plane_names_round_trip() {
-        for p in [ShiftPlane::Camera, ShiftPlane::Ground] {
-            assert_eq!(p.name().parse::<ShiftPlane>().unwrap(), p);
+    fn flag_config_and_display_spellings_agree() {
+        use clap::ValueEnum;
+        for p in ShiftPlane::value_variants() {
+            assert_eq!(p.to_possible_value().unwrap().get_name(), p.name());
+            assert_eq!(serde_json::to_value(p).unwrap(), p.name());
+            assert_eq!(p.to_string(), p.name());
         }
-        assert!("floor".parse::<ShiftPlane>().is_err());
+        assert!(ShiftPlane::from_str("floor", false).is_err());
     }
 }

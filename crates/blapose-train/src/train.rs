@@ -1,9 +1,10 @@
-//! The training loop: synthetic batches in, L1 on bone lengths, Adam with
-//! exponential decay, validation, checkpoints, resume.
+//! The bone-length training loop: synthetic batches in, L1 on bone
+//! lengths, Adam with exponential decay, validation, checkpoints, resume.
 //!
-//! * **Epoch.** Samples are synthesized on the fly, so there is no natural
-//!   epoch; one *epoch* here is [`TrainConfig::epoch_steps`] optimizer steps
-//!   and the learning rate is `lr * lr_decay^floor(step / epoch_steps)`.
+//! * **Schedule, run directory, log, checkpoints** are those of every
+//!   trainer here ([`crate::run`]): the learning rate decays per
+//!   `epoch_steps` steps, checkpoints are written atomically and
+//!   `--resume` continues from the last one.
 //! * **Loss.** Mean absolute error between predicted and sampled lengths
 //!   (metres; logged in mm). For the online GRU, `per_frame_weight > 0` adds
 //!   the same L1 on the *running mean* of the per-frame predictions (what an
@@ -15,16 +16,16 @@
 //! * **Network.** The hot loop is [`crate::fastnet`] (hand-written BPTT,
 //!   checked against candle autograd on the reference model), not candle's
 //!   autograd, which was ~5x slower here.
-//! * **Checkpoints** (`checkpoint.safetensors` in the run directory: weights,
-//!   Adam moments, step and the run configuration) are written to a
-//!   temporary file and renamed, so an interruption never leaves a torn
-//!   file; `--resume` continues from the last one.
+//! * **Configuration.** [`TrainConfig`] is stored in the checkpoint and, as
+//!   JSON, in the weights' metadata (`train_config`), where the server reads
+//!   which family a file belongs to (`rectify`, `height_normalized`). Files
+//!   written before an option was removed still parse: unknown fields are
+//!   ignored, and a checkpoint that used a removed option is refused
+//!   ([`removed_options`]).
 
 use std::collections::{BTreeMap, HashMap};
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::time::Instant;
 
 use blapose_core::skeleton::NUM_BONES;
 use blapose_model::weights::{self, LoadedWeights, WeightsMetadata};
@@ -36,16 +37,16 @@ use crate::adam::{Adam, AdamConfig, ParamEma};
 use crate::dataset::EvalSequence;
 use crate::error::TrainError;
 use crate::fastnet::{FastNet, LossConfig};
+use crate::lengths::LengthStrategy;
 use crate::loader::Prefetcher;
-use crate::precondition::InputPreconditioner;
-use crate::synth::{sample_rng, Batch, SynthConfig, SynthSource, FRAME_DIM};
+use crate::noise::NoiseKind;
+use crate::run::{
+    check_resumable, read_tensor_file, write_atomic, CheckpointMeta, CheckpointTimer, LogWindow,
+    RunClock, RunDir, Schedule,
+};
+pub use crate::run::{Progress, LOG_FILE, WEIGHTS_FILE};
+use crate::synth::{sample_rng, Batch, ShiftPlane, SynthConfig, SynthSource, FRAME_DIM};
 
-/// Name of the checkpoint file inside the run directory.
-pub const CHECKPOINT_FILE: &str = "checkpoint.safetensors";
-/// Name of the training log inside the run directory.
-pub const LOG_FILE: &str = "train_log.csv";
-/// Name of the final weights inside the run directory.
-pub const WEIGHTS_FILE: &str = "model.safetensors";
 /// Columns of the training log.
 pub const LOG_HEADER: &str =
     "step,epoch,lr,train_loss_mm,grad_norm,frames_per_s,val_synth_mm,val_real_sh_mm,val_real_sh_running_mm,elapsed_s";
@@ -54,24 +55,22 @@ const VAL_SEED_SALT: u64 = 0x05EE_D0F7_A11D;
 /// Seed offset of the dropout masks.
 const DROPOUT_SEED_SALT: u64 = 0xD0_0D_0D_0D;
 
-/// Everything that defines a training run.
+/// Everything that defines a training run. Serialized with the names
+/// and spellings of the command line (`"kind": "bigru"`, `"lengths":
+/// "ansur"`, ...), which every shipped file's `train_config` uses.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TrainConfig {
-    /// `gru` or `bigru`.
-    pub kind: String,
-    /// Length strategy name (for the metadata; the sampler is passed in).
-    pub lengths: String,
+    /// The model trained.
+    pub kind: ModelKind,
+    /// Length strategy (for the metadata; the sampler is passed in).
+    pub lengths: LengthStrategy,
     /// `ansur` only: each bone's std as a multiple of the training
     /// subjects' std ([`crate::ansur::AnsurPopulation::match_spread`]);
     /// 0 keeps the survey's own spread (runs before this field existed).
     #[serde(default)]
     pub ansur_spread: f32,
-    /// Noise model name (also in `synth`).
-    pub noise: String,
-    /// Scale of the noise around the residuals' mean
-    /// ([`SynthConfig::noise_scale`]); runs before this field used 1.
-    #[serde(default = "one")]
-    pub noise_scale: f32,
+    /// Noise model.
+    pub noise: NoiseKind,
     /// Frames per training window.
     pub seq_len: usize,
     /// Smallest playback stride.
@@ -80,42 +79,18 @@ pub struct TrainConfig {
     pub stride_max: f32,
     /// 3D shift std, metres.
     pub shift_std: f32,
-    /// Where the shift is drawn (`camera` or `ground`,
-    /// [`crate::synth::ShiftPlane`]); runs before this field were `camera`.
-    #[serde(default = "default_shift_plane")]
-    pub shift_plane: String,
+    /// Where the shift is drawn; runs before this field were `camera`.
+    #[serde(default)]
+    pub shift_plane: ShiftPlane,
     /// Keep the lowest joint at its original height after the lengths are
     /// replaced ([`SynthConfig::floor_contact`]); runs before this field
     /// did not.
     #[serde(default)]
     pub floor_contact: bool,
-    /// Show the drawn bodies with the detector's per-bone gain fitted on
-    /// the training subjects ([`crate::detector_gain`]); runs before this
-    /// field used unit gains.
-    #[serde(default)]
-    pub detector_gain: bool,
-    /// Train on root-relative, standardized inputs and fold the map into
-    /// the first layer when saving ([`crate::precondition`]); runs before
-    /// this field read raw coordinates.
-    #[serde(default)]
-    pub precondition: bool,
-    /// Per-sample camera height jitter, metres
-    /// ([`SynthConfig::camera_height_std`]); runs before this field used 0.
-    #[serde(default)]
-    pub camera_height_std: f32,
-    /// Per-sample camera rotation jitter, degrees; runs before this field
-    /// used 0.
-    #[serde(default)]
-    pub camera_angle_std_deg: f32,
     /// Turn each window by a random yaw ([`SynthConfig::random_yaw`]); runs
     /// before this field did not.
     #[serde(default)]
     pub random_yaw: bool,
-    /// Draw sizes apart from proportions
-    /// ([`crate::lengths::LengthSampler::with_decoupled_size`]); runs before
-    /// this field did not.
-    #[serde(default)]
-    pub decouple_size: bool,
     /// Synthesize through these cameras only (ids; empty = all;
     /// [`crate::synth::SynthSource::with_cameras`]); runs before this
     /// field used all.
@@ -146,12 +121,10 @@ pub struct TrainConfig {
     pub clip_norm: f64,
     /// Weight of the online GRU's running-mean loss (0 = off).
     pub per_frame_weight: f32,
-    /// Start the output layer at the training mean lengths
-    /// ([`FastNet::init_output_at`]).
-    pub init_output_mean: bool,
     /// Start from these weights (a `model.safetensors` of the same kind)
-    /// instead of a random initialization; `init_output_mean` is then
-    /// ignored. Recorded so a resumed run can check it.
+    /// instead of a random initialization with the output layer at the
+    /// training mean lengths ([`FastNet::init_output_at`]). Recorded so a
+    /// resumed run can check it.
     #[serde(default)]
     pub init_weights: Option<String>,
     /// Learning-rate multiplier of the output layer (`fc.weight`): its
@@ -180,16 +153,30 @@ fn one() -> f32 {
     1.0
 }
 
-fn default_shift_plane() -> String {
-    crate::synth::ShiftPlane::Camera.to_string()
+/// Research options measured and removed since (models/README.md,
+/// "Removed research options"), each with the test of the value that
+/// meant "off". A checkpoint whose configuration turns one on cannot be
+/// continued by this trainer.
+type IsOff = fn(&serde_json::Value) -> bool;
+const REMOVED_OPTIONS: [(&str, IsOff); 6] = [
+    ("noise_scale", |v| v.as_f64() == Some(1.0)),
+    ("camera_height_std", |v| v.as_f64() == Some(0.0)),
+    ("camera_angle_std_deg", |v| v.as_f64() == Some(0.0)),
+    ("detector_gain", |v| v.as_bool() == Some(false)),
+    ("precondition", |v| v.as_bool() == Some(false)),
+    ("decouple_size", |v| v.as_bool() == Some(false)),
+];
+
+/// The removed research options a serialized configuration turns on.
+pub fn removed_options(config: &serde_json::Value) -> Vec<&'static str> {
+    REMOVED_OPTIONS
+        .iter()
+        .filter(|(name, is_off)| config.get(name).is_some_and(|v| !is_off(v)))
+        .map(|(name, _)| *name)
+        .collect()
 }
 
 impl TrainConfig {
-    /// The model kind.
-    pub fn model_kind(&self) -> Result<ModelKind, TrainError> {
-        self.kind.parse().map_err(TrainError::Model)
-    }
-
     /// The augmentation knobs.
     pub fn synth(&self) -> Result<SynthConfig, TrainError> {
         let cfg = SynthConfig {
@@ -197,14 +184,11 @@ impl TrainConfig {
             stride_min: self.stride_min,
             stride_max: self.stride_max,
             shift_std: self.shift_std,
-            shift_plane: self.shift_plane.parse()?,
+            shift_plane: self.shift_plane,
             min_depth: 1.5,
             flip_prob: self.flip_prob,
-            noise: self.noise.parse()?,
-            noise_scale: self.noise_scale,
+            noise: self.noise,
             floor_contact: self.floor_contact,
-            camera_height_std: self.camera_height_std,
-            camera_angle_std_deg: self.camera_angle_std_deg,
             random_yaw: self.random_yaw,
             rectify: self.rectify,
             height_normalized: self.height_normalized,
@@ -213,9 +197,13 @@ impl TrainConfig {
         Ok(cfg)
     }
 
-    /// Learning rate at `step`.
-    pub fn lr_at(&self, step: u64) -> f64 {
-        step_decayed_lr(self.lr, self.lr_decay, self.epoch_steps, step)
+    /// The learning-rate schedule.
+    pub fn schedule(&self) -> Schedule {
+        Schedule {
+            lr: self.lr,
+            decay: self.lr_decay,
+            epoch_steps: self.epoch_steps,
+        }
     }
 
     /// The fields a resumed run must share with its checkpoint.
@@ -226,33 +214,6 @@ impl TrainConfig {
             a.val_every = o.val_every;
             a.checkpoint_secs = o.checkpoint_secs;
         })
-    }
-}
-
-/// `lr * decay^floor(step / epoch_steps)`: the step decay of every trainer.
-pub fn step_decayed_lr(lr: f64, decay: f64, epoch_steps: u64, step: u64) -> f64 {
-    lr * decay.powi((step / epoch_steps.max(1)) as i32)
-}
-
-/// Whether a run configured as `now` may continue a checkpoint written
-/// with `checkpoint`: equal once `relax` has copied the fields a resume may
-/// change (run length, logging) from the checkpoint's configuration into a
-/// copy of `now`. The error shows both configurations.
-pub fn check_resumable<T: Clone + PartialEq + Serialize>(
-    now: &T,
-    checkpoint: &T,
-    relax: impl FnOnce(&mut T, &T),
-) -> Result<(), String> {
-    let mut relaxed = now.clone();
-    relax(&mut relaxed, checkpoint);
-    if relaxed == *checkpoint {
-        Ok(())
-    } else {
-        Err(format!(
-            "checkpoint was written by a different configuration:\n  checkpoint: {}\n  now:        {}",
-            serde_json::to_string(checkpoint).unwrap_or_default(),
-            serde_json::to_string(now).unwrap_or_default()
-        ))
     }
 }
 
@@ -378,32 +339,12 @@ pub fn validate(net: &FastNet, synth: &[Batch], real: &[Batch]) -> Validation {
     v
 }
 
-/// Write `bytes` to `path` atomically (temporary file + rename).
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), TrainError> {
-    let tmp = path.with_extension("tmp");
-    {
-        let mut f = std::fs::File::create(&tmp).map_err(|e| TrainError::io(&tmp, e))?;
-        f.write_all(bytes).map_err(|e| TrainError::io(&tmp, e))?;
-        f.sync_all().map_err(|e| TrainError::io(&tmp, e))?;
-    }
-    std::fs::rename(&tmp, path).map_err(|e| TrainError::io(path, e))
-}
-
-/// What a checkpoint holds besides tensors.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-struct CheckpointMeta {
-    step: u64,
-    adam_steps: u64,
-    elapsed_s: f64,
-    config: TrainConfig,
-}
-
 fn save_checkpoint(
     path: &Path,
     net: &FastNet,
     opt: &Adam,
     ema: Option<&ParamEma>,
-    meta: &CheckpointMeta,
+    meta: &CheckpointMeta<TrainConfig>,
 ) -> Result<(), TrainError> {
     let mut tensors: BTreeMap<&str, Tensor> = BTreeMap::new();
     tensors.insert(
@@ -437,34 +378,10 @@ fn save_checkpoint(
     write_atomic(path, &bytes)
 }
 
-/// A safetensors file read whole: its tensors and header metadata.
-pub struct TensorFile {
-    /// Tensors by name.
-    pub tensors: HashMap<String, Tensor>,
-    /// Header `__metadata__` entries.
-    pub metadata: HashMap<String, String>,
-}
+/// A checkpoint read back: its metadata and its flat tensors by name.
+type Checkpoint = (CheckpointMeta<TrainConfig>, BTreeMap<String, Vec<f32>>);
 
-/// Read a safetensors file (weights or checkpoint).
-pub fn read_tensor_file(path: &Path) -> Result<TensorFile, TrainError> {
-    let bad = |msg: String| TrainError::Checkpoint {
-        path: path.into(),
-        msg,
-    };
-    let bytes = std::fs::read(path).map_err(|e| TrainError::io(path, e))?;
-    let (_, header) =
-        safetensors::SafeTensors::read_metadata(&bytes).map_err(|e| bad(e.to_string()))?;
-    let meta = header.metadata().clone().unwrap_or_default();
-    let tensors = candle_core::safetensors::load_buffer(&bytes, &Device::Cpu)?;
-    Ok(TensorFile {
-        tensors,
-        metadata: meta,
-    })
-}
-
-fn load_checkpoint(
-    path: &Path,
-) -> Result<(CheckpointMeta, BTreeMap<String, Vec<f32>>), TrainError> {
+fn load_checkpoint(path: &Path) -> Result<Checkpoint, TrainError> {
     let bad = |msg: String| TrainError::Checkpoint {
         path: path.into(),
         msg,
@@ -474,36 +391,21 @@ fn load_checkpoint(
         .metadata
         .get("blapose_checkpoint")
         .ok_or_else(|| bad("no blapose_checkpoint metadata".into()))?;
-    let meta: CheckpointMeta = serde_json::from_str(meta_json).map_err(|e| bad(e.to_string()))?;
+    let raw: serde_json::Value = serde_json::from_str(meta_json).map_err(|e| bad(e.to_string()))?;
+    let removed = removed_options(&raw["config"]);
+    if !removed.is_empty() {
+        return Err(bad(format!(
+            "written with removed research options ({}); this trainer cannot continue it",
+            removed.join(", ")
+        )));
+    }
+    let meta = serde_json::from_str(meta_json).map_err(|e| bad(e.to_string()))?;
     let mut tensors = BTreeMap::new();
     for (name, t) in file.tensors {
         tensors.insert(name, t.flatten_all()?.to_vec1::<f32>()?);
     }
     Ok((meta, tensors))
 }
-
-/// Keep the log's header and the rows up to `step` (for a resumed run).
-pub fn truncate_log(path: &Path, step: u64) -> Result<(), TrainError> {
-    let Ok(text) = std::fs::read_to_string(path) else {
-        return Ok(());
-    };
-    let kept: Vec<&str> = text
-        .lines()
-        .enumerate()
-        .filter(|(i, l)| {
-            *i == 0
-                || l.split(',')
-                    .next()
-                    .and_then(|s| s.parse::<u64>().ok())
-                    .is_some_and(|s| s <= step)
-        })
-        .map(|(_, l)| l)
-        .collect();
-    std::fs::write(path, kept.join("\n") + "\n").map_err(|e| TrainError::io(path, e))
-}
-
-/// Progress callback: `(step, total, loss_mm, frames_per_s)`.
-pub type Progress<'a> = &'a mut dyn FnMut(u64, u64, f64, f64);
 
 /// What a finished run reports.
 #[derive(Debug, Clone, PartialEq)]
@@ -537,47 +439,30 @@ pub fn train(
             "batch and steps must be positive".into(),
         ));
     }
-    let kind = cfg.model_kind()?;
+    let kind = cfg.kind;
     let synth = cfg.synth()?;
-    std::fs::create_dir_all(out).map_err(|e| TrainError::io(out, e))?;
-    let ckpt_path = out.join(CHECKPOINT_FILE);
-    let log_path = out.join(LOG_FILE);
+    let schedule = cfg.schedule();
+    let run = RunDir::create(out)?;
 
-    // The fixed validation sets, and the preconditioner fitted on the
-    // synthetic one (deterministic, so a resumed run gets the same map).
-    let mut val_synth = validation_batches(
+    // The fixed validation sets.
+    let val_synth = validation_batches(
         &source,
         &synth,
         cfg.seed,
         cfg.val_samples,
         cfg.batch.min(64),
     );
-    let mut val_real = real_validation_batches(real_val, cfg.val_frames, 64);
-    let pre = cfg.precondition.then(|| {
-        let all: Vec<f32> = val_synth.iter().flat_map(|b| b.inputs.clone()).collect();
-        InputPreconditioner::fit(&all)
-    });
-    if let Some(p) = &pre {
-        for b in val_synth.iter_mut().chain(val_real.iter_mut()) {
-            p.apply(&mut b.inputs);
-        }
-    }
+    let val_real = real_validation_batches(real_val, cfg.val_frames, 64);
 
     let mut net = match &cfg.init_weights {
         Some(path) => {
             let init = weights::load(Path::new(path), kind)?;
-            let mut net = FastNet::from_tensors(kind, init.tensors())?;
-            if let Some(p) = &pre {
-                net.map_embedding(|w, b| p.unfold(w, b));
-            }
-            net
+            FastNet::from_tensors(kind, init.tensors())?
         }
         None => {
             let init = LoadedWeights::random(kind, cfg.seed)?;
             let mut net = FastNet::from_tensors(kind, init.tensors())?;
-            if cfg.init_output_mean {
-                net.init_output_at(&source.sampler().stats().mean, 0.05);
-            }
+            net.init_output_at(&source.sampler().stats().mean, 0.05);
             net
         }
     };
@@ -602,8 +487,9 @@ pub fn train(
 
     let mut start_step = 0u64;
     let mut elapsed_before = 0.0;
-    if resume && ckpt_path.exists() {
-        let (meta, mut tensors) = load_checkpoint(&ckpt_path)?;
+    let resumed = run.checkpoint_to_resume(resume);
+    if let Some(ckpt_path) = &resumed {
+        let (meta, mut tensors) = load_checkpoint(ckpt_path)?;
         cfg.compatible(&meta.config)
             .map_err(|msg| TrainError::Checkpoint {
                 path: ckpt_path.clone(),
@@ -628,17 +514,13 @@ pub fn train(
         opt.t = meta.adam_steps;
         start_step = meta.step;
         elapsed_before = meta.elapsed_s;
-        truncate_log(&log_path, start_step)?;
-    } else {
-        std::fs::write(&log_path, format!("{LOG_HEADER}\n"))
-            .map_err(|e| TrainError::io(&log_path, e))?;
     }
-    std::fs::write(out.join("config.json"), serde_json::to_string_pretty(cfg)?)
-        .map_err(|e| TrainError::io(out, e))?;
+    run.start_log(LOG_HEADER, resumed.is_some().then_some(start_step))?;
+    run.write_config(cfg)?;
 
-    let t_start = Instant::now();
-    let mut last_ckpt = Instant::now();
-    let mut window = (0.0f64, 0usize, 0.0f64, Instant::now(), 0usize); // loss sum, n, grad sum, since, frames
+    let clock = RunClock::start(elapsed_before);
+    let mut checkpoints = CheckpointTimer::new(cfg.checkpoint_secs);
+    let mut window = LogWindow::new();
     let mut validation = Validation::default();
     let mut frames_total = 0usize;
     let mut grad = vec![0.0f32; net.params.len()];
@@ -651,24 +533,21 @@ pub fn train(
         2,
     );
     if start_step == 0 {
-        // Row 0: the untrained network (with `init_output_mean`, about the
-        // constant prior-mean predictor), the bar every later row must beat.
+        // Row 0: the untrained network (about the constant prior-mean
+        // predictor, or the warm start), the bar every later row must beat.
         let v = validate(&net, &val_synth, &val_real);
         let row = format!(
             "0,0.000,{:.3e},NaN,NaN,NaN,{:.3},{:.3},{:.3},0.0\n",
-            cfg.lr_at(0),
+            schedule.lr_at(0),
             v.synth_mm,
             v.real_sh_mm,
             v.real_sh_running_mm
         );
-        append_log_row(&log_path, &row)?;
+        run.append_log(&row)?;
     }
     let mut step = start_step;
-    while let Some((s, mut batch)) = loader.next_batch() {
-        if let Some(p) = &pre {
-            p.apply(&mut batch.inputs);
-        }
-        opt.config.lr = cfg.lr_at(s);
+    while let Some((s, batch)) = loader.next_batch() {
+        opt.config.lr = schedule.lr_at(s);
         let loss_cfg = LossConfig {
             running_mean_weight: cfg.per_frame_weight,
             dropout: DROPOUT,
@@ -683,7 +562,6 @@ pub fn train(
             &mut drop_rng,
             &mut grad,
         );
-        let mm = res.final_l1 * 1000.0;
         if !res.loss.is_finite() {
             return Err(TrainError::Data(format!("non-finite loss at step {s}")));
         }
@@ -696,45 +574,30 @@ pub fn train(
         step = s + 1;
         let frames = batch.batch * batch.seq_len;
         frames_total += frames;
-        window.0 += mm;
-        window.1 += 1;
-        window.2 += norm;
-        window.4 += frames;
-        let fps = window.4 as f64 / window.3.elapsed().as_secs_f64().max(1e-9);
-        progress(step, cfg.steps, window.0 / window.1 as f64, fps);
+        window.add(res.final_l1 * 1000.0, norm, frames);
+        let fps = window.rate();
+        progress(step, cfg.steps, window.mean_loss(), fps);
 
         let at_end = step == cfg.steps;
-        let do_val = at_end || (cfg.val_every > 0 && step.is_multiple_of(cfg.val_every));
-        if do_val {
+        if at_end || (cfg.val_every > 0 && step.is_multiple_of(cfg.val_every)) {
             validation = validate(&averaged(&net, ema.as_ref()), &val_synth, &val_real);
-            let row = format!(
-                "{step},{:.3},{:.3e},{:.3},{:.4},{:.0},{:.3},{:.3},{:.3},{:.1}\n",
-                step as f64 / cfg.epoch_steps.max(1) as f64,
-                cfg.lr_at(s),
-                window.0 / window.1 as f64,
-                window.2 / window.1 as f64,
-                fps,
-                validation.synth_mm,
-                validation.real_sh_mm,
-                validation.real_sh_running_mm,
-                elapsed_before + t_start.elapsed().as_secs_f64()
-            );
-            append_log_row(&log_path, &row)?;
-            window = (0.0, 0, 0.0, Instant::now(), 0);
+            let v = &validation;
+            let columns = [v.synth_mm, v.real_sh_mm, v.real_sh_running_mm];
+            run.append_log(&window.row(step, &schedule, fps, &columns, clock.total_s()))?;
+            window = LogWindow::new();
         }
-        if at_end || last_ckpt.elapsed().as_secs() >= cfg.checkpoint_secs {
+        if checkpoints.due(at_end) {
             let meta = CheckpointMeta {
                 step,
                 adam_steps: opt.t,
-                elapsed_s: elapsed_before + t_start.elapsed().as_secs_f64(),
+                elapsed_s: clock.total_s(),
                 config: cfg.clone(),
             };
-            save_checkpoint(&ckpt_path, &net, &opt, ema.as_ref(), &meta)?;
-            last_ckpt = Instant::now();
+            save_checkpoint(&run.checkpoint(), &net, &opt, ema.as_ref(), &meta)?;
         }
     }
     drop(loader);
-    let elapsed = t_start.elapsed().as_secs_f64();
+    let elapsed = clock.this_run_s();
     let mut meta = WeightsMetadata::new(kind);
     meta.training_data = training_data.to_string();
     if cfg.rectify {
@@ -751,11 +614,8 @@ pub fn train(
         "train_wall_clock_s".into(),
         format!("{:.0}", elapsed_before + elapsed),
     );
-    let weights_path = out.join(WEIGHTS_FILE);
-    let mut saved = averaged(&net, ema.as_ref());
-    if let Some(p) = &pre {
-        saved.map_embedding(|w, b| p.fold(w, b));
-    }
+    let weights_path = run.weights();
+    let saved = averaged(&net, ema.as_ref());
     let bytes = weights::to_bytes(&saved.to_tensors()?, &meta)?;
     write_atomic(&weights_path, &bytes)?;
     Ok(TrainOutcome {
@@ -767,15 +627,6 @@ pub fn train(
     })
 }
 
-/// Append one row (with its newline) to the training log.
-fn append_log_row(path: &Path, row: &str) -> Result<(), TrainError> {
-    std::fs::OpenOptions::new()
-        .append(true)
-        .open(path)
-        .and_then(|mut f| f.write_all(row.as_bytes()))
-        .map_err(|e| TrainError::io(path, e))
-}
-
 /// The network validation and the weights file see: `net` with the
 /// parameter average when there is one.
 fn averaged(net: &FastNet, ema: Option<&ParamEma>) -> FastNet {
@@ -784,23 +635,4 @@ fn averaged(net: &FastNet, ema: Option<&ParamEma>) -> FastNet {
         out.params.copy_from_slice(&e.values);
     }
     out
-}
-
-/// Column `name` of a training log as `(step, value)` pairs (NaN skipped).
-pub fn read_log_column(path: &Path, name: &str) -> Result<Vec<(f64, f64)>, TrainError> {
-    let text = std::fs::read_to_string(path).map_err(|e| TrainError::io(path, e))?;
-    let mut lines = text.lines();
-    let header: Vec<&str> = lines.next().unwrap_or("").split(',').collect();
-    let col = header
-        .iter()
-        .position(|h| *h == name)
-        .ok_or_else(|| TrainError::Data(format!("{}: no column {name}", path.display())))?;
-    Ok(lines
-        .filter_map(|l| {
-            let f: Vec<&str> = l.split(',').collect();
-            let x = f.first()?.parse::<f64>().ok()?;
-            let y = f.get(col)?.parse::<f64>().ok()?;
-            y.is_finite().then_some((x, y))
-        })
-        .collect())
 }

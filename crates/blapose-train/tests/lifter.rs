@@ -15,7 +15,7 @@ use blapose_train::lifter::objective::Objective;
 use blapose_train::lifter::temporal::TemporalConfig;
 use blapose_train::lifter::train::{train, LifterTrainConfig};
 use blapose_train::lifter::{pose_to_target, weights, LifterArch};
-use blapose_train::train::{read_log_column, LOG_FILE};
+use blapose_train::run::{read_log_column, LOG_FILE};
 use rand::{Rng, SeedableRng};
 
 /// A plausible skeleton: fixed directions, lengths 0.1..0.4 m.

@@ -5,6 +5,7 @@
 //! `blapose eval --model M --input sh --every k` on S9/S11, and the same
 //! for the camera-aware pair (`*_rectified_sh_mm`, evaluated with
 //! `--rectify`). Skips when the data, the weights or that file are absent.
+//! The weights' training configurations must parse in any case.
 
 use std::path::Path;
 
@@ -70,7 +71,7 @@ fn shipped_weights_reproduce_the_model_card() {
         let weights =
             blapose_model::weights::load(models.join(file), kind).expect("shipped weights load");
         let est: Box<dyn LengthEstimator> = match kind {
-            ModelKind::BiGru => Box::new(BiGruEstimator::new(&weights, 0).unwrap()),
+            ModelKind::BiGru => Box::new(BiGruEstimator::new(&weights).unwrap()),
             ModelKind::Gru => Box::new(GruEstimator::new(&weights).unwrap()),
         };
         let r = evaluate(est.as_ref(), trials, &[], kind.as_str(), "sh", file, &[]).unwrap();
@@ -80,4 +81,56 @@ fn shipped_weights_reproduce_the_model_card() {
             r.mean_bone_error_mm
         );
     }
+}
+
+/// Every shipped bone-length file's `train_config`, written before some
+/// research options were removed, still parses into [`TrainConfig`] and
+/// serializes back to the same values (the server judges a file's family
+/// by `rectify` and `height_normalized` there).
+#[test]
+fn shipped_train_configs_still_parse() {
+    use blapose_train::lengths::LengthStrategy;
+    use blapose_train::noise::NoiseKind;
+    use blapose_train::synth::ShiftPlane;
+    use blapose_train::train::{removed_options, TrainConfig};
+    let models = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models");
+    for (file, kind, rectify) in [
+        ("bone_length_bigru.safetensors", ModelKind::BiGru, false),
+        ("bone_length_gru.safetensors", ModelKind::Gru, false),
+        (
+            "bone_length_bigru_rectified.safetensors",
+            ModelKind::BiGru,
+            true,
+        ),
+        (
+            "bone_length_gru_rectified.safetensors",
+            ModelKind::Gru,
+            true,
+        ),
+    ] {
+        let weights = blapose_model::weights::load(models.join(file), kind).expect(file);
+        let text = &weights.meta.extra["train_config"];
+        let old: serde_json::Value = serde_json::from_str(text).unwrap();
+        assert_eq!(removed_options(&old), Vec::<&str>::new(), "{file}");
+        let cfg: TrainConfig = serde_json::from_str(text).expect(file);
+        assert_eq!(
+            (cfg.kind, cfg.rectify, cfg.height_normalized),
+            (kind, rectify, false)
+        );
+        assert_eq!(cfg.lengths, LengthStrategy::Ansur);
+        assert_eq!(cfg.noise, NoiseKind::Residual);
+        assert_eq!(cfg.shift_plane, ShiftPlane::Ground);
+        let new = serde_json::to_value(&cfg).unwrap();
+        for (field, value) in new.as_object().unwrap() {
+            // Fields added after a file was written take their defaults.
+            if let Some(was) = old.get(field) {
+                assert_eq!(was, value, "{file}: {field}");
+            }
+        }
+    }
+    // A configuration that used a removed option says which.
+    let mut old: serde_json::Value = serde_json::json!({"detector_gain": true, "noise_scale": 1.0});
+    assert_eq!(removed_options(&old), ["detector_gain"]);
+    old["noise_scale"] = 1.5.into();
+    assert_eq!(removed_options(&old), ["noise_scale", "detector_gain"]);
 }

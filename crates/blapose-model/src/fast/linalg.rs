@@ -1,11 +1,12 @@
 //! A safe row-major wrapper around the `gemm` crate for the batched parts
 //! of the fast paths (whole-sequence embedding and input projection), where
-//! a tuned GEMM beats any hand-written loop.
+//! a tuned GEMM beats any hand-written loop; public because the trainer's
+//! hand-written backward pass (blapose-train's `fastnet`) uses the same one.
 
 /// `dst = a · b` (or `dst += a · b` when `accumulate`), all row-major:
 /// `a` is `m x k`, `b` is `k x n`, `dst` is `m x n`. `threads > 1` splits the
 /// work over the current rayon pool.
-pub(crate) fn matmul(
+pub fn matmul(
     dst: &mut [f32],
     a: &[f32],
     b: &[f32],
@@ -19,7 +20,7 @@ pub(crate) fn matmul(
 /// As [`matmul`], with either operand stored transposed: `(a, true)` means
 /// `a` holds the `k x m` matrix whose transpose is the left factor, and
 /// `(b, true)` that `b` holds `n x k`.
-pub(crate) fn matmul_t(
+pub fn matmul_t(
     dst: &mut [f32],
     (a, a_t): (&[f32], bool),
     (b, b_t): (&[f32], bool),

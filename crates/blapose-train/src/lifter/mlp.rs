@@ -1,6 +1,7 @@
 //! The single-frame baseline of Martinez et al. 2017 ("A simple yet
 //! effective baseline for 3d human pose estimation"): a residual MLP on one
-//! frame's 2D joints.
+//! frame's 2D joints, trained here as the paper's single-frame lifter to
+//! measure the adjustment on.
 //!
 //! `Linear(34 -> h)`, BatchNorm, ReLU, Dropout, then `blocks` residual
 //! blocks of `[Linear(h -> h), BatchNorm, ReLU, Dropout] x 2` with the

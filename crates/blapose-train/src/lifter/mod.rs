@@ -1,6 +1,6 @@
-//! 2D-to-3D lifters trained here (issue 7), so that the bone-length
-//! adjustment can be measured on lifters whose outputs we produce
-//! ourselves, end to end from the real Stacked Hourglass detections.
+//! 2D-to-3D lifters trained here, so that the bone-length adjustment can
+//! be measured on lifters whose outputs we produce ourselves, end to end
+//! from the real Stacked Hourglass detections.
 //!
 //! - [`data`]: per (sequence, camera) inputs (SH -> H36M-17 normalized
 //!   screen coordinates, the same conversion the bone-length models read)
@@ -46,12 +46,13 @@ use temporal::{TemporalConfig, TemporalLifter};
 /// Outputs of a lifter: the 16 non-root joints x (x, y, z), metres.
 pub const OUTPUT_DIM: usize = (NUM_JOINTS - 1) * 3;
 
-/// Which lifter architecture.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+/// Which lifter architecture (`train-lifter --model`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, clap::ValueEnum)]
 pub enum LifterKind {
     /// Martinez et al. 2017 residual MLP, single frame.
     Mlp,
     /// VideoPose3D-style temporal convolutions.
+    #[value(name = "videopose")]
     Temporal,
 }
 
@@ -68,19 +69,6 @@ impl LifterKind {
 impl std::fmt::Display for LifterKind {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str(self.as_str())
-    }
-}
-
-impl std::str::FromStr for LifterKind {
-    type Err = TrainError;
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s {
-            "mlp" => Ok(Self::Mlp),
-            "videopose" => Ok(Self::Temporal),
-            _ => Err(TrainError::InvalidArgument(format!(
-                "unknown lifter model {s:?} (mlp, videopose)"
-            ))),
-        }
     }
 }
 

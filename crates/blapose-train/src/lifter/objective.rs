@@ -26,8 +26,9 @@ use serde::{Deserialize, Serialize};
 use super::OUTPUT_DIM;
 use crate::error::TrainError;
 
-/// The training objective of a lifter run.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+/// The training objective of a lifter run (`finetune --objective`; the
+/// same spelling in a run's configuration).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "snake_case")]
 pub enum Objective {
     /// MPJPE of the lifter's joints.

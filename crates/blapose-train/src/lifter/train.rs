@@ -1,8 +1,7 @@
 //! Training a lifter: MPJPE loss on root-relative camera-space joints, flip
 //! augmentation, Adam with exponential decay, held-out validation,
-//! checkpoints and resume — the same run-directory layout as the
-//! bone-length trainer ([`crate::train`]): `train_log.csv`,
-//! `checkpoint.safetensors`, `config.json`, `model.safetensors`.
+//! checkpoints and resume, with the run directory, schedule and log of
+//! every trainer here ([`crate::run`]).
 //!
 //! * **Gradients** come from candle autograd on the [`LifterNet`]; the
 //!   update is the crate's [`Adam`] over one flat vector of the trainable
@@ -18,13 +17,9 @@
 //!   the standard 17-joint MPJPE (the root, fixed at 0, counts with zero
 //!   error) on held-out frames of the training subjects, without and with
 //!   test-time flip.
-//! * **Epoch** is `epoch_steps` steps (the learning-rate decay period), as
-//!   in the bone-length trainer.
 
 use std::collections::HashMap;
-use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::time::Instant;
 
 use blapose_core::bones::adjust_pose_lenient;
 use blapose_core::metrics::{mpjpe, MM_PER_M};
@@ -41,8 +36,11 @@ use super::weights::{self, named_tensors};
 use super::{LifterArch, LifterNet, OUTPUT_DIM};
 use crate::adam::{Adam, AdamConfig};
 use crate::error::TrainError;
+use crate::run::{
+    check_resumable, write_atomic, CheckpointMeta, CheckpointTimer, LogWindow, Progress, RunClock,
+    RunDir, Schedule,
+};
 use crate::synth::sample_rng;
-use crate::train::{truncate_log, write_atomic, Progress, CHECKPOINT_FILE, LOG_FILE, WEIGHTS_FILE};
 
 /// Columns of the lifter training log.
 pub const LOG_HEADER: &str =
@@ -98,14 +96,18 @@ pub struct LifterTrainConfig {
 }
 
 impl LifterTrainConfig {
-    /// Learning rate at `step`.
-    pub fn lr_at(&self, step: u64) -> f64 {
-        crate::train::step_decayed_lr(self.lr, self.lr_decay, self.epoch_steps, step)
+    /// The learning-rate schedule.
+    pub fn schedule(&self) -> Schedule {
+        Schedule {
+            lr: self.lr,
+            decay: self.lr_decay,
+            epoch_steps: self.epoch_steps,
+        }
     }
 
     /// The fields a resumed run may change: length, logging, checkpoints.
     fn compatible(&self, other: &LifterTrainConfig) -> Result<(), String> {
-        crate::train::check_resumable(self, other, |a, o| {
+        check_resumable(self, other, |a, o| {
             a.steps = o.steps;
             a.val_every = o.val_every;
             a.checkpoint_secs = o.checkpoint_secs;
@@ -141,14 +143,6 @@ pub struct LifterTrainOutcome {
     pub steps_run: u64,
     /// Last logged training loss (mm).
     pub train_loss_mm: f64,
-}
-
-#[derive(Debug, Clone, Serialize, Deserialize)]
-struct CheckpointMeta {
-    step: u64,
-    adam_steps: u64,
-    elapsed_s: f64,
-    config: LifterTrainConfig,
 }
 
 /// MPJPE loss (metres) of `(B, OUTPUT_DIM)` predictions.
@@ -265,7 +259,7 @@ fn train_step(
             None => grad.extend(std::iter::repeat_n(0.0, v.as_tensor().elem_count())),
         }
     }
-    opt.config.lr = cfg.lr_at(step);
+    opt.config.lr = cfg.schedule().lr_at(step);
     let norm = opt
         .step(params, &grad)
         .ok_or_else(|| TrainError::Data(format!("non-finite gradient at step {step}")))?;
@@ -310,7 +304,7 @@ fn save_checkpoint(
     path: &Path,
     varmap: &VarMap,
     opt: &Adam,
-    meta: &CheckpointMeta,
+    meta: &CheckpointMeta<LifterTrainConfig>,
 ) -> Result<(), TrainError> {
     let mut tensors = named_tensors(varmap)?;
     tensors.insert(
@@ -324,15 +318,6 @@ fn save_checkpoint(
     let mut header = HashMap::new();
     header.insert(CHECKPOINT_KEY.to_string(), serde_json::to_string(meta)?);
     write_atomic(path, &weights::serialize(&tensors, header, path)?)
-}
-
-fn append_log(path: &Path, row: &str) -> Result<(), TrainError> {
-    let mut f = std::fs::OpenOptions::new()
-        .append(true)
-        .open(path)
-        .map_err(|e| TrainError::io(path, e))?;
-    f.write_all(row.as_bytes())
-        .map_err(|e| TrainError::io(path, e))
 }
 
 /// Train in `out` (created if needed) on `seqs`, which must come from the
@@ -370,9 +355,8 @@ pub fn train(
         return Err(TrainError::Data("no training frames".into()));
     }
     let val_idx = held_out_samples(seqs, cfg.every, cfg.val_samples);
-    std::fs::create_dir_all(out).map_err(|e| TrainError::io(out, e))?;
-    let ckpt_path = out.join(CHECKPOINT_FILE);
-    let log_path = out.join(LOG_FILE);
+    let run = RunDir::create(out)?;
+    let schedule = cfg.schedule();
 
     let (net, varmap) = cfg.arch.build(cfg.seed)?;
     if let Some(init) = &cfg.init_weights {
@@ -401,7 +385,8 @@ pub fn train(
     );
     let mut start_step = 0;
     let mut elapsed_before = 0.0;
-    if resume && ckpt_path.exists() {
+    let resumed = run.checkpoint_to_resume(resume);
+    if let Some(ckpt_path) = &resumed {
         let bad = |msg: String| TrainError::Checkpoint {
             path: ckpt_path.clone(),
             msg,
@@ -409,14 +394,14 @@ pub fn train(
         let weights::TensorFile {
             tensors,
             metadata: header,
-        } = weights::read(&ckpt_path)?;
-        let meta: CheckpointMeta = serde_json::from_str(
+        } = weights::read(ckpt_path)?;
+        let meta: CheckpointMeta<LifterTrainConfig> = serde_json::from_str(
             header
                 .get(CHECKPOINT_KEY)
                 .ok_or_else(|| bad(format!("no {CHECKPOINT_KEY} metadata")))?,
         )?;
         cfg.compatible(&meta.config).map_err(bad)?;
-        weights::assign(&varmap, &tensors, &ckpt_path)?;
+        weights::assign(&varmap, &tensors, ckpt_path)?;
         let moment = |name: &str| -> Result<Vec<f32>, TrainError> {
             match tensors.get(name) {
                 Some(t) if t.elem_count() == n_params => Ok(t.to_vec1::<f32>()?),
@@ -428,13 +413,9 @@ pub fn train(
         opt.t = meta.adam_steps;
         start_step = meta.step;
         elapsed_before = meta.elapsed_s;
-        truncate_log(&log_path, start_step)?;
-    } else {
-        std::fs::write(&log_path, format!("{LOG_HEADER}\n"))
-            .map_err(|e| TrainError::io(&log_path, e))?;
     }
-    std::fs::write(out.join("config.json"), serde_json::to_string_pretty(cfg)?)
-        .map_err(|e| TrainError::io(out, e))?;
+    run.start_log(LOG_HEADER, resumed.is_some().then_some(start_step))?;
+    run.write_config(cfg)?;
     let mut params = flatten_vars(&vars)?;
     let graph = AdjustmentGraph::new()?;
     let data = TrainingSet {
@@ -444,55 +425,40 @@ pub fn train(
         graph: &graph,
     };
 
-    let t_start = Instant::now();
-    let mut last_ckpt = Instant::now();
-    // loss sum, grad-norm sum, steps, samples, since
-    let mut window = (0.0f64, 0.0f64, 0usize, 0usize, Instant::now());
+    let clock = RunClock::start(elapsed_before);
+    let mut checkpoints = CheckpointTimer::new(cfg.checkpoint_secs);
+    let mut window = LogWindow::new();
     let mut validation = LifterValidation::default();
     let mut last_loss = f64::NAN;
     let mut step = start_step;
     while step < cfg.steps {
         let (loss_mm, norm) =
             train_step(cfg, net.as_ref(), &vars, &mut params, &mut opt, &data, step)?;
-        let lr = cfg.lr_at(step);
         step += 1;
-        window.0 += loss_mm;
-        window.1 += norm;
-        window.2 += 1;
-        window.3 += cfg.batch;
-        let rate = window.3 as f64 / window.4.elapsed().as_secs_f64().max(1e-9);
-        let mean_loss = window.0 / window.2 as f64;
+        window.add(loss_mm, norm, cfg.batch);
+        let rate = window.rate();
+        let mean_loss = window.mean_loss();
         progress(step, cfg.steps, mean_loss, rate);
 
         let at_end = step == cfg.steps;
         if at_end || (cfg.val_every > 0 && step.is_multiple_of(cfg.val_every)) {
             validation = validate(net.as_ref(), seqs, &val_idx, lengths)?;
             last_loss = mean_loss;
-            append_log(
-                &log_path,
-                &format!(
-                    "{step},{:.3},{lr:.3e},{mean_loss:.3},{:.4},{rate:.0},{:.3},{:.3},{:.1}\n",
-                    step as f64 / cfg.epoch_steps.max(1) as f64,
-                    window.1 / window.2 as f64,
-                    validation.mpjpe_mm,
-                    validation.mpjpe_flip_mm,
-                    elapsed_before + t_start.elapsed().as_secs_f64()
-                ),
-            )?;
-            window = (0.0, 0.0, 0, 0, Instant::now());
+            let columns = [validation.mpjpe_mm, validation.mpjpe_flip_mm];
+            run.append_log(&window.row(step, &schedule, rate, &columns, clock.total_s()))?;
+            window = LogWindow::new();
         }
-        if at_end || last_ckpt.elapsed().as_secs() >= cfg.checkpoint_secs {
+        if checkpoints.due(at_end) {
             let meta = CheckpointMeta {
                 step,
                 adam_steps: opt.t,
-                elapsed_s: elapsed_before + t_start.elapsed().as_secs_f64(),
+                elapsed_s: clock.total_s(),
                 config: cfg.clone(),
             };
-            save_checkpoint(&ckpt_path, &varmap, &opt, &meta)?;
-            last_ckpt = Instant::now();
+            save_checkpoint(&run.checkpoint(), &varmap, &opt, &meta)?;
         }
     }
-    let elapsed = t_start.elapsed().as_secs_f64();
+    let elapsed = clock.this_run_s();
     let mut meta = weights::metadata(cfg.arch, training_data, step);
     meta.extra
         .insert("train_config".into(), serde_json::to_string(cfg)?);
@@ -508,7 +474,7 @@ pub fn train(
         "version".into(),
         format!("blapose-train {}", env!("CARGO_PKG_VERSION")),
     );
-    let weights_path = out.join(WEIGHTS_FILE);
+    let weights_path = run.weights();
     weights::save(&weights_path, &varmap, &meta)?;
     let steps_run = step - start_step;
     Ok(LifterTrainOutcome {

@@ -68,10 +68,10 @@ pub fn save(path: &Path, varmap: &VarMap, meta: &LifterMetadata) -> Result<(), T
     let mut header = HashMap::new();
     header.insert(METADATA_KEY.to_string(), serde_json::to_string(meta)?);
     let bytes = serialize(&named_tensors(varmap)?, header, path)?;
-    crate::train::write_atomic(path, &bytes)
+    crate::run::write_atomic(path, &bytes)
 }
 
-pub use crate::train::{read_tensor_file as read, TensorFile};
+pub use crate::run::{read_tensor_file as read, TensorFile};
 
 /// Copy every variable of `varmap` from `tensors` (same names and shapes;
 /// extra tensors are ignored).

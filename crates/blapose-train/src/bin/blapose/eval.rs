@@ -1,0 +1,187 @@
+//! `blapose eval`: which trials (subjects, cameras, every k-th, from which
+//! frame, at which rate, rectified or not) and which estimator (plain,
+//! flip-averaged, height-corrected) the flags ask for; the protocol itself
+//! is [`blapose_train::eval`]. Why here: these are choices of an
+//! evaluation run, not of the protocol.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Result;
+use blapose_core::BoneLengths;
+use blapose_data::h36m::{H36m, Parts, ALL_SUBJECTS, TRAIN_SUBJECTS};
+use blapose_model::ModelKind;
+use blapose_train::dataset::{eval_sequences, rectify_streams, subject_lengths, InputKind};
+use blapose_train::eval::{
+    evaluate, markdown, BiGruEstimator, FlipAveraged, GruEstimator, HeightCorrected,
+    LengthEstimator,
+};
+
+use crate::common::{camera_list, known_subjects, ModelArg};
+
+/// Arguments of `blapose eval`.
+#[derive(clap::Args, Debug)]
+pub struct EvalArgs {
+    /// Model kind: gru (online, running mean) or bigru (offline).
+    #[arg(long, value_enum, ignore_case = true)]
+    model: ModelArg,
+    /// 2D input: sh (real Stacked Hourglass detections) or gt (projected ground truth).
+    #[arg(long, value_enum, default_value_t = InputKind::Sh)]
+    input: InputKind,
+    /// Weights file (safetensors written by `blapose train`).
+    #[arg(long)]
+    weights: PathBuf,
+    /// Write the full report as JSON here.
+    #[arg(long)]
+    json: Option<PathBuf>,
+    /// Write the error-vs-frames plot (SVG) here (online GRU).
+    #[arg(long)]
+    plot: Option<PathBuf>,
+    /// Subjects to evaluate (comma separated).
+    #[arg(long, default_value = "S9,S11", value_delimiter = ',')]
+    subjects: Vec<String>,
+    /// Test-time flip: average the estimates of each trial and of its
+    /// mirror image (twice the compute).
+    #[arg(long)]
+    flip_average: bool,
+    /// Feed the model a stream of this many frames per second (the 50 Hz
+    /// data linearly resampled; e.g. 25 or 60).
+    #[arg(long, default_value_t = 50.0)]
+    fps: f32,
+    /// Start every trial this many 50 Hz frames in (a stream joined mid-way;
+    /// shows whether an online error curve depends on the state's age or on
+    /// how the recordings begin).
+    #[arg(long, default_value_t = 0)]
+    skip_frames: usize,
+    /// With --rectify: scale each view's estimate by its camera's height
+    /// over the reference height 1.56 m (blapose_core::level::height_scale),
+    /// for models trained with `--height-normalized` (a rectified model
+    /// cannot see the height; the scene scales with it).
+    #[arg(long, requires = "rectify")]
+    height_correction: bool,
+    /// Evaluate the trials of these cameras only (ids, comma separated;
+    /// default all).
+    #[arg(long, value_delimiter = ',')]
+    cameras: Vec<String>,
+    /// Rectify every trial's keypoints with its camera's calibration, for
+    /// models trained with `train --rectify`.
+    #[arg(long)]
+    rectify: bool,
+    /// Evaluate only every k-th trial (quick subsets; 1 = all).
+    #[arg(long, default_value_t = 1)]
+    every: usize,
+    /// Data root (default: $BLAPOSE_DATA or ../shared/data).
+    #[arg(long)]
+    data: Option<PathBuf>,
+}
+
+/// `blapose eval`.
+pub fn run(a: EvalArgs) -> Result<()> {
+    let root = blapose_data::data_root(a.data.clone());
+    let kind = ModelKind::from(a.model);
+    let weights = blapose_model::weights::load(&a.weights, kind)?;
+    let subjects = known_subjects(&a.subjects)?;
+    let t0 = Instant::now();
+    let all = H36m::load(&root, &ALL_SUBJECTS, Parts::POSES)?;
+    let lengths = subject_lengths(&all);
+    let parts = if a.input == InputKind::Sh {
+        Parts::ALL
+    } else {
+        Parts::POSES
+    };
+    let h36m = H36m::load(&root, &subjects, parts)?;
+    let mut trials = eval_sequences(&h36m, &subjects, a.input, &lengths)?;
+    if !a.cameras.is_empty() {
+        trials.retain(|t| a.cameras.contains(&t.camera));
+    }
+    if a.every > 1 {
+        trials = trials.into_iter().step_by(a.every).collect();
+    }
+    if a.rectify {
+        rectify_streams(&mut trials, |subject, id| h36m.cameras.get(subject, id))?;
+    }
+    if a.skip_frames > 0 {
+        trials = trials.iter().map(|t| t.skipped(a.skip_frames)).collect();
+    }
+    if a.fps != blapose_train::dataset::SOURCE_FPS {
+        trials = trials
+            .iter()
+            .map(|t| t.resampled(a.fps))
+            .collect::<Result<_, _>>()?;
+    }
+    if trials.is_empty() {
+        anyhow::bail!(
+            "no trials for subjects {} (cameras: {})",
+            a.subjects.join(","),
+            camera_list(&a.cameras)
+        );
+    }
+    eprintln!(
+        "loaded {} trials in {:.1}s",
+        trials.len(),
+        t0.elapsed().as_secs_f64()
+    );
+    let mean_of = |names: &[&str]| -> Result<BoneLengths> {
+        let ls: Vec<&BoneLengths> = names.iter().filter_map(|s| lengths.get(*s)).collect();
+        anyhow::ensure!(ls.len() == names.len(), "missing subject lengths");
+        Ok(std::array::from_fn(|b| {
+            ls.iter().map(|l| l[b]).sum::<f32>() / ls.len() as f32
+        }))
+    };
+    let baselines = [
+        ("training_mean", mean_of(&TRAIN_SUBJECTS)?),
+        ("all_subjects_mean", mean_of(&ALL_SUBJECTS)?),
+    ];
+    let mut estimator: Box<dyn LengthEstimator> = match kind {
+        ModelKind::BiGru => Box::new(BiGruEstimator::new(&weights)?),
+        ModelKind::Gru => Box::new(GruEstimator::new(&weights)?),
+    };
+    let mut model_label = kind.as_str().to_string();
+    if a.flip_average {
+        estimator = Box::new(FlipAveraged::new(estimator));
+        model_label.push_str("+flip");
+    }
+    if a.height_correction {
+        let mut scales = std::collections::BTreeMap::new();
+        for t in &trials {
+            let cam = h36m
+                .cameras
+                .get(&t.subject, &t.camera)
+                .ok_or_else(|| anyhow::anyhow!("no camera {} for {}", t.camera, t.subject))?;
+            scales.insert(
+                (t.subject.clone(), t.camera.clone()),
+                blapose_core::level::height_scale(cam.center[2]) as f32,
+            );
+        }
+        estimator = Box::new(HeightCorrected::new(estimator, scales));
+        model_label.push_str("+height");
+    }
+    let report = evaluate(
+        estimator.as_ref(),
+        &trials,
+        &baselines,
+        &model_label,
+        a.input.name(),
+        &a.weights.display().to_string(),
+        &a.subjects,
+    )?;
+    println!("{}", markdown(&report));
+    println!(
+        "model pass: {:.1}s for {} frames ({:.0} frames/s)",
+        report.seconds,
+        report.frames,
+        report.frames as f64 / report.seconds.max(1e-9)
+    );
+    if let Some(p) = &a.json {
+        std::fs::write(p, serde_json::to_string_pretty(&report)?)?;
+    }
+    if let Some(p) = &a.plot {
+        if report.curve.is_empty() {
+            eprintln!("no error curve for the offline model; plot not written");
+        } else {
+            blapose_train::plot::error_curve(&report, p)?;
+            eprintln!("plot: {}", p.display());
+        }
+    }
+    Ok(())
+}
