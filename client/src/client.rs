@@ -147,7 +147,7 @@ impl<'a> SessionOptions<'a> {
     /// The `OpenSession` message [`Client::open_session_with`] sends.
     pub fn to_proto(&self, input_format: InputFormat) -> pb::OpenSession {
         pb::OpenSession {
-            input_format: Some(input_format.to_proto()),
+            input_format: Some(input_format.into()),
             model: pb::Model::OnlineGru as i32,
             client_label: self.label.unwrap_or_default().to_string(),
             server_lifter: self.server_lifter,
@@ -225,7 +225,7 @@ impl<'a> SequenceInput<'a> {
             ClientError::InvalidInput(format!("{t} frames is too many for one call"))
         })?;
         Ok(pb::AdjustSequenceRequest {
-            input_format: Some(self.input_format.to_proto()),
+            input_format: Some(self.input_format.into()),
             model: model.to_proto() as i32,
             num_frames,
             keypoints_2d: self.keypoints_2d.to_vec(),
@@ -556,7 +556,7 @@ mod tests {
         let open = plain.to_proto(format);
         assert_eq!(open.camera, None);
         assert_eq!(open.client_label, "cam0");
-        assert_eq!(open.input_format, Some(format.to_proto()));
+        assert_eq!(open.input_format, Some(format.into()));
         let with = plain.with_camera(Some(calibration()));
         assert_eq!(with.label, Some("cam0"));
         assert_eq!(with.to_proto(format).camera, Some(calibration().to_proto()));

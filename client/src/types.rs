@@ -6,6 +6,13 @@
 //! its validation) done once, here. A server answer whose arrays have the
 //! wrong length is a protocol violation, reported as such rather than
 //! turning into a panic or a silently truncated pose.
+//!
+//! What client and server share is not written here: the layouts,
+//! [`Coordinates`] and [`InputFormat`] are blapose-core's (re-exported),
+//! their wire mapping is `blapose_proto::convert`'s, and a calibration's
+//! value checks and height limits are `blapose_core::level`'s, the server's
+//! own. This module adds the client's view: its error messages, the replay
+//! file's layout codes and the messages only a client reads.
 
 use std::collections::BTreeMap;
 use std::fmt;
@@ -13,30 +20,16 @@ use std::str::FromStr;
 use std::time::Duration;
 
 use blapose_core::camera::Camera;
+use blapose_core::level::{self, CalibrationError};
 use blapose_core::skeleton::{NUM_BONES, NUM_JOINTS};
 use blapose_core::{BoneLengths, Pose};
 use blapose_proto::v1 as pb;
 
 use crate::error::ClientError;
 
-pub use blapose_core::layouts::KeypointLayout;
-
-/// The wire enum of a keypoint layout.
-pub const fn layout_to_proto(layout: KeypointLayout) -> pb::KeypointLayout {
-    match layout {
-        KeypointLayout::H36m17 => pb::KeypointLayout::H36m17,
-        KeypointLayout::Sh16 => pb::KeypointLayout::Sh16,
-        KeypointLayout::Coco17 => pb::KeypointLayout::Coco17,
-    }
-}
-
-/// The layout with this wire number (`KeypointLayout` value); `None` for
-/// UNSPECIFIED and numbers this client does not know.
-pub fn layout_from_proto(value: i32) -> Option<KeypointLayout> {
-    KeypointLayout::ALL
-        .into_iter()
-        .find(|l| layout_to_proto(*l) as i32 == value)
-}
+pub use blapose_core::layouts::{Coordinates, InputFormat, KeypointLayout};
+pub use blapose_core::level::{MAX_CAMERA_HEIGHT, MIN_CAMERA_HEIGHT};
+pub use blapose_proto::convert::{layout_from_proto, layout_to_proto};
 
 /// The code a replay file stores in its `layout` array: the wire number
 /// (1 = H36M-17, 2 = SH-16, 3 = COCO-17).
@@ -49,75 +42,18 @@ pub fn layout_from_code(code: u32) -> Option<KeypointLayout> {
     i32::try_from(code).ok().and_then(layout_from_proto)
 }
 
-/// How keypoints are expressed.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Coordinates {
-    /// Pixels of an image of this size; the server normalizes.
-    Pixels {
-        /// Image width in pixels.
-        width: u32,
-        /// Image height in pixels.
-        height: u32,
-    },
-    /// Already normalized screen coordinates (`x/w*2-1`, `y/w*2-h/w`).
-    Normalized,
-}
-
-/// Layout plus coordinate convention of a session's (or a sequence's)
-/// keypoints.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct InputFormat {
-    /// Joint order.
-    pub layout: KeypointLayout,
-    /// Pixels or normalized coordinates.
-    pub coordinates: Coordinates,
-}
-
-impl InputFormat {
-    /// Pixel keypoints of an image `width` x `height`.
-    pub const fn pixels(layout: KeypointLayout, width: u32, height: u32) -> Self {
-        InputFormat {
-            layout,
-            coordinates: Coordinates::Pixels { width, height },
-        }
-    }
-
-    /// The wire message.
-    pub fn to_proto(self) -> pb::InputFormat {
-        let coordinates = match self.coordinates {
-            Coordinates::Pixels { width, height } => {
-                pb::input_format::Coordinates::ImageSize(pb::ImageSize { width, height })
-            }
-            Coordinates::Normalized => pb::input_format::Coordinates::Normalized(true),
-        };
-        pb::InputFormat {
-            layout: layout_to_proto(self.layout) as i32,
-            coordinates: Some(coordinates),
-        }
-    }
-
-    /// Parse the wire message (as echoed by the server).
-    pub fn from_proto(msg: &pb::InputFormat) -> Result<Self, ClientError> {
-        let layout = layout_from_proto(msg.layout).ok_or_else(|| {
-            ClientError::Protocol(format!("unknown keypoint layout {}", msg.layout))
-        })?;
-        let coordinates = match msg.coordinates {
-            Some(pb::input_format::Coordinates::ImageSize(s)) => Coordinates::Pixels {
-                width: s.width,
-                height: s.height,
-            },
-            Some(pb::input_format::Coordinates::Normalized(_)) => Coordinates::Normalized,
-            None => {
-                return Err(ClientError::Protocol(
-                    "input format without coordinates".into(),
-                ))
-            }
-        };
-        Ok(InputFormat {
-            layout,
-            coordinates,
-        })
-    }
+/// Parse the wire message (as echoed by the server).
+pub(crate) fn input_format_from_proto(msg: &pb::InputFormat) -> Result<InputFormat, ClientError> {
+    let layout = layout_from_proto(msg.layout)
+        .ok_or_else(|| ClientError::Protocol(format!("unknown keypoint layout {}", msg.layout)))?;
+    let coordinates = msg
+        .coordinates
+        .map(Coordinates::from)
+        .ok_or_else(|| ClientError::Protocol("input format without coordinates".into()))?;
+    Ok(InputFormat {
+        layout,
+        coordinates,
+    })
 }
 
 /// A camera's calibration, for the server's camera-aware models.
@@ -149,11 +85,6 @@ pub struct CameraCalibration {
     /// not given. Other models ignore it.
     pub height: Option<f32>,
 }
-
-/// Lowest camera height the protocol accepts, metres.
-pub const MIN_CAMERA_HEIGHT: f32 = 0.3;
-/// Highest camera height the protocol accepts, metres.
-pub const MAX_CAMERA_HEIGHT: f32 = 10.0;
 
 /// Why a [`CameraCalibration`] cannot be used.
 #[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
@@ -212,6 +143,31 @@ impl CameraError {
             | CameraError::ImageSizeMismatch { .. } => "image_size",
         }
     }
+
+    /// What a failed shared check ([`blapose_core::level`]) means for
+    /// `calibration`, in this crate's words.
+    fn from_check(error: CalibrationError, calibration: &CameraCalibration) -> Self {
+        match error {
+            CalibrationError::NonFinite { field } => CameraError::NonFinite { field },
+            CalibrationError::ZeroUp { .. } => CameraError::ZeroUp(calibration.up),
+            CalibrationError::InvalidFocal { .. } => CameraError::Focal(calibration.focal),
+            CalibrationError::InvalidImageSize { width, height } => {
+                CameraError::ImageSize { width, height }
+            }
+            CalibrationError::ImageSizeMissing => CameraError::ImageSizeMissing,
+            CalibrationError::ImageSizeMismatch {
+                camera_width,
+                camera_height,
+                width,
+                height,
+            } => CameraError::ImageSizeMismatch {
+                camera_width,
+                camera_height,
+                width,
+                height,
+            },
+        }
+    }
 }
 
 impl CameraCalibration {
@@ -232,38 +188,30 @@ impl CameraCalibration {
         }
     }
 
-    /// Check the values the protocol requires: everything finite, `up`
-    /// non-zero, focal lengths > 0, a given image size positive, a given
-    /// height within [`MIN_CAMERA_HEIGHT`]..=[`MAX_CAMERA_HEIGHT`]. (The
-    /// server also refuses an optical axis more than 60 degrees off the
-    /// horizon; that is left to it.)
+    /// Check the values the protocol requires, with the server's own checks
+    /// ([`blapose_core::level`]): everything finite, focal lengths > 0, `up`
+    /// of non-zero length, a given image size positive, a given height
+    /// within [`MIN_CAMERA_HEIGHT`]..=[`MAX_CAMERA_HEIGHT`]. (The server also
+    /// refuses an optical axis more than
+    /// [`MAX_TILT_DEG`](blapose_core::level::MAX_TILT_DEG) degrees off the
+    /// horizon; that is left to it, so a file's calibration can be loaded
+    /// and replayed without it.)
     pub fn validate(&self) -> Result<(), CameraError> {
-        let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
-        for (field, values) in [
-            ("up", &self.up[..]),
-            ("focal", &self.focal[..]),
-            ("principal", &self.principal[..]),
-        ] {
-            if !finite(values) {
-                return Err(CameraError::NonFinite { field });
-            }
-        }
-        if self.up.iter().all(|&v| v == 0.0) {
-            return Err(CameraError::ZeroUp(self.up));
-        }
-        if !self.focal.iter().all(|&f| f > 0.0) {
-            return Err(CameraError::Focal(self.focal));
-        }
+        let error = |e| CameraError::from_check(e, self);
+        level::check_calibration(
+            self.up.map(f64::from),
+            self.focal.map(f64::from),
+            self.principal.map(f64::from),
+        )
+        .map_err(error)?;
         if let Some((width, height)) = self.image_size {
-            if width == 0 || height == 0 {
-                return Err(CameraError::ImageSize { width, height });
-            }
+            level::check_image_size(width, height).map_err(error)?;
         }
         if let Some(height) = self.height {
             if !height.is_finite() {
                 return Err(CameraError::NonFinite { field: "height" });
             }
-            if !(MIN_CAMERA_HEIGHT..=MAX_CAMERA_HEIGHT).contains(&height) {
+            if !level::is_camera_height(height) {
                 return Err(CameraError::Height(height));
             }
         }
@@ -275,20 +223,9 @@ impl CameraCalibration {
     /// theirs (or absent) for pixels.
     pub fn validate_for(&self, coordinates: Coordinates) -> Result<(), CameraError> {
         self.validate()?;
-        match (coordinates, self.image_size) {
-            (Coordinates::Normalized, None) => Err(CameraError::ImageSizeMissing),
-            (Coordinates::Pixels { width, height }, Some((cw, ch)))
-                if (cw, ch) != (width, height) =>
-            {
-                Err(CameraError::ImageSizeMismatch {
-                    camera_width: cw,
-                    camera_height: ch,
-                    width,
-                    height,
-                })
-            }
-            _ => Ok(()),
-        }
+        level::calibration_image_size(coordinates, self.image_size)
+            .map(|_| ())
+            .map_err(|e| CameraError::from_check(e, self))
     }
 
     /// The wire message.
@@ -523,7 +460,7 @@ impl SessionInfo {
             .input_format
             .as_ref()
             .ok_or_else(|| ClientError::Protocol("SessionOpened without input_format".into()))
-            .and_then(InputFormat::from_proto)?;
+            .and_then(input_format_from_proto)?;
         let model = ModelChoice::from_proto(msg.model)
             .ok_or_else(|| ClientError::Protocol(format!("unknown model {}", msg.model)))?;
         Ok(SessionInfo {
@@ -765,16 +702,13 @@ impl fmt::Display for ModelInfo {
 
 /// A flat 51-value pose from the wire.
 pub(crate) fn pose_from_flat(values: &[f32], what: &str) -> Result<Pose, ClientError> {
-    if values.len() != NUM_JOINTS * 3 {
-        return Err(ClientError::Protocol(format!(
+    blapose_core::pose::pose_from_flat(values).ok_or_else(|| {
+        ClientError::Protocol(format!(
             "{what} has {} values, expected {}",
             values.len(),
             NUM_JOINTS * 3
-        )));
-    }
-    Ok(std::array::from_fn(|j| {
-        [values[3 * j], values[3 * j + 1], values[3 * j + 2]]
-    }))
+        ))
+    })
 }
 
 /// A flat 16-value length vector from the wire.
@@ -820,14 +754,14 @@ mod tests {
                 coordinates: Coordinates::Normalized,
             },
         ] {
-            assert_eq!(InputFormat::from_proto(&f.to_proto()).unwrap(), f);
+            assert_eq!(input_format_from_proto(&f.into()).unwrap(), f);
         }
         let bad = pb::InputFormat {
             layout: 0,
             coordinates: None,
         };
         assert!(matches!(
-            InputFormat::from_proto(&bad),
+            input_format_from_proto(&bad),
             Err(ClientError::Protocol(_))
         ));
     }
@@ -1167,7 +1101,7 @@ mod tests {
     fn session_info_and_model_info_carry_the_camera_family() {
         let opened = pb::SessionOpened {
             session_id: "ab".into(),
-            input_format: Some(InputFormat::pixels(KeypointLayout::H36m17, 1000, 1002).to_proto()),
+            input_format: Some(InputFormat::pixels(KeypointLayout::H36m17, 1000, 1002).into()),
             model: pb::Model::OnlineGru as i32,
             ..Default::default()
         };

@@ -31,7 +31,6 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
 
-use blapose_core::layouts::KeypointLayout;
 use blapose_core::level::LevelCamera;
 use blapose_core::{BoneLengths, NUM_BONES};
 use blapose_lifters::SlidingWindow;
@@ -104,28 +103,14 @@ impl fmt::Debug for SessionId {
     }
 }
 
-/// How a session's 2D keypoints are expressed.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Coordinates {
-    /// Pixels of an image of this size (both > 0).
-    Pixels {
-        /// Width in pixels.
-        width: u32,
-        /// Height in pixels.
-        height: u32,
-    },
-    /// Already normalized screen coordinates.
-    Normalized,
-}
+/// How a session's 2D keypoints are expressed (the client library's type
+/// too, so both ends mean the same thing).
+pub use blapose_core::layouts::Coordinates;
 
-/// What a session was opened with; fixed for its life.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct InputSpec {
-    /// Joint order of the keypoints.
-    pub layout: KeypointLayout,
-    /// Units of the keypoints.
-    pub coordinates: Coordinates,
-}
+/// What a session was opened with, fixed for its life: the keypoints'
+/// layout and units (blapose-core's `InputFormat`, under the name the server
+/// has always used for it).
+pub use blapose_core::layouts::InputFormat as InputSpec;
 
 /// A session's camera: the calibration as the client sent it (echoed on
 /// open and resume) and its level twin, which rectifies the keypoints for
@@ -612,6 +597,7 @@ async fn purge_task(shared: Arc<Shared>) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use blapose_core::layouts::KeypointLayout;
 
     fn config() -> SessionConfig {
         SessionConfig {

@@ -10,15 +10,17 @@
 //! of them map to INVALID_ARGUMENT.
 
 use blapose_core::bones::{self, BoneError};
-use blapose_core::camera::normalize_screen;
-use blapose_core::layouts::KeypointLayout;
-use blapose_core::level::{LevelCamera, LevelError};
+use blapose_core::layouts::{Coordinates, KeypointLayout};
+use blapose_core::level::{
+    self, CalibrationError, LevelCamera, LevelError, MAX_CAMERA_HEIGHT, MIN_CAMERA_HEIGHT,
+};
 use blapose_core::skeleton::JOINT_NAMES;
 use blapose_core::{Pose, NUM_JOINTS};
+pub use blapose_proto::convert::layout_to_proto;
 use blapose_proto::v1 as pb;
 
 use crate::backend::INPUT_DIM;
-use crate::session::{Coordinates, InputSpec, SessionCamera};
+use crate::session::{InputSpec, SessionCamera};
 
 /// Largest accepted magnitude of a 2D keypoint value (pixels or normalized).
 pub const MAX_KEYPOINT_ABS: f32 = 1e6;
@@ -205,23 +207,14 @@ impl InvalidInput {
     }
 }
 
-/// The proto enum for a core layout.
-pub fn layout_to_proto(layout: KeypointLayout) -> pb::KeypointLayout {
-    match layout {
-        KeypointLayout::H36m17 => pb::KeypointLayout::H36m17,
-        KeypointLayout::Sh16 => pb::KeypointLayout::Sh16,
-        KeypointLayout::Coco17 => pb::KeypointLayout::Coco17,
-    }
-}
-
 fn layout_from_proto(value: i32) -> Result<KeypointLayout, InvalidInput> {
-    match pb::KeypointLayout::try_from(value) {
-        Ok(pb::KeypointLayout::Unspecified) => Err(InvalidInput::UnspecifiedLayout),
-        Ok(pb::KeypointLayout::H36m17) => Ok(KeypointLayout::H36m17),
-        Ok(pb::KeypointLayout::Sh16) => Ok(KeypointLayout::Sh16),
-        Ok(pb::KeypointLayout::Coco17) => Ok(KeypointLayout::Coco17),
-        Err(_) => Err(InvalidInput::UnknownLayout(value)),
-    }
+    blapose_proto::convert::layout_from_proto(value).ok_or(
+        if value == pb::KeypointLayout::Unspecified as i32 {
+            InvalidInput::UnspecifiedLayout
+        } else {
+            InvalidInput::UnknownLayout(value)
+        },
+    )
 }
 
 /// Validate an `InputFormat`.
@@ -233,19 +226,15 @@ pub fn input_spec(format: Option<&pb::InputFormat>) -> Result<InputSpec, Invalid
         Some(pb::input_format::Coordinates::Normalized(false)) => {
             return Err(InvalidInput::NormalizedFalse)
         }
-        Some(pb::input_format::Coordinates::Normalized(true)) => Coordinates::Normalized,
-        Some(pb::input_format::Coordinates::ImageSize(size)) => {
-            if size.width == 0 || size.height == 0 {
-                return Err(InvalidInput::BadImageSize {
-                    width: size.width,
-                    height: size.height,
-                });
-            }
-            Coordinates::Pixels {
+        Some(pb::input_format::Coordinates::ImageSize(size))
+            if size.width == 0 || size.height == 0 =>
+        {
+            return Err(InvalidInput::BadImageSize {
                 width: size.width,
                 height: size.height,
-            }
+            })
         }
+        Some(given) => Coordinates::from(given),
     };
     Ok(InputSpec {
         layout,
@@ -255,22 +244,8 @@ pub fn input_spec(format: Option<&pb::InputFormat>) -> Result<InputSpec, Invalid
 
 /// The `InputFormat` a spec was built from (echoed on open/resume).
 pub fn input_spec_to_proto(spec: &InputSpec) -> pb::InputFormat {
-    let coordinates = match spec.coordinates {
-        Coordinates::Normalized => pb::input_format::Coordinates::Normalized(true),
-        Coordinates::Pixels { width, height } => {
-            pb::input_format::Coordinates::ImageSize(pb::ImageSize { width, height })
-        }
-    };
-    pb::InputFormat {
-        layout: layout_to_proto(spec.layout) as i32,
-        coordinates: Some(coordinates),
-    }
+    (*spec).into()
 }
-
-/// Lowest accepted camera height, metres.
-pub const MIN_CAMERA_HEIGHT: f32 = 0.3;
-/// Highest accepted camera height, metres.
-pub const MAX_CAMERA_HEIGHT: f32 = 10.0;
 
 /// Validate an optional `CameraCalibration` against the input format and
 /// build its level twin. `served` is `None` when the server has no
@@ -289,7 +264,7 @@ pub fn camera(
         return Err(InvalidInput::NoCameraAwareModel);
     };
     let height = c.height;
-    if height != 0.0 && !(MIN_CAMERA_HEIGHT..=MAX_CAMERA_HEIGHT).contains(&height) {
+    if height != 0.0 && !level::is_camera_height(height) {
         return Err(InvalidInput::CameraHeight(height));
     }
     let length_scale = if height_normalized && height > 0.0 {
@@ -301,22 +276,23 @@ pub fn camera(
         c.up.as_slice()
             .try_into()
             .map_err(|_| InvalidInput::CameraUpCount { got: c.up.len() })?;
-    let (width, height) = match (spec.coordinates, c.image_size) {
-        (Coordinates::Normalized, None) => return Err(InvalidInput::CameraImageSizeMissing),
-        (Coordinates::Normalized, Some(size)) => (size.width, size.height),
-        (Coordinates::Pixels { width, height }, None) => (width, height),
-        (Coordinates::Pixels { width, height }, Some(size)) => {
-            if (size.width, size.height) != (width, height) {
-                return Err(InvalidInput::CameraImageSizeMismatch {
-                    camera_width: size.width,
-                    camera_height: size.height,
+    let (width, height) =
+        level::calibration_image_size(spec.coordinates, c.image_size.map(|s| (s.width, s.height)))
+            .map_err(|e| match e {
+                CalibrationError::ImageSizeMismatch {
+                    camera_width,
+                    camera_height,
                     width,
                     height,
-                });
-            }
-            (width, height)
-        }
-    };
+                } => InvalidInput::CameraImageSizeMismatch {
+                    camera_width,
+                    camera_height,
+                    width,
+                    height,
+                },
+                CalibrationError::ImageSizeMissing => InvalidInput::CameraImageSizeMissing,
+                other => InvalidInput::Camera(other.into()),
+            })?;
     let level = LevelCamera::from_pixels(
         up.map(f64::from),
         [c.focal_x, c.focal_y].map(f64::from),
@@ -422,10 +398,7 @@ pub fn model_input(
         })?;
     let mut input = [0.0f32; INPUT_DIM];
     for (j, p) in h36m.iter().enumerate() {
-        let n = match spec.coordinates {
-            Coordinates::Normalized => *p,
-            Coordinates::Pixels { width, height } => normalize_screen(*p, width, height),
-        };
+        let n = spec.coordinates.normalize(*p);
         input[2 * j] = n[0];
         input[2 * j + 1] = n[1];
     }
@@ -580,6 +553,7 @@ pub fn sequence(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use blapose_core::camera::normalize_screen;
 
     fn spec(layout: KeypointLayout, coordinates: Coordinates) -> InputSpec {
         InputSpec {

@@ -389,7 +389,7 @@ async fn bad_offline_requests_are_invalid_argument() {
     let seq = synthetic_sequence(37, 10, KeypointLayout::H36m17);
     let good = pb::AdjustSequenceRequest {
         input_format: Some(
-            blapose_client::InputFormat::pixels(KeypointLayout::H36m17, 1000, 1002).to_proto(),
+            blapose_client::InputFormat::pixels(KeypointLayout::H36m17, 1000, 1002).into(),
         ),
         model: pb::Model::OfflineBigru as i32,
         num_frames: 10,
