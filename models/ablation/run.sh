@@ -18,7 +18,6 @@
 # reached at step 2977; STEPS counts from the warm start):
 #   INIT=models/bone_length_bigru.safetensors LR=1.77e-4 \
 #     run.sh cont_scale1 4000 --lengths ansur --noise residual
-#   (the same with --noise-scale 1.5 as cont_scale1.5)
 # Feet kept on the floor when the lengths are replaced (session 7; MODEL=gru
 # trains the online GRU instead, add its --per-frame-weight 1.0); floor and
 # gru_floor are the shipped weights:
@@ -29,24 +28,22 @@
 #   MODEL=gru run.sh gru_floor 2004 --lengths ansur --noise residual --floor-contact --per-frame-weight 1.0
 # Session 8 (one flag each on top of floor; yaw and gru_yaw are the shipped
 # weights):
-#   run.sh gain 2977 --lengths ansur --noise residual --floor-contact --detector-gain
-#   run.sh jit 2977 --lengths ansur --noise residual --floor-contact --camera-height-std 0.05 --camera-angle-std 1.0
 #   run.sh gauss 2977 --lengths ansur --noise gaussian --floor-contact
-#   run.sh pre 2977 --lengths ansur --noise residual --floor-contact --precondition
-#   run.sh prejit 2977 --lengths ansur --noise residual --floor-contact --precondition --camera-height-std 0.05 --camera-angle-std 1.0
 #   run.sh yaw 2977 --lengths ansur --noise residual --floor-contact --random-yaw
 #   MODEL=gru run.sh gru_yaw 2004 --lengths ansur --noise residual --floor-contact --per-frame-weight 1.0 --random-yaw
-# Session 9 (a second seed of the shipped recipe; sizes drawn apart from
-# proportions):
+# Session 9 (a second seed of the shipped recipe; one camera; rectified
+# keypoints):
 #   run.sh yaw_seed4 2977 --lengths ansur --noise residual --floor-contact --random-yaw --seed 4
 #   MODEL=gru run.sh gru_yaw_seed4 2004 --lengths ansur --noise residual --floor-contact --per-frame-weight 1.0 --random-yaw --seed 4
-#   run.sh decouple 2977 --lengths ansur --noise residual --floor-contact --random-yaw --decouple-size
-#   MODEL=gru run.sh gru_decouple 2004 --lengths ansur --noise residual --floor-contact --per-frame-weight 1.0 --random-yaw --decouple-size
 #   run.sh cam54 2977 --lengths ansur --noise residual --floor-contact --random-yaw --cameras 54138969
 #   (then evaluate with `blapose eval ... --cameras 54138969`, see models/README.md)
 #   run.sh rectify 2977 --lengths ansur --noise residual --floor-contact --random-yaw --rectify
 #   MODEL=gru run.sh gru_rectify 2004 --lengths ansur --noise residual --floor-contact --per-frame-weight 1.0 --random-yaw --rectify
 #   (evaluate both with `blapose eval ... --rectify`; the script's own evals are without it)
+# The runs with research options removed since (--detector-gain, camera
+# jitter, --precondition, --decouple-size, --noise-scale; models/README.md,
+# "Removed research options") need this script and the trainer as of
+# commit 237e820.
 set -euo pipefail
 name=$1; steps=$2; shift 2
 bin=./target/release/blapose
