@@ -21,7 +21,7 @@ use std::time::Duration;
 
 use blapose_core::camera::Camera;
 use blapose_core::level::{self, CalibrationError};
-use blapose_core::skeleton::{NUM_BONES, NUM_JOINTS};
+use blapose_core::skeleton::NUM_BONES;
 use blapose_core::{BoneLengths, Pose};
 use blapose_proto::v1 as pb;
 
@@ -706,7 +706,7 @@ pub(crate) fn pose_from_flat(values: &[f32], what: &str) -> Result<Pose, ClientE
         ClientError::Protocol(format!(
             "{what} has {} values, expected {}",
             values.len(),
-            NUM_JOINTS * 3
+            blapose_core::pose::POSE_VALUES
         ))
     })
 }
@@ -732,6 +732,7 @@ fn optional_lengths(values: &[f32]) -> Result<Option<BoneLengths>, ClientError> 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use blapose_core::NUM_JOINTS;
 
     #[test]
     fn layout_codes_are_the_wire_numbers() {

@@ -14,6 +14,7 @@ use blapose_core::layouts::{Coordinates, KeypointLayout};
 use blapose_core::level::{
     self, CalibrationError, LevelCamera, LevelError, MAX_CAMERA_HEIGHT, MIN_CAMERA_HEIGHT,
 };
+pub use blapose_core::pose::POSE_VALUES;
 use blapose_core::skeleton::JOINT_NAMES;
 use blapose_core::{Pose, NUM_JOINTS};
 pub use blapose_proto::convert::layout_to_proto;
@@ -26,8 +27,6 @@ use crate::session::{InputSpec, SessionCamera};
 pub const MAX_KEYPOINT_ABS: f32 = 1e6;
 /// Largest accepted magnitude of a 3D pose coordinate, in metres.
 pub const MAX_POSE_ABS: f32 = 1e4;
-/// Values in a 3D pose.
-pub const POSE_VALUES: usize = NUM_JOINTS * 3;
 
 /// A client input the server refuses (INVALID_ARGUMENT).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

@@ -16,6 +16,12 @@ pub type BoneLengths = [f32; NUM_BONES];
 /// The 16 unit bone directions (child minus parent, normalized).
 pub type BoneDirections = [[f32; 3]; NUM_BONES];
 
+/// Values of one [`Pose`] in a flat buffer (the wire's and the npz files'
+/// layout): 17 joints x 3.
+pub const POSE_VALUES: usize = NUM_JOINTS * 3;
+/// Values of one [`Keypoints2d`] frame in a flat buffer: 17 joints x 2.
+pub const KEYPOINT_VALUES: usize = NUM_JOINTS * 2;
+
 /// Mirror a 3D pose left/right: negate x and swap left and right joints.
 ///
 /// In *camera* coordinates this is exactly what a horizontally flipped image
@@ -79,7 +85,7 @@ pub fn poses_as_flat(poses: &[Pose]) -> &[f32] {
 /// Copy exactly `17 * 3` values, joint-major, into a pose; `None` for any
 /// other length.
 pub fn pose_from_flat(flat: &[f32]) -> Option<Pose> {
-    let flat: &[f32; NUM_JOINTS * 3] = flat.try_into().ok()?;
+    let flat: &[f32; POSE_VALUES] = flat.try_into().ok()?;
     Some(std::array::from_fn(|j| {
         [flat[3 * j], flat[3 * j + 1], flat[3 * j + 2]]
     }))
@@ -88,7 +94,7 @@ pub fn pose_from_flat(flat: &[f32]) -> Option<Pose> {
 /// Copy a flat `f32` buffer of `T * 17 * 3` values into poses; `None` when
 /// the length is not a multiple of 51.
 pub fn poses_from_flat(flat: &[f32]) -> Option<Vec<Pose>> {
-    const N: usize = NUM_JOINTS * 3;
+    const N: usize = POSE_VALUES;
     if !flat.len().is_multiple_of(N) {
         return None;
     }
@@ -98,7 +104,7 @@ pub fn poses_from_flat(flat: &[f32]) -> Option<Vec<Pose>> {
 /// Copy a flat `f32` buffer of `T * 17 * 2` values into keypoint frames;
 /// `None` when the length is not a multiple of 34.
 pub fn keypoints_from_flat(flat: &[f32]) -> Option<Vec<Keypoints2d>> {
-    const N: usize = NUM_JOINTS * 2;
+    const N: usize = KEYPOINT_VALUES;
     if !flat.len().is_multiple_of(N) {
         return None;
     }

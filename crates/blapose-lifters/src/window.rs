@@ -11,7 +11,7 @@ use std::collections::VecDeque;
 
 use candle_core::{Device, Tensor};
 
-use blapose_core::pose::pose_from_flat;
+use blapose_core::pose::{pose_from_flat, POSE_VALUES};
 use blapose_core::{Keypoints2d, Pose, NUM_JOINTS};
 
 use crate::error::{expect_dims, Result};
@@ -122,7 +122,7 @@ pub fn poses_from_tensor(t: &Tensor) -> Result<Vec<Pose>> {
     let flat: Vec<f32> = t.flatten_all()?.to_vec1()?;
     // `(B, 17, 3)` was checked: whole poses, each of the right length.
     Ok(flat
-        .chunks_exact(NUM_JOINTS * 3)
+        .chunks_exact(POSE_VALUES)
         .filter_map(pose_from_flat)
         .collect())
 }

@@ -29,10 +29,10 @@ pub use fast::{EngineOptions, Isa, OfflineBiGruEngine, OnlineGruEngine, Precisio
 pub use reference::{BoneLengthBiGru, BoneLengthGru};
 pub use weights::{LoadedWeights, WeightsMetadata};
 
-use blapose_core::skeleton::{NUM_BONES, NUM_JOINTS};
+use blapose_core::skeleton::NUM_BONES;
 
 /// Values per input frame: 17 joints x 2 normalized screen coordinates.
-pub const INPUT_DIM: usize = NUM_JOINTS * 2;
+pub const INPUT_DIM: usize = blapose_core::pose::KEYPOINT_VALUES;
 /// Width of the per-frame embedding (`Linear(34 -> 256)`).
 pub const EMBED_DIM: usize = 256;
 /// Hidden size of every GRU direction.
