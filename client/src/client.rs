@@ -276,6 +276,14 @@ fn build_endpoint(config: &ClientConfig) -> Result<Endpoint, ClientError> {
     Ok(endpoint)
 }
 
+/// Longest pause between connection attempts.
+const MAX_BACKOFF: Duration = Duration::from_secs(5);
+
+/// The pause after `backoff`: doubled, at most [`MAX_BACKOFF`].
+fn next_backoff(backoff: Duration) -> Duration {
+    (backoff * 2).min(MAX_BACKOFF)
+}
+
 impl Client {
     /// Connect, retrying with exponential backoff (see [`ClientConfig`]).
     pub async fn connect(config: ClientConfig) -> Result<Client, ClientError> {
@@ -291,7 +299,7 @@ impl Client {
                     last_error = error_chain(&e);
                     if attempt < attempts {
                         tokio::time::sleep(backoff).await;
-                        backoff = (backoff * 2).min(Duration::from_secs(5));
+                        backoff = next_backoff(backoff);
                     }
                 }
             }
@@ -607,12 +615,21 @@ mod tests {
         config.connect_attempts = 3;
         config.retry_backoff = Duration::from_millis(10);
         config.connect_timeout = Duration::from_millis(500);
-        let started = std::time::Instant::now();
         match Client::connect(config).await {
             Err(ClientError::Connect { attempts, .. }) => assert_eq!(attempts, 3),
             other => panic!("expected a connect error, got {other:?}"),
         }
-        // Two backoff pauses: 10 ms + 20 ms.
-        assert!(started.elapsed() >= Duration::from_millis(30));
+    }
+
+    #[test]
+    fn backoff_doubles_up_to_its_cap() {
+        let mut b = Duration::from_millis(200);
+        let mut pauses = Vec::new();
+        for _ in 0..7 {
+            pauses.push(b);
+            b = next_backoff(b);
+        }
+        let ms: Vec<u128> = pauses.iter().map(Duration::as_millis).collect();
+        assert_eq!(ms, [200, 400, 800, 1600, 3200, 5000, 5000]);
     }
 }

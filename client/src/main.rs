@@ -8,7 +8,6 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use anyhow::{Context, Result};
-use blapose_client::sequence::write_adjusted;
 use blapose_client::{
     adjust_offline, evaluate, replay, Adjusted, Client, ClientConfig, KeypointLayout, ModelChoice,
     ReplayOptions, Sequence, TlsOptions, DEFAULT_SERVER,
@@ -74,7 +73,8 @@ enum Command {
     /// to each frame (bone_lengths, T x 16) are written as an npz. When the
     /// file has gt_3d, MPJPE, P-MPJPE and bone-length error are printed
     /// before and after the adjustment. With --server-lifter only the 2D
-    /// keypoints are sent and the server's lifter produces the poses. With
+    /// keypoints are sent and the server's lifter produces the poses (--out
+    /// then also holds them before adjustment: lifted_3d, T x 17 x 3). With
     /// --camera the file's camera calibration (camera_up, camera_focal,
     /// camera_principal) is sent and the camera-aware model serves it.
     Replay {
@@ -126,7 +126,8 @@ struct IoArgs {
     /// [fx,fy] and camera_principal [cx,cy] in pixels (all three or none),
     /// plus optionally camera_height, metres above the floor (0.3 to 10).
     file: PathBuf,
-    /// Write adjusted_3d and bone_lengths to this npz.
+    /// Write adjusted_3d and bone_lengths (and, with --server-lifter,
+    /// lifted_3d) to this npz.
     #[arg(long)]
     out: Option<PathBuf>,
     /// Write {"frames":T,"before":{..},"after":{..}} (needs gt_3d).
@@ -222,7 +223,7 @@ fn finish(io: &IoArgs, seq: &Sequence, result: &Adjusted) -> Result<()> {
         println!("final bone lengths (mm): {}", mm.join(" "));
     }
     if let Some(out) = &io.out {
-        write_adjusted(out, &result.adjusted, &result.bone_lengths)?;
+        result.write_npz(out)?;
         println!("wrote {}", out.display());
     }
     match &seq.gt_3d {

@@ -23,8 +23,8 @@ use tokio::sync::Semaphore;
 
 use crate::client::{Client, SequenceInput, SessionOptions};
 use crate::error::ClientError;
-use crate::sequence::Sequence;
-use crate::session::SessionEvent;
+use crate::sequence::{write_adjusted, Sequence, SequenceError};
+use crate::session::{Session, SessionEvent};
 use crate::types::{CameraCalibration, ModelChoice, SessionSummary};
 
 /// How to stream a sequence.
@@ -58,6 +58,10 @@ impl Default for ReplayOptions {
 pub struct Adjusted {
     /// The model that produced the lengths.
     pub model: ModelChoice,
+    /// The sequence's frame that `adjusted[0]` answers: 0, except for a
+    /// [`replay_session`] on a resumed session, which continues where the
+    /// session's `frames_seen` says.
+    pub first_frame: usize,
     /// One adjusted pose per frame.
     pub adjusted: Vec<Pose>,
     /// The bone lengths applied to each frame.
@@ -81,6 +85,13 @@ pub struct Adjusted {
 }
 
 impl Adjusted {
+    /// Write the result as `blapose-client --out` does: `adjusted_3d`,
+    /// `bone_lengths` and, when the server lifted the poses, its poses as
+    /// `lifted_3d` (see [`write_adjusted`]).
+    pub fn write_npz(&self, path: impl AsRef<std::path::Path>) -> Result<(), SequenceError> {
+        write_adjusted(path, &self.adjusted, &self.bone_lengths, &self.lifted)
+    }
+
     /// Frames per second of the exchange.
     pub fn frames_per_second(&self) -> f64 {
         self.adjusted.len() as f64 / self.elapsed.as_secs_f64().max(1e-9)
@@ -94,7 +105,7 @@ pub async fn replay(
     client: &Client,
     seq: &Sequence,
     options: &ReplayOptions,
-    mut progress: impl FnMut(usize),
+    progress: impl FnMut(usize),
 ) -> Result<Adjusted, ClientError> {
     let started = Instant::now();
     let session_options = SessionOptions {
@@ -105,18 +116,65 @@ pub async fn replay(
     let session = client
         .open_session_with(seq.input_format, &session_options)
         .await?;
+    replay_session(session, seq, options, progress)
+        .await
+        .map(|adjusted| Adjusted {
+            elapsed: started.elapsed(),
+            ..adjusted
+        })
+}
+
+/// [`replay`] on a session the caller opened, or resumed after a dropped
+/// connection: frame `t` of `seq` is the session's frame `t`, and sending
+/// starts at the first frame the session has not processed,
+/// `session.info().frames_seen` (0 for a new session). Frames before it are
+/// in the session's estimate already, including frames in flight when a
+/// connection dropped that the server processed although their answers
+/// were lost: sending them again would count them twice. The result holds
+/// the frames from there on ([`Adjusted::first_frame`]); the lost answers
+/// are not sent again. `options.label`, `server_lifter` and `seq.camera` are
+/// the session's, fixed when it was opened.
+///
+/// ```no_run
+/// # async fn f(client: &blapose_client::Client, seq: &blapose_client::Sequence) -> Result<(), blapose_client::ClientError> {
+/// use blapose_client::{replay_session, ReplayOptions, SessionOptions};
+/// let options = ReplayOptions::default();
+/// let session = client.open_session_with(seq.input_format, &SessionOptions::default()).await?;
+/// let id = session.id().to_string();
+/// let done = match replay_session(session, seq, &options, |_| {}).await {
+///     Ok(done) => done,
+///     // The connection dropped: the session waits, detached, for its TTL.
+///     Err(_) => replay_session(client.resume_session(&id).await?, seq, &options, |_| {}).await?,
+/// };
+/// # Ok(()) }
+/// ```
+pub async fn replay_session(
+    session: Session,
+    seq: &Sequence,
+    options: &ReplayOptions,
+    mut progress: impl FnMut(usize),
+) -> Result<Adjusted, ClientError> {
+    let started = Instant::now();
     let (info, sender, mut receiver) = session.split();
+    let lifting = info.lifter.is_some();
     let lifter = info.lifter.clone();
     let camera = info.camera;
-    let total = seq.len();
+    let first = usize::try_from(info.frames_seen)
+        .ok()
+        .filter(|&f| f <= seq.len())
+        .ok_or_else(|| {
+            ClientError::InvalidInput(format!(
+                "the session has processed {} frames, more than the sequence's {}",
+                info.frames_seen,
+                seq.len()
+            ))
+        })?;
+    let total = seq.len() - first;
     let window = Arc::new(Semaphore::new(options.window.max(1)));
 
     let send = async {
-        let mut ticker = options
-            .fps
-            .filter(|f| f.is_finite() && *f > 0.0)
-            .map(|f| tokio::time::interval(Duration::from_secs_f64(1.0 / f)));
-        for t in 0..total {
+        let mut ticker = pacer(options.fps);
+        for t in first..seq.len() {
             let Ok(permit) = window.acquire().await else {
                 return;
             };
@@ -124,7 +182,7 @@ pub async fn replay(
             if let Some(ticker) = ticker.as_mut() {
                 ticker.tick().await;
             }
-            let frame = if options.server_lifter {
+            let frame = if lifting {
                 seq.keypoints_frame(t)
             } else {
                 seq.frame(t)
@@ -152,13 +210,14 @@ pub async fn replay(
         let mut lengths = Vec::with_capacity(total);
         let mut lifted = Vec::new();
         while adjusted.len() < total {
-            let expected = adjusted.len() as u64;
+            let answered = adjusted.len() as u64;
+            let expected = (first + adjusted.len()) as u64;
             let frame = match receiver.next().await? {
                 Some(SessionEvent::Adjusted(f)) => f,
                 Some(SessionEvent::Rejected(r)) => return Err(r.into_error()),
                 Some(SessionEvent::Closed(_)) | None => {
                     return Err(ClientError::StreamEnded {
-                        answered: expected,
+                        answered,
                         sent: total as u64,
                     })
                 }
@@ -169,11 +228,11 @@ pub async fn replay(
                     frame.frame_index
                 )));
             }
-            if frame.frames_seen != info.frames_seen + expected + 1 {
+            if frame.frames_seen != info.frames_seen + answered + 1 {
                 return Err(ClientError::Protocol(format!(
                     "frame {expected}: frames_seen is {}, expected {}",
                     frame.frames_seen,
-                    info.frames_seen + expected + 1
+                    info.frames_seen + answered + 1
                 )));
             }
             if frame.lifter() != lifter.as_deref() {
@@ -209,6 +268,7 @@ pub async fn replay(
     let (adjusted, bone_lengths, lifted, summary) = received?;
     Ok(Adjusted {
         model: info.model,
+        first_frame: first,
         adjusted,
         bone_lengths,
         lifter,
@@ -217,6 +277,15 @@ pub async fn replay(
         session: Some(summary),
         camera,
     })
+}
+
+/// The ticker that paces sending to `fps` frames per second (`None`: no
+/// pacing, for no, a non-finite or a non-positive rate).
+fn pacer(fps: Option<f64>) -> Option<tokio::time::Interval> {
+    fps.filter(|f| f.is_finite() && *f > 0.0)
+        .and_then(|f| Duration::try_from_secs_f64(1.0 / f).ok())
+        .filter(|period| !period.is_zero())
+        .map(tokio::time::interval)
 }
 
 /// Adjust `seq` with one `AdjustSequence` call (with `seq.camera`, if any).
@@ -230,6 +299,7 @@ pub async fn adjust_offline(
     let result = client.adjust_sequence(input, model).await?;
     Ok(Adjusted {
         model: result.model,
+        first_frame: 0,
         adjusted: result.adjusted,
         bone_lengths: result.bone_lengths,
         lifter: None,
@@ -238,4 +308,25 @@ pub async fn adjust_offline(
         session: None,
         camera: seq.camera,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test]
+    async fn fps_sets_the_pacing_period() {
+        let period = |fps| pacer(fps).map(|p| p.period());
+        assert_eq!(period(Some(100.0)), Some(Duration::from_millis(10)));
+        assert_eq!(period(Some(25.0)), Some(Duration::from_millis(40)));
+        for unpaced in [
+            None,
+            Some(0.0),
+            Some(-5.0),
+            Some(f64::NAN),
+            Some(f64::INFINITY),
+        ] {
+            assert_eq!(period(unpaced), None, "{unpaced:?}");
+        }
+    }
 }

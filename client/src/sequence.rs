@@ -84,6 +84,9 @@ pub const CAMERA_KEYS: [&str; 3] = [KEY_CAMERA_UP, KEY_CAMERA_FOCAL, KEY_CAMERA_
 pub const KEY_ADJUSTED: &str = "adjusted_3d";
 /// Output key: bone lengths applied to each frame `(T, 16)`.
 pub const KEY_BONE_LENGTHS: &str = "bone_lengths";
+/// Output key: the server lifter's poses before adjustment `(T, 17, 3)`
+/// (only when the server lifted them).
+pub const KEY_LIFTED: &str = "lifted_3d";
 
 /// Why a replay file could not be used.
 #[derive(Debug, thiserror::Error)]
@@ -174,6 +177,14 @@ pub enum SequenceError {
         poses: usize,
         /// Length rows.
         lengths: usize,
+    },
+    /// Some but not all frames have a lifted pose when writing.
+    #[error("{poses} adjusted poses but {lifted} lifted ones")]
+    LiftedMismatch {
+        /// Adjusted poses.
+        poses: usize,
+        /// Lifted poses.
+        lifted: usize,
     },
 }
 
@@ -584,18 +595,27 @@ fn camera_array<const N: usize>(npz: &Npz, key: &str) -> Result<[f32; N], Sequen
     })
 }
 
-/// Write an adjustment result: `adjusted_3d` `(T, 17, 3)` and `bone_lengths`
-/// `(T, 16)`.
+/// Write an adjustment result: `adjusted_3d` `(T, 17, 3)`, `bone_lengths`
+/// `(T, 16)` and, unless `lifted` is empty (the poses were the client's),
+/// `lifted_3d` `(T, 17, 3)`: the server lifter's poses the adjustment
+/// started from, which the caller has no other copy of.
 pub fn write_adjusted(
     path: impl AsRef<Path>,
     adjusted: &[Pose],
     bone_lengths: &[BoneLengths],
+    lifted: &[Pose],
 ) -> Result<(), SequenceError> {
     let path = path.as_ref();
     if adjusted.len() != bone_lengths.len() {
         return Err(SequenceError::OutputMismatch {
             poses: adjusted.len(),
             lengths: bone_lengths.len(),
+        });
+    }
+    if !lifted.is_empty() && lifted.len() != adjusted.len() {
+        return Err(SequenceError::LiftedMismatch {
+            poses: adjusted.len(),
+            lifted: lifted.len(),
         });
     }
     let npz_err = |source| SequenceError::Npz {
@@ -609,7 +629,25 @@ pub fn write_adjusted(
         KEY_BONE_LENGTHS,
         Array::new(vec![bone_lengths.len(), NUM_BONES], flat).map_err(npz_err)?,
     );
+    if !lifted.is_empty() {
+        npz.insert(KEY_LIFTED, Array::from_poses(lifted));
+    }
     write_npz(path, &npz).map_err(npz_err)
+}
+
+/// Read the server lifter's poses (`lifted_3d`) from what
+/// [`write_adjusted`] wrote; `None` when the file has none.
+pub fn read_lifted(path: impl AsRef<Path>) -> Result<Option<Vec<Pose>>, SequenceError> {
+    let path = path.as_ref();
+    let npz_err = |source| SequenceError::Npz {
+        path: path.to_owned(),
+        error: source,
+    };
+    let npz = read_npz(path).map_err(npz_err)?;
+    if !npz.contains(KEY_LIFTED) {
+        return Ok(None);
+    }
+    npz.poses(KEY_LIFTED).map(Some).map_err(npz_err)
 }
 
 /// Read back what [`write_adjusted`] wrote.
@@ -1081,12 +1119,29 @@ mod tests {
 
         let out = dir.join("out.npz");
         let lengths = vec![[0.25f32; NUM_BONES]; 4];
-        write_adjusted(&out, &seq.pose_3d, &lengths).unwrap();
+        write_adjusted(&out, &seq.pose_3d, &lengths, &[]).unwrap();
         let (a, l) = read_adjusted(&out).unwrap();
-        assert_eq!((a, l), (seq.pose_3d.clone(), lengths));
+        assert_eq!((a, l), (seq.pose_3d.clone(), lengths.clone()));
+        assert_eq!(
+            read_lifted(&out).unwrap(),
+            None,
+            "client poses: no lifted_3d"
+        );
         assert!(matches!(
-            write_adjusted(&out, &seq.pose_3d, &[]),
+            write_adjusted(&out, &seq.pose_3d, &[], &[]),
             Err(SequenceError::OutputMismatch { .. })
+        ));
+        // A server lifter's poses are written beside the adjusted ones.
+        let lifted: Vec<Pose> = (10..14).map(pose).collect();
+        write_adjusted(&out, &seq.pose_3d, &lengths, &lifted).unwrap();
+        assert_eq!(read_lifted(&out).unwrap(), Some(lifted.clone()));
+        assert_eq!(read_adjusted(&out).unwrap().0, seq.pose_3d);
+        assert!(matches!(
+            write_adjusted(&out, &seq.pose_3d, &lengths, &lifted[..3]),
+            Err(SequenceError::LiftedMismatch {
+                poses: 4,
+                lifted: 3
+            })
         ));
         let e = Sequence::load(dir.join("absent.npz"), None)
             .unwrap_err()

@@ -9,6 +9,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 
+use blapose_client::sequence::{read_adjusted, read_lifted};
 use blapose_client::{
     replay, ClientError, Coordinates, FrameInput, InputFormat, KeypointLayout, ReplayOptions,
     Sequence, SessionEvent, SessionOptions,
@@ -106,6 +107,17 @@ async fn a_lifting_session_answers_keypoints_only_frames_with_the_lifters_poses(
     }
     // A stream whose window has filled differs from the padded start.
     assert!(pose_diff(&result.lifted[20], &result.lifted[0]) > 1e-4);
+
+    // `replay --server-lifter --out` keeps the lifter's poses: lifted_3d.
+    let out = weights_dir().join(format!("lifted-out-{}.npz", std::process::id()));
+    result.write_npz(&out).expect("write the output file");
+    assert_eq!(
+        read_lifted(&out).expect("read lifted_3d"),
+        Some(result.lifted.clone())
+    );
+    let (adjusted, lengths) = read_adjusted(&out).expect("read the output file");
+    assert_eq!((adjusted, lengths), (result.adjusted, result.bone_lengths));
+    std::fs::remove_file(&out).ok();
     server.shutdown().await;
 }
 

@@ -4,7 +4,8 @@
 use std::sync::Arc;
 
 use blapose_client::{
-    adjust_offline, replay, KeypointLayout, ModelChoice, ReplayOptions, SessionEvent,
+    adjust_offline, replay, replay_session, KeypointLayout, ModelChoice, ReplayOptions,
+    SessionEvent,
 };
 use blapose_tests::{
     lengths_diff, pose_diff, synthetic_sequence, test_camera, test_config, Reference, TestServer,
@@ -218,15 +219,16 @@ async fn model_info_and_health() {
     server.shutdown().await;
 }
 
-/// `--fps` paces the sending side: 20 frames at 100 frames/s take at least
-/// 190 ms (the first frame goes at once), and still all arrive in order.
+/// `--fps` paces the sending side (the pacing itself is tested with paused
+/// time in the client's `replay` module): a paced replay still answers
+/// every frame, in order.
 #[tokio::test]
 async fn replay_paces_to_the_requested_frame_rate() {
     let server = TestServer::start(test_config()).await;
     let client = server.client().await;
     let seq = synthetic_sequence(14, 20, KeypointLayout::H36m17);
     let options = ReplayOptions {
-        fps: Some(100.0),
+        fps: Some(1000.0),
         window: 4,
         ..ReplayOptions::default()
     };
@@ -234,12 +236,69 @@ async fn replay_paces_to_the_requested_frame_rate() {
     let result = replay(&client, &seq, &options, |n| progress.push(n))
         .await
         .expect("replay");
-    assert!(
-        result.elapsed >= std::time::Duration::from_millis(190),
-        "{:?}",
-        result.elapsed
-    );
     assert_eq!(progress, (1..=20).collect::<Vec<_>>());
     assert_eq!(result.adjusted.len(), 20);
+    server.shutdown().await;
+}
+
+/// After a dropped connection the client continues from the resumed
+/// session's `frames_seen` (`replay_session`): frames the server processed
+/// whose answers never arrived are not sent again, so every answer from
+/// there on is the uninterrupted session's.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_resumed_replay_continues_from_frames_seen() {
+    let server = TestServer::start(test_config()).await;
+    let client = server.client().await;
+    let reference = Reference::new();
+    let seq = synthetic_sequence(15, 40, KeypointLayout::H36m17);
+    let (want_poses, want_lengths) = reference.online(&seq);
+
+    // 12 frames sent, 5 answers read, then the stream goes away and the
+    // other 7 answers with it.
+    let mut session = client
+        .open_session(seq.input_format, None)
+        .await
+        .expect("open");
+    for t in 0..12 {
+        session.send(&seq.frame(t)).await.expect("send");
+    }
+    for (t, want) in want_lengths.iter().enumerate().take(5) {
+        match session.next_event().await.expect("answer") {
+            Some(SessionEvent::Adjusted(f)) => {
+                assert_eq!(f.frame_index, t as u64);
+                assert!(lengths_diff(&f.bone_lengths, want) < TOLERANCE);
+            }
+            other => panic!("frame {t}: {other:?}"),
+        }
+    }
+    let id = session.detach(std::time::Duration::from_secs(60)).await;
+
+    let resumed = client.resume_session(&id).await.expect("resume");
+    assert_eq!(
+        resumed.info().frames_seen,
+        12,
+        "the 7 unanswered frames were processed"
+    );
+    let options = ReplayOptions {
+        window: 4,
+        ..ReplayOptions::default()
+    };
+    let result = replay_session(resumed, &seq, &options, |_| {})
+        .await
+        .expect("the replay continues");
+    assert_eq!(result.first_frame, 12);
+    assert_eq!(result.adjusted.len(), seq.len() - 12);
+    for (k, t) in (12..seq.len()).enumerate() {
+        let dp = pose_diff(&result.adjusted[k], &want_poses[t]);
+        let dl = lengths_diff(&result.bone_lengths[k], &want_lengths[t]);
+        assert!(
+            dp < TOLERANCE && dl < TOLERANCE,
+            "frame {t}: pose diff {dp}, length diff {dl}"
+        );
+    }
+    assert_eq!(
+        result.session.expect("closed").frames_seen,
+        seq.len() as u64
+    );
     server.shutdown().await;
 }
