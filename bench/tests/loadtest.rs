@@ -6,6 +6,11 @@
 
 use std::path::PathBuf;
 use std::process::Command;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
+
+use blapose_server::backend::{Backend, BackendError, SequenceBackend};
+use blapose_server::{Family, ModelProvider, WeightsProvider};
 
 use serde_json::Value;
 
@@ -157,7 +162,23 @@ async fn a_server_that_goes_away_mid_run_is_counted_not_waited_for() {
         shutdown_grace: Duration::from_secs(1),
         ..Default::default()
     };
-    let handle = blapose_server::spawn(config, listener).await.unwrap();
+    let steps = Arc::new(AtomicUsize::new(0));
+    let provider = WeightsProvider::load(
+        Family::Default,
+        &config.weights,
+        &config.bigru_weights,
+        config.compute_threads,
+        config.weight_precision,
+    )
+    .unwrap();
+    let provider = Counted {
+        inner: Arc::new(provider),
+        steps: steps.clone(),
+    };
+    let handle = blapose_server::spawn_with_provider(config, listener, Arc::new(provider))
+        .await
+        .unwrap();
+    let warm_up = steps.load(Ordering::SeqCst);
     let test = LoadTest {
         target: Target::Remote {
             url: format!("http://{}", handle.local_addr()),
@@ -176,7 +197,15 @@ async fn a_server_that_goes_away_mid_run_is_counted_not_waited_for() {
         examples: default_examples_dir(),
     };
     let run = tokio::spawn(async move { test.run().await });
-    tokio::time::sleep(Duration::from_millis(300)).await;
+    // Shut down once the streams are under way: the model has run steps
+    // beyond its warm-up (polled; bounded by a count, not timed).
+    for poll in 0.. {
+        if steps.load(Ordering::SeqCst) > warm_up + 4 {
+            break;
+        }
+        assert!(poll < 100_000, "the load test never sent a frame");
+        tokio::time::sleep(Duration::from_millis(2)).await;
+    }
     handle.shutdown().await.unwrap();
     let report = run
         .await
@@ -194,4 +223,50 @@ async fn a_server_that_goes_away_mid_run_is_counted_not_waited_for() {
         "{:?}",
         report.errors
     );
+}
+
+/// The server's own models, counting the online steps they run, so a test
+/// knows when frames are being served without sleeping on it.
+struct Counted {
+    inner: Arc<dyn ModelProvider>,
+    steps: Arc<AtomicUsize>,
+}
+
+struct CountedStep {
+    inner: Box<dyn Backend>,
+    steps: Arc<AtomicUsize>,
+}
+
+impl Backend for CountedStep {
+    fn step(
+        &mut self,
+        inputs: &[f32],
+        hidden: &mut [f32],
+        lengths_out: &mut [f32],
+        batch: usize,
+    ) -> Result<(), BackendError> {
+        self.steps.fetch_add(1, Ordering::SeqCst);
+        self.inner.step(inputs, hidden, lengths_out, batch)
+    }
+}
+
+impl ModelProvider for Counted {
+    fn online(&self) -> Result<Box<dyn Backend>, BackendError> {
+        Ok(Box::new(CountedStep {
+            inner: self.inner.online()?,
+            steps: self.steps.clone(),
+        }))
+    }
+    fn offline(&self) -> Result<Box<dyn SequenceBackend>, BackendError> {
+        self.inner.offline()
+    }
+    fn describe(&self) -> Vec<blapose_proto::v1::ModelDescription> {
+        self.inner.describe()
+    }
+    fn camera_aware(&self) -> Option<Arc<dyn ModelProvider>> {
+        self.inner.camera_aware()
+    }
+    fn height_normalized(&self) -> bool {
+        self.inner.height_normalized()
+    }
 }

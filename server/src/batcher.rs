@@ -61,7 +61,7 @@ use tokio::sync::oneshot;
 use crate::backend::{Backend, BackendError, INPUT_DIM, OUTPUT_DIM, STATE_DIM};
 use crate::metrics;
 use crate::models::LoadedLifter;
-use crate::session::Session;
+use crate::session::{add_prediction, Session};
 use crate::validate;
 
 /// Batching limits.
@@ -437,6 +437,38 @@ fn run<B: Backend>(shared: Arc<Shared>, mut backends: OnlineBackends<B>) {
     }
 }
 
+/// What the batcher does with the frames waiting.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Gather {
+    /// Take a batch now.
+    Run,
+    /// Wait for more sessions' frames, until this instant at the latest.
+    WaitUntil(Instant),
+}
+
+/// The batching rule, apart from the clock so it can be tested without
+/// one: with `ready` sessions having a frame waiting, `streams` streams
+/// attached and the oldest frame queued at `oldest`, run once every stream
+/// that could contribute has a frame waiting (at most `max_batch`; a lone
+/// stream never waits), the queue is closing, or the oldest frame has
+/// waited `max_queue_delay`; otherwise wait until that deadline.
+fn gather(
+    config: &BatcherConfig,
+    ready: usize,
+    streams: usize,
+    closed: bool,
+    oldest: Instant,
+    now: Instant,
+) -> Gather {
+    let target = config.max_batch.min(streams.max(1));
+    let deadline = oldest + config.max_queue_delay;
+    if closed || ready >= target || now >= deadline {
+        Gather::Run
+    } else {
+        Gather::WaitUntil(deadline)
+    }
+}
+
 /// Wait for frames and take the next batch; `false` once closed and empty.
 fn next_batch(shared: &Shared, batch: &mut Vec<Queued>) -> bool {
     let config = shared.config;
@@ -451,20 +483,16 @@ fn next_batch(shared: &Shared, batch: &mut Vec<Queued>) -> bool {
             .unwrap_or_else(PoisonError::into_inner);
     }
     if let Some(oldest) = q.oldest() {
-        let deadline = oldest + config.max_queue_delay;
         loop {
-            let streams = shared.active_streams.load(Ordering::Relaxed).max(1);
-            let target = config.max_batch.min(streams);
-            if q.closed || q.ready.len() >= target {
-                break;
-            }
+            let streams = shared.active_streams.load(Ordering::Relaxed);
             let now = Instant::now();
-            if now >= deadline {
-                break;
-            }
+            let wait = match gather(&config, q.ready.len(), streams, q.closed, oldest, now) {
+                Gather::Run => break,
+                Gather::WaitUntil(deadline) => deadline - now,
+            };
             q = shared
                 .available
-                .wait_timeout(q, deadline - now)
+                .wait_timeout(q, wait)
                 .unwrap_or_else(PoisonError::into_inner)
                 .0;
         }
@@ -777,13 +805,16 @@ fn scatter(job: &FrameJob, hidden: &[f32], lengths: &[f32], lifted: Option<Pose>
     st.hidden.copy_from_slice(hidden);
     let mut prediction = [0.0f32; OUTPUT_DIM];
     prediction.copy_from_slice(lengths);
-    if let Some(camera) = &job.session.config().camera {
-        // A height-normalized model's lengths, back at the camera's height.
-        prediction = prediction.map(|v| v * camera.length_scale);
-    }
-    st.lengths.add(&prediction);
+    // A height-normalized model's lengths, back at the camera's height.
+    let scale = job
+        .session
+        .config()
+        .camera
+        .as_ref()
+        .map_or(1.0, |camera| camera.length_scale);
+    let estimate = add_prediction(&mut st.lengths, &prediction, scale);
     Ok(StepOutput {
-        lengths: st.estimate().unwrap_or(prediction),
+        lengths: estimate,
         frames_seen: st.frames_seen(),
         lifted: if job.lift { lifted } else { None },
     })
@@ -801,12 +832,75 @@ mod tests {
     /// x[0] = a1, a2, ... a session's state is the running sum of its
     /// inputs, which reveals lost, duplicated, reordered or mixed-up frames.
     /// It also records batch sizes and the sessions (by first input slot 1)
-    /// in each batch.
+    /// in each batch. With a [`Gate`] every step waits until it opens, so a
+    /// test controls what is queued while a step runs (no sleeps).
+    /// The fake's record: the tags of each step's rows.
+    type Log = Arc<Mutex<Vec<Vec<f32>>>>;
+
     #[derive(Clone, Default)]
     struct Fake {
-        log: Arc<Mutex<Vec<Vec<f32>>>>,
-        delay: Duration,
+        log: Log,
+        gate: Option<Arc<Gate>>,
         fail: Arc<AtomicBool>,
+    }
+
+    /// Holds the fake's steps until opened; counts the steps that reached it.
+    #[derive(Default)]
+    struct Gate {
+        /// (open, steps entered)
+        state: Mutex<(bool, usize)>,
+        changed: Condvar,
+    }
+
+    impl Gate {
+        fn pass(&self) {
+            let mut st = self.state.lock().unwrap();
+            st.1 += 1;
+            self.changed.notify_all();
+            while !st.0 {
+                st = self.changed.wait(st).unwrap();
+            }
+        }
+
+        fn open(&self) {
+            self.state.lock().unwrap().0 = true;
+            self.changed.notify_all();
+        }
+
+        /// Block until `n` steps have reached the gate.
+        fn wait_entered(&self, n: usize) {
+            let mut st = self.state.lock().unwrap();
+            while st.1 < n {
+                st = self.changed.wait(st).unwrap();
+            }
+        }
+    }
+
+    /// A fake whose steps wait at a gate that is closed once the batcher
+    /// has warmed up (the warm-up step passes an open gate).
+    fn gated_batcher(config: BatcherConfig) -> (Batcher, Arc<Gate>, Log) {
+        let gate = Arc::new(Gate::default());
+        gate.open();
+        let fake = Fake {
+            gate: Some(gate.clone()),
+            ..Fake::default()
+        };
+        let log = fake.log.clone();
+        let batcher = Batcher::start(fake, config).unwrap();
+        *gate.state.lock().unwrap() = (false, 0);
+        (batcher, gate, log)
+    }
+
+    /// A bound on how long a test waits for an answer, far beyond any
+    /// step: reaching it means the frame was never answered (a hang), not
+    /// that something was slow.
+    const HANG: Duration = Duration::from_secs(120);
+
+    async fn answer(rx: oneshot::Receiver<StepResult>) -> StepResult {
+        tokio::time::timeout(HANG, rx)
+            .await
+            .expect("the frame is answered")
+            .expect("the batcher answers")
     }
 
     impl Backend for Fake {
@@ -823,10 +917,12 @@ mod tests {
             }
             // x[2] = 999 makes the whole call fail, as the real engine does
             // when one row goes non-finite.
+            if let Some(gate) = &self.gate {
+                gate.pass();
+            }
             if inputs.chunks_exact(INPUT_DIM).any(|x| x[2] == 999.0) {
                 return Err(BackendError::Model("row refused".into()));
             }
-            std::thread::sleep(self.delay);
             let mut tags = Vec::new();
             for b in 0..batch {
                 let x = &inputs[b * INPUT_DIM..(b + 1) * INPUT_DIM];
@@ -931,12 +1027,11 @@ mod tests {
 
     #[tokio::test]
     async fn frames_run_in_order_at_most_one_per_session_per_batch() {
-        let fake = Fake {
-            delay: Duration::from_millis(1),
-            ..Fake::default()
-        };
+        let fake = Fake::default();
         let log = fake.log.clone();
-        let batcher = Batcher::start(fake, config(8, 2, 1000)).unwrap();
+        // A delay no test waits out: a batch runs only once every attached
+        // stream has a frame waiting.
+        let batcher = Batcher::start(fake, config(8, 3_600_000, 1000)).unwrap();
         let (store, _g) = SessionStore::new(100, Duration::from_secs(60));
         let sessions: Vec<_> = (0..5)
             .map(|_| store.open(session_config()).unwrap())
@@ -953,7 +1048,7 @@ mod tests {
         }
         let mut expected_sum = [0.0f32; 5];
         for (s, f, rx) in rxs {
-            let out = rx.await.unwrap().unwrap();
+            let out = answer(rx).await.unwrap();
             expected_sum[s] += f as f32;
             // Running sum of inputs as state => in-order, exactly-once.
             assert_eq!(out.frames_seen, f as u64, "session {s}");
@@ -982,25 +1077,25 @@ mod tests {
                 "a session appears twice in batch {tags:?}"
             );
         }
-        // With 5 pipelined sessions, batches are mostly full-width.
-        assert!(
-            log.iter().filter(|t| t.len() == 5).count() >= 15,
-            "batches: {log:?}"
-        );
+        // Every stream always has a frame waiting until the last batch, so
+        // every batch is full-width: one frame of each of the 5 sessions.
+        assert!(log.iter().all(|t| t.len() == 5), "batches: {log:?}");
+        assert_eq!(log.len(), 20);
     }
 
     #[tokio::test]
     async fn full_queue_refuses_instead_of_dropping() {
-        let fake = Fake {
-            delay: Duration::from_millis(50),
-            ..Fake::default()
-        };
-        let batcher = Batcher::start(fake, config(1, 0, 3)).unwrap();
+        let (batcher, gate, _) = gated_batcher(config(1, 0, 3));
         let (store, _g) = SessionStore::new(100, Duration::from_secs(60));
         let a = store.open(session_config()).unwrap();
         let mut accepted = Vec::new();
         let mut refused = 0;
-        for f in 0..10 {
+        // The first frame's step holds at the gate: 3 more fill the queue.
+        let (j, rx) = job(&a.session, a.epoch, 1.0, 0.0);
+        batcher.submit(j).unwrap();
+        accepted.push(rx);
+        gate.wait_entered(1);
+        for f in 1..10 {
             let (j, rx) = job(&a.session, a.epoch, 1.0, f as f32);
             match batcher.submit(j) {
                 Ok(()) => accepted.push(rx),
@@ -1011,40 +1106,80 @@ mod tests {
                 }
             }
         }
-        assert!(refused >= 6, "only {refused} refused");
+        assert_eq!(refused, 6);
+        gate.open();
         let n = accepted.len();
         // Every accepted frame is answered; the state counts exactly those.
         for (k, rx) in accepted.into_iter().enumerate() {
-            assert_eq!(rx.await.unwrap().unwrap().frames_seen, k as u64 + 1);
+            assert_eq!(answer(rx).await.unwrap().frames_seen, k as u64 + 1);
         }
         assert_eq!(a.session.lock().frames_seen(), n as u64);
     }
 
+    #[test]
+    fn the_batching_rule() {
+        let t0 = Instant::now();
+        let ms = Duration::from_millis;
+        let cfg = config(4, 200, 100);
+        let at = |elapsed: u64| t0 + ms(elapsed);
+        // A lone stream never waits, however long the delay.
+        assert_eq!(gather(&cfg, 1, 1, false, t0, t0), Gather::Run);
+        assert_eq!(gather(&cfg, 1, 0, false, t0, t0), Gather::Run);
+        // Two streams, one frame: wait for the other up to the delay ...
+        assert_eq!(
+            gather(&cfg, 1, 2, false, t0, t0),
+            Gather::WaitUntil(at(200))
+        );
+        assert_eq!(
+            gather(&cfg, 1, 2, false, t0, at(199)),
+            Gather::WaitUntil(at(200))
+        );
+        // ... and no longer.
+        assert_eq!(gather(&cfg, 1, 2, false, t0, at(200)), Gather::Run);
+        assert_eq!(gather(&cfg, 1, 2, false, t0, at(5000)), Gather::Run);
+        // Every stream has a frame: go.
+        assert_eq!(gather(&cfg, 2, 2, false, t0, at(1)), Gather::Run);
+        // More streams than a batch holds: a full batch goes.
+        assert_eq!(gather(&cfg, 4, 100, false, t0, at(1)), Gather::Run);
+        assert_eq!(
+            gather(&cfg, 3, 100, false, t0, at(1)),
+            Gather::WaitUntil(at(200))
+        );
+        // Closing: the queue drains without waiting.
+        assert_eq!(gather(&cfg, 1, 2, true, t0, t0), Gather::Run);
+        // The deadline counts from the oldest frame, not from now.
+        assert_eq!(
+            gather(&cfg, 1, 2, false, at(150), at(300)),
+            Gather::WaitUntil(at(350))
+        );
+    }
+
     #[tokio::test]
     async fn lone_stream_does_not_wait_for_the_queue_delay() {
-        let batcher = Batcher::start(Fake::default(), config(64, 500, 100)).unwrap();
+        let fake = Fake::default();
+        let log = fake.log.clone();
+        // A delay no test waits out: the frames are answered only because
+        // a lone stream does not wait for company.
+        let batcher = Batcher::start(fake, config(64, 3_600_000, 100)).unwrap();
         let (store, _g) = SessionStore::new(10, Duration::from_secs(60));
         let a = store.open(session_config()).unwrap();
         let _guard = batcher.stream_guard();
-        let t = std::time::Instant::now();
         for f in 0..20 {
             let (j, rx) = job(&a.session, a.epoch, 1.0, f as f32);
             batcher.submit(j).unwrap();
-            rx.await.unwrap().unwrap();
+            answer(rx).await.unwrap();
         }
-        // 20 sequential frames with a 500 ms max delay: far under 20 x 500 ms.
-        assert!(
-            t.elapsed() < Duration::from_millis(400),
-            "{:?}",
-            t.elapsed()
-        );
+        // Warm-up, then one batch per frame.
+        assert_eq!(log.lock().unwrap().len(), 21);
     }
 
     #[tokio::test]
     async fn partial_batch_waits_for_other_streams_up_to_the_delay() {
         let fake = Fake::default();
         let log = fake.log.clone();
-        let batcher = Batcher::start(fake, config(64, 200, 100)).unwrap();
+        // A delay no test waits out: a's frame can only run once b's frame
+        // is there too, in the same batch.
+        let batcher = Batcher::start(fake, config(64, 3_600_000, 100)).unwrap();
         let (store, _g) = SessionStore::new(10, Duration::from_secs(60));
         let a = store.open(session_config()).unwrap();
         let b = store.open(session_config()).unwrap();
@@ -1052,23 +1187,24 @@ mod tests {
         let _gb = batcher.stream_guard();
         let (ja, ra) = job(&a.session, a.epoch, 1.0, 0.0);
         batcher.submit(ja).unwrap();
-        tokio::time::sleep(Duration::from_millis(20)).await;
         let (jb, rb) = job(&b.session, b.epoch, 1.0, 1.0);
         batcher.submit(jb).unwrap();
-        ra.await.unwrap().unwrap();
-        rb.await.unwrap().unwrap();
-        // Both in one batch: the first frame waited for the second stream.
-        assert_eq!(log.lock().unwrap().last().map(Vec::len), Some(2));
-        // With only stream a's frame ever arriving, the delay bounds the wait.
-        let t = std::time::Instant::now();
+        answer(ra).await.unwrap();
+        answer(rb).await.unwrap();
+        assert_eq!(log.lock().unwrap()[1..], [vec![0.0, 1.0]]);
+        drop(batcher);
+
+        // With only stream a's frame ever arriving, the delay ends the wait
+        // (how long it waits is `the_batching_rule`'s business).
+        let fake = Fake::default();
+        let log = fake.log.clone();
+        let batcher = Batcher::start(fake, config(64, 10, 100)).unwrap();
+        let _ga = batcher.stream_guard();
+        let _gb = batcher.stream_guard();
         let (ja, ra) = job(&a.session, a.epoch, 1.0, 0.0);
         batcher.submit(ja).unwrap();
-        ra.await.unwrap().unwrap();
-        let waited = t.elapsed();
-        assert!(
-            waited >= Duration::from_millis(190) && waited < Duration::from_secs(2),
-            "{waited:?}"
-        );
+        answer(ra).await.unwrap();
+        assert_eq!(log.lock().unwrap()[1..], [vec![0.0]]);
     }
 
     #[tokio::test]
@@ -1111,28 +1247,25 @@ mod tests {
 
     #[tokio::test]
     async fn a_row_that_fails_the_whole_step_fails_only_its_own_frame() {
-        // A long delay on the first frame makes the next two share a batch.
-        let fake = Fake {
-            delay: Duration::from_millis(30),
-            ..Fake::default()
-        };
-        let log = fake.log.clone();
-        let batcher = Batcher::start(fake, config(8, 0, 100)).unwrap();
+        // The first frame's step holds at the gate while the next two are
+        // queued, so they share the next batch.
+        let (batcher, gate, log) = gated_batcher(config(8, 0, 100));
         let (store, _g) = SessionStore::new(10, Duration::from_secs(60));
         let a = store.open(session_config()).unwrap();
         let b = store.open(session_config()).unwrap();
         let c = store.open(session_config()).unwrap();
         let (jc, rc) = job(&c.session, c.epoch, 1.0, 2.0);
         batcher.submit(jc).unwrap();
-        tokio::time::sleep(Duration::from_millis(5)).await;
+        gate.wait_entered(1);
         let (mut ja, ra) = job(&a.session, a.epoch, 4.0, 0.0);
         ja.input[2] = 999.0;
         let (jb, rb) = job(&b.session, b.epoch, 3.0, 1.0);
         batcher.submit(ja).unwrap();
         batcher.submit(jb).unwrap();
-        rc.await.unwrap().unwrap();
-        assert!(matches!(ra.await.unwrap(), Err(StepError::Model(_))));
-        let ob = rb.await.unwrap().unwrap();
+        gate.open();
+        answer(rc).await.unwrap();
+        assert!(matches!(answer(ra).await, Err(StepError::Model(_))));
+        let ob = answer(rb).await.unwrap();
         assert_eq!(ob.frames_seen, 1);
         assert_eq!(ob.lengths[0], 3.0);
         assert_eq!(a.session.lock().frames_seen(), 0);
@@ -1157,11 +1290,9 @@ mod tests {
 
     #[tokio::test]
     async fn close_drains_every_queued_frame_then_refuses() {
-        let fake = Fake {
-            delay: Duration::from_millis(5),
-            ..Fake::default()
-        };
-        let batcher = Batcher::start(fake, config(2, 0, 100)).unwrap();
+        // The gate holds the first step, so frames are still queued when
+        // the batcher closes.
+        let (batcher, gate, _) = gated_batcher(config(2, 0, 100));
         let (store, _g) = SessionStore::new(10, Duration::from_secs(60));
         let a = store.open(session_config()).unwrap();
         let mut rxs = Vec::new();
@@ -1170,9 +1301,12 @@ mod tests {
             batcher.submit(j).unwrap();
             rxs.push(rx);
         }
+        gate.wait_entered(1);
+        assert!(batcher.queue_len() >= 9, "frames are still queued");
         batcher.close();
         let (j, _rx) = job(&a.session, a.epoch, 1.0, 0.0);
         assert_eq!(batcher.submit(j), Err(SubmitError::ShuttingDown));
+        gate.open();
         tokio::task::spawn_blocking(move || batcher.join())
             .await
             .unwrap();

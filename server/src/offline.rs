@@ -18,7 +18,7 @@ use tonic::Status;
 use crate::backend::{Backend, BackendError, INPUT_DIM, OUTPUT_DIM, STATE_DIM};
 use crate::metrics;
 use crate::models::ModelProvider;
-use crate::session::RunningLengths;
+use crate::session::{add_prediction, RunningLengths};
 use crate::validate::{OfflineModel, ValidSequence};
 
 /// Result of an offline request.
@@ -111,6 +111,8 @@ impl OfflineRunner {
         };
         let started = Instant::now();
         let model = seq.model;
+        // A height-normalized model's lengths, back at the camera's height.
+        let scale = seq.camera.as_ref().map_or(1.0, |c| c.length_scale);
         let result = tokio::task::spawn_blocking(move || -> Result<AdjustedSequence, Status> {
             let frames = seq.poses.len();
             let lengths = match model {
@@ -127,21 +129,18 @@ impl OfflineRunner {
                             "the model produced non-finite bone lengths",
                         ));
                     }
-                    vec![predicted; frames]
+                    vec![predicted.map(|v| v * scale); frames]
                 }
                 OfflineModel::OnlineGru => {
                     let mut backend = match take(&online) {
                         Some(b) => b,
                         None => provider.online().map_err(internal)?,
                     };
-                    let result = online_lengths(backend.as_mut(), &seq.inputs, frames);
+                    let result = online_lengths(backend.as_mut(), &seq.inputs, frames, scale);
                     give(&online, backend);
                     result?
                 }
             };
-            let scale = seq.camera.as_ref().map_or(1.0, |c| c.length_scale);
-            let lengths: Vec<BoneLengths> =
-                lengths.into_iter().map(|l| l.map(|v| v * scale)).collect();
             let poses =
                 bones::adjust_sequence_per_frame(&seq.poses, &lengths, ZeroBonePolicy::Error)
                     .map_err(|e| Status::internal(format!("adjustment failed: {e}")))?;
@@ -161,16 +160,20 @@ impl OfflineRunner {
 }
 
 /// The online model run causally over a sequence, one step per frame: row
-/// `t` is the running mean of the predictions of frames `0..=t`, exactly
-/// what a stream would have answered.
+/// `t` is the running mean of the predictions of frames `0..=t` (each
+/// multiplied by `scale`), built by [`add_prediction`] as a stream's
+/// estimate is. The engine's sums may round differently in the last bits
+/// from a stream's, whose steps ran in other batches and after other calls
+/// (see the proto's `AdjustSequenceRequest.model`).
 pub fn online_lengths(
     backend: &mut dyn Backend,
     inputs: &[f32],
     frames: usize,
+    scale: f32,
 ) -> Result<Vec<BoneLengths>, Status> {
     let mut hidden = vec![0.0f32; STATE_DIM];
     let mut prediction = [0.0f32; OUTPUT_DIM];
-    let mut running = RunningLengths::default();
+    let mut running = RunningLengths::new();
     let mut out = Vec::with_capacity(frames);
     for (t, x) in inputs.chunks_exact(INPUT_DIM).take(frames).enumerate() {
         backend
@@ -185,8 +188,7 @@ pub fn online_lengths(
                 "the model produced a non-finite result at frame {t}"
             )));
         }
-        running.add(&prediction);
-        out.push(running.mean().unwrap_or(prediction));
+        out.push(add_prediction(&mut running, &prediction, scale));
     }
     Ok(out)
 }
@@ -249,9 +251,13 @@ mod tests {
     #[test]
     fn online_lengths_are_running_means() {
         let inputs = vec![0.0; 4 * INPUT_DIM];
-        let rows = online_lengths(&mut Counting, &inputs, 4).unwrap();
+        let rows = online_lengths(&mut Counting, &inputs, 4, 1.0).unwrap();
         let firsts: Vec<f32> = rows.iter().map(|r| r[0]).collect();
         assert_eq!(firsts, vec![1.0, 1.5, 2.0, 2.5]);
+        // A scale multiplies each prediction before the mean.
+        let rows = online_lengths(&mut Counting, &inputs, 4, 0.5).unwrap();
+        let firsts: Vec<f32> = rows.iter().map(|r| r[0]).collect();
+        assert_eq!(firsts, vec![0.5, 0.75, 1.0, 1.25]);
     }
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -269,8 +275,18 @@ mod tests {
             let (r, s) = (runner.clone(), seq.clone());
             tasks.push(tokio::spawn(async move { r.adjust(s).await }));
         }
-        // Give every task time to be admitted or refused, then open the gate.
-        tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+        // Every task is admitted or refused before the gate opens: the
+        // refused ones finish at once, and only once all MAX_WAITING + 1
+        // admission slots are taken, so 5 finished means all have tried.
+        // (Polled, not timed: the wait ends when the event happens.)
+        let polls = std::iter::repeat_with(|| tasks.iter().filter(|t| t.is_finished()).count());
+        for (poll, finished) in polls.enumerate() {
+            if finished >= 5 {
+                break;
+            }
+            assert!(poll < 120_000, "the refusals never came");
+            tokio::time::sleep(std::time::Duration::from_millis(1)).await;
+        }
         {
             let (open, cv) = &*gate.0;
             *open.lock().unwrap() = true;

@@ -32,7 +32,7 @@ use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
 
 use blapose_core::level::LevelCamera;
-use blapose_core::{BoneLengths, NUM_BONES};
+use blapose_core::BoneLengths;
 use blapose_lifters::SlidingWindow;
 use blapose_proto::v1 as pb;
 use rand::TryRngCore;
@@ -153,35 +153,22 @@ impl SessionConfig {
 pub const MAX_LABEL_BYTES: usize = 128;
 
 /// The online estimate: the mean of every per-frame length prediction so
-/// far (the BLAPose reference's online rule). Sums in f64 so that long
-/// streams stay exact.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct RunningLengths {
-    sum: [f64; NUM_BONES],
-    count: u64,
-}
+/// far (the BLAPose reference's online rule), blapose-model's one
+/// definition of it.
+pub use blapose_model::RunningMean as RunningLengths;
 
-impl RunningLengths {
-    /// Add one frame's prediction.
-    pub fn add(&mut self, prediction: &BoneLengths) {
-        for (s, &p) in self.sum.iter_mut().zip(prediction) {
-            *s += f64::from(p);
-        }
-        self.count += 1;
-    }
-
-    /// Predictions added so far (frames seen).
-    pub fn count(&self) -> u64 {
-        self.count
-    }
-
-    /// The mean; `None` before the first prediction.
-    pub fn mean(&self) -> Option<BoneLengths> {
-        (self.count > 0).then(|| {
-            let n = self.count as f64;
-            self.sum.map(|s| (s / n) as f32)
-        })
-    }
+/// Add one frame's `prediction` to an online estimate and return the
+/// estimate after it. `scale` is what the model's lengths are multiplied by
+/// (a height-normalized camera-aware model's camera height over the
+/// reference height, else 1), applied to each prediction before it is
+/// averaged. Streams (the batcher) and `AdjustSequence` with the online GRU
+/// both go through here, so the two compute a frame's estimate the same way.
+pub fn add_prediction(
+    lengths: &mut RunningLengths,
+    prediction: &BoneLengths,
+    scale: f32,
+) -> BoneLengths {
+    lengths.push(&prediction.map(|v| v * scale))
 }
 
 /// Mutable per-session model state; only the batcher writes `hidden` and
@@ -245,7 +232,7 @@ impl Session {
             epoch: 1,
             closed: false,
             hidden: vec![0.0; STATE_DIM].into_boxed_slice(),
-            lengths: RunningLengths::default(),
+            lengths: RunningLengths::new(),
             window: config
                 .lifter_frames
                 .map(|frames| Box::new(SlidingWindow::new(frames))),
@@ -598,6 +585,7 @@ async fn purge_task(shared: Arc<Shared>) {
 mod tests {
     use super::*;
     use blapose_core::layouts::KeypointLayout;
+    use blapose_core::NUM_BONES;
 
     fn config() -> SessionConfig {
         SessionConfig {
@@ -721,7 +709,7 @@ mod tests {
             let mut st = a.session.lock();
             st.hidden[7] = 0.25;
             for v in [0.2, 0.3, 0.4] {
-                st.lengths.add(&[v; NUM_BONES]);
+                st.lengths.push(&[v; NUM_BONES]);
             }
         }
         store.detach(&a.session, a.epoch);
@@ -801,9 +789,21 @@ mod tests {
         let mut g = s.lock();
         assert!(g.estimate().is_none());
         for v in [0.5, 1.0, 0.25, 1.25] {
-            g.lengths.add(&[v; NUM_BONES]);
+            g.lengths.push(&[v; NUM_BONES]);
         }
         assert_eq!(g.frames_seen(), 4);
         assert_eq!(g.estimate(), Some([0.75; NUM_BONES]));
+    }
+
+    #[test]
+    fn predictions_are_scaled_before_they_are_averaged() {
+        let mut lengths = RunningLengths::new();
+        assert_eq!(
+            add_prediction(&mut lengths, &[0.5; NUM_BONES], 1.0),
+            [0.5; NUM_BONES]
+        );
+        let after = add_prediction(&mut lengths, &[0.3; NUM_BONES], 2.0);
+        assert_eq!(after, [0.55; NUM_BONES]);
+        assert_eq!(lengths.count(), 2);
     }
 }

@@ -118,9 +118,17 @@ async fn prometheus_endpoint_reports_traffic() {
     }
     drop(tx);
     while responses.message().await.unwrap().is_some() {}
-    tokio::time::sleep(Duration::from_millis(100)).await;
 
-    let after = scrape(metrics_addr).await;
+    // The stream's task finishes just after its responses end: poll for it
+    // (bounded by a count, not timed).
+    let mut after = scrape(metrics_addr).await;
+    for _ in 0..10_000 {
+        if after.contains("blapose_streams_attached 0") {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+        after = scrape(metrics_addr).await;
+    }
     for needle in [
         "blapose_frames_total{outcome=\"ok\"} 1",
         "blapose_frames_total{outcome=\"error\"} 1",

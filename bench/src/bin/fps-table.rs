@@ -45,7 +45,7 @@ use blapose_lifters::{
 };
 use blapose_model::fast::{EngineOptions, OnlineGruEngine, StepScratch};
 use blapose_model::{Isa, Precision};
-use blapose_model::{LoadedWeights, ModelKind, INPUT_DIM, OUTPUT_DIM, STATE_DIM};
+use blapose_model::{LoadedWeights, ModelKind, RunningMean, INPUT_DIM, OUTPUT_DIM, STATE_DIM};
 
 /// Reproduce the paper's FPS table (online, batch 1, one frame per step).
 #[derive(Parser, Debug)]
@@ -238,8 +238,8 @@ struct Adjuster<'a> {
     scratch: StepScratch,
     hidden: Vec<f32>,
     out: [f32; OUTPUT_DIM],
-    sum: [f64; NUM_BONES],
-    frames: u64,
+    /// The estimate, averaged as the server does.
+    running: RunningMean,
 }
 
 impl<'a> Adjuster<'a> {
@@ -249,8 +249,7 @@ impl<'a> Adjuster<'a> {
             scratch: engine.scratch(1),
             hidden: vec![0.0; STATE_DIM],
             out: [0.0; OUTPUT_DIM],
-            sum: [0.0; NUM_BONES],
-            frames: 0,
+            running: RunningMean::new(),
         }
     }
 
@@ -260,14 +259,8 @@ impl<'a> Adjuster<'a> {
         debug_assert_eq!(input.len(), INPUT_DIM);
         self.engine
             .step(input, &mut self.hidden, &mut self.out, &mut self.scratch)?;
-        for (s, o) in self.sum.iter_mut().zip(&self.out) {
-            *s += *o as f64;
-        }
-        self.frames += 1;
         // Random weights can predict negative lengths; a length is >= 0.
-        Ok(std::array::from_fn(|b| {
-            (self.sum[b] / self.frames as f64).max(0.0) as f32
-        }))
+        Ok(self.running.push(&self.out).map(|l| l.max(0.0)))
     }
 
     fn adjust(&mut self, frame: &Keypoints2d, pose: &Pose) -> Result<Pose> {
