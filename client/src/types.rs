@@ -286,8 +286,8 @@ impl fmt::Display for CameraCalibration {
 /// Which bone-length model adjusts the poses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum ModelChoice {
-    /// The causal online GRU (streams; also offline, giving exactly what a
-    /// stream would).
+    /// The causal online GRU (streams; also offline, giving what a stream
+    /// would up to float rounding in the last bits).
     OnlineGru,
     /// The offline Bi-GRU over the whole sequence (offline RPC only).
     OfflineBiGru,
