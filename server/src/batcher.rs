@@ -824,6 +824,7 @@ fn scatter(job: &FrameJob, hidden: &[f32], lengths: &[f32], lifted: Option<Pose>
 mod tests {
     use super::*;
     use crate::session::{Coordinates, InputSpec, SessionConfig, SessionStore};
+    use crate::testing::StepGate;
     use blapose_core::layouts::KeypointLayout;
     use std::sync::atomic::AtomicBool;
 
@@ -832,62 +833,30 @@ mod tests {
     /// x[0] = a1, a2, ... a session's state is the running sum of its
     /// inputs, which reveals lost, duplicated, reordered or mixed-up frames.
     /// It also records batch sizes and the sessions (by first input slot 1)
-    /// in each batch. With a [`Gate`] every step waits until it opens, so a
-    /// test controls what is queued while a step runs (no sleeps).
-    /// The fake's record: the tags of each step's rows.
-    type Log = Arc<Mutex<Vec<Vec<f32>>>>;
-
+    /// in each batch. With a [`StepGate`] every step waits until it opens,
+    /// so a test controls what is queued while a step runs (no sleeps).
     #[derive(Clone, Default)]
     struct Fake {
         log: Log,
-        gate: Option<Arc<Gate>>,
+        gate: Option<Arc<StepGate>>,
         fail: Arc<AtomicBool>,
     }
 
-    /// Holds the fake's steps until opened; counts the steps that reached it.
-    #[derive(Default)]
-    struct Gate {
-        /// (open, steps entered)
-        state: Mutex<(bool, usize)>,
-        changed: Condvar,
-    }
-
-    impl Gate {
-        fn pass(&self) {
-            let mut st = self.state.lock().unwrap();
-            st.1 += 1;
-            self.changed.notify_all();
-            while !st.0 {
-                st = self.changed.wait(st).unwrap();
-            }
-        }
-
-        fn open(&self) {
-            self.state.lock().unwrap().0 = true;
-            self.changed.notify_all();
-        }
-
-        /// Block until `n` steps have reached the gate.
-        fn wait_entered(&self, n: usize) {
-            let mut st = self.state.lock().unwrap();
-            while st.1 < n {
-                st = self.changed.wait(st).unwrap();
-            }
-        }
-    }
+    /// The fake's record: the tags of each step's rows.
+    type Log = Arc<Mutex<Vec<Vec<f32>>>>;
 
     /// A fake whose steps wait at a gate that is closed once the batcher
     /// has warmed up (the warm-up step passes an open gate).
-    fn gated_batcher(config: BatcherConfig) -> (Batcher, Arc<Gate>, Log) {
-        let gate = Arc::new(Gate::default());
-        gate.open();
+    fn gated_batcher(config: BatcherConfig) -> (Batcher, Arc<StepGate>, Log) {
+        let gate = Arc::new(StepGate::new());
+        gate.set_open(true);
         let fake = Fake {
             gate: Some(gate.clone()),
             ..Fake::default()
         };
         let log = fake.log.clone();
         let batcher = Batcher::start(fake, config).unwrap();
-        *gate.state.lock().unwrap() = (false, 0);
+        gate.close_and_reset();
         (batcher, gate, log)
     }
 
@@ -1107,7 +1076,7 @@ mod tests {
             }
         }
         assert_eq!(refused, 6);
-        gate.open();
+        gate.set_open(true);
         let n = accepted.len();
         // Every accepted frame is answered; the state counts exactly those.
         for (k, rx) in accepted.into_iter().enumerate() {
@@ -1262,7 +1231,7 @@ mod tests {
         let (jb, rb) = job(&b.session, b.epoch, 3.0, 1.0);
         batcher.submit(ja).unwrap();
         batcher.submit(jb).unwrap();
-        gate.open();
+        gate.set_open(true);
         answer(rc).await.unwrap();
         assert!(matches!(answer(ra).await, Err(StepError::Model(_))));
         let ob = answer(rb).await.unwrap();
@@ -1306,7 +1275,7 @@ mod tests {
         batcher.close();
         let (j, _rx) = job(&a.session, a.epoch, 1.0, 0.0);
         assert_eq!(batcher.submit(j), Err(SubmitError::ShuttingDown));
-        gate.open();
+        gate.set_open(true);
         tokio::task::spawn_blocking(move || batcher.join())
             .await
             .unwrap();

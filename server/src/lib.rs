@@ -49,6 +49,7 @@ pub mod session;
 pub mod shutdown;
 pub mod stream;
 pub mod telemetry;
+pub mod testing;
 pub mod validate;
 
 use std::future::Future;

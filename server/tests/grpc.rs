@@ -12,6 +12,7 @@ use blapose_proto::v1 as pb;
 use blapose_server::backend::{
     Backend, BackendError, SequenceBackend, INPUT_DIM, OUTPUT_DIM, STATE_DIM,
 };
+use blapose_server::testing::StepGate;
 use blapose_server::{ModelProvider, ServerConfig, ServerHandle};
 use pb::pose_adjustment_client::PoseAdjustmentClient;
 use pb::stream_request::Kind as Req;
@@ -30,49 +31,15 @@ struct FakeStep {
     /// Added to every prediction (the camera-aware fake's is 0.1).
     offset: f32,
     /// Every step waits here first, if set.
-    gate: Option<Arc<Gate>>,
+    gate: Option<Arc<StepGate>>,
 }
 
-/// Holds the fake model's steps until opened and counts the steps that
-/// reached it, so a test knows what the model has been given (no sleeps).
-#[derive(Default)]
-struct Gate {
-    /// (open, steps entered)
-    state: std::sync::Mutex<(bool, usize)>,
-    changed: std::sync::Condvar,
-}
-
-impl Gate {
-    fn pass(&self) {
-        let mut st = self.state.lock().unwrap();
-        st.1 += 1;
-        self.changed.notify_all();
-        while !st.0 {
-            st = self.changed.wait(st).unwrap();
-        }
-    }
-
-    fn set_open(&self, open: bool) {
-        self.state.lock().unwrap().0 = open;
-        self.changed.notify_all();
-    }
-
-    fn entered(&self) -> usize {
-        self.state.lock().unwrap().1
-    }
-
-    /// Wait (off the async workers) until `n` steps have reached the gate.
-    async fn wait_entered(self: &Arc<Self>, n: usize) {
-        let gate = self.clone();
-        tokio::task::spawn_blocking(move || {
-            let mut st = gate.state.lock().unwrap();
-            while st.1 < n {
-                st = gate.changed.wait(st).unwrap();
-            }
-        })
+/// Wait (off the async workers) until `n` steps have reached the gate.
+async fn wait_entered(gate: &Arc<StepGate>, n: usize) {
+    let gate = gate.clone();
+    tokio::task::spawn_blocking(move || gate.wait_entered(n))
         .await
         .unwrap();
-    }
 }
 
 impl Backend for FakeStep {
@@ -122,7 +89,7 @@ struct Fake {
     offset: f32,
     camera_aware: Option<Arc<Fake>>,
     height_normalized: bool,
-    gate: Option<Arc<Gate>>,
+    gate: Option<Arc<StepGate>>,
 }
 
 impl Fake {
@@ -920,7 +887,7 @@ async fn offline_online_model_equals_the_stream() {
 async fn shutdown_answers_frames_already_received() {
     // The model holds its steps at a gate (open for the warm-up), so frames
     // are still in flight when shutdown begins.
-    let gate = Arc::new(Gate::default());
+    let gate = Arc::new(StepGate::new());
     gate.set_open(true);
     let fake = Fake {
         gate: Some(gate.clone()),
@@ -938,7 +905,7 @@ async fn shutdown_answers_frames_already_received() {
     }
     // The first frame is in the model: shut down while it (and whatever
     // else the server has read) waits.
-    gate.wait_entered(warm_up + 1).await;
+    wait_entered(&gate, warm_up + 1).await;
     server.shutdown_token().cancel();
     let shutdown = tokio::spawn(server.shutdown());
     gate.set_open(true);
