@@ -164,6 +164,21 @@ pub fn subject_lengths(h36m: &H36m) -> BTreeMap<String, BoneLengths> {
         .collect()
 }
 
+/// The mean of the named subjects' bone lengths ([`subject_lengths`]), each
+/// subject weighted once: with [`TRAIN_SUBJECTS`], the constant baseline
+/// every estimate is read against. `None` if a subject is missing.
+pub fn mean_subject_lengths(
+    lengths: &BTreeMap<String, BoneLengths>,
+    subjects: &[&str],
+) -> Option<BoneLengths> {
+    let ls: Vec<&BoneLengths> = subjects
+        .iter()
+        .map(|s| lengths.get(*s))
+        .collect::<Option<_>>()?;
+    (!ls.is_empty())
+        .then(|| std::array::from_fn(|b| ls.iter().map(|l| l[b]).sum::<f32>() / ls.len() as f32))
+}
+
 /// SH16 pixel detections to H36M-17 normalized screen coordinates.
 pub fn sh_to_normalized(
     frames: &[ShKeypoints],

@@ -12,7 +12,17 @@
 //! * `gru`: the online GRU's *running* estimate — frame `t` uses the mean of
 //!   the per-frame predictions over frames `0..=t`, so the adjustment is
 //!   causal, exactly what a streaming session serves;
-//! * `bigru`: the offline Bi-GRU's one estimate from the whole sequence.
+//! * `bigru`: the offline Bi-GRU's one estimate from the whole sequence;
+//!
+//! and, so that those gains are read against something, two baselines that
+//! need no model:
+//!
+//! * `training_mean`: the training subjects' mean lengths, the same for
+//!   everyone (the constant every bone-length estimate must beat);
+//! * `lifter_median`: the lifter's own lengths, made consistent: frame `t`
+//!   uses the per-bone median of the lifter's lengths over frames `0..=t`
+//!   (causal, like the GRU), which removes the wobble but keeps the
+//!   lifter's idea of the person's size.
 //!
 //! The root is kept (it is the origin here). A frame with a zero-length
 //! bone keeps that bone's input offset ([`ZeroBonePolicy::KeepInput`])
@@ -28,10 +38,16 @@
 
 use std::collections::BTreeMap;
 
-use blapose_core::bones::{adjust_sequence_per_frame, adjust_sequence_with, ZeroBonePolicy};
+use std::cmp::{Ordering, Reverse};
+use std::collections::BinaryHeap;
+
+use blapose_core::bones::{
+    adjust_sequence_per_frame, adjust_sequence_with, bone_lengths, ZeroBonePolicy,
+};
 use blapose_core::metrics::{
     mpjpe, mpjve, p_mpjpe, pose_bone_length_error, ActionAggregator, MetricError, MM_PER_M,
 };
+use blapose_core::skeleton::NUM_BONES;
 use blapose_core::{BoneLengths, Pose};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -73,6 +89,12 @@ pub struct LifterReport {
     /// Adjusted with the offline Bi-GRU's whole-sequence estimate.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub bigru: Option<MethodReport>,
+    /// Baseline: adjusted with the training subjects' constant mean lengths.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub training_mean: Option<MethodReport>,
+    /// Baseline: adjusted with the running median of the lifter's own
+    /// lengths.
+    pub lifter_median: MethodReport,
     /// Trials scored.
     pub trials: usize,
     /// Frames scored.
@@ -173,6 +195,71 @@ pub struct Adjusters<'a> {
     pub gru: Option<&'a [Vec<BoneLengths>]>,
     /// Offline Bi-GRU: one estimate per trial.
     pub bigru: Option<&'a [BoneLengths]>,
+    /// The training subjects' mean lengths, for every trial.
+    pub training_mean: Option<&'a BoneLengths>,
+}
+
+/// Total order on lengths for the median heaps (lengths are finite).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Length(f32);
+
+impl Eq for Length {}
+
+impl PartialOrd for Length {
+    fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
+        Some(self.cmp(other))
+    }
+}
+
+impl Ord for Length {
+    fn cmp(&self, other: &Self) -> Ordering {
+        self.0.total_cmp(&other.0)
+    }
+}
+
+/// Median of the values pushed so far, in O(log n) per value: the lower
+/// half in a max-heap, the upper half in a min-heap, the lower one at most
+/// one larger. An even count gives the mean of the two middle values.
+#[derive(Debug, Default)]
+struct RunningMedian {
+    lower: BinaryHeap<Length>,
+    upper: BinaryHeap<Reverse<Length>>,
+}
+
+impl RunningMedian {
+    fn push(&mut self, v: f32) -> f32 {
+        match self.lower.peek() {
+            Some(top) if v > top.0 => self.upper.push(Reverse(Length(v))),
+            _ => self.lower.push(Length(v)),
+        }
+        if self.lower.len() > self.upper.len() + 1 {
+            let moved = self.lower.pop().map(Reverse);
+            self.upper.extend(moved);
+        } else if self.upper.len() > self.lower.len() {
+            let moved = self.upper.pop().map(|Reverse(l)| l);
+            self.lower.extend(moved);
+        }
+        let low = self.lower.peek().map_or(v, |l| l.0);
+        if self.lower.len() == self.upper.len() {
+            let high = self.upper.peek().map_or(low, |Reverse(l)| l.0);
+            (low + high) / 2.0
+        } else {
+            low
+        }
+    }
+}
+
+/// The running per-bone median of `poses`' own bone lengths: entry `t` is
+/// the median over frames `0..=t` (the `lifter_median` baseline).
+pub fn running_median_lengths(poses: &[Pose]) -> Vec<BoneLengths> {
+    let mut medians: [RunningMedian; NUM_BONES] = std::array::from_fn(|_| RunningMedian::default());
+    poses
+        .iter()
+        .map(|p| {
+            let l = bone_lengths(p);
+            std::array::from_fn(|b| medians[b].push(l[b]))
+        })
+        .collect()
 }
 
 /// The bone-length estimates an evaluation adjusts with, computed once for
@@ -183,6 +270,8 @@ pub struct LengthEstimates {
     pub gru: Option<Vec<Vec<BoneLengths>>>,
     /// Offline Bi-GRU estimates (one per trial).
     pub bigru: Option<Vec<BoneLengths>>,
+    /// The training subjects' mean lengths (the constant baseline).
+    pub training_mean: Option<BoneLengths>,
 }
 
 impl LengthEstimates {
@@ -208,7 +297,11 @@ impl LengthEstimates {
             ),
             None => None,
         };
-        Ok(Self { gru, bigru })
+        Ok(Self {
+            gru,
+            bigru,
+            training_mean: None,
+        })
     }
 
     /// The adjusters over these estimates.
@@ -216,6 +309,7 @@ impl LengthEstimates {
         Adjusters {
             gru: self.gru.as_deref(),
             bigru: self.bigru.as_deref(),
+            training_mean: self.training_mean.as_ref(),
         }
     }
 }
@@ -242,7 +336,14 @@ pub fn evaluate_lifter(
             )));
         }
     }
-    type PerTrial = (TrialMetrics, Option<TrialMetrics>, Option<TrialMetrics>);
+    /// before, gru, bigru, training mean, lifter median
+    type PerTrial = (
+        TrialMetrics,
+        Option<TrialMetrics>,
+        Option<TrialMetrics>,
+        Option<TrialMetrics>,
+        TrialMetrics,
+    );
     let scored: Vec<PerTrial> = trials
         .par_iter()
         .enumerate()
@@ -264,28 +365,37 @@ pub fn evaluate_lifter(
                 }
                 None => None,
             };
-            Ok((before, gru, bigru))
+            let training_mean = match adjusters.training_mean {
+                Some(m) => {
+                    let adj = adjust_sequence_with(&pred, m, ZeroBonePolicy::KeepInput)?;
+                    Some(trial_metrics(&adj, gt)?)
+                }
+                None => None,
+            };
+            let medians = running_median_lengths(&pred);
+            let adj = adjust_sequence_per_frame(&pred, &medians, ZeroBonePolicy::KeepInput)?;
+            let lifter_median = trial_metrics(&adj, gt)?;
+            Ok((before, gru, bigru, training_mean, lifter_median))
         })
         .collect::<Result<_, _>>()?;
-    let mut acc = [
-        Accumulator::default(),
-        Accumulator::default(),
-        Accumulator::default(),
-    ];
-    for (tr, (b, g, bi)) in trials.iter().zip(&scored) {
+    let mut acc: [Accumulator; 5] = Default::default();
+    for (tr, (b, g, bi, tm, lm)) in trials.iter().zip(&scored) {
         let seq = tr.trial.sequence.as_str();
-        acc[0].add(seq, *b);
-        if let Some(g) = g {
-            acc[1].add(seq, *g);
-        }
-        if let Some(bi) = bi {
-            acc[2].add(seq, *bi);
+        for (a, m) in acc
+            .iter_mut()
+            .zip([Some(b), g.as_ref(), bi.as_ref(), tm.as_ref(), Some(lm)])
+        {
+            if let Some(m) = m {
+                a.add(seq, *m);
+            }
         }
     }
     Ok(LifterReport {
         before: acc[0].report(),
         gru: adjusters.gru.map(|_| acc[1].report()),
         bigru: adjusters.bigru.map(|_| acc[2].report()),
+        training_mean: adjusters.training_mean.map(|_| acc[3].report()),
+        lifter_median: acc[4].report(),
         trials: trials.len(),
         frames: trials.iter().map(LifterSequence::frames).sum(),
         weights: None,
@@ -298,6 +408,10 @@ pub fn evaluate_lifter(
 
 fn methods(r: &LifterReport) -> Vec<(&'static str, &MethodReport)> {
     let mut v = vec![("none", &r.before)];
+    if let Some(m) = &r.training_mean {
+        v.push(("baseline: constant training mean", m));
+    }
+    v.push(("baseline: lifter's own running median", &r.lifter_median));
     if let Some(g) = &r.gru {
         v.push(("online GRU (running estimate)", g));
     }
@@ -349,4 +463,50 @@ pub fn markdown(reports: &BTreeMap<String, LifterReport>) -> String {
         }
     }
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A pose whose 16 bones all have non-zero length.
+    fn pose(scale: f32) -> Pose {
+        std::array::from_fn(|j| {
+            let j = j as f32;
+            [
+                0.1 * j * scale,
+                0.05 * (j % 3.0) * scale,
+                0.02 * j * j * scale,
+            ]
+        })
+    }
+
+    #[test]
+    fn running_median_is_causal_and_averages_the_middle_pair() {
+        let scales = [1.0, 3.0, 2.0, 0.5, 10.0];
+        let poses: Vec<Pose> = scales.iter().map(|&s| pose(s)).collect();
+        let medians = running_median_lengths(&poses);
+        let base = bone_lengths(&pose(1.0));
+        // Medians of the scales so far: 1; (1+3)/2; 2; (1+2)/2; 2.
+        for (t, want) in [1.0f32, 2.0, 2.0, 1.5, 2.0].into_iter().enumerate() {
+            for b in 0..NUM_BONES {
+                let got = medians[t][b];
+                let expected = base[b] * want;
+                assert!(
+                    (got - expected).abs() <= 1e-5 * expected,
+                    "frame {t} bone {b}: {got} vs {expected}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn one_outlier_frame_does_not_move_the_median() {
+        let mut m = RunningMedian::default();
+        for v in [0.30, 0.31, 0.29, 0.30] {
+            m.push(v);
+        }
+        let with_outlier = m.push(5.0);
+        assert!((with_outlier - 0.30).abs() < 1e-6, "{with_outlier}");
+    }
 }

@@ -381,12 +381,16 @@ fn eval_adjust_fixture_gives_known_numbers() {
         .map(|t| vec![t.trial.gt; t.frames()])
         .collect();
     let bigru: Vec<BoneLengths> = truth.iter().map(|l| l.map(|v| v * 1.05)).collect();
+    // The constant baseline: 10% short for both subjects (same skeleton).
+    assert_eq!(truth[0], truth[1]);
+    let training_mean: BoneLengths = truth[0].map(|v| v * 0.9);
     let r = evaluate_lifter(
         &trials,
         &lift,
         Adjusters {
             gru: Some(&gru),
             bigru: Some(&bigru),
+            training_mean: Some(&training_mean),
         },
     )
     .unwrap();
@@ -449,16 +453,45 @@ fn eval_adjust_fixture_gives_known_numbers() {
     let bi = r.bigru.as_ref().unwrap();
     close(bi.avg.mpjpe_mm, 0.05 * norm_mm, "MPJPE Bi-GRU");
     close(bi.avg.bone_error_mm, 0.05 * len_mm, "bone error Bi-GRU");
+    // 10% short constant lengths: 10% of every joint distance.
+    let tm = r.training_mean.as_ref().unwrap();
+    close(tm.avg.mpjpe_mm, 0.1 * norm_mm, "MPJPE training mean");
+    close(
+        tm.avg.bone_error_mm,
+        0.1 * len_mm,
+        "bone error training mean",
+    );
+    // The lifter's lengths are consistent already (10% / 20% long every
+    // frame): their running median rebuilds the lifter's own poses.
+    let lm = &r.lifter_median;
+    close(
+        lm.avg.mpjpe_mm,
+        r.before.avg.mpjpe_mm,
+        "MPJPE lifter median",
+    );
+    close(
+        lm.avg.bone_error_mm,
+        r.before.avg.bone_error_mm,
+        "bone error lifter median",
+    );
     assert_eq!((r.trials, r.frames), (2, 40));
 
     let mut all = BTreeMap::new();
     all.insert("mlp".to_string(), r);
     let json = serde_json::to_value(&all).unwrap();
-    for m in ["before", "gru", "bigru"] {
+    for m in ["before", "gru", "bigru", "training_mean", "lifter_median"] {
         assert!(json["mlp"][m]["mpjpe_mm"].is_f64(), "{m}");
         assert!(json["mlp"][m]["p_mpjpe_mm"].is_f64(), "{m}");
     }
     let md = markdown(&all);
     assert!(md.contains("| mlp | offline Bi-GRU |"), "{md}");
+    assert!(
+        md.contains("| mlp | baseline: constant training mean |"),
+        "{md}"
+    );
+    assert!(
+        md.contains("| mlp | baseline: lifter's own running median |"),
+        "{md}"
+    );
     assert!(md.contains("Walking"));
 }

@@ -11,7 +11,9 @@ use anyhow::Result;
 use blapose_core::BoneLengths;
 use blapose_data::h36m::{H36m, Parts, ALL_SUBJECTS, TRAIN_SUBJECTS};
 use blapose_model::ModelKind;
-use blapose_train::dataset::{eval_sequences, rectify_streams, subject_lengths, InputKind};
+use blapose_train::dataset::{
+    eval_sequences, mean_subject_lengths, rectify_streams, subject_lengths, InputKind,
+};
 use blapose_train::eval::{
     evaluate, markdown, BiGruEstimator, FlipAveraged, GruEstimator, HeightCorrected,
     LengthEstimator,
@@ -122,11 +124,8 @@ pub fn run(a: EvalArgs) -> Result<()> {
         t0.elapsed().as_secs_f64()
     );
     let mean_of = |names: &[&str]| -> Result<BoneLengths> {
-        let ls: Vec<&BoneLengths> = names.iter().filter_map(|s| lengths.get(*s)).collect();
-        anyhow::ensure!(ls.len() == names.len(), "missing subject lengths");
-        Ok(std::array::from_fn(|b| {
-            ls.iter().map(|l| l[b]).sum::<f32>() / ls.len() as f32
-        }))
+        mean_subject_lengths(&lengths, names)
+            .ok_or_else(|| anyhow::anyhow!("missing subject lengths"))
     };
     let baselines = [
         ("training_mean", mean_of(&TRAIN_SUBJECTS)?),

@@ -1,5 +1,7 @@
 //! `blapose eval-adjust`: lifters scored on the test subjects before and
-//! after the bone-length adjustment ([`blapose_train::eval_adjust`]). Why
+//! after the bone-length adjustment ([`blapose_train::eval_adjust`]),
+//! beside the baselines that need no model (the training subjects' mean
+//! lengths, the lifter's own running median). Why
 //! its own module: it loads lifters and both bone-length models, which no
 //! other command does.
 
@@ -8,8 +10,9 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Result;
-use blapose_data::h36m::{H36m, Parts};
+use blapose_data::h36m::{H36m, Parts, TRAIN_SUBJECTS};
 use blapose_model::ModelKind;
+use blapose_train::dataset::{mean_subject_lengths, subject_lengths};
 use blapose_train::eval_adjust::{evaluate_lifter, markdown, LengthEstimates};
 use blapose_train::lifter::data::{lifter_sequences, LifterSequence};
 use blapose_train::lifter::predict::StreamLifter;
@@ -86,12 +89,18 @@ pub fn run(a: EvalAdjustArgs) -> Result<()> {
             Some(blapose_model::weights::load(path, kind)?)
         })
     };
+    let training_mean = {
+        let h36m = H36m::load(&root, &TRAIN_SUBJECTS, Parts::POSES)?;
+        mean_subject_lengths(&subject_lengths(&h36m), &TRAIN_SUBJECTS)
+            .ok_or_else(|| anyhow::anyhow!("no training-subject poses under {}", root.display()))?
+    };
     let t = Instant::now();
-    let estimates = LengthEstimates::compute(
+    let mut estimates = LengthEstimates::compute(
         &trials,
         load(&a.gru_weights, ModelKind::Gru)?.as_ref(),
         load(&a.bigru_weights, ModelKind::BiGru)?.as_ref(),
     )?;
+    estimates.training_mean = Some(training_mean);
     eprintln!(
         "bone-length estimates (online GRU running, offline Bi-GRU): {:.1}s",
         t.elapsed().as_secs_f64()
