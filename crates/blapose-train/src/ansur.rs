@@ -203,6 +203,32 @@ impl AnsurPopulation {
         Ok(())
     }
 
+    /// The people `i` with `keep[i]`, same calibration (`keep` has one
+    /// entry per person; at least one must be kept).
+    pub fn retained(&self, keep: &[bool]) -> Result<Self, TrainError> {
+        if keep.len() != self.people.len() {
+            return Err(TrainError::InvalidArgument(format!(
+                "{} keep flags for {} people",
+                keep.len(),
+                self.people.len()
+            )));
+        }
+        let people: Vec<BoneLengths> = self
+            .people
+            .iter()
+            .zip(keep)
+            .filter(|(_, &k)| k)
+            .map(|(p, _)| *p)
+            .collect();
+        if people.is_empty() {
+            return Err(TrainError::Ansur("no ANSUR people left".into()));
+        }
+        Ok(Self {
+            people,
+            scale: self.scale,
+        })
+    }
+
     /// Number of people.
     pub fn len(&self) -> usize {
         self.people.len()

@@ -2,6 +2,9 @@
 //! (the library behind the `blapose` CLI).
 //!
 //! - [`lengths`], [`ansur`]: what bone lengths synthetic sequences get;
+//! - [`ansur_split`]: the held-out ANSUR people training never draws;
+//! - [`bodies`], [`bench_camera`]: the many-bodies cross-camera benchmark
+//!   on those people;
 //! - [`noise`]: 2D detector-noise models fitted to real detections;
 //! - [`synth`], [`loader`]: the augmentation pipeline and batch prefetching;
 //! - [`dataset`]: Human3.6M as training and evaluation read it;
@@ -20,6 +23,9 @@
 
 pub mod adam;
 pub mod ansur;
+pub mod ansur_split;
+pub mod bench_camera;
+pub mod bodies;
 pub mod dataset;
 pub mod error;
 pub mod eval;

@@ -34,6 +34,7 @@ use candle_core::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
 use crate::adam::{Adam, AdamConfig, ParamEma};
+use crate::ansur_split::AnsurPeople;
 use crate::dataset::EvalSequence;
 use crate::error::TrainError;
 use crate::fastnet::{FastNet, LossConfig};
@@ -69,6 +70,11 @@ pub struct TrainConfig {
     /// 0 keeps the survey's own spread (runs before this field existed).
     #[serde(default)]
     pub ansur_spread: f32,
+    /// `ansur` only: which survey people training draws from
+    /// ([`crate::ansur_split`]); configurations written before the
+    /// held-out split read as `all`, what they were trained with.
+    #[serde(default = "AnsurPeople::before_the_split")]
+    pub ansur_people: AnsurPeople,
     /// Noise model.
     pub noise: NoiseKind,
     /// Frames per training window.

@@ -120,6 +120,12 @@ fn shipped_train_configs_still_parse() {
         assert_eq!(cfg.lengths, LengthStrategy::Ansur);
         assert_eq!(cfg.noise, NoiseKind::Residual);
         assert_eq!(cfg.shift_plane, ShiftPlane::Ground);
+        // Written before the held-out split: trained on every ANSUR person.
+        assert_eq!(
+            cfg.ansur_people,
+            blapose_train::ansur_split::AnsurPeople::All,
+            "{file}"
+        );
         // As the trainer writes it (f32 fields in their shortest form).
         let new: serde_json::Value =
             serde_json::from_str(&serde_json::to_string(&cfg).unwrap()).unwrap();

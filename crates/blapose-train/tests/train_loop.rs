@@ -74,6 +74,7 @@ fn config(steps: u64) -> TrainConfig {
         clip_norm: 5.0,
         per_frame_weight: 0.5,
         ansur_spread: 0.0,
+        ansur_people: blapose_train::ansur_split::AnsurPeople::Train,
         init_weights: None,
         // exercised by the resume test: the average must survive a resume
         head_lr_scale: 0.1,

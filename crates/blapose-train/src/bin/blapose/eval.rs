@@ -19,20 +19,34 @@ use blapose_train::eval::{
     LengthEstimator,
 };
 
+use crate::bodies::{Benchmark, BodiesArgs};
 use crate::common::{camera_list, known_subjects, ModelArg};
 
 /// Arguments of `blapose eval`.
 #[derive(clap::Args, Debug)]
 pub struct EvalArgs {
     /// Model kind: gru (online, running mean) or bigru (offline).
-    #[arg(long, value_enum, ignore_case = true)]
-    model: ModelArg,
+    #[arg(
+        long,
+        value_enum,
+        ignore_case = true,
+        required_unless_present = "benchmark"
+    )]
+    model: Option<ModelArg>,
     /// 2D input: sh (real Stacked Hourglass detections) or gt (projected ground truth).
     #[arg(long, value_enum, default_value_t = InputKind::Sh)]
     input: InputKind,
     /// Weights file (safetensors written by `blapose train`).
-    #[arg(long)]
-    weights: PathBuf,
+    #[arg(long, required_unless_present = "benchmark")]
+    weights: Option<PathBuf>,
+    /// Run a benchmark instead of the Human3.6M protocol: `bodies`, the
+    /// many-bodies cross-camera benchmark (held-out ANSUR II people on
+    /// S9/S11 motion, wide cameras) of the four shipped models in
+    /// --models-dir; see `blapose_train::bodies`.
+    #[arg(long, value_enum, conflicts_with_all = ["model", "weights"])]
+    benchmark: Option<Benchmark>,
+    #[command(flatten)]
+    bodies: BodiesArgs,
     /// Write the full report as JSON here.
     #[arg(long)]
     json: Option<PathBuf>,
@@ -80,8 +94,14 @@ pub struct EvalArgs {
 /// `blapose eval`.
 pub fn run(a: EvalArgs) -> Result<()> {
     let root = blapose_data::data_root(a.data.clone());
-    let kind = ModelKind::from(a.model);
-    let weights = blapose_model::weights::load(&a.weights, kind)?;
+    if let Some(Benchmark::Bodies) = a.benchmark {
+        return crate::bodies::run(&root, &a.bodies, a.json.as_deref());
+    }
+    let (Some(model), Some(weights_path)) = (a.model, a.weights.clone()) else {
+        anyhow::bail!("--model and --weights are required without --benchmark");
+    };
+    let kind = ModelKind::from(model);
+    let weights = blapose_model::weights::load(&weights_path, kind)?;
     let subjects = known_subjects(&a.subjects)?;
     let t0 = Instant::now();
     let all = H36m::load(&root, &ALL_SUBJECTS, Parts::POSES)?;
@@ -161,7 +181,7 @@ pub fn run(a: EvalArgs) -> Result<()> {
         &baselines,
         &model_label,
         a.input.name(),
-        &a.weights.display().to_string(),
+        &weights_path.display().to_string(),
         &a.subjects,
     )?;
     println!("{}", markdown(&report));

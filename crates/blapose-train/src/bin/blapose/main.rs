@@ -3,7 +3,8 @@
 //! them; the library (`blapose_train`) does the work.
 //!
 //! - `train` ([`train`]): a bone-length model on synthetic sequences;
-//! - `eval` ([`eval`]): bone-length error on Human3.6M;
+//! - `eval` ([`eval`]): bone-length error on Human3.6M, or (`--benchmark
+//!   bodies`, [`bodies`]) on the many-bodies cross-camera benchmark;
 //! - `train-lifter`, `finetune` ([`lifter`]): 2D-to-3D lifters;
 //! - `eval-adjust` ([`eval_adjust`]): lifters before and after the
 //!   bone-length adjustment;
@@ -13,6 +14,7 @@
 //! Every closed set of values is a clap `ValueEnum` of the library (or
 //! [`common::ModelArg`]), spelled as in the runs' configuration files.
 
+mod bodies;
 mod common;
 mod eval;
 mod eval_adjust;
@@ -161,6 +163,7 @@ mod tests {
             ("lengths", "ansur"),
             ("noise", "residual"),
             ("shift_plane", "camera"),
+            ("ansur_people", "train"),
         ] {
             assert_eq!(json[field], value, "{field}");
         }
@@ -170,5 +173,43 @@ mod tests {
         );
         assert_eq!((cfg.lr, cfg.lr_decay, cfg.clip_norm), (1e-4, 0.95, 5.0));
         assert_eq!((cfg.head_lr_scale, cfg.ema_decay), (0.01, 0.999));
+        let cli = Cli::try_parse_from(["blapose", "train", "--out", "x", "--ansur-people", "all"])
+            .unwrap();
+        let Command::Train(a) = cli.command else {
+            panic!("not train")
+        };
+        assert_eq!(
+            a.config().ansur_people,
+            blapose_train::ansur_split::AnsurPeople::All
+        );
+    }
+
+    #[test]
+    fn the_benchmark_needs_no_model_flags_and_refuses_them() {
+        let cli = Cli::try_parse_from([
+            "blapose",
+            "eval",
+            "--benchmark",
+            "bodies",
+            "--json",
+            "b.json",
+            "--bench-individuals",
+            "5",
+        ])
+        .unwrap();
+        assert!(matches!(cli.command, Command::Eval(_)));
+        // Without --benchmark the model and its weights are required.
+        assert!(Cli::try_parse_from(["blapose", "eval", "--model", "gru"]).is_err());
+        assert!(Cli::try_parse_from(["blapose", "eval", "--weights", "w"]).is_err());
+        assert!(Cli::try_parse_from([
+            "blapose",
+            "eval",
+            "--benchmark",
+            "bodies",
+            "--model",
+            "gru"
+        ])
+        .is_err());
+        assert!(Cli::try_parse_from(["blapose", "eval", "--benchmark", "people"]).is_err());
     }
 }

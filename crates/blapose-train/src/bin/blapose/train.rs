@@ -9,7 +9,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::Result;
-use blapose_train::ansur::load_population;
+use blapose_train::ansur_split::{AnsurPeople, AnsurSplit};
 use blapose_train::dataset::{rectify_streams, TrainingSet};
 use blapose_train::lengths::{LengthSampler, LengthStrategy, TrainingLengthStats};
 use blapose_train::noise::NoiseKind;
@@ -33,6 +33,11 @@ pub struct TrainArgs {
     /// wider than Human3.6M's for thorax, calf and forearm.
     #[arg(long, default_value_t = 0.0)]
     ansur_spread: f32,
+    /// ansur only: which survey people to draw from: `train` leaves out the
+    /// held-out split of the many-bodies benchmark (`eval --benchmark
+    /// bodies`); `all` draws from everyone, the shipped weights' recipe.
+    #[arg(long, value_enum, default_value_t = AnsurPeople::Train)]
+    ansur_people: AnsurPeople,
     /// 2D detector-noise model.
     #[arg(long, value_enum, default_value_t = NoiseKind::Residual)]
     noise: NoiseKind,
@@ -157,6 +162,7 @@ impl TrainArgs {
             } else {
                 0.0
             },
+            ansur_people: self.ansur_people,
             noise: self.noise,
             seq_len: self.seq_len,
             stride_min: self.stride_min,
@@ -191,9 +197,10 @@ impl TrainArgs {
 /// The weights' `training_data` text: the data and augmentation of `cfg`.
 fn training_data(cfg: &TrainConfig) -> String {
     format!(
-        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}), noise={}, seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), floor_contact={}, random yaw={}, cameras={}, rectified={}, height-normalized={}, flip={}",
+        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}, people {}), noise={}, seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), floor_contact={}, random yaw={}, cameras={}, rectified={}, height-normalized={}, flip={}",
         cfg.lengths,
         cfg.ansur_spread,
+        cfg.ansur_people,
         cfg.noise,
         cfg.seq_len,
         cfg.stride_min,
@@ -217,7 +224,7 @@ pub fn run(a: TrainArgs) -> Result<()> {
     let set = TrainingSet::load(&root)?;
     let stats = TrainingLengthStats::from_training(&set.lengths_list())?;
     let pop = if cfg.lengths == LengthStrategy::Ansur {
-        let mut pop = load_population(&root, &stats)?;
+        let mut pop = AnsurSplit::load(&root, &stats)?.training_population(cfg.ansur_people)?;
         if cfg.ansur_spread > 0.0 {
             pop.match_spread(&stats, cfg.ansur_spread)?;
         }

@@ -1,0 +1,132 @@
+//! `blapose eval --benchmark bodies`: loads what the many-bodies benchmark
+//! needs (the held-out people, S9/S11 motion, the training subjects'
+//! detector residuals, the four shipped models) and prints its table; the
+//! benchmark itself is [`blapose_train::bodies`]. Why here: file locations
+//! and flags are the command's, the protocol is the library's.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::Result;
+use blapose_data::h36m::{H36m, Parts, TRAIN_SUBJECTS};
+use blapose_model::ModelKind;
+use blapose_train::ansur_split::{AnsurPeople, AnsurSplit};
+use blapose_train::bodies::{
+    markdown, mean_body, test_motions, BenchInput, BenchModel, BodiesConfig, BodiesInput,
+    DEFAULT_FRAMES, DEFAULT_SEED,
+};
+use blapose_train::dataset::{mean_subject_lengths, TrainingSet};
+use blapose_train::lengths::TrainingLengthStats;
+
+/// `--benchmark`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Benchmark {
+    /// Held-out ANSUR II individuals on S9/S11 motion through wide cameras.
+    Bodies,
+}
+
+/// Flags of `--benchmark bodies`.
+#[derive(clap::Args, Debug)]
+pub struct BodiesArgs {
+    /// Benchmark seed (individuals' clips, cameras and noise).
+    #[arg(long, default_value_t = DEFAULT_SEED)]
+    bench_seed: u64,
+    /// Frames (50 Hz) of S9/S11 motion per individual.
+    #[arg(long, default_value_t = DEFAULT_FRAMES)]
+    bench_frames: usize,
+    /// Use only the first N held-out individuals (default: all).
+    #[arg(long)]
+    bench_individuals: Option<usize>,
+    /// Folder with bone_length_{gru,bigru}{,_rectified}.safetensors.
+    #[arg(long, default_value = "models")]
+    models_dir: PathBuf,
+}
+
+/// The benchmark's test subjects (their motion, never their bodies).
+const MOTION_SUBJECTS: [&str; 2] = ["S9", "S11"];
+
+/// Run the benchmark and print (and write) its report.
+pub fn run(root: &Path, a: &BodiesArgs, json: Option<&Path>) -> Result<()> {
+    let t0 = Instant::now();
+    let set = TrainingSet::load(root)?;
+    let stats = TrainingLengthStats::from_training(&set.lengths_list())?;
+    let split = AnsurSplit::load(root, &stats)?;
+    let training_pop = split.training_population(AnsurPeople::Train)?;
+    let prior = mean_body(training_pop.people())
+        .ok_or_else(|| anyhow::anyhow!("empty training population"))?;
+    let training_mean = mean_subject_lengths(&set.subject_lengths, &TRAIN_SUBJECTS)
+        .ok_or_else(|| anyhow::anyhow!("missing training subjects' lengths"))?;
+    let h36m = H36m::load(root, &MOTION_SUBJECTS, Parts::POSES)?;
+    let motions = test_motions(&h36m, &MOTION_SUBJECTS)?;
+    let input = BodiesInput {
+        people: split.held_out(),
+        motions,
+        residuals: &set.residuals,
+        prior,
+        training_mean,
+    };
+    eprintln!(
+        "loaded {} held-out individuals, {} test sequences in {:.1}s",
+        input.people.len(),
+        input.motions.len(),
+        t0.elapsed().as_secs_f64()
+    );
+    let specs = [
+        (
+            ModelKind::Gru,
+            BenchInput::None,
+            "bone_length_gru.safetensors",
+        ),
+        (
+            ModelKind::BiGru,
+            BenchInput::None,
+            "bone_length_bigru.safetensors",
+        ),
+        (
+            ModelKind::Gru,
+            BenchInput::Calibration,
+            "bone_length_gru_rectified.safetensors",
+        ),
+        (
+            ModelKind::BiGru,
+            BenchInput::Calibration,
+            "bone_length_bigru_rectified.safetensors",
+        ),
+    ];
+    let mut loaded = Vec::with_capacity(specs.len());
+    for (kind, bench_input, file) in specs {
+        let path = a.models_dir.join(file);
+        loaded.push((
+            kind,
+            bench_input,
+            blapose_model::weights::load(&path, kind)?,
+            path.display().to_string(),
+        ));
+    }
+    let models: Vec<BenchModel<'_>> = loaded
+        .iter()
+        .map(|(kind, bench_input, weights, path)| BenchModel {
+            kind: *kind,
+            input: *bench_input,
+            weights,
+            path: path.clone(),
+        })
+        .collect();
+    let cfg = BodiesConfig {
+        seed: a.bench_seed,
+        frames: a.bench_frames,
+        limit: a.bench_individuals,
+        ..BodiesConfig::default()
+    };
+    let mut report = blapose_train::bodies::run(&input, &models, &cfg)?;
+    report.seconds = t0.elapsed().as_secs_f64();
+    println!("{}", markdown(&report));
+    println!(
+        "{} individuals x {} frames, 4 models, {:.0}s in all (data loading included)",
+        report.individuals, report.frames_per_individual, report.seconds
+    );
+    if let Some(p) = json {
+        std::fs::write(p, serde_json::to_string_pretty(&report)?)?;
+    }
+    Ok(())
+}

@@ -1,0 +1,262 @@
+//! The many-bodies benchmark on the real data (skipped when ../shared/data
+//! is absent): the held-out split (both sexes, at least 500 people,
+//! deterministic, never drawn by training) and a tiny end-to-end run of
+//! the four shipped models.
+
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+use blapose_core::skeleton::{BONE_NAMES, NUM_BONES};
+use blapose_core::BoneLengths;
+use blapose_data::ansur::Sex;
+use blapose_data::h36m::{H36m, Parts, TRAIN_SUBJECTS};
+use blapose_data::test_data_root;
+use blapose_model::ModelKind;
+use blapose_train::ansur::load_population;
+use blapose_train::ansur_split::{is_held_out, AnsurPeople, AnsurSplit};
+use blapose_train::bodies::{
+    build_trials, mean_body, test_motions, BenchInput, BenchModel, BodiesConfig, BodiesInput,
+};
+use blapose_train::dataset::{mean_subject_lengths, TrainingSet};
+use blapose_train::lengths::{LengthSampler, LengthStrategy, TrainingLengthStats};
+use blapose_train::synth::MotionSequence;
+use rand::SeedableRng;
+
+struct Fixture {
+    root: PathBuf,
+    set: TrainingSet,
+    stats: TrainingLengthStats,
+    split: AnsurSplit,
+    motions: Vec<MotionSequence>,
+}
+
+fn fixture() -> Option<&'static Fixture> {
+    static F: OnceLock<Option<Fixture>> = OnceLock::new();
+    F.get_or_init(|| {
+        let root = test_data_root("h36m/poses_3d.npz", "many-bodies benchmark tests")?;
+        test_data_root(
+            "ansur2/ANSUR_II_MALE_Public.csv",
+            "many-bodies benchmark tests",
+        )?;
+        let set = TrainingSet::load(&root).expect("training set loads");
+        let stats = TrainingLengthStats::from_training(&set.lengths_list()).unwrap();
+        let split = AnsurSplit::load(&root, &stats).unwrap();
+        let h36m = H36m::load(&root, &["S9", "S11"], Parts::POSES).unwrap();
+        let motions = test_motions(&h36m, &["S9", "S11"]).unwrap();
+        Some(Fixture {
+            root,
+            set,
+            stats,
+            split,
+            motions,
+        })
+    })
+    .as_ref()
+}
+
+fn key(l: &BoneLengths) -> [u32; NUM_BONES] {
+    l.map(f32::to_bits)
+}
+
+#[test]
+fn the_split_has_both_sexes_500_people_and_is_deterministic() {
+    let Some(f) = fixture() else { return };
+    let held = f.split.held_out();
+    let male = held.iter().filter(|p| p.sex == Sex::Male).count();
+    let female = held.len() - male;
+    assert!(held.len() >= 500, "{} held out", held.len());
+    assert!(male >= 300 && female >= 150, "{male} male, {female} female");
+    // Each sex about one in ten.
+    for sex in [Sex::Male, Sex::Female] {
+        let all = f.split.everyone.iter().filter(|p| p.sex == sex).count();
+        let out = held.iter().filter(|p| p.sex == sex).count();
+        let share = out as f64 / all as f64;
+        assert!((0.08..0.12).contains(&share), "{sex:?}: {share}");
+    }
+    // Loading again gives the same people in the same order.
+    let again = AnsurSplit::load(&f.root, &f.stats).unwrap();
+    let ids = |s: &AnsurSplit| {
+        s.held_out()
+            .iter()
+            .map(|p| (p.subject_id, p.sex == Sex::Male))
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(ids(&again), ids(&f.split));
+    // Subject ids are unique within a sex, so (id, sex) names one person.
+    let mut seen = HashSet::new();
+    for p in &f.split.everyone {
+        assert!(seen.insert((p.subject_id, p.sex == Sex::Male)));
+    }
+}
+
+#[test]
+fn training_never_draws_a_held_out_individual_by_default() {
+    let Some(f) = fixture() else { return };
+    let held: HashSet<[u32; NUM_BONES]> =
+        f.split.held_out().iter().map(|p| key(&p.lengths)).collect();
+    let kept: Vec<[u32; NUM_BONES]> = f
+        .split
+        .everyone
+        .iter()
+        .filter(|p| !is_held_out(p.subject_id, p.sex))
+        .map(|p| key(&p.lengths))
+        .collect();
+    // No kept person happens to share a held-out body (else the checks
+    // below could not tell them apart).
+    assert!(kept.iter().all(|k| !held.contains(k)));
+
+    let train = f.split.training_population(AnsurPeople::Train).unwrap();
+    assert_eq!(
+        train.len(),
+        f.split.everyone.len() - f.split.held_out().len()
+    );
+    assert!(train.people().iter().all(|p| !held.contains(&key(p))));
+    // Same calibration, so the held-out bodies are in the training units.
+    let all = f.split.training_population(AnsurPeople::All).unwrap();
+    assert_eq!(train.scale, all.scale);
+    // `all` is exactly the population every shipped model was trained on.
+    assert_eq!(all, load_population(&f.root, &f.stats).unwrap());
+    assert!(held
+        .iter()
+        .all(|h| all.people().iter().any(|p| key(p) == *h)));
+
+    // What the sampler draws (a population row, unchanged by the bounds):
+    // over many draws, never a held-out body, and bodies of the kept people
+    // do come up. (`--ansur-spread` then maps each drawn row affinely; it
+    // cannot bring a removed person back.)
+    let sampler = LengthSampler::new(LengthStrategy::Ansur, f.stats.clone(), Some(train)).unwrap();
+    let kept: HashSet<[u32; NUM_BONES]> = kept.into_iter().collect();
+    let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+    for _ in 0..20_000 {
+        let l = sampler.sample(&f.stats.mean, &mut rng);
+        assert!(!held.contains(&key(&l)), "drew a held-out body");
+        assert!(kept.contains(&key(&l)), "drew a body of nobody");
+    }
+}
+
+fn models_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models")
+}
+
+#[test]
+fn a_tiny_benchmark_run_gives_well_formed_deterministic_rows() {
+    let Some(f) = fixture() else { return };
+    let cfg = BodiesConfig {
+        frames: 40,
+        limit: Some(6),
+        ..BodiesConfig::default()
+    };
+    let people = f.split.held_out();
+    let train = f.split.training_population(AnsurPeople::Train).unwrap();
+    let input = BodiesInput {
+        people: people.clone(),
+        motions: f.motions.clone(),
+        residuals: &f.set.residuals,
+        prior: mean_body(train.people()).unwrap(),
+        training_mean: mean_subject_lengths(&f.set.subject_lengths, &TRAIN_SUBJECTS).unwrap(),
+    };
+    let specs = [
+        (
+            ModelKind::Gru,
+            BenchInput::None,
+            "bone_length_gru.safetensors",
+        ),
+        (
+            ModelKind::BiGru,
+            BenchInput::None,
+            "bone_length_bigru.safetensors",
+        ),
+        (
+            ModelKind::Gru,
+            BenchInput::Calibration,
+            "bone_length_gru_rectified.safetensors",
+        ),
+        (
+            ModelKind::BiGru,
+            BenchInput::Calibration,
+            "bone_length_bigru_rectified.safetensors",
+        ),
+    ];
+    let weights: Vec<_> = specs
+        .iter()
+        .map(|(k, _, file)| blapose_model::weights::load(models_dir().join(file), *k).unwrap())
+        .collect();
+    let models: Vec<BenchModel<'_>> = specs
+        .iter()
+        .zip(&weights)
+        .map(|((kind, input, file), w)| BenchModel {
+            kind: *kind,
+            input: *input,
+            weights: w,
+            path: file.to_string(),
+        })
+        .collect();
+    let report = blapose_train::bodies::run(&input, &models, &cfg).unwrap();
+    assert_eq!(report.individuals, 6);
+    assert_eq!(report.frames, 6 * 40);
+    assert_eq!(report.trials.len(), 6);
+    let json = serde_json::to_value(&report).unwrap();
+    let rows = json["rows"].as_array().unwrap();
+    let combos: Vec<(String, String)> = rows
+        .iter()
+        .map(|r| {
+            (
+                r["model"].as_str().unwrap().to_string(),
+                r["input"].as_str().unwrap().to_string(),
+            )
+        })
+        .collect();
+    for want in [
+        ("gru", "none"),
+        ("bigru", "none"),
+        ("gru", "calibration"),
+        ("bigru", "calibration"),
+    ] {
+        assert!(combos.contains(&(want.0.into(), want.1.into())), "{want:?}");
+    }
+    let prior = report.rows[0].prior_mean_bone_error_mm;
+    for r in rows {
+        for k in [
+            "mean_bone_error_mm",
+            "prior_mean_bone_error_mm",
+            "ratio_to_prior",
+            "size_slope",
+        ] {
+            assert!(r[k].as_f64().unwrap().is_finite(), "{k}");
+        }
+        let per_bone = r["per_bone_mm"].as_array().unwrap();
+        assert_eq!(per_bone.len(), BONE_NAMES.len());
+        let e = r["mean_bone_error_mm"].as_f64().unwrap();
+        let mean_of_bones = per_bone.iter().map(|v| v.as_f64().unwrap()).sum::<f64>() / 16.0;
+        assert!(
+            (e - mean_of_bones).abs() < 1e-6,
+            "error is the mean over bones"
+        );
+        assert!(e > 0.0 && e < 200.0);
+        assert_eq!(r["prior_mean_bone_error_mm"].as_f64().unwrap(), prior);
+        assert!((r["ratio_to_prior"].as_f64().unwrap() - e / prior).abs() < 1e-9);
+    }
+    // Every camera framed the whole clip within the documented bounds.
+    for t in &report.trials {
+        let c = &t.camera;
+        assert!((0.5..=3.0).contains(&c.height_m) && (2.0..=10.0).contains(&c.distance_m));
+        assert!((-35.0..=15.0).contains(&c.pitch_deg) && c.roll_deg.abs() <= 5.0);
+        assert!((40.0..=100.0).contains(&c.hfov_deg));
+    }
+    let md = blapose_train::bodies::markdown(&report);
+    assert!(md.contains("| bigru | calibration |") && md.contains("baseline: prior"));
+
+    // Seeded: the same trials again; another seed, other cameras.
+    let a = build_trials(&people, &f.motions, &f.set.residuals, &cfg).unwrap();
+    let b = build_trials(&people, &f.motions, &f.set.residuals, &cfg).unwrap();
+    assert!(a
+        .iter()
+        .zip(&b)
+        .all(|(x, y)| x.plain == y.plain && x.rectified == y.rectified && x.camera == y.camera));
+    let other = BodiesConfig { seed: 7, ..cfg };
+    let c = build_trials(&people, &f.motions, &f.set.residuals, &other).unwrap();
+    assert!(a.iter().zip(&c).any(|(x, y)| x.camera != y.camera));
+    // The rectified input differs from the plain one (tilted cameras).
+    assert!(a.iter().any(|t| t.plain != t.rectified));
+}
