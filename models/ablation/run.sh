@@ -49,7 +49,9 @@ name=$1; steps=$2; shift 2
 bin=./target/release/blapose
 out=runs/ablation/$name
 mkdir -p "$out"
-common=(--ansur-spread 2.0 --shift-plane ground --batch 32 --seq-len 64 --lr "${LR:-3e-4}" --lr-decay 0.9
+# The recorded runs drew bodies from every ANSUR person (before the
+# many-bodies benchmark held some out); ANSUR_PEOPLE=train for new runs.
+common=(--ansur-people "${ANSUR_PEOPLE:-all}" --ansur-spread 2.0 --shift-plane ground --batch 32 --seq-len 64 --lr "${LR:-3e-4}" --lr-decay 0.9
   --epoch-steps 500 --head-lr-scale 0.01 --ema-decay 0.999 --val-every 200 --checkpoint-secs 300 --seed 3)
 [ -n "${INIT:-}" ] && common+=(--init-weights "$INIT")
 resume=()
