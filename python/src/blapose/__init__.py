@@ -1,0 +1,87 @@
+"""blapose: Python client for the blapose bone-length adjustment server.
+
+>>> import blapose
+>>> with blapose.Client("http://127.0.0.1:50051") as client:
+...     with client.session(layout="coco17", image_size=(1920, 1080)) as s:
+...         result = s.send(keypoints, pose)   # (17, 2) pixels, (17, 3) metres
+...         result.adjusted, result.bone_lengths  # (17, 3), (16,)
+
+See :class:`Client`, :class:`Session`, :mod:`blapose.errors` and :mod:`blapose.aio`.
+"""
+
+from . import aio
+from .client import Client, Session
+from .errors import (
+    Aborted,
+    BlaposeError,
+    Cancelled,
+    DeadlineExceeded,
+    FailedPrecondition,
+    FrameRejected,
+    Internal,
+    InvalidArgument,
+    NotFound,
+    OutOfRange,
+    PermissionDenied,
+    ProtocolError,
+    ResourceExhausted,
+    RpcError,
+    Unauthenticated,
+    Unavailable,
+    Unimplemented,
+    UnknownError,
+)
+from .types import (
+    BONE_NAMES,
+    JOINT_NAMES,
+    LAYOUTS,
+    PARENTS,
+    Camera,
+    ClosedSession,
+    FrameResult,
+    ModelInfo,
+    ReplayFile,
+    SequenceResult,
+    SessionInfo,
+    adjust_pose,
+    load_replay,
+)
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "aio",
+    "Client",
+    "Session",
+    "Camera",
+    "ClosedSession",
+    "FrameResult",
+    "ModelInfo",
+    "ReplayFile",
+    "SequenceResult",
+    "SessionInfo",
+    "adjust_pose",
+    "load_replay",
+    "JOINT_NAMES",
+    "BONE_NAMES",
+    "PARENTS",
+    "LAYOUTS",
+    "BlaposeError",
+    "RpcError",
+    "FrameRejected",
+    "ProtocolError",
+    "Aborted",
+    "Cancelled",
+    "DeadlineExceeded",
+    "FailedPrecondition",
+    "Internal",
+    "InvalidArgument",
+    "NotFound",
+    "OutOfRange",
+    "PermissionDenied",
+    "ResourceExhausted",
+    "Unauthenticated",
+    "Unavailable",
+    "Unimplemented",
+    "UnknownError",
+]

@@ -1,0 +1,404 @@
+"""Plain-Python/numpy types: layouts, camera calibration, results, replay files.
+
+Array conventions (the proto's, as numpy arrays):
+
+* 3D poses: ``(17, 3)`` float, metres, Human3.6M joint order (see ``JOINT_NAMES``).
+* 2D keypoints: ``(J, 2)`` float, the session layout's joint order
+  (J = 17 for ``coco17`` and ``h36m17``, 16 for ``sh16``), pixels of an image of
+  ``image_size = (width, height)``, or normalized when ``image_size`` is None.
+* Bone lengths: ``(16,)`` float, metres, bone order (see ``BONE_NAMES``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, Optional, Tuple, Union
+from typing import Sequence as Seq
+
+import numpy as np
+
+from .v1 import blapose_pb2 as pb
+
+__all__ = [
+    "JOINT_NAMES",
+    "BONE_NAMES",
+    "PARENTS",
+    "LAYOUTS",
+    "Camera",
+    "SessionInfo",
+    "FrameResult",
+    "SequenceResult",
+    "ClosedSession",
+    "ModelInfo",
+    "ReplayFile",
+    "load_replay",
+    "adjust_pose",
+]
+
+JOINT_NAMES: Tuple[str, ...] = (
+    "pelvis",
+    "r_hip",
+    "r_knee",
+    "r_ankle",
+    "l_hip",
+    "l_knee",
+    "l_ankle",
+    "spine",
+    "thorax",
+    "neck_nose",
+    "head",
+    "l_shoulder",
+    "l_elbow",
+    "l_wrist",
+    "r_shoulder",
+    "r_elbow",
+    "r_wrist",
+)
+BONE_NAMES: Tuple[str, ...] = (
+    "r_hip",
+    "r_thigh",
+    "r_calf",
+    "l_hip",
+    "l_thigh",
+    "l_calf",
+    "spine",
+    "thorax",
+    "neck",
+    "head",
+    "l_shoulder",
+    "l_upper_arm",
+    "l_forearm",
+    "r_shoulder",
+    "r_upper_arm",
+    "r_forearm",
+)
+#: Parent of each Human3.6M joint (joint 0 is the root); bone i joins joint i+1 to PARENTS[i+1].
+PARENTS: Tuple[int, ...] = (0, 0, 1, 2, 0, 4, 5, 0, 7, 8, 9, 8, 11, 12, 8, 14, 15)
+
+#: Layout name -> (proto enum value, number of joints).
+LAYOUTS: Dict[str, Tuple[int, int]] = {
+    "h36m17": (pb.KEYPOINT_LAYOUT_H36M_17, 17),
+    "sh16": (pb.KEYPOINT_LAYOUT_SH_16, 16),
+    "coco17": (pb.KEYPOINT_LAYOUT_COCO_17, 17),
+}
+_LAYOUT_BY_VALUE = {v[0]: k for k, v in LAYOUTS.items()}
+_MODELS = {
+    None: pb.MODEL_UNSPECIFIED,
+    "gru": pb.MODEL_ONLINE_GRU,
+    "bigru": pb.MODEL_OFFLINE_BIGRU,
+}
+_MODEL_NAMES = {pb.MODEL_UNSPECIFIED: None, pb.MODEL_ONLINE_GRU: "gru", pb.MODEL_OFFLINE_BIGRU: "bigru"}
+
+Layout = Union[str, int]
+ArrayLike = Any
+
+
+def layout_value(layout: Layout) -> Tuple[int, int]:
+    """(proto enum value, joint count) for a layout name or proto number."""
+    if isinstance(layout, str):
+        key = layout.lower().replace("-", "").replace("_", "")
+        if key not in LAYOUTS:
+            raise ValueError(f"unknown layout {layout!r}; expected one of {sorted(LAYOUTS)}")
+        return LAYOUTS[key]
+    value = int(layout)
+    if value not in _LAYOUT_BY_VALUE:
+        # Let the server judge numbers it may know; joint count unknown.
+        return value, -1
+    return value, LAYOUTS[_LAYOUT_BY_VALUE[value]][1]
+
+
+def model_value(model: Optional[Union[str, int]]) -> int:
+    """Proto ``Model`` value for ``None``/``"gru"``/``"bigru"`` (or a number)."""
+    if model is None or isinstance(model, str):
+        if model not in _MODELS:
+            raise ValueError(f"unknown model {model!r}; expected 'gru', 'bigru' or None")
+        return _MODELS[model]
+    return int(model)
+
+
+def model_name(value: int) -> Optional[str]:
+    return _MODEL_NAMES.get(value, str(value))  # type: ignore[call-overload]
+
+
+def input_format(layout: Layout, image_size: Optional[Tuple[int, int]]) -> pb.InputFormat:
+    """The proto ``InputFormat``: pixels of ``image_size=(w, h)``, or normalized if None."""
+    fmt = pb.InputFormat(layout=layout_value(layout)[0])  # type: ignore[arg-type]
+    if image_size is None:
+        fmt.normalized = True
+    else:
+        w, h = image_size
+        fmt.image_size.width = int(w)
+        fmt.image_size.height = int(h)
+    return fmt
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A camera calibration (proto ``CameraCalibration``); serves the camera-aware models.
+
+    Attributes:
+        up: world "up" in camera coordinates (x right, y down, z forward), 3 values.
+        focal: ``(fx, fy)`` in pixels.
+        principal: ``(cx, cy)`` in pixels.
+        image_size: ``(w, h)`` the values refer to; needed with normalized keypoints.
+        height: camera height above the floor in metres (0.3-10), or None.
+    """
+
+    up: Tuple[float, float, float]
+    focal: Tuple[float, float]
+    principal: Tuple[float, float]
+    image_size: Optional[Tuple[int, int]] = None
+    height: Optional[float] = None
+
+    def to_proto(self) -> pb.CameraCalibration:
+        cam = pb.CameraCalibration(
+            up=[float(v) for v in self.up],
+            focal_x=float(self.focal[0]),
+            focal_y=float(self.focal[1]),
+            principal_x=float(self.principal[0]),
+            principal_y=float(self.principal[1]),
+            height=float(self.height or 0.0),
+        )
+        if self.image_size is not None:
+            cam.image_size.width = int(self.image_size[0])
+            cam.image_size.height = int(self.image_size[1])
+        return cam
+
+    @staticmethod
+    def from_proto(cam: pb.CameraCalibration) -> "Camera":
+        return Camera(
+            up=tuple(cam.up),  # type: ignore[arg-type]
+            focal=(cam.focal_x, cam.focal_y),
+            principal=(cam.principal_x, cam.principal_y),
+            image_size=(cam.image_size.width, cam.image_size.height) if cam.HasField("image_size") else None,
+            height=cam.height or None,
+        )
+
+
+def _lengths(values: Seq[float]) -> Optional[np.ndarray]:
+    return np.asarray(values, dtype=np.float32) if len(values) else None
+
+
+@dataclass(frozen=True)
+class SessionInfo:
+    """A session as the server described it when the stream attached (``SessionOpened``)."""
+
+    session_id: str
+    resumed: bool
+    frames_seen: int
+    bone_lengths: Optional[np.ndarray]
+    model: Optional[str]
+    session_ttl_ms: int
+    lifter: Optional[str]
+    camera: Optional[Camera]
+    layout: Optional[str] = None
+    image_size: Optional[Tuple[int, int]] = None
+
+    @staticmethod
+    def from_proto(msg: pb.SessionOpened) -> "SessionInfo":
+        fmt = msg.input_format
+        return SessionInfo(
+            layout=_LAYOUT_BY_VALUE.get(fmt.layout),
+            image_size=(fmt.image_size.width, fmt.image_size.height)
+            if fmt.WhichOneof("coordinates") == "image_size"
+            else None,
+            session_id=msg.session_id,
+            resumed=msg.resumed,
+            frames_seen=msg.frames_seen,
+            bone_lengths=_lengths(msg.bone_lengths),
+            model=model_name(msg.model),
+            session_ttl_ms=msg.session_ttl_ms,
+            lifter=msg.lifter or None,
+            camera=Camera.from_proto(msg.camera) if msg.HasField("camera") else None,
+        )
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """The answer to one frame.
+
+    Attributes:
+        frame_index: the index the frame was sent with.
+        adjusted: ``(17, 3)`` adjusted pose, metres.
+        bone_lengths: ``(16,)`` the session's estimate after this frame, metres.
+        frames_seen: frames the session has processed, this one included.
+        lifted: ``(17, 3)`` the server lifter's pose before adjustment (server-lifter
+            sessions), else None.
+        lifter: the server lifter's name, else None.
+        recovered: True when the server processed this frame but its answer was
+            lost with a dropped connection; the library rebuilt it locally from the
+            resumed session's estimate (see :meth:`blapose.Session.stream`).
+    """
+
+    frame_index: int
+    adjusted: np.ndarray
+    bone_lengths: np.ndarray
+    frames_seen: int
+    lifted: Optional[np.ndarray] = None
+    lifter: Optional[str] = None
+    recovered: bool = False
+
+    @staticmethod
+    def from_proto(msg: pb.AdjustedFrame) -> "FrameResult":
+        return FrameResult(
+            frame_index=msg.frame_index,
+            adjusted=np.asarray(msg.adjusted_pose_3d, dtype=np.float32).reshape(17, 3),
+            bone_lengths=np.asarray(msg.bone_lengths, dtype=np.float32),
+            frames_seen=msg.frames_seen,
+            lifted=np.asarray(msg.lifted_pose_3d, dtype=np.float32).reshape(17, 3) if len(msg.lifted_pose_3d) else None,
+            lifter=msg.lifter or None,
+        )
+
+
+@dataclass(frozen=True)
+class SequenceResult:
+    """The answer to :meth:`blapose.Client.adjust_sequence`.
+
+    Attributes:
+        adjusted: ``(T, 17, 3)`` adjusted poses.
+        bone_lengths: ``(T, 16)`` lengths applied to each frame (all rows equal for the Bi-GRU).
+        model: ``"bigru"`` or ``"gru"``.
+    """
+
+    adjusted: np.ndarray
+    bone_lengths: np.ndarray
+    model: Optional[str]
+
+
+@dataclass(frozen=True)
+class ClosedSession:
+    """A closed session's final state."""
+
+    session_id: str
+    frames_seen: int
+    bone_lengths: Optional[np.ndarray]
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    """What the server runs (``ModelInfoResponse``); ``raw`` is the full proto message."""
+
+    server_version: str
+    protocol: str
+    models: Tuple[Dict[str, Any], ...]
+    layouts: Tuple[str, ...]
+    joint_names: Tuple[str, ...]
+    bone_names: Tuple[str, ...]
+    max_sessions: int
+    session_ttl_ms: int
+    max_batch: int
+    max_message_bytes: int
+    lifter: Optional[Dict[str, Any]]
+    raw: pb.ModelInfoResponse = field(repr=False)
+
+    @staticmethod
+    def from_proto(msg: pb.ModelInfoResponse) -> "ModelInfo":
+        models = tuple(
+            {
+                "model": model_name(m.model),
+                "name": m.name,
+                "parameter_count": m.parameter_count,
+                "hidden_size": m.hidden_size,
+                "weights_source": m.weights_source,
+                "weights_sha256": m.weights_sha256,
+                "metadata": dict(m.metadata),
+                "camera_aware": m.camera_aware,
+            }
+            for m in msg.models
+        )
+        lifter = None
+        if msg.HasField("lifter"):
+            lf = msg.lifter
+            lifter = {
+                "name": lf.name,
+                "receptive_field": lf.receptive_field,
+                "parameter_count": lf.parameter_count,
+                "causal": lf.causal,
+                "weights_source": lf.weights_source,
+                "weights_sha256": lf.weights_sha256,
+                "metadata": dict(lf.metadata),
+            }
+        return ModelInfo(
+            server_version=msg.server_version,
+            protocol=msg.protocol,
+            models=models,
+            layouts=tuple(_LAYOUT_BY_VALUE.get(v, str(v)) for v in msg.layouts),
+            joint_names=tuple(msg.joint_names),
+            bone_names=tuple(msg.bone_names),
+            max_sessions=msg.max_sessions,
+            session_ttl_ms=msg.session_ttl_ms,
+            max_batch=msg.max_batch,
+            max_message_bytes=msg.max_message_bytes,
+            lifter=lifter,
+            raw=msg,
+        )
+
+
+@dataclass
+class ReplayFile:
+    """A replay ``.npz`` as ``blapose-client replay`` reads it (see client/README.md)."""
+
+    keypoints_2d: np.ndarray  # (T, J, 2)
+    pose_3d: np.ndarray  # (T, 17, 3)
+    image_size: Tuple[int, int]
+    layout: str
+    gt_3d: Optional[np.ndarray] = None
+    confidence: Optional[np.ndarray] = None
+    fps: Optional[float] = None
+    camera: Optional[Camera] = None
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.keypoints_2d.shape[0])
+
+    def frames(self):
+        """``(keypoints, pose)`` pairs, ready for :meth:`blapose.Session.stream`."""
+        return zip(self.keypoints_2d, self.pose_3d)
+
+
+def load_replay(path: Union[str, Path]) -> ReplayFile:
+    """Load a replay file (``keypoints_2d``, ``pose_3d``, ``image_size``, optional
+    ``layout``, ``gt_3d``, ``confidence``, ``fps``, ``camera_*``)."""
+    with np.load(path) as z:
+        kp = np.asarray(z["keypoints_2d"], dtype=np.float32)
+        pose = np.asarray(z["pose_3d"], dtype=np.float32)
+        w, h = (int(v) for v in np.asarray(z["image_size"]).reshape(-1)[:2])
+        if "layout" in z:
+            code = int(np.asarray(z["layout"]).reshape(-1)[0])
+            layout = _LAYOUT_BY_VALUE[code]
+        else:
+            layout = {17: "h36m17", 16: "sh16"}[kp.shape[1]]
+        camera = None
+        if "camera_up" in z:
+            height = float(np.asarray(z["camera_height"]).reshape(-1)[0]) if "camera_height" in z else None
+            camera = Camera(
+                up=tuple(float(v) for v in z["camera_up"]),  # type: ignore[arg-type]
+                focal=tuple(float(v) for v in z["camera_focal"]),  # type: ignore[arg-type]
+                principal=tuple(float(v) for v in z["camera_principal"]),  # type: ignore[arg-type]
+                height=height,
+            )
+        return ReplayFile(
+            keypoints_2d=kp,
+            pose_3d=pose,
+            image_size=(w, h),
+            layout=layout,
+            gt_3d=np.asarray(z["gt_3d"], dtype=np.float32) if "gt_3d" in z else None,
+            confidence=np.asarray(z["confidence"], dtype=np.float32) if "confidence" in z else None,
+            fps=float(np.asarray(z["fps"]).reshape(-1)[0]) if "fps" in z else None,
+            camera=camera,
+        )
+
+
+def adjust_pose(pose: ArrayLike, bone_lengths: ArrayLike) -> np.ndarray:
+    """Rebuild a ``(17, 3)`` pose with its own bone directions and ``bone_lengths``
+    (16), root kept: what the server does to every frame (computed here in float64)."""
+    p = np.asarray(pose, dtype=np.float64).reshape(17, 3)
+    lengths = np.asarray(bone_lengths, dtype=np.float64).reshape(16)
+    out = np.empty_like(p)
+    out[0] = p[0]
+    for j in range(1, 17):  # parents precede children in Human3.6M order
+        parent = PARENTS[j]
+        d = p[j] - p[parent]
+        out[j] = out[parent] + d / np.linalg.norm(d) * lengths[j - 1]
+    return out.astype(np.float32)
