@@ -1,4 +1,5 @@
 """The README's example runs as written (against the test server)."""
+
 from __future__ import annotations
 
 import os
