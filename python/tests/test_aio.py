@@ -14,8 +14,8 @@ from conftest import EXAMPLES, Proxy, Server, free_port
 
 TOL = 1e-5
 
-# grpc.aio keeps per-process state bound to an event loop: run every test of
-# this module on one loop (as pytest-asyncio's module-scoped loop would).
+# One event loop for every test of this module (as pytest-asyncio's
+# module-scoped loop would give).
 _LOOP = asyncio.new_event_loop()
 
 

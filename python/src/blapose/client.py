@@ -7,7 +7,7 @@ import threading
 import time
 from pathlib import Path
 from types import TracebackType
-from typing import Iterable, Iterator, Optional, Tuple, Type, Union
+from typing import Generator, Iterable, Iterator, Optional, Tuple, Type, Union
 
 import grpc
 
@@ -416,7 +416,7 @@ class Session:
         frames: Iterable,
         window: int = 64,
         raise_on_error: bool = True,
-    ) -> Iterator[Union[FrameResult, FrameRejected]]:
+    ) -> Generator[Union[FrameResult, FrameRejected], None, None]:
         """Pipeline frames: yields one result per frame, in order.
 
         Args:
