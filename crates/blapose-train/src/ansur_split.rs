@@ -95,13 +95,16 @@ pub fn is_held_out(subject_id: u64, sex: Sex) -> bool {
     person_hash(subject_id, sex).is_multiple_of(HELD_OUT_ONE_IN)
 }
 
-/// One surveyed person: id, sex and calibrated lengths.
+/// One surveyed person: id, sex, measured stature and calibrated lengths.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Person {
     /// The survey's subject id.
     pub subject_id: u64,
     /// Sex.
     pub sex: Sex,
+    /// Measured stature (the survey's `stature`, metres): the input of the
+    /// stature regression ([`crate::stature`]).
+    pub stature_m: f32,
     /// Calibrated bone lengths (metres).
     pub lengths: BoneLengths,
 }
@@ -131,7 +134,10 @@ impl AnsurSplit {
         let mut raw = Vec::with_capacity(table.records.len());
         for r in &table.records {
             if let Ok(l) = raw_lengths(|c| table.value(r, c).map(f64::from)) {
-                ids.push((r.subject_id, r.sex));
+                // The mapping reads `stature` (neck bone), so a person it
+                // keeps has one.
+                let stature_mm = table.value(r, "stature").unwrap_or(f32::NAN);
+                ids.push((r.subject_id, r.sex, (f64::from(stature_mm) / 1000.0) as f32));
                 raw.push(l);
             }
         }
@@ -139,9 +145,10 @@ impl AnsurSplit {
         let everyone = ids
             .into_iter()
             .zip(calibrated.people())
-            .map(|((subject_id, sex), &lengths)| Person {
+            .map(|((subject_id, sex, stature_m), &lengths)| Person {
                 subject_id,
                 sex,
+                stature_m,
                 lengths,
             })
             .collect();

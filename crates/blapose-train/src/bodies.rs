@@ -35,7 +35,11 @@
 //! answer of a model that knows nothing about the person); their ratio; and
 //! the *size slope*, the least-squares slope of the predicted against the
 //! true sum of the 16 lengths over the individuals (1: reads sizes, 0: one
-//! body for all). Everything is seeded: the same seed gives the same
+//! body for all). Beside the models, rows `stature-regression` with
+//! inputs `height` and `height+sex` ([`crate::stature`], fitted on the
+//! training split) answer from each individual's measured ANSUR stature
+//! (and sex) alone: the bar a height-conditioned model has to beat.
+//! Everything is seeded: the same seed gives the same
 //! individuals, clips, cameras and noise.
 
 use std::sync::Arc;
@@ -54,6 +58,7 @@ use crate::dataset::EvalSequence;
 use crate::error::TrainError;
 use crate::eval::{trial_error_mm, BiGruEstimator, GruEstimator, LengthEstimator};
 use crate::noise::{apply_residual, residual_at, ResidualBank};
+use crate::stature::{StatureInput, StatureRegression};
 use crate::synth::{rebuild_on_floor, sample_rng, MotionSequence};
 
 /// Default seed of `--benchmark bodies`.
@@ -395,11 +400,23 @@ pub fn row(
     truth: &[BoneLengths],
     prior: &BoneLengths,
 ) -> Result<Row, TrainError> {
+    named_row(model, input.name(), pred, truth, prior)
+}
+
+/// [`row`] with any `input` spelling (the stature regression's `height`,
+/// `height+sex`).
+pub fn named_row(
+    model: &str,
+    input: &str,
+    pred: &[BoneLengths],
+    truth: &[BoneLengths],
+    prior: &BoneLengths,
+) -> Result<Row, TrainError> {
     let s = score(pred, truth)?;
     let prior_mm = prior_error(truth, prior)?;
     Ok(Row {
         model: model.into(),
-        input: input.name().into(),
+        input: input.into(),
         mean_bone_error_mm: s.mean_bone_error_mm,
         prior_mean_bone_error_mm: prior_mm,
         ratio_to_prior: s.mean_bone_error_mm / prior_mm,
@@ -515,6 +532,60 @@ pub struct BodiesInput<'a> {
     pub prior: BoneLengths,
     /// The training subjects' mean lengths.
     pub training_mean: BoneLengths,
+    /// The stature regression fitted on the training split
+    /// ([`StatureRegression::fit_training`]): rows `stature-regression`
+    /// (`height`, `height+sex`) after the models' (`None`: no such rows).
+    pub stature: Option<&'a StatureRegression>,
+}
+
+/// The stature regression's rows: each individual's lengths predicted
+/// from its measured stature (and sex), scored like a model. `people` and
+/// `trials` are in the same order (the trials of `people[..trials.len()]`).
+pub fn stature_rows(
+    regression: &StatureRegression,
+    people: &[&Person],
+    trials: &[Trial],
+    prior: &BoneLengths,
+) -> Result<Vec<Row>, TrainError> {
+    if people.len() < trials.len() {
+        return Err(TrainError::InvalidArgument(format!(
+            "{} people for {} trials",
+            people.len(),
+            trials.len()
+        )));
+    }
+    let truth: Vec<BoneLengths> = trials.iter().map(|t| t.lengths).collect();
+    let mut rows = Vec::with_capacity(StatureInput::ALL.len());
+    for input in StatureInput::ALL {
+        let t = Instant::now();
+        let pred = people
+            .iter()
+            .zip(trials)
+            .map(|(p, t)| {
+                if p.subject_id != t.subject_id {
+                    return Err(TrainError::InvalidArgument(format!(
+                        "person {} is not the individual of trial {}",
+                        p.subject_id, t.subject_id
+                    )));
+                }
+                Ok(regression.predict(input, f64::from(p.stature_m), p.sex)?)
+            })
+            .collect::<Result<Vec<_>, TrainError>>()?;
+        let mut r = named_row(
+            crate::stature::MODEL_NAME,
+            input.name(),
+            &pred,
+            &truth,
+            prior,
+        )?;
+        r.weights = format!(
+            "least squares on {} ANSUR II training-split people",
+            regression.fitted_on.len()
+        );
+        r.seconds = t.elapsed().as_secs_f64();
+        rows.push(r);
+    }
+    Ok(rows)
 }
 
 /// Run the benchmark: build the trials, score every model and the
@@ -535,6 +606,9 @@ pub fn run(
         r.weights = m.path.clone();
         r.seconds = t.elapsed().as_secs_f64();
         rows.push(r);
+    }
+    if let Some(reg) = input.stature {
+        rows.extend(stature_rows(reg, &input.people, &trials, &input.prior)?);
     }
     let baselines = vec![
         baseline(
@@ -570,8 +644,10 @@ pub fn run(
                    mapping, retargeted onto an S9/S11 clip (feet on the floor), one camera each from \
                    camera_distribution (whole clip in frame), real-detector residual noise; error per \
                    individual = mean |pred - true| over 16 bones, averaged over individuals; GRU: \
-                   running mean at the last frame; size_slope: least squares of predicted vs true \
-                   sum of the 16 lengths"
+                   running mean at the last frame; stature-regression: per-bone least squares on \
+                   measured ANSUR stature (height+sex: one line per sex) over the ANSUR people \
+                   outside the split, applied to each individual's measured stature; size_slope: \
+                   least squares of predicted vs true sum of the 16 lengths"
             .into(),
         seconds: t0.elapsed().as_secs_f64(),
         trials: trials

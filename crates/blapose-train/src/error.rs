@@ -24,6 +24,9 @@ pub enum TrainError {
     /// The ANSUR mapping could not be applied.
     #[error("ANSUR II: {0}")]
     Ansur(String),
+    /// The stature regression could not be fitted or applied.
+    #[error(transparent)]
+    Stature(#[from] crate::stature::StatureError),
     /// A geometric operation failed.
     #[error(transparent)]
     Bone(#[from] blapose_core::bones::BoneError),

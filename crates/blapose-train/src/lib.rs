@@ -4,7 +4,7 @@
 //! - [`lengths`], [`ansur`]: what bone lengths synthetic sequences get;
 //! - [`ansur_split`]: the held-out ANSUR people training never draws;
 //! - [`bodies`], [`bench_camera`]: the many-bodies cross-camera benchmark
-//!   on those people;
+//!   on those people; [`stature`]: its stature-regression baseline;
 //! - [`noise`]: 2D detector-noise models fitted to real detections;
 //! - [`synth`], [`loader`]: the augmentation pipeline and batch prefetching;
 //! - [`dataset`]: Human3.6M as training and evaluation read it;
@@ -37,6 +37,7 @@ pub mod loader;
 pub mod noise;
 pub mod plot;
 pub mod run;
+pub mod stature;
 pub mod synth;
 pub mod train;
 

@@ -20,6 +20,7 @@ use blapose_train::bodies::{
 };
 use blapose_train::dataset::{mean_subject_lengths, TrainingSet};
 use blapose_train::lengths::{LengthSampler, LengthStrategy, TrainingLengthStats};
+use blapose_train::stature::StatureRegression;
 use blapose_train::synth::MotionSequence;
 use rand::SeedableRng;
 
@@ -91,6 +92,40 @@ fn the_split_has_both_sexes_500_people_and_is_deterministic() {
 }
 
 #[test]
+fn the_stature_regression_is_fitted_on_the_training_split_only() {
+    let Some(f) = fixture() else { return };
+    let r = StatureRegression::fit_training(&f.split.everyone).unwrap();
+    let held: HashSet<(u64, bool)> = f
+        .split
+        .held_out()
+        .iter()
+        .map(|p| (p.subject_id, p.sex == Sex::Male))
+        .collect();
+    assert_eq!(r.fitted_on.len(), f.split.everyone.len() - held.len());
+    assert!(r
+        .fitted_on
+        .iter()
+        .all(|&(id, sex)| !held.contains(&(id, sex == Sex::Male))));
+    // Moving every held-out body leaves the fit bit-identical.
+    let mut moved = f.split.everyone.clone();
+    for p in moved
+        .iter_mut()
+        .filter(|p| is_held_out(p.subject_id, p.sex))
+    {
+        p.lengths = p.lengths.map(|l| l * 2.0);
+        p.stature_m += 0.3;
+    }
+    assert_eq!(StatureRegression::fit_training(&moved).unwrap(), r);
+    // Statures are the survey's (metres, plausible) and both sexes fit.
+    assert!(f
+        .split
+        .everyone
+        .iter()
+        .all(|p| (1.3..2.2).contains(&p.stature_m)));
+    assert!(r.male.is_some() && r.female.is_some());
+}
+
+#[test]
 fn training_never_draws_a_held_out_individual_by_default() {
     let Some(f) = fixture() else { return };
     let held: HashSet<[u32; NUM_BONES]> =
@@ -149,12 +184,14 @@ fn a_tiny_benchmark_run_gives_well_formed_deterministic_rows() {
     };
     let people = f.split.held_out();
     let train = f.split.training_population(AnsurPeople::Train).unwrap();
+    let stature = StatureRegression::fit_training(&f.split.everyone).unwrap();
     let input = BodiesInput {
         people: people.clone(),
         motions: f.motions.clone(),
         residuals: &f.set.residuals,
         prior: mean_body(train.people()).unwrap(),
         training_mean: mean_subject_lengths(&f.set.subject_lengths, &TRAIN_SUBJECTS).unwrap(),
+        stature: Some(&stature),
     };
     let specs = [
         (
@@ -212,9 +249,14 @@ fn a_tiny_benchmark_run_gives_well_formed_deterministic_rows() {
         ("bigru", "none"),
         ("gru", "calibration"),
         ("bigru", "calibration"),
+        ("stature-regression", "height"),
+        ("stature-regression", "height+sex"),
     ] {
         assert!(combos.contains(&(want.0.into(), want.1.into())), "{want:?}");
     }
+    // The models' rows first, in their order; the regression's after.
+    assert_eq!(combos.len(), 6);
+    assert!(combos[4..].iter().all(|(m, _)| m == "stature-regression"));
     let prior = report.rows[0].prior_mean_bone_error_mm;
     for r in rows {
         for k in [
@@ -246,6 +288,24 @@ fn a_tiny_benchmark_run_gives_well_formed_deterministic_rows() {
     }
     let md = blapose_train::bodies::markdown(&report);
     assert!(md.contains("| bigru | calibration |") && md.contains("baseline: prior"));
+    assert!(md.contains("| stature-regression | height+sex |"));
+    // The regression reads sizes: taller individuals get longer bones.
+    for r in &report.rows[4..] {
+        assert!(r.size_slope > 0.3, "{}: {}", r.input, r.size_slope);
+    }
+    // Without the regression the model rows are exactly the same.
+    let bare = BodiesInput {
+        stature: None,
+        ..input
+    };
+    let without = blapose_train::bodies::run(&bare, &models, &cfg).unwrap();
+    assert_eq!(without.rows.len(), 4);
+    for (a, b) in without.rows.iter().zip(&report.rows) {
+        assert_eq!(
+            (a.mean_bone_error_mm, &a.per_bone_mm, a.size_slope),
+            (b.mean_bone_error_mm, &b.per_bone_mm, b.size_slope)
+        );
+    }
 
     // Seeded: the same trials again; another seed, other cameras.
     let a = build_trials(&people, &f.motions, &f.set.residuals, &cfg).unwrap();

@@ -17,6 +17,7 @@ use blapose_train::bodies::{
 };
 use blapose_train::dataset::{mean_subject_lengths, TrainingSet};
 use blapose_train::lengths::TrainingLengthStats;
+use blapose_train::stature::StatureRegression;
 
 /// `--benchmark`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -58,12 +59,15 @@ pub fn run(root: &Path, a: &BodiesArgs, json: Option<&Path>) -> Result<()> {
         .ok_or_else(|| anyhow::anyhow!("missing training subjects' lengths"))?;
     let h36m = H36m::load(root, &MOTION_SUBJECTS, Parts::POSES)?;
     let motions = test_motions(&h36m, &MOTION_SUBJECTS)?;
+    // The stature-regression baseline: fitted on the training split only.
+    let stature = StatureRegression::fit_training(&split.everyone)?;
     let input = BodiesInput {
         people: split.held_out(),
         motions,
         residuals: &set.residuals,
         prior,
         training_mean,
+        stature: Some(&stature),
     };
     eprintln!(
         "loaded {} held-out individuals, {} test sequences in {:.1}s",
@@ -122,8 +126,11 @@ pub fn run(root: &Path, a: &BodiesArgs, json: Option<&Path>) -> Result<()> {
     report.seconds = t0.elapsed().as_secs_f64();
     println!("{}", markdown(&report));
     println!(
-        "{} individuals x {} frames, 4 models, {:.0}s in all (data loading included)",
-        report.individuals, report.frames_per_individual, report.seconds
+        "{} individuals x {} frames, {} rows, {:.0}s in all (data loading included)",
+        report.individuals,
+        report.frames_per_individual,
+        report.rows.len(),
+        report.seconds
     );
     if let Some(p) = json {
         std::fs::write(p, serde_json::to_string_pretty(&report)?)?;
