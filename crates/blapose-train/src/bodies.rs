@@ -114,6 +114,31 @@ impl BenchInput {
     }
 }
 
+/// The shipped models the benchmark scores, in row order: each model kind
+/// with the input it reads and its weights file under `models/`.
+pub const SHIPPED_MODELS: [(ModelKind, BenchInput, &str); 4] = [
+    (
+        ModelKind::Gru,
+        BenchInput::None,
+        "bone_length_gru.safetensors",
+    ),
+    (
+        ModelKind::BiGru,
+        BenchInput::None,
+        "bone_length_bigru.safetensors",
+    ),
+    (
+        ModelKind::Gru,
+        BenchInput::Calibration,
+        "bone_length_gru_rectified.safetensors",
+    ),
+    (
+        ModelKind::BiGru,
+        BenchInput::Calibration,
+        "bone_length_bigru_rectified.safetensors",
+    ),
+];
+
 /// One individual's trial: truth, clip, camera and both inputs.
 #[derive(Debug, Clone)]
 pub struct Trial {

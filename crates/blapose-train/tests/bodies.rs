@@ -12,11 +12,10 @@ use blapose_core::BoneLengths;
 use blapose_data::ansur::Sex;
 use blapose_data::h36m::{H36m, Parts, TRAIN_SUBJECTS};
 use blapose_data::test_data_root;
-use blapose_model::ModelKind;
 use blapose_train::ansur::load_population;
 use blapose_train::ansur_split::{is_held_out, AnsurPeople, AnsurSplit};
 use blapose_train::bodies::{
-    build_trials, mean_body, test_motions, BenchInput, BenchModel, BodiesConfig, BodiesInput,
+    build_trials, mean_body, test_motions, BenchModel, BodiesConfig, BodiesInput, SHIPPED_MODELS,
 };
 use blapose_train::dataset::{mean_subject_lengths, TrainingSet};
 use blapose_train::lengths::{LengthSampler, LengthStrategy, TrainingLengthStats};
@@ -193,28 +192,7 @@ fn a_tiny_benchmark_run_gives_well_formed_deterministic_rows() {
         training_mean: mean_subject_lengths(&f.set.subject_lengths, &TRAIN_SUBJECTS).unwrap(),
         stature: Some(&stature),
     };
-    let specs = [
-        (
-            ModelKind::Gru,
-            BenchInput::None,
-            "bone_length_gru.safetensors",
-        ),
-        (
-            ModelKind::BiGru,
-            BenchInput::None,
-            "bone_length_bigru.safetensors",
-        ),
-        (
-            ModelKind::Gru,
-            BenchInput::Calibration,
-            "bone_length_gru_rectified.safetensors",
-        ),
-        (
-            ModelKind::BiGru,
-            BenchInput::Calibration,
-            "bone_length_bigru_rectified.safetensors",
-        ),
-    ];
+    let specs = SHIPPED_MODELS;
     let weights: Vec<_> = specs
         .iter()
         .map(|(k, _, file)| blapose_model::weights::load(models_dir().join(file), *k).unwrap())

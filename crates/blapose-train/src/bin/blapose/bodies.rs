@@ -9,11 +9,10 @@ use std::time::Instant;
 
 use anyhow::Result;
 use blapose_data::h36m::{H36m, Parts, TRAIN_SUBJECTS};
-use blapose_model::ModelKind;
 use blapose_train::ansur_split::{AnsurPeople, AnsurSplit};
 use blapose_train::bodies::{
-    markdown, mean_body, test_motions, BenchInput, BenchModel, BodiesConfig, BodiesInput,
-    DEFAULT_FRAMES, DEFAULT_SEED,
+    markdown, mean_body, test_motions, BenchModel, BodiesConfig, BodiesInput, DEFAULT_FRAMES,
+    DEFAULT_SEED, SHIPPED_MODELS,
 };
 use blapose_train::dataset::{mean_subject_lengths, TrainingSet};
 use blapose_train::lengths::TrainingLengthStats;
@@ -75,28 +74,7 @@ pub fn run(root: &Path, a: &BodiesArgs, json: Option<&Path>) -> Result<()> {
         input.motions.len(),
         t0.elapsed().as_secs_f64()
     );
-    let specs = [
-        (
-            ModelKind::Gru,
-            BenchInput::None,
-            "bone_length_gru.safetensors",
-        ),
-        (
-            ModelKind::BiGru,
-            BenchInput::None,
-            "bone_length_bigru.safetensors",
-        ),
-        (
-            ModelKind::Gru,
-            BenchInput::Calibration,
-            "bone_length_gru_rectified.safetensors",
-        ),
-        (
-            ModelKind::BiGru,
-            BenchInput::Calibration,
-            "bone_length_bigru_rectified.safetensors",
-        ),
-    ];
+    let specs = SHIPPED_MODELS;
     let mut loaded = Vec::with_capacity(specs.len());
     for (kind, bench_input, file) in specs {
         let path = a.models_dir.join(file);
