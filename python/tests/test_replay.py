@@ -19,16 +19,20 @@ def cli(server: Server, *args: str) -> None:
     subprocess.run([str(CLIENT_BIN), "--server", server.url, *args], check=True, capture_output=True, timeout=120)
 
 
+def cli_reference(server: Server, example: Path, tmp_path: Path, *args: str):
+    """The CLI's output for ``example`` (``args``: the subcommand and its flags), and the replay itself."""
+    out = tmp_path / "cli.npz"
+    cli(server, args[0], str(example), *args[1:], "--out", str(out))
+    return np.load(out), blapose.load_replay(example)
+
+
 def test_examples_exist() -> None:
     assert len(EXAMPLES) >= 5
 
 
 @pytest.mark.parametrize("example", EXAMPLES, ids=lambda p: p.stem)
 def test_stream_equals_cli_replay(server: Server, example: Path, tmp_path: Path) -> None:
-    out = tmp_path / "cli.npz"
-    cli(server, "replay", str(example), "--out", str(out))
-    ref = np.load(out)
-    seq = blapose.load_replay(example)
+    ref, seq = cli_reference(server, example, tmp_path, "replay")
     with blapose.Client(server.url) as client:
         with client.session(layout=seq.layout, image_size=seq.image_size) as s:
             results = list(s.stream(seq.frames()))
@@ -47,10 +51,7 @@ def test_stream_equals_cli_replay(server: Server, example: Path, tmp_path: Path)
 
 @pytest.mark.parametrize("example", EXAMPLES, ids=lambda p: p.stem)
 def test_adjust_sequence_equals_cli_adjust(server: Server, example: Path, tmp_path: Path) -> None:
-    out = tmp_path / "cli.npz"
-    cli(server, "adjust", str(example), "--out", str(out))
-    ref = np.load(out)
-    seq = blapose.load_replay(example)
+    ref, seq = cli_reference(server, example, tmp_path, "adjust")
     with blapose.Client(server.url) as client:
         res = client.adjust_sequence(seq.keypoints_2d, seq.pose_3d, layout=seq.layout, image_size=seq.image_size)
     assert res.model == "bigru"
@@ -59,11 +60,7 @@ def test_adjust_sequence_equals_cli_adjust(server: Server, example: Path, tmp_pa
 
 
 def test_camera_session_equals_cli_replay_camera(server: Server, tmp_path: Path) -> None:
-    example = EXAMPLES[0]
-    out = tmp_path / "cli.npz"
-    cli(server, "replay", str(example), "--camera", "--out", str(out))
-    ref = np.load(out)
-    seq = blapose.load_replay(example)
+    ref, seq = cli_reference(server, EXAMPLES[0], tmp_path, "replay", "--camera")
     assert seq.camera is not None
     with blapose.Client(server.url) as client:
         with client.session(layout=seq.layout, image_size=seq.image_size, camera=seq.camera) as s:

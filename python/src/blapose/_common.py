@@ -160,14 +160,17 @@ class SessionCore:
             return FrameRejected(msg.frame_index, status_code(msg.code), msg.message)
         raise ProtocolError(f"expected a frame answer, got {kind!r}")
 
-    def after_resume(self, info: SessionInfo) -> "list[PendingFrame]":
-        """Account for the frames in flight when the connection dropped.
+    def after_resume(self) -> "list[PendingFrame]":
+        """Account for the frames in flight when the connection dropped, once
+        ``attached`` has stored the resumed session's ``info``.
 
         The first ``info.frames_seen - frames_seen`` of them were processed (their
         answers are rebuilt locally and queued in ``ready``); the rest are
         returned, to be sent again in order. Assumes none of the lost answers was
         a refusal (a refused frame is not counted; see the README).
         """
+        info = self.info
+        assert info is not None
         processed = info.frames_seen - self.frames_seen
         if processed < 0 or processed > len(self.pending):
             raise ProtocolError(
@@ -190,7 +193,6 @@ class SessionCore:
             )
         self.recovered += processed
         self.frames_seen = info.frames_seen
-        self.info = info
         self.resumes += 1
         return list(self.pending)
 

@@ -351,8 +351,7 @@ class Session:
             except Unavailable:
                 time.sleep(min(delay, max(0.0, deadline - time.monotonic())))
                 delay = min(delay * 2, 1.0)
-        assert self._core.info is not None
-        for frame in self._core.after_resume(self._core.info):
+        for frame in self._core.after_resume():
             self._att.send(frame.request)
 
     def _receive(self) -> Union[FrameResult, FrameRejected]:
