@@ -156,7 +156,6 @@ pub async fn replay_session(
 ) -> Result<Adjusted, ClientError> {
     let started = Instant::now();
     let (info, sender, mut receiver) = session.split();
-    let lifting = info.lifter.is_some();
     let lifter = info.lifter.clone();
     let camera = info.camera;
     let first = usize::try_from(info.frames_seen)
@@ -182,7 +181,7 @@ pub async fn replay_session(
             if let Some(ticker) = ticker.as_mut() {
                 ticker.tick().await;
             }
-            let frame = if lifting {
+            let frame = if lifter.is_some() {
                 seq.keypoints_frame(t)
             } else {
                 seq.frame(t)

@@ -128,7 +128,7 @@ pub async fn run(
 /// The status a stream ends with at shutdown. Sessions live in this
 /// server's memory only, so they end with it: resuming elsewhere (or here
 /// after a restart) finds no session.
-pub fn shutting_down() -> Status {
+fn shutting_down() -> Status {
     Status::unavailable(
         "the server is shutting down: every frame it received was answered, and its sessions \
          end with it; reconnect later (or to another server) and open a new session",
@@ -137,7 +137,7 @@ pub fn shutting_down() -> Status {
 
 /// The status a stream ends with when its first message did not arrive
 /// within `waited` (`--open-timeout`).
-pub fn no_open_in_time(waited: std::time::Duration) -> Status {
+fn no_open_in_time(waited: std::time::Duration) -> Status {
     Status::deadline_exceeded(format!(
         "no open or resume request within {waited:?} of the stream starting \
          (--open-timeout): send it as the first message"
