@@ -90,9 +90,6 @@ pub fn wide_cameras() -> CameraRange {
     }
 }
 
-/// Name of [`wide_cameras`] in reports.
-pub const WIDE_CAMERAS: &str = "wide";
-
 /// One drawn camera and the values it was drawn with.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct DrawnCamera {
