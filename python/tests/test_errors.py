@@ -229,3 +229,23 @@ def test_status_code_mapping() -> None:
         assert isinstance(err, blapose.RpcError) and err.code == code
         assert status_code(code.value[0]) == code
     assert isinstance(from_grpc_error(Fake(grpc.StatusCode.NOT_FOUND)), blapose.NotFound)
+
+
+class _FakeRpcError(grpc.RpcError):
+    def __init__(self, code: grpc.StatusCode, details: str) -> None:
+        self._code, self._details = code, details
+
+    def code(self) -> grpc.StatusCode:
+        return self._code
+
+    def details(self) -> str:
+        return self._details
+
+
+def test_a_deadline_the_server_noticed_first_is_deadline_exceeded() -> None:
+    from blapose.errors import from_grpc_error
+
+    raced = from_grpc_error(_FakeRpcError(grpc.StatusCode.CANCELLED, "Timeout%20expired"))
+    assert isinstance(raced, blapose.DeadlineExceeded)
+    other = from_grpc_error(_FakeRpcError(grpc.StatusCode.CANCELLED, "client went away"))
+    assert isinstance(other, blapose.Cancelled)

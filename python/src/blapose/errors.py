@@ -17,6 +17,7 @@ anything is sent.
 from __future__ import annotations
 
 from typing import Dict, Optional, Type
+from urllib.parse import unquote
 
 import grpc
 
@@ -176,10 +177,19 @@ def status_code(number: int) -> grpc.StatusCode:
     return _BY_NUMBER.get(number, grpc.StatusCode.UNKNOWN)
 
 
+#: What the server says when a call's grpc-timeout expires on its side.
+_SERVER_TIMEOUT = "Timeout expired"
+
+
 def from_grpc_error(err: grpc.RpcError) -> RpcError:
     """Turn a ``grpc.RpcError`` (a call's failure) into the typed exception."""
     code = err.code() if hasattr(err, "code") else grpc.StatusCode.UNKNOWN
     details = (err.details() if hasattr(err, "details") else None) or str(err)
+    if code == grpc.StatusCode.CANCELLED and _SERVER_TIMEOUT in unquote(details):
+        # The call's own deadline ran out, noticed first by the server: it
+        # ends the call with CANCELLED "Timeout expired" (tonic), racing the
+        # client's DEADLINE_EXCEEDED. Either way it is the caller's deadline.
+        code = grpc.StatusCode.DEADLINE_EXCEEDED
     cls = _BY_CODE.get(code, RpcError)
     return cls(details, code)
 
