@@ -17,6 +17,7 @@ use std::collections::HashMap;
 use std::path::Path;
 use std::sync::Arc;
 
+use blapose_core::level::{CameraEnvelope, WIDE_CAMERA_ENVELOPE};
 use blapose_lifters::{TrainedLifter, TrainedLifterError};
 use blapose_model::weights::{self, LoadedWeights};
 use blapose_model::{ModelError, ModelKind, OfflineBiGruEngine, OnlineGruEngine, Precision};
@@ -173,6 +174,15 @@ pub enum WeightsError {
         /// The Bi-GRU's origin.
         bigru: String,
     },
+    /// One of a family's models was trained through wide cameras and the
+    /// other was not.
+    #[error("the GRU ({gru}) and the Bi-GRU ({bigru}) of a family must be trained on the same cameras (train_config wide_cameras)")]
+    MixedCameraTraining {
+        /// The GRU's origin.
+        gru: String,
+        /// The Bi-GRU's origin.
+        bigru: String,
+    },
     /// The `--lifter-weights` file cannot be served. (The cause is part of
     /// the message, not a `source()`, so an error chain prints it once.)
     #[error("cannot serve the lifter weights {path} (--lifter-weights): {cause}")]
@@ -291,6 +301,16 @@ fn trained_height_normalized(weights: &LoadedWeights) -> bool {
     train_flag(weights, "height_normalized").unwrap_or(false)
 }
 
+/// The calibrations the weights were trained for: the wide range when they
+/// were trained through wide cameras (`train --wide-cameras`), else `None`
+/// (Human3.6M's cameras; any calibration that rectifies is taken).
+fn trained_cameras(weights: &LoadedWeights) -> Option<CameraEnvelope> {
+    let config = weights.meta.extra.get("train_config")?;
+    let config: serde_json::Value = serde_json::from_str(config).ok()?;
+    let wide = config.get("wide_cameras")?.as_f64()?;
+    (wide > 0.0).then_some(WIDE_CAMERA_ENVELOPE)
+}
+
 fn sha256_hex(bytes: &[u8]) -> String {
     Sha256::digest(bytes)
         .iter()
@@ -371,6 +391,11 @@ pub trait ModelProvider: Send + Sync + 'static {
     fn height_normalized(&self) -> bool {
         false
     }
+    /// The calibrations these models were trained for (`None`: any that
+    /// can be rectified).
+    fn trained_cameras(&self) -> Option<CameraEnvelope> {
+        None
+    }
 }
 
 /// The real provider: blapose-model's fast engines on loaded weights,
@@ -384,6 +409,7 @@ pub struct WeightsProvider {
     offline: Arc<OfflineBiGruEngine>,
     camera_aware: Option<Arc<WeightsProvider>>,
     height_normalized: bool,
+    trained_cameras: Option<CameraEnvelope>,
 }
 
 /// Scratch preallocated per online backend (it grows if a batch is larger).
@@ -409,6 +435,14 @@ impl WeightsProvider {
             }
             .into());
         }
+        let trained_cameras = trained_cameras(&gru.weights);
+        if trained_cameras != self::trained_cameras(&bigru.weights) {
+            return Err(WeightsError::MixedCameraTraining {
+                gru: gru.origin,
+                bigru: bigru.origin,
+            }
+            .into());
+        }
         let online = engine::online_engine(&gru.weights, threads, precision)?;
         let offline = engine::offline_engine(&bigru.weights, threads, precision)?;
         Ok(Self {
@@ -419,6 +453,7 @@ impl WeightsProvider {
             offline,
             camera_aware: None,
             height_normalized,
+            trained_cameras,
         })
     }
 
@@ -476,6 +511,10 @@ impl ModelProvider for WeightsProvider {
 
     fn height_normalized(&self) -> bool {
         self.height_normalized
+    }
+
+    fn trained_cameras(&self) -> Option<CameraEnvelope> {
+        self.trained_cameras
     }
 }
 

@@ -46,12 +46,15 @@ pub struct AppState {
 }
 
 impl AppState {
-    /// The server's camera-aware models as [`validate::camera`] needs them:
-    /// `None` without any, else whether they are height-normalized.
-    pub fn camera_models(&self) -> Option<bool> {
+    /// The server's camera-aware models as [`validate::camera`] needs them
+    /// (`None` without any).
+    pub fn camera_models(&self) -> Option<validate::CameraModels> {
         self.provider
             .camera_aware()
-            .map(|models| models.height_normalized())
+            .map(|models| validate::CameraModels {
+                height_normalized: models.height_normalized(),
+                trained_cameras: models.trained_cameras(),
+            })
     }
 }
 

@@ -12,7 +12,8 @@
 use blapose_core::bones::{self, BoneError};
 use blapose_core::layouts::{Coordinates, KeypointLayout};
 use blapose_core::level::{
-    self, CalibrationError, LevelCamera, LevelError, MAX_CAMERA_HEIGHT, MIN_CAMERA_HEIGHT,
+    self, CalibrationError, CameraEnvelope, LevelCamera, LevelError, OutsideEnvelope,
+    MAX_CAMERA_HEIGHT, MIN_CAMERA_HEIGHT,
 };
 pub use blapose_core::pose::POSE_VALUES;
 use blapose_core::skeleton::JOINT_NAMES;
@@ -186,6 +187,12 @@ pub enum InvalidInput {
     /// The camera height is not 0 (unknown) or a plausible height.
     #[error("camera.height {0} is not 0 (not given) or a height of {MIN_CAMERA_HEIGHT} to {MAX_CAMERA_HEIGHT} m")]
     CameraHeight(f32),
+    /// Height-normalized models without the camera height.
+    #[error("camera.height is required: the camera-aware models read a person's size relative to the camera's height above the floor (metres; measure it with a tape)")]
+    CameraHeightRequired,
+    /// A calibration the camera-aware models were not trained for.
+    #[error("{0}")]
+    OutsideTrainedCameras(OutsideEnvelope),
     /// A camera on a server without camera-aware models.
     #[error("a camera calibration was sent but this server has no camera-aware models (it was started with --no-camera-aware); leave camera out")]
     NoCameraAwareModel,
@@ -246,27 +253,40 @@ pub fn input_spec_to_proto(spec: &InputSpec) -> pb::InputFormat {
     (*spec).into()
 }
 
+/// What the server's camera-aware models ask of a calibration.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CameraModels {
+    /// Their estimates are height-normalized: the camera height is
+    /// required and scales them ([`blapose_core::level::height_scale`]).
+    pub height_normalized: bool,
+    /// The calibrations they were trained for (`None`: any that can be
+    /// rectified).
+    pub trained_cameras: Option<CameraEnvelope>,
+}
+
 /// Validate an optional `CameraCalibration` against the input format and
 /// build its level twin. `served` is `None` when the server has no
-/// camera-aware models (a calibration is then refused), else whether they
-/// are height-normalized (their estimates are then scaled by the camera's
-/// height, [`blapose_core::level::height_scale`]).
+/// camera-aware models (a calibration is then refused), else what they
+/// ask of a calibration.
 pub fn camera(
     calibration: Option<&pb::CameraCalibration>,
     spec: &InputSpec,
-    served: Option<bool>,
+    served: Option<CameraModels>,
 ) -> Result<Option<SessionCamera>, InvalidInput> {
     let Some(c) = calibration else {
         return Ok(None);
     };
-    let Some(height_normalized) = served else {
+    let Some(served) = served else {
         return Err(InvalidInput::NoCameraAwareModel);
     };
     let height = c.height;
     if height != 0.0 && !level::is_camera_height(height) {
         return Err(InvalidInput::CameraHeight(height));
     }
-    let length_scale = if height_normalized && height > 0.0 {
+    if served.height_normalized && height == 0.0 {
+        return Err(InvalidInput::CameraHeightRequired);
+    }
+    let length_scale = if served.height_normalized {
         blapose_core::level::height_scale(f64::from(height)) as f32
     } else {
         1.0
@@ -300,6 +320,16 @@ pub fn camera(
         height,
     )
     .map_err(InvalidInput::Camera)?;
+    if let Some(envelope) = served.trained_cameras {
+        envelope
+            .check(
+                f64::from(c.height),
+                up.map(f64::from),
+                f64::from(c.focal_x),
+                width,
+            )
+            .map_err(InvalidInput::OutsideTrainedCameras)?;
+    }
     Ok(Some(SessionCamera {
         calibration: c.clone(),
         level,
@@ -493,7 +523,7 @@ pub struct ValidSequence {
 /// camera-aware models, see [`camera`]).
 pub fn sequence(
     req: &pb::AdjustSequenceRequest,
-    camera_aware: Option<bool>,
+    camera_aware: Option<CameraModels>,
 ) -> Result<ValidSequence, InvalidInput> {
     let spec = input_spec(req.input_format.as_ref())?;
     let model = offline_model(req.model)?;
@@ -890,14 +920,16 @@ mod tests {
         let normalized = spec(KeypointLayout::H36m17, Coordinates::Normalized);
         let c = calibration();
         assert_eq!(camera(None, &pixels, None), Ok(None));
-        let got = camera(Some(&c), &pixels, Some(false)).unwrap().unwrap();
+        let got = camera(Some(&c), &pixels, Some(ANY_CAMERA))
+            .unwrap()
+            .unwrap();
         assert_eq!(got.calibration, c);
         assert_eq!(
             camera(Some(&c), &pixels, None),
             Err(InvalidInput::NoCameraAwareModel)
         );
         assert_eq!(
-            camera(Some(&c), &normalized, Some(false)),
+            camera(Some(&c), &normalized, Some(ANY_CAMERA)),
             Err(InvalidInput::CameraImageSizeMissing)
         );
         let sized = pb::CameraCalibration {
@@ -909,7 +941,7 @@ mod tests {
         };
         // The same camera, whether its image comes from the input or itself.
         assert_eq!(
-            camera(Some(&sized), &normalized, Some(false))
+            camera(Some(&sized), &normalized, Some(ANY_CAMERA))
                 .unwrap()
                 .unwrap()
                 .level,
@@ -923,7 +955,7 @@ mod tests {
             ..c.clone()
         };
         assert!(matches!(
-            camera(Some(&other), &pixels, Some(false)),
+            camera(Some(&other), &pixels, Some(ANY_CAMERA)),
             Err(InvalidInput::CameraImageSizeMismatch {
                 camera_width: 1920,
                 ..
@@ -934,7 +966,7 @@ mod tests {
             ..c.clone()
         };
         assert_eq!(
-            camera(Some(&short), &pixels, Some(false)),
+            camera(Some(&short), &pixels, Some(ANY_CAMERA)),
             Err(InvalidInput::CameraUpCount { got: 2 })
         );
         for bad in [
@@ -955,10 +987,86 @@ mod tests {
                 ..c.clone()
             },
         ] {
-            let err = camera(Some(&bad), &pixels, Some(false)).unwrap_err();
+            let err = camera(Some(&bad), &pixels, Some(ANY_CAMERA)).unwrap_err();
             assert!(matches!(err, InvalidInput::Camera(_)), "{err}");
             assert!(err.to_string().starts_with("camera: "), "{err}");
         }
+    }
+
+    /// Camera-aware models that take any calibration and are not
+    /// height-normalized.
+    const ANY_CAMERA: CameraModels = CameraModels {
+        height_normalized: false,
+        trained_cameras: None,
+    };
+
+    #[test]
+    fn wide_camera_models_need_the_height_and_a_calibration_they_were_trained_for() {
+        let pixels = spec(
+            KeypointLayout::H36m17,
+            Coordinates::Pixels {
+                width: 1000,
+                height: 1000,
+            },
+        );
+        let wide = CameraModels {
+            height_normalized: true,
+            trained_cameras: Some(level::WIDE_CAMERA_ENVELOPE),
+        };
+        // 10 degrees down, 47 degrees across, 1.5 m up: served, scaled.
+        let c = pb::CameraCalibration {
+            height: 1.5,
+            ..calibration()
+        };
+        let got = camera(Some(&c), &pixels, Some(wide)).unwrap().unwrap();
+        assert!((got.length_scale - (1.5 / level::REFERENCE_CAMERA_HEIGHT) as f32).abs() < 1e-6);
+        let refused = |c: pb::CameraCalibration| camera(Some(&c), &pixels, Some(wide)).unwrap_err();
+        assert_eq!(
+            refused(pb::CameraCalibration {
+                height: 0.0,
+                ..c.clone()
+            }),
+            InvalidInput::CameraHeightRequired
+        );
+        for (bad, field) in [
+            (
+                pb::CameraCalibration {
+                    height: 4.0,
+                    ..c.clone()
+                },
+                "camera.height",
+            ),
+            (
+                pb::CameraCalibration {
+                    // 50 degrees down.
+                    up: vec![0.0, -50f32.to_radians().cos(), -50f32.to_radians().sin()],
+                    ..c.clone()
+                },
+                "camera.up",
+            ),
+            (
+                pb::CameraCalibration {
+                    // 28 degrees across.
+                    focal_x: 2000.0,
+                    focal_y: 2000.0,
+                    ..c.clone()
+                },
+                "camera.focal_x",
+            ),
+        ] {
+            let err = refused(bad);
+            assert!(
+                matches!(&err, InvalidInput::OutsideTrainedCameras(e) if e.field == field),
+                "{err}"
+            );
+            assert!(err.to_string().starts_with(field), "{err}");
+        }
+        // The same calibrations are fine for models trained on any camera.
+        let far = pb::CameraCalibration {
+            height: 4.0,
+            ..c.clone()
+        };
+        assert!(camera(Some(&far), &pixels, Some(ANY_CAMERA)).is_ok());
     }
 
     #[test]
@@ -980,10 +1088,10 @@ mod tests {
             poses_3d: standing_pose().repeat(2),
             camera: None,
         };
-        let plain = sequence(&req, Some(false)).unwrap();
+        let plain = sequence(&req, Some(ANY_CAMERA)).unwrap();
         req.camera = Some(calibration());
         assert_eq!(sequence(&req, None), Err(InvalidInput::NoCameraAwareModel));
-        let rectified = sequence(&req, Some(false)).unwrap();
+        let rectified = sequence(&req, Some(ANY_CAMERA)).unwrap();
         let camera = rectified.camera.clone().unwrap();
         let mut want = plain.inputs.clone();
         camera.level.rectify_frames(&mut want);

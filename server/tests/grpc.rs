@@ -1238,7 +1238,29 @@ async fn height_normalized_models_are_scaled_by_the_camera_height() {
     let server = start_with(config(), fake).await;
     let mut c = client(server.local_addr()).await;
     let scale = 1.3 / blapose_core::level::REFERENCE_CAMERA_HEIGHT as f32;
-    for (height, k) in [(1.3, scale), (0.0, 1.0)] {
+    // Without the camera's height the size cannot be read: refused.
+    let no_height = pb::CameraCalibration {
+        height: 0.0,
+        ..calibration()
+    };
+    let err = c
+        .adjust_sequence(sequence_request(2, Some(no_height.clone())))
+        .await
+        .unwrap_err();
+    assert_eq!(err.code(), Code::InvalidArgument);
+    assert!(
+        err.message().contains("camera.height is required"),
+        "{err:?}"
+    );
+    let mut conn = Conn::new(&mut c).await;
+    conn.send(open_with_camera(Some(no_height))).await;
+    let err = conn.status().await;
+    assert_eq!(err.code(), Code::InvalidArgument);
+    assert!(
+        err.message().contains("camera.height is required"),
+        "{err:?}"
+    );
+    for (height, k) in [(1.3, scale), (2.6, 2.0 * scale)] {
         let camera = pb::CameraCalibration {
             height,
             ..calibration()

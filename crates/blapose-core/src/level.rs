@@ -72,6 +72,112 @@ pub fn is_camera_height(height: f32) -> bool {
     (MIN_CAMERA_HEIGHT..=MAX_CAMERA_HEIGHT).contains(&height)
 }
 
+/// The calibrations a camera-aware model family was trained on: the camera
+/// height above the floor, the optical axis' angle to the horizon (pitch,
+/// negative looking down) and the horizontal field of view. Rectification
+/// removes tilt and roll from the picture but not what they do to framing,
+/// and the rectified coordinates scale with the focal length, so a
+/// calibration outside the range asks the model about pictures it never
+/// saw; the server refuses it ([`CameraEnvelope::check`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CameraEnvelope {
+    /// Camera height above the floor, metres.
+    pub height_m: [f64; 2],
+    /// Optical axis above (+) or below (-) the horizon, degrees.
+    pub pitch_deg: [f64; 2],
+    /// Horizontal field of view, degrees.
+    pub hfov_deg: [f64; 2],
+}
+
+/// Where the wide-camera models are trained (`blapose train
+/// --wide-cameras`) and the many-bodies benchmark draws its cameras: where a
+/// user might put a phone or a webcam.
+pub const WIDE_CAMERA_ENVELOPE: CameraEnvelope = CameraEnvelope {
+    height_m: [0.5, 3.0],
+    pitch_deg: [-35.0, 15.0],
+    hfov_deg: [40.0, 100.0],
+};
+
+/// A calibration outside a family's [`CameraEnvelope`].
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{field} gives a {quantity} of {value:.2} {unit}; the camera-aware models were trained for {lo} to {hi} {unit}")]
+pub struct OutsideEnvelope {
+    /// The calibration value at fault (wire spelling).
+    pub field: &'static str,
+    /// What it gives.
+    pub quantity: &'static str,
+    /// Its value.
+    pub value: f64,
+    /// Smallest trained value.
+    pub lo: f64,
+    /// Largest trained value.
+    pub hi: f64,
+    /// The unit.
+    pub unit: &'static str,
+}
+
+/// The optical axis' angle above the horizon (degrees; negative looks
+/// down) of a camera with world `up` in camera coordinates (`z` forward).
+pub fn pitch_deg(up: [f64; 3]) -> f64 {
+    let norm = dot(&up, &up).sqrt();
+    (up[2] / norm).clamp(-1.0, 1.0).asin().to_degrees()
+}
+
+/// The horizontal field of view (degrees) of a focal length of `focal_x`
+/// pixels across an image `width` pixels wide.
+pub fn hfov_deg(focal_x: f64, width: u32) -> f64 {
+    2.0 * (f64::from(width) / 2.0 / focal_x).atan().to_degrees()
+}
+
+impl CameraEnvelope {
+    /// Check a calibration (already through [`check_calibration`]): the
+    /// camera `height_m` above the floor, world `up` in camera coordinates,
+    /// the focal length `focal_x` in pixels of an image `width` wide.
+    pub fn check(
+        &self,
+        height_m: f64,
+        up: [f64; 3],
+        focal_x: f64,
+        width: u32,
+    ) -> Result<(), OutsideEnvelope> {
+        let within = |field, quantity, value: f64, [lo, hi]: [f64; 2], unit| {
+            if (lo..=hi).contains(&value) {
+                Ok(())
+            } else {
+                Err(OutsideEnvelope {
+                    field,
+                    quantity,
+                    value,
+                    lo,
+                    hi,
+                    unit,
+                })
+            }
+        };
+        within(
+            "camera.height",
+            "camera height",
+            height_m,
+            self.height_m,
+            "m",
+        )?;
+        within(
+            "camera.up",
+            "pitch",
+            pitch_deg(up),
+            self.pitch_deg,
+            "degrees",
+        )?;
+        within(
+            "camera.focal_x",
+            "horizontal field of view",
+            hfov_deg(focal_x, width),
+            self.hfov_deg,
+            "degrees",
+        )
+    }
+}
+
 /// A calibration value that no camera can have. The checks behind it
 /// ([`check_calibration`], [`check_image_size`],
 /// [`calibration_image_size`]) are the protocol's, shared by the server
@@ -319,6 +425,29 @@ impl LevelCamera {
 mod tests {
     use super::*;
     use crate::camera::normalize_screen;
+
+    #[test]
+    fn the_envelope_names_the_value_outside_it() {
+        let e = WIDE_CAMERA_ENVELOPE;
+        // Level camera, 60 degrees across 1000 px, 1.2 m up.
+        let f = 500.0 / 30f64.to_radians().tan();
+        assert!((hfov_deg(f, 1000) - 60.0).abs() < 1e-9);
+        e.check(1.2, [0.0, -1.0, 0.0], f, 1000).unwrap();
+        let err = e.check(3.5, [0.0, -1.0, 0.0], f, 1000).unwrap_err();
+        assert_eq!((err.field, err.value), ("camera.height", 3.5));
+        // Looking 45 degrees down: up has a forward part of -sin 45.
+        let s = 45f64.to_radians().sin();
+        let down45 = [0.0, -s, -s];
+        assert!((pitch_deg(down45) + 45.0).abs() < 1e-9);
+        let err = e.check(1.2, down45, f, 1000).unwrap_err();
+        assert_eq!(err.field, "camera.up");
+        assert!(err.to_string().contains("pitch of -45.00 degrees"), "{err}");
+        // A 120-degree lens.
+        let wide = 500.0 / 60f64.to_radians().tan();
+        let err = e.check(1.2, [0.0, -1.0, 0.0], wide, 1000).unwrap_err();
+        assert_eq!(err.field, "camera.focal_x");
+        assert!((err.value - 120.0).abs() < 1e-9);
+    }
 
     fn camera(tilt: f64, principal: [f64; 2]) -> Camera {
         // Looking along world +y, tilted down by `tilt` radians.

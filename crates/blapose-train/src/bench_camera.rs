@@ -32,6 +32,7 @@
 //! accepted camera lies within them.
 
 use blapose_core::camera::Camera;
+use blapose_core::level::WIDE_CAMERA_ENVELOPE;
 use blapose_core::Pose;
 use rand::Rng;
 use serde::Serialize;
@@ -68,16 +69,19 @@ pub struct CameraRange {
 /// The documented wide distribution (issue "many-bodies benchmark"):
 /// height 0.5-3.0 m, distance 2-10 m, any yaw, pitch -35 to +15 degrees,
 /// roll +-5, horizontal field of view 40-100 degrees, principal point
-/// within 2 % of the centre, 640x480 to 1920x1080.
+/// within 2 % of the centre, 640x480 to 1920x1080. Height, pitch and field
+/// of view are [`WIDE_CAMERA_ENVELOPE`], which the server enforces for
+/// models trained here.
 pub fn wide_cameras() -> CameraRange {
+    let envelope = WIDE_CAMERA_ENVELOPE;
     CameraRange {
-        height_m: [0.5, 3.0],
+        height_m: envelope.height_m,
         distance_m: [2.0, 10.0],
         yaw_deg: [-180.0, 180.0],
         aim_offset_deg: [-10.0, 10.0],
-        pitch_deg: [-35.0, 15.0],
+        pitch_deg: envelope.pitch_deg,
         roll_deg: [-5.0, 5.0],
-        hfov_deg: [40.0, 100.0],
+        hfov_deg: envelope.hfov_deg,
         principal_jitter: 0.02,
         resolutions: vec![
             [640, 480],

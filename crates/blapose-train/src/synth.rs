@@ -24,6 +24,12 @@
 //!    off the floor and so hides their distance; [`ShiftPlane::Ground`]
 //!    shifts along the world floor only, so the feet's height in the image
 //!    still tells the distance, as it does in any fixed-camera scene;
+//!    With probability `wide_cameras` the window is instead seen through a
+//!    camera drawn from the many-bodies benchmark's wide distribution
+//!    ([`crate::bench_camera::wide_cameras`]: any height 0.5-3 m, distance,
+//!    heading, tilt and field of view a user might set up), framing the
+//!    whole window, no shift; its detector noise is a random residual track
+//!    (no recorded track belongs to a drawn camera);
 //! 5. project with the camera's real intrinsics *and* distortion straight to
 //!    normalized screen coordinates;
 //! 6. add detector noise ([`crate::noise`]), rescaled to the new depth;
@@ -48,6 +54,7 @@ use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use crate::bench_camera::{draw_camera_seeing, wide_cameras};
 use crate::error::TrainError;
 use crate::lengths::{normal_f32, LengthSampler};
 use crate::noise::{apply_residual, residual_at, NoiseKind, ResidualBank};
@@ -56,6 +63,9 @@ use crate::noise::{apply_residual, residual_at, NoiseKind, ResidualBank};
 pub const FRAME_DIM: usize = NUM_JOINTS * 2;
 /// How often the 3D shift is re-drawn before giving up on it.
 pub const MAX_SHIFT_TRIES: usize = 16;
+/// How often a wide camera is re-drawn to frame a window before the sample
+/// falls back to a recorded camera.
+pub const WIDE_CAMERA_TRIES: usize = 50;
 
 /// One training sequence of a training subject, pre-decomposed.
 #[derive(Debug, Clone)]
@@ -211,6 +221,10 @@ pub struct SynthConfig {
     /// with what the rectified picture shows; estimates are scaled back with
     /// the camera's height ([`blapose_core::level::height_scale`]).
     pub height_normalized: bool,
+    /// Probability that a sample is seen through a camera drawn from the
+    /// wide distribution ([`crate::bench_camera::wide_cameras`]) instead of
+    /// a recorded Human3.6M camera (0: recorded cameras only).
+    pub wide_cameras: f32,
 }
 
 impl Default for SynthConfig {
@@ -228,6 +242,7 @@ impl Default for SynthConfig {
             random_yaw: false,
             rectify: false,
             height_normalized: false,
+            wide_cameras: 0.0,
         }
     }
 }
@@ -257,6 +272,9 @@ impl SynthConfig {
         if !(0.0..=1.0).contains(&self.flip_prob) {
             return bad("flip_prob must be in [0, 1]");
         }
+        if !(0.0..=1.0).contains(&self.wide_cameras) {
+            return bad("wide_cameras must be in [0, 1]");
+        }
         Ok(())
     }
 }
@@ -275,6 +293,18 @@ pub struct SynthSource {
     camera_subset: Vec<Vec<usize>>,
 }
 
+/// [`Sample::camera`] of a sample seen through a wide camera.
+pub const WIDE_CAMERA: usize = usize::MAX;
+
+/// Where in which sequence a sample plays.
+struct Window {
+    sequence: usize,
+    /// First source frame (fractional).
+    start: f32,
+    /// Source frames per output frame.
+    stride: f32,
+}
+
 /// One synthetic sample.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Sample {
@@ -284,7 +314,7 @@ pub struct Sample {
     pub target: BoneLengths,
     /// Which sequence it came from.
     pub sequence: usize,
-    /// Which camera.
+    /// Which of the sequence's cameras ([`WIDE_CAMERA`]: a drawn one).
     pub camera: usize,
     /// Playback stride.
     pub stride: f32,
@@ -457,6 +487,17 @@ impl SynthSource {
         // for bit. The target is the drawn lengths.
         let shown: BoneLengths =
             std::array::from_fn(|b| seq.lengths[b] + (lengths[b] - seq.lengths[b]));
+        // Drawn only when asked, so recorded-camera runs keep their streams.
+        if cfg.wide_cameras > 0.0 && rng.random::<f32>() < cfg.wide_cameras {
+            let window = Window {
+                sequence: seq_idx,
+                start,
+                stride,
+            };
+            if let Some(sample) = self.sample_wide(cfg, &window, &lengths, &shown, rng) {
+                return sample;
+            }
+        }
         let cam_idx = match self.camera_subset.get(seq_idx) {
             Some(allowed) => allowed[rng.random_range(0..allowed.len())],
             None => rng.random_range(0..seq.cameras.len()),
@@ -576,6 +617,86 @@ impl SynthSource {
             stride,
             flipped,
         }
+    }
+
+    /// The sample of `window` seen through a camera of the wide
+    /// distribution (see the module docs, step 4); `None` when no drawn
+    /// camera frames it.
+    fn sample_wide<R: Rng + ?Sized>(
+        &self,
+        cfg: &SynthConfig,
+        window: &Window,
+        lengths: &BoneLengths,
+        shown: &BoneLengths,
+        rng: &mut R,
+    ) -> Option<Sample> {
+        let seq = &self.sequences[window.sequence];
+        let at = |t: usize| window.start + t as f32 * window.stride;
+        let world: Vec<Pose> = (0..cfg.seq_len)
+            .map(|t| {
+                let (root, dirs) = seq.at(at(t));
+                if cfg.floor_contact {
+                    rebuild_on_floor(root, &dirs, shown, &seq.lengths)
+                } else {
+                    rebuild(root, &dirs, shown)
+                }
+            })
+            .collect();
+        let drawn = draw_camera_seeing(&wide_cameras(), &world, WIDE_CAMERA_TRIES, rng).ok()?;
+        let cam = &drawn.camera;
+        let k = cam.normalized_intrinsics();
+        let track = match cfg.noise {
+            NoiseKind::Residual => self.residuals.random_track(rng),
+            _ => None,
+        };
+        let span = cfg.seq_len.saturating_sub(1) as f32 * window.stride;
+        let offset = match track {
+            Some(tr) if (tr.len() as f32 - 1.0) > span => {
+                rng.random_range(0.0..(tr.len() as f32 - 1.0 - span))
+            }
+            _ => 0.0,
+        };
+        let flipped = rng.random::<f32>() < cfg.flip_prob;
+        let level = if cfg.rectify {
+            Some(LevelCamera::from_camera(cam).ok()?)
+        } else {
+            None
+        };
+        let mut input = Vec::with_capacity(cfg.seq_len * FRAME_DIM);
+        for (t, p) in world.iter().enumerate() {
+            let c = cam.world_to_camera_pose(p);
+            let mut kp: Keypoints2d = k.project_pose(&c);
+            let residual = match cfg.noise {
+                NoiseKind::None => None,
+                NoiseKind::Gaussian => Some(self.residuals.gaussian(rng)),
+                NoiseKind::Residual => {
+                    track.map(|tr| residual_at(tr, offset + t as f32 * window.stride))
+                }
+            };
+            if let Some(r) = residual {
+                apply_residual(&mut kp, &r, c[0][2], k.focal);
+            }
+            if let Some(level) = &level {
+                kp = level.rectify(&kp);
+            }
+            if flipped {
+                kp = flip_keypoints_normalized(&kp);
+            }
+            input.extend(kp.iter().flatten());
+        }
+        Some(Sample {
+            input,
+            target: if cfg.height_normalized {
+                let k = (1.0 / height_scale(drawn.height_m)) as f32;
+                lengths.map(|l| l * k)
+            } else {
+                *lengths
+            },
+            sequence: window.sequence,
+            camera: WIDE_CAMERA,
+            stride: window.stride,
+            flipped,
+        })
     }
 
     /// Synthesize batch `step` (samples `0..batch`, each with

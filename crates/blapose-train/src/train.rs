@@ -111,6 +111,11 @@ pub struct TrainConfig {
     /// field had raw targets.
     #[serde(default)]
     pub height_normalized: bool,
+    /// Share of samples seen through a camera of the wide distribution
+    /// ([`crate::synth::SynthConfig::wide_cameras`]); runs before this
+    /// field used recorded cameras only.
+    #[serde(default)]
+    pub wide_cameras: f32,
     /// Flip probability.
     pub flip_prob: f32,
     /// Samples per batch.
@@ -198,6 +203,7 @@ impl TrainConfig {
             random_yaw: self.random_yaw,
             rectify: self.rectify,
             height_normalized: self.height_normalized,
+            wide_cameras: self.wide_cameras,
         };
         cfg.validate()?;
         Ok(cfg)

@@ -14,7 +14,7 @@ use blapose_train::ansur::{load_population, AnsurPopulation};
 use blapose_train::dataset::TrainingSet;
 use blapose_train::lengths::{LengthSampler, LengthStrategy, TrainingLengthStats};
 use blapose_train::noise::NoiseKind;
-use blapose_train::synth::{flip_input, sample_rng, SynthConfig, SynthSource};
+use blapose_train::synth::{flip_input, sample_rng, SynthConfig, SynthSource, WIDE_CAMERA};
 
 struct Fixture {
     root: PathBuf,
@@ -317,6 +317,58 @@ fn height_normalized_targets_are_seen_from_the_reference_height() {
     let bad = SynthConfig {
         rectify: false,
         ..normalized
+    };
+    assert!(bad.validate().is_err());
+}
+
+#[test]
+fn wide_camera_samples_frame_the_person_and_normalize_by_their_camera() {
+    let Some(f) = fixture() else { return };
+    let src = source(f, LengthStrategy::Ansur);
+    let plain = SynthConfig {
+        seq_len: 16,
+        wide_cameras: 1.0,
+        flip_prob: 0.0,
+        ..Default::default()
+    };
+    let rectified = SynthConfig {
+        rectify: true,
+        ..plain
+    };
+    let normalized = SynthConfig {
+        height_normalized: true,
+        ..rectified
+    };
+    let mut wide = 0;
+    let mut scales = Vec::new();
+    for i in 0..64 {
+        let p = src.sample(&plain, &mut sample_rng(11, 0, i));
+        let r = src.sample(&rectified, &mut sample_rng(11, 0, i));
+        let n = src.sample(&normalized, &mut sample_rng(11, 0, i));
+        assert_eq!(p.target, r.target);
+        assert_eq!(r.input, n.input);
+        if p.camera != WIDE_CAMERA {
+            continue;
+        }
+        wide += 1;
+        // In the picture (normalized: |x| <= 1), up to detector noise.
+        assert!(p.input.iter().all(|v| v.is_finite() && v.abs() < 1.2));
+        assert_ne!(p.input, r.input, "rectifying a tilted camera moves points");
+        // One factor for every bone: 1.56 m over a height in 0.5-3 m.
+        let k = n.target[0] / r.target[0];
+        assert!((0.5..=3.2).contains(&k), "{k}");
+        for (a, b) in r.target.iter().zip(&n.target) {
+            assert!((a * k - b).abs() < 1e-5);
+        }
+        scales.push(k);
+    }
+    assert!(wide >= 58, "only {wide} of 64 samples got a wide camera");
+    let spread = scales.iter().cloned().fold(f32::MIN, f32::max)
+        - scales.iter().cloned().fold(f32::MAX, f32::min);
+    assert!(spread > 1.0, "camera heights barely vary: {spread}");
+    let bad = SynthConfig {
+        wide_cameras: 1.5,
+        ..plain
     };
     assert!(bad.validate().is_err());
 }

@@ -109,6 +109,12 @@ pub struct TrainArgs {
     /// --height-correction`, the server's CameraCalibration.height).
     #[arg(long, requires = "rectify")]
     height_normalized: bool,
+    /// Share of samples (0-1) seen through a camera drawn from the
+    /// many-bodies benchmark's wide distribution (height 0.5-3 m, any
+    /// heading, tilt and field of view) instead of a recorded Human3.6M
+    /// camera: for models that must work wherever a user puts the camera.
+    #[arg(long, default_value_t = 0.0)]
+    wide_cameras: f32,
     /// Horizontal flip probability.
     #[arg(long, default_value_t = 0.5)]
     flip_prob: f32,
@@ -174,6 +180,7 @@ impl TrainArgs {
             cameras: self.cameras.clone(),
             rectify: self.rectify,
             height_normalized: self.height_normalized,
+            wide_cameras: self.wide_cameras,
             flip_prob: self.flip_prob,
             batch: self.batch,
             steps: self.steps,
@@ -197,7 +204,7 @@ impl TrainArgs {
 /// The weights' `training_data` text: the data and augmentation of `cfg`.
 fn training_data(cfg: &TrainConfig) -> String {
     format!(
-        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}, people {}), noise={}, seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), floor_contact={}, random yaw={}, cameras={}, rectified={}, height-normalized={}, flip={}",
+        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}, people {}), noise={}, seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), floor_contact={}, random yaw={}, cameras={}, rectified={}, height-normalized={}{}, flip={}",
         cfg.lengths,
         cfg.ansur_spread,
         cfg.ansur_people,
@@ -212,6 +219,11 @@ fn training_data(cfg: &TrainConfig) -> String {
         camera_list(&cfg.cameras),
         cfg.rectify,
         cfg.height_normalized,
+        if cfg.wide_cameras > 0.0 {
+            format!(", wide cameras={}", cfg.wide_cameras)
+        } else {
+            String::new()
+        },
         cfg.flip_prob
     )
 }
