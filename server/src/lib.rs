@@ -70,8 +70,8 @@ pub use config::CameraAwareWeights;
 pub use config::{Cli, HealthCheckTls, LogFormat, ServerConfig, TlsFiles, WeightsSource};
 pub use error::ServerError;
 pub use models::{
-    embedded_bigru, embedded_bigru_rectified, embedded_gru, embedded_gru_rectified, Family,
-    LoadedLifter, ModelProvider, WeightsProvider,
+    embedded_bigru, embedded_bigru_rectified, embedded_gru, embedded_gru_rectified, CameraReading,
+    Family, LoadedLifter, ModelProvider, WeightsProvider,
 };
 
 use auth::BearerAuth;

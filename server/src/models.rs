@@ -166,22 +166,17 @@ pub enum WeightsError {
         /// The flag that takes them.
         flag: &'static str,
     },
-    /// One of a family's models is height-normalized and the other is not.
-    #[error("the GRU ({gru}) and the Bi-GRU ({bigru}) of a family must both be height-normalized or neither (train_config height_normalized)")]
-    MixedHeightNormalization {
+    /// The GRU and the Bi-GRU of a family read calibrations differently.
+    #[error("the GRU ({gru}) and the Bi-GRU ({bigru}) of a family must read a camera alike (train_config height_normalized, floor_scaled, wide_cameras): {gru_reading:?} vs {bigru_reading:?}")]
+    MixedCameraReading {
         /// The GRU's origin.
         gru: String,
         /// The Bi-GRU's origin.
         bigru: String,
-    },
-    /// One of a family's models was trained through wide cameras and the
-    /// other was not.
-    #[error("the GRU ({gru}) and the Bi-GRU ({bigru}) of a family must be trained on the same cameras (train_config wide_cameras)")]
-    MixedCameraTraining {
-        /// The GRU's origin.
-        gru: String,
-        /// The Bi-GRU's origin.
-        bigru: String,
+        /// How the GRU reads a calibration.
+        gru_reading: CameraReading,
+        /// How the Bi-GRU does.
+        bigru_reading: CameraReading,
     },
     /// The `--lifter-weights` file cannot be served. (The cause is part of
     /// the message, not a `source()`, so an error chain prints it once.)
@@ -295,20 +290,39 @@ fn trained_rectified(weights: &LoadedWeights) -> Option<bool> {
     train_flag(weights, "rectify")
 }
 
-/// Whether the weights predict lengths as seen from the reference camera
-/// height (`train --height-normalized`); files that do not say are not.
-fn trained_height_normalized(weights: &LoadedWeights) -> bool {
-    train_flag(weights, "height_normalized").unwrap_or(false)
+/// How a camera-aware model reads a calibration (its `train_config`).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct CameraReading {
+    /// It predicts lengths as seen from
+    /// [`blapose_core::level::REFERENCE_CAMERA_HEIGHT`] (`train
+    /// --height-normalized`): the camera height is required and scales them.
+    pub height_normalized: bool,
+    /// It reads rectified keypoints scaled to the floor (`train
+    /// --floor-scaled`, [`blapose_core::level::LevelCamera::scaled_to_floor`]).
+    pub floor_scaled: bool,
+    /// The calibrations it was trained for: the wide range when trained
+    /// through wide cameras (`train --wide-cameras`); `None` (Human3.6M's
+    /// cameras) takes any calibration that rectifies.
+    pub trained_cameras: Option<CameraEnvelope>,
 }
 
-/// The calibrations the weights were trained for: the wide range when they
-/// were trained through wide cameras (`train --wide-cameras`), else `None`
-/// (Human3.6M's cameras; any calibration that rectifies is taken).
-fn trained_cameras(weights: &LoadedWeights) -> Option<CameraEnvelope> {
-    let config = weights.meta.extra.get("train_config")?;
-    let config: serde_json::Value = serde_json::from_str(config).ok()?;
-    let wide = config.get("wide_cameras")?.as_f64()?;
-    (wide > 0.0).then_some(WIDE_CAMERA_ENVELOPE)
+impl CameraReading {
+    /// What `weights` say (files that do not say read plain rectified
+    /// keypoints from any camera, unscaled).
+    fn of(weights: &LoadedWeights) -> Self {
+        let wide = weights
+            .meta
+            .extra
+            .get("train_config")
+            .and_then(|c| serde_json::from_str::<serde_json::Value>(c).ok())
+            .and_then(|c| c.get("wide_cameras")?.as_f64())
+            .unwrap_or(0.0);
+        Self {
+            height_normalized: train_flag(weights, "height_normalized").unwrap_or(false),
+            floor_scaled: train_flag(weights, "floor_scaled").unwrap_or(false),
+            trained_cameras: (wide > 0.0).then_some(WIDE_CAMERA_ENVELOPE),
+        }
+    }
 }
 
 fn sha256_hex(bytes: &[u8]) -> String {
@@ -385,16 +399,9 @@ pub trait ModelProvider: Send + Sync + 'static {
     fn camera_aware(&self) -> Option<Arc<dyn ModelProvider>> {
         None
     }
-    /// Whether these models predict lengths as seen from
-    /// [`blapose_core::level::REFERENCE_CAMERA_HEIGHT`] (trained with
-    /// `--height-normalized`), so a session's camera height scales them.
-    fn height_normalized(&self) -> bool {
-        false
-    }
-    /// The calibrations these models were trained for (`None`: any that
-    /// can be rectified).
-    fn trained_cameras(&self) -> Option<CameraEnvelope> {
-        None
+    /// How these models read a calibration (for camera-aware models).
+    fn camera_reading(&self) -> CameraReading {
+        CameraReading::default()
     }
 }
 
@@ -408,8 +415,7 @@ pub struct WeightsProvider {
     online: Arc<OnlineGruEngine>,
     offline: Arc<OfflineBiGruEngine>,
     camera_aware: Option<Arc<WeightsProvider>>,
-    height_normalized: bool,
-    trained_cameras: Option<CameraEnvelope>,
+    camera_reading: CameraReading,
 }
 
 /// Scratch preallocated per online backend (it grows if a batch is larger).
@@ -427,19 +433,14 @@ impl WeightsProvider {
     ) -> Result<Self, ServerError> {
         let gru = LoadedModel::load(gru, ModelKind::Gru, family)?;
         let bigru = LoadedModel::load(bigru, ModelKind::BiGru, family)?;
-        let height_normalized = trained_height_normalized(&gru.weights);
-        if height_normalized != trained_height_normalized(&bigru.weights) {
-            return Err(WeightsError::MixedHeightNormalization {
+        let camera_reading = CameraReading::of(&gru.weights);
+        let bigru_reading = CameraReading::of(&bigru.weights);
+        if camera_reading != bigru_reading {
+            return Err(WeightsError::MixedCameraReading {
                 gru: gru.origin,
                 bigru: bigru.origin,
-            }
-            .into());
-        }
-        let trained_cameras = trained_cameras(&gru.weights);
-        if trained_cameras != self::trained_cameras(&bigru.weights) {
-            return Err(WeightsError::MixedCameraTraining {
-                gru: gru.origin,
-                bigru: bigru.origin,
+                gru_reading: camera_reading,
+                bigru_reading,
             }
             .into());
         }
@@ -452,8 +453,7 @@ impl WeightsProvider {
             online,
             offline,
             camera_aware: None,
-            height_normalized,
-            trained_cameras,
+            camera_reading,
         })
     }
 
@@ -509,12 +509,8 @@ impl ModelProvider for WeightsProvider {
             .map(|p| p as Arc<dyn ModelProvider>)
     }
 
-    fn height_normalized(&self) -> bool {
-        self.height_normalized
-    }
-
-    fn trained_cameras(&self) -> Option<CameraEnvelope> {
-        self.trained_cameras
+    fn camera_reading(&self) -> CameraReading {
+        self.camera_reading
     }
 }
 

@@ -17,7 +17,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 use crate::batcher::Batcher;
 use crate::metrics;
-use crate::models::{LoadedLifter, ModelProvider};
+use crate::models::{CameraReading, LoadedLifter, ModelProvider};
 use crate::offline::OfflineRunner;
 use crate::session::SessionStore;
 use crate::stream::{self, session_status, Outbound};
@@ -48,13 +48,10 @@ pub struct AppState {
 impl AppState {
     /// The server's camera-aware models as [`validate::camera`] needs them
     /// (`None` without any).
-    pub fn camera_models(&self) -> Option<validate::CameraModels> {
+    pub fn camera_models(&self) -> Option<CameraReading> {
         self.provider
             .camera_aware()
-            .map(|models| validate::CameraModels {
-                height_normalized: models.height_normalized(),
-                trained_cameras: models.trained_cameras(),
-            })
+            .map(|models| models.camera_reading())
     }
 }
 

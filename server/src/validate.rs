@@ -12,8 +12,8 @@
 use blapose_core::bones::{self, BoneError};
 use blapose_core::layouts::{Coordinates, KeypointLayout};
 use blapose_core::level::{
-    self, CalibrationError, CameraEnvelope, LevelCamera, LevelError, OutsideEnvelope,
-    MAX_CAMERA_HEIGHT, MIN_CAMERA_HEIGHT,
+    self, CalibrationError, LevelCamera, LevelError, OutsideEnvelope, MAX_CAMERA_HEIGHT,
+    MIN_CAMERA_HEIGHT,
 };
 pub use blapose_core::pose::POSE_VALUES;
 use blapose_core::skeleton::JOINT_NAMES;
@@ -22,6 +22,7 @@ pub use blapose_proto::convert::layout_to_proto;
 use blapose_proto::v1 as pb;
 
 use crate::backend::INPUT_DIM;
+use crate::models::CameraReading;
 use crate::session::{InputSpec, SessionCamera};
 
 /// Largest accepted magnitude of a 2D keypoint value (pixels or normalized).
@@ -253,17 +254,6 @@ pub fn input_spec_to_proto(spec: &InputSpec) -> pb::InputFormat {
     (*spec).into()
 }
 
-/// What the server's camera-aware models ask of a calibration.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct CameraModels {
-    /// Their estimates are height-normalized: the camera height is
-    /// required and scales them ([`blapose_core::level::height_scale`]).
-    pub height_normalized: bool,
-    /// The calibrations they were trained for (`None`: any that can be
-    /// rectified).
-    pub trained_cameras: Option<CameraEnvelope>,
-}
-
 /// Validate an optional `CameraCalibration` against the input format and
 /// build its level twin. `served` is `None` when the server has no
 /// camera-aware models (a calibration is then refused), else what they
@@ -271,7 +261,7 @@ pub struct CameraModels {
 pub fn camera(
     calibration: Option<&pb::CameraCalibration>,
     spec: &InputSpec,
-    served: Option<CameraModels>,
+    served: Option<CameraReading>,
 ) -> Result<Option<SessionCamera>, InvalidInput> {
     let Some(c) = calibration else {
         return Ok(None);
@@ -320,6 +310,11 @@ pub fn camera(
         height,
     )
     .map_err(InvalidInput::Camera)?;
+    let level = if served.floor_scaled {
+        level.scaled_to_floor()
+    } else {
+        level
+    };
     if let Some(envelope) = served.trained_cameras {
         envelope
             .check(
@@ -523,7 +518,7 @@ pub struct ValidSequence {
 /// camera-aware models, see [`camera`]).
 pub fn sequence(
     req: &pb::AdjustSequenceRequest,
-    camera_aware: Option<CameraModels>,
+    camera_aware: Option<CameraReading>,
 ) -> Result<ValidSequence, InvalidInput> {
     let spec = input_spec(req.input_format.as_ref())?;
     let model = offline_model(req.model)?;
@@ -995,8 +990,9 @@ mod tests {
 
     /// Camera-aware models that take any calibration and are not
     /// height-normalized.
-    const ANY_CAMERA: CameraModels = CameraModels {
+    const ANY_CAMERA: CameraReading = CameraReading {
         height_normalized: false,
+        floor_scaled: false,
         trained_cameras: None,
     };
 
@@ -1009,8 +1005,9 @@ mod tests {
                 height: 1000,
             },
         );
-        let wide = CameraModels {
+        let wide = CameraReading {
             height_normalized: true,
+            floor_scaled: true,
             trained_cameras: Some(level::WIDE_CAMERA_ENVELOPE),
         };
         // 10 degrees down, 47 degrees across, 1.5 m up: served, scaled.
@@ -1019,6 +1016,7 @@ mod tests {
             ..calibration()
         };
         let got = camera(Some(&c), &pixels, Some(wide)).unwrap().unwrap();
+        assert!(got.level.is_scaled_to_floor());
         assert!((got.length_scale - (1.5 / level::REFERENCE_CAMERA_HEIGHT) as f32).abs() < 1e-6);
         let refused = |c: pb::CameraCalibration| camera(Some(&c), &pixels, Some(wide)).unwrap_err();
         assert_eq!(

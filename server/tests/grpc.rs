@@ -13,7 +13,7 @@ use blapose_server::backend::{
     Backend, BackendError, SequenceBackend, INPUT_DIM, OUTPUT_DIM, STATE_DIM,
 };
 use blapose_server::testing::StepGate;
-use blapose_server::{ModelProvider, ServerConfig, ServerHandle};
+use blapose_server::{CameraReading, ModelProvider, ServerConfig, ServerHandle};
 use pb::pose_adjustment_client::PoseAdjustmentClient;
 use pb::stream_request::Kind as Req;
 use pb::stream_response::Kind as Resp;
@@ -138,8 +138,14 @@ impl ModelProvider for Fake {
             .clone()
             .map(|p| p as Arc<dyn ModelProvider>)
     }
-    fn height_normalized(&self) -> bool {
-        self.height_normalized
+    fn camera_reading(&self) -> CameraReading {
+        CameraReading {
+            height_normalized: self.height_normalized,
+            floor_scaled: false,
+            trained_cameras: self
+                .height_normalized
+                .then_some(blapose_core::level::WIDE_CAMERA_ENVELOPE),
+        }
     }
 }
 
@@ -1258,6 +1264,21 @@ async fn height_normalized_models_are_scaled_by_the_camera_height() {
     assert_eq!(err.code(), Code::InvalidArgument);
     assert!(
         err.message().contains("camera.height is required"),
+        "{err:?}"
+    );
+    // Nor outside the cameras it was trained for, named.
+    let too_high = pb::CameraCalibration {
+        height: 3.4,
+        ..calibration()
+    };
+    let err = c
+        .adjust_sequence(sequence_request(2, Some(too_high)))
+        .await
+        .unwrap_err();
+    assert_eq!(err.code(), Code::InvalidArgument);
+    assert!(
+        err.message()
+            .starts_with("camera.height gives a camera height of 3.40 m"),
         "{err:?}"
     );
     for (height, k) in [(1.3, scale), (2.6, 2.0 * scale)] {

@@ -324,6 +324,15 @@ fn finite(field: &'static str, values: &[f64]) -> Result<(), CalibrationError> {
     }
 }
 
+/// One frame of rectified keypoints divided by its lowest joint's drop
+/// below the horizon (at least [`MIN_FLOOR_DROP`]); see
+/// [`LevelCamera::scaled_to_floor`].
+pub fn scale_to_floor(kp: &Keypoints2d) -> Keypoints2d {
+    let drop = kp.iter().map(|p| p[1]).fold(f32::MIN, f32::max);
+    let scale = 1.0 / drop.max(MIN_FLOOR_DROP as f32);
+    kp.map(|p| [p[0] * scale, p[1] * scale])
+}
+
 /// The level twin of one camera, built once per camera: its right, down and
 /// forward axes in the camera's own frame (so a keypoint's ray needs three
 /// dot products and no rotation) and the intrinsics in normalized units.
@@ -335,7 +344,15 @@ pub struct LevelCamera {
     focal: [f64; 2],
     /// `[cx, cy]` in normalized screen coordinates.
     principal: [f64; 2],
+    /// Scale each frame so its lowest joint lies one unit below the
+    /// horizon ([`LevelCamera::scaled_to_floor`]).
+    floor_scaled: bool,
 }
+
+/// Smallest drop of the lowest joint below the horizon that floor scaling
+/// divides by (normalized units): a person whose feet are on the horizon
+/// (a camera at foot height, or one very far) shows no distance.
+pub const MIN_FLOOR_DROP: f64 = 0.02;
 
 impl LevelCamera {
     /// The level twin of a camera with world `up` given in camera
@@ -360,7 +377,28 @@ impl LevelCamera {
             axes: [right, down, forward],
             focal,
             principal,
+            floor_scaled: false,
         })
+    }
+
+    /// This camera with its keypoints further divided, frame by frame, by
+    /// the lowest joint's drop below the horizon. For a person standing
+    /// on the floor that drop is `f (h - z_floor) / Z` (camera height `h`,
+    /// depth `Z`), so the scaled picture shows the body in units of the
+    /// camera's height above the floor contact, whatever the distance and
+    /// the lens: a bone of length `L` spans about `L / h` and a
+    /// height-normalized model reads sizes from keypoint spreads instead
+    /// of having to divide one small image quantity by another. Drops
+    /// below [`MIN_FLOOR_DROP`] are taken as it.
+    pub fn scaled_to_floor(mut self) -> Self {
+        self.floor_scaled = true;
+        self
+    }
+
+    /// Whether [`LevelCamera::scaled_to_floor`] applies ([`scale_to_floor`]
+    /// after rectifying).
+    pub fn is_scaled_to_floor(&self) -> bool {
+        self.floor_scaled
     }
 
     /// [`LevelCamera::new`] with intrinsics in pixels of a `width` x
@@ -389,10 +427,11 @@ impl LevelCamera {
     }
 
     /// One frame of normalized screen keypoints seen through the camera,
-    /// as its level twin would see them (see the module docs).
+    /// as its level twin would see them (see the module docs), scaled to
+    /// the floor when [`LevelCamera::scaled_to_floor`] asked for it.
     pub fn rectify(&self, kp: &Keypoints2d) -> Keypoints2d {
         let [right, down, forward] = &self.axes;
-        kp.map(|p| {
+        let level = kp.map(|p| {
             let ray = [
                 (f64::from(p[0]) - self.principal[0]) / self.focal[0],
                 (f64::from(p[1]) - self.principal[1]) / self.focal[1],
@@ -403,7 +442,12 @@ impl LevelCamera {
                 (dot(&ray, right) / z * self.focal[0]) as f32,
                 (dot(&ray, down) / z * self.focal[1]) as f32,
             ]
-        })
+        });
+        if self.floor_scaled {
+            scale_to_floor(&level)
+        } else {
+            level
+        }
     }
 
     /// [`LevelCamera::rectify`] in place over whole frames of `17 * 2`
@@ -425,6 +469,43 @@ impl LevelCamera {
 mod tests {
     use super::*;
     use crate::camera::normalize_screen;
+
+    #[test]
+    fn floor_scaling_shows_the_body_in_camera_heights_whatever_the_distance() {
+        // A flat figure facing a level camera h up: feet on the floor,
+        // joints at heights z and sideways offsets x, all at depth d.
+        let figure = |h: f32, d: f32, size: f32| -> Keypoints2d {
+            std::array::from_fn(|j| {
+                let z = size * (0.1 + 0.1 * j as f32);
+                let x = size * 0.05 * (j as f32 - 8.0);
+                [x / d, (h - z) / d]
+            })
+        };
+        let scaled = |kp: &Keypoints2d| scale_to_floor(kp);
+        let near = scaled(&figure(1.5, 3.0, 1.0));
+        let far = scaled(&figure(1.5, 9.0, 1.0));
+        // Twice the camera height and twice the person: the same picture.
+        let double = scaled(&figure(3.0, 5.0, 2.0));
+        for j in 0..NUM_JOINTS {
+            for a in 0..2 {
+                assert!((near[j][a] - far[j][a]).abs() < 1e-5);
+                assert!((near[j][a] - double[j][a]).abs() < 1e-5);
+            }
+        }
+        // The lowest joint one unit down; a 1 m rise is 1/(h - 0.1).
+        assert!((near[0][1] - 1.0).abs() < 1e-6);
+        assert!((near[0][1] - near[10][1] - 1.0 / 1.4).abs() < 1e-5);
+        // Feet on the horizon are not divided by zero.
+        let flat = scaled(&[[0.1, 0.0]; NUM_JOINTS]);
+        assert!(flat.iter().flatten().all(|v| v.is_finite()));
+        // Through a level camera: the same as rectifying, then scaling.
+        let cam = LevelCamera::new([0.0, -1.0, 0.0], [2.0, 2.0], [0.0, 0.0]).unwrap();
+        let kp = figure(1.5, 4.0, 1.0);
+        assert_eq!(
+            cam.clone().scaled_to_floor().rectify(&kp),
+            scale_to_floor(&cam.rectify(&kp))
+        );
+    }
 
     #[test]
     fn the_envelope_names_the_value_outside_it() {

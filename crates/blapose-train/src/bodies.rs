@@ -256,21 +256,33 @@ pub struct BenchModel<'a> {
     pub path: String,
 }
 
-/// Whether weights were trained with height-normalized targets (their
-/// `train_config`); such estimates are scaled by the camera height, as the
-/// server does.
-pub fn height_normalized(weights: &LoadedWeights) -> bool {
+/// A boolean of the weights' `train_config` (false when absent).
+fn trained_with(weights: &LoadedWeights, flag: &str) -> bool {
     weights
         .meta
         .extra
         .get("train_config")
         .and_then(|t| serde_json::from_str::<serde_json::Value>(t).ok())
-        .and_then(|v| v.get("height_normalized").and_then(|h| h.as_bool()))
+        .and_then(|v| v.get(flag).and_then(|h| h.as_bool()))
         .unwrap_or(false)
+}
+
+/// Whether weights were trained with height-normalized targets (their
+/// `train_config`); such estimates are scaled by the camera height, as the
+/// server does.
+pub fn height_normalized(weights: &LoadedWeights) -> bool {
+    trained_with(weights, "height_normalized")
+}
+
+/// Whether weights read floor-scaled rectified keypoints (their
+/// `train_config`; [`blapose_core::level::scale_to_floor`]).
+pub fn floor_scaled(weights: &LoadedWeights) -> bool {
+    trained_with(weights, "floor_scaled")
 }
 
 /// One model's final estimate per trial.
 pub fn estimate(model: &BenchModel<'_>, trials: &[Trial]) -> Result<Vec<BoneLengths>, TrainError> {
+    let floor = model.input == BenchInput::Calibration && floor_scaled(model.weights);
     let streams: Vec<EvalSequence> = trials
         .iter()
         .map(|t| EvalSequence {
@@ -279,6 +291,7 @@ pub fn estimate(model: &BenchModel<'_>, trials: &[Trial]) -> Result<Vec<BoneLeng
             camera: "benchmark".into(),
             input: match model.input {
                 BenchInput::None => t.plain.clone(),
+                BenchInput::Calibration if floor => scaled_to_floor(&t.rectified),
                 BenchInput::Calibration => t.rectified.clone(),
             },
             gt: t.lengths,
@@ -301,6 +314,19 @@ pub fn estimate(model: &BenchModel<'_>, trials: &[Trial]) -> Result<Vec<BoneLeng
             }
         })
         .collect())
+}
+
+/// Rectified frames (`17 * 2` values each) scaled to the floor.
+fn scaled_to_floor(rectified: &[f32]) -> Vec<f32> {
+    rectified
+        .chunks_exact(2 * blapose_core::NUM_JOINTS)
+        .flat_map(|f| {
+            let kp: Keypoints2d = std::array::from_fn(|j| [f[2 * j], f[2 * j + 1]]);
+            blapose_core::level::scale_to_floor(&kp)
+                .into_iter()
+                .flatten()
+        })
+        .collect()
 }
 
 /// The scores of one set of predictions.

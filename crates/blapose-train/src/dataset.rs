@@ -60,18 +60,25 @@ pub struct EvalSequence {
 }
 
 /// Rectify every stream's keypoints with its camera
-/// ([`blapose_core::level`]), as models trained with `--rectify` read them;
+/// ([`blapose_core::level`]), as models trained with `--rectify` read them
+/// (and scaled to the floor, for models trained with `--floor-scaled`);
 /// `camera(subject, id)` finds each stream's calibration.
 pub fn rectify_streams<'a>(
     streams: &mut [EvalSequence],
     camera: impl Fn(&str, &str) -> Option<&'a Camera>,
+    floor_scaled: bool,
 ) -> Result<(), TrainError> {
     for t in streams {
         let cam = camera(&t.subject, &t.camera)
             .ok_or_else(|| TrainError::Data(format!("no camera {} for {}", t.camera, t.subject)))?;
-        blapose_core::level::LevelCamera::from_camera(cam)
-            .map_err(|e| TrainError::Data(format!("{} camera {}: {e}", t.subject, t.camera)))?
-            .rectify_frames(&mut t.input);
+        let level = blapose_core::level::LevelCamera::from_camera(cam)
+            .map_err(|e| TrainError::Data(format!("{} camera {}: {e}", t.subject, t.camera)))?;
+        let level = if floor_scaled {
+            level.scaled_to_floor()
+        } else {
+            level
+        };
+        level.rectify_frames(&mut t.input);
     }
     Ok(())
 }

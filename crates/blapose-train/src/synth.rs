@@ -221,6 +221,10 @@ pub struct SynthConfig {
     /// with what the rectified picture shows; estimates are scaled back with
     /// the camera's height ([`blapose_core::level::height_scale`]).
     pub height_normalized: bool,
+    /// Rectified keypoints further scaled, frame by frame, so the lowest
+    /// joint lies one unit below the horizon
+    /// ([`LevelCamera::scaled_to_floor`]): sizes in camera heights.
+    pub floor_scaled: bool,
     /// Probability that a sample is seen through a camera drawn from the
     /// wide distribution ([`crate::bench_camera::wide_cameras`]) instead of
     /// a recorded Human3.6M camera (0: recorded cameras only).
@@ -242,12 +246,23 @@ impl Default for SynthConfig {
             random_yaw: false,
             rectify: false,
             height_normalized: false,
+            floor_scaled: false,
             wide_cameras: 0.0,
         }
     }
 }
 
 impl SynthConfig {
+    /// A camera's level twin as these samples use it (scaled to the floor
+    /// when asked).
+    pub fn level_camera(&self, level: LevelCamera) -> LevelCamera {
+        if self.floor_scaled {
+            level.scaled_to_floor()
+        } else {
+            level
+        }
+    }
+
     /// Check the knobs.
     pub fn validate(&self) -> Result<(), TrainError> {
         let bad = |m: &str| Err(TrainError::InvalidArgument(m.to_string()));
@@ -256,6 +271,9 @@ impl SynthConfig {
         }
         if self.height_normalized && !self.rectify {
             return bad("height-normalized targets need rectified keypoints (--rectify)");
+        }
+        if self.floor_scaled && !self.rectify {
+            return bad("floor scaling needs rectified keypoints (--rectify)");
         }
         if !(self.stride_min > 0.0
             && self.stride_max >= self.stride_min
@@ -577,7 +595,8 @@ impl SynthSource {
         let level = cfg
             .rectify
             .then(|| LevelCamera::from_camera(cam))
-            .and_then(Result::ok);
+            .and_then(Result::ok)
+            .map(|l| cfg.level_camera(l));
         let mut input = Vec::with_capacity(t_len * FRAME_DIM);
         for (t, p) in cam_poses.iter().enumerate() {
             let shifted = p.map(|j| [j[0] + shift[0], j[1] + shift[1], j[2] + shift[2]]);
@@ -658,7 +677,7 @@ impl SynthSource {
         };
         let flipped = rng.random::<f32>() < cfg.flip_prob;
         let level = if cfg.rectify {
-            Some(LevelCamera::from_camera(cam).ok()?)
+            Some(cfg.level_camera(LevelCamera::from_camera(cam).ok()?))
         } else {
             None
         };

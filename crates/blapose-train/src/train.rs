@@ -111,6 +111,11 @@ pub struct TrainConfig {
     /// field had raw targets.
     #[serde(default)]
     pub height_normalized: bool,
+    /// Floor-scaled rectified keypoints
+    /// ([`crate::synth::SynthConfig::floor_scaled`]); runs before this
+    /// field read them unscaled.
+    #[serde(default)]
+    pub floor_scaled: bool,
     /// Share of samples seen through a camera of the wide distribution
     /// ([`crate::synth::SynthConfig::wide_cameras`]); runs before this
     /// field used recorded cameras only.
@@ -203,6 +208,7 @@ impl TrainConfig {
             random_yaw: self.random_yaw,
             rectify: self.rectify,
             height_normalized: self.height_normalized,
+            floor_scaled: self.floor_scaled,
             wide_cameras: self.wide_cameras,
         };
         cfg.validate()?;

@@ -339,12 +339,26 @@ fn wide_camera_samples_frame_the_person_and_normalize_by_their_camera() {
         height_normalized: true,
         ..rectified
     };
+    let floor = SynthConfig {
+        floor_scaled: true,
+        ..normalized
+    };
     let mut wide = 0;
     let mut scales = Vec::new();
     for i in 0..64 {
         let p = src.sample(&plain, &mut sample_rng(11, 0, i));
         let r = src.sample(&rectified, &mut sample_rng(11, 0, i));
         let n = src.sample(&normalized, &mut sample_rng(11, 0, i));
+        let fl = src.sample(&floor, &mut sample_rng(11, 0, i));
+        assert_eq!(fl.target, n.target);
+        for (a, b) in r.input.chunks_exact(34).zip(fl.input.chunks_exact(34)) {
+            let kp: blapose_core::Keypoints2d = std::array::from_fn(|j| [a[2 * j], a[2 * j + 1]]);
+            let want: Vec<f32> = blapose_core::level::scale_to_floor(&kp)
+                .into_iter()
+                .flatten()
+                .collect();
+            assert_eq!(b, &want[..]);
+        }
         assert_eq!(p.target, r.target);
         assert_eq!(r.input, n.input);
         if p.camera != WIDE_CAMERA {

@@ -41,7 +41,12 @@ fn shipped_weights_reproduce_the_model_card() {
         .step_by(every)
         .collect();
     let mut rectified = trials.clone();
-    rectify_streams(&mut rectified, |subject, id| h.cameras.get(subject, id)).unwrap();
+    rectify_streams(
+        &mut rectified,
+        |subject, id| h.cameras.get(subject, id),
+        false,
+    )
+    .unwrap();
     for (kind, file, key) in [
         (
             ModelKind::BiGru,

@@ -65,6 +65,7 @@ fn config(steps: u64) -> TrainConfig {
         cameras: Vec::new(),
         rectify: false,
         height_normalized: false,
+        floor_scaled: false,
         wide_cameras: 0.0,
         flip_prob: 0.5,
         batch: 4,

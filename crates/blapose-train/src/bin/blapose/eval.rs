@@ -83,6 +83,13 @@ pub struct EvalArgs {
     /// models trained with `train --rectify`.
     #[arg(long)]
     rectify: bool,
+    /// Evaluate as the server serves a session that sends its camera's
+    /// calibration: every trial's keypoints rectified with its camera, and
+    /// the estimate scaled by the camera's height when the weights are
+    /// height-normalized (their train_config says), the keypoints scaled
+    /// to the floor when they were trained so. For camera-aware weights.
+    #[arg(long, conflicts_with_all = ["rectify", "height_correction"])]
+    calibrated: bool,
     /// Evaluate only every k-th trial (quick subsets; 1 = all).
     #[arg(long, default_value_t = 1)]
     every: usize,
@@ -102,6 +109,9 @@ pub fn run(a: EvalArgs) -> Result<()> {
     };
     let kind = ModelKind::from(model);
     let weights = blapose_model::weights::load(&weights_path, kind)?;
+    let rectify = a.rectify || a.calibrated;
+    let height_correction =
+        a.height_correction || (a.calibrated && blapose_train::bodies::height_normalized(&weights));
     let subjects = known_subjects(&a.subjects)?;
     let t0 = Instant::now();
     let all = H36m::load(&root, &ALL_SUBJECTS, Parts::POSES)?;
@@ -119,8 +129,13 @@ pub fn run(a: EvalArgs) -> Result<()> {
     if a.every > 1 {
         trials = trials.into_iter().step_by(a.every).collect();
     }
-    if a.rectify {
-        rectify_streams(&mut trials, |subject, id| h36m.cameras.get(subject, id))?;
+    if rectify {
+        let floor_scaled = a.calibrated && blapose_train::bodies::floor_scaled(&weights);
+        rectify_streams(
+            &mut trials,
+            |subject, id| h36m.cameras.get(subject, id),
+            floor_scaled,
+        )?;
     }
     if a.skip_frames > 0 {
         trials = trials.iter().map(|t| t.skipped(a.skip_frames)).collect();
@@ -160,7 +175,7 @@ pub fn run(a: EvalArgs) -> Result<()> {
         estimator = Box::new(FlipAveraged::new(estimator));
         model_label.push_str("+flip");
     }
-    if a.height_correction {
+    if height_correction {
         let mut scales = std::collections::BTreeMap::new();
         for t in &trials {
             let cam = h36m

@@ -109,6 +109,12 @@ pub struct TrainArgs {
     /// --height-correction`, the server's CameraCalibration.height).
     #[arg(long, requires = "rectify")]
     height_normalized: bool,
+    /// With --rectify: divide each frame's keypoints by the lowest joint's
+    /// drop below the horizon, so the picture shows the body in units of
+    /// the camera's height whatever the distance and lens (pair with
+    /// --height-normalized; blapose_core::level::LevelCamera::scaled_to_floor).
+    #[arg(long, requires = "rectify")]
+    floor_scaled: bool,
     /// Share of samples (0-1) seen through a camera drawn from the
     /// many-bodies benchmark's wide distribution (height 0.5-3 m, any
     /// heading, tilt and field of view) instead of a recorded Human3.6M
@@ -180,6 +186,7 @@ impl TrainArgs {
             cameras: self.cameras.clone(),
             rectify: self.rectify,
             height_normalized: self.height_normalized,
+            floor_scaled: self.floor_scaled,
             wide_cameras: self.wide_cameras,
             flip_prob: self.flip_prob,
             batch: self.batch,
@@ -219,8 +226,11 @@ fn training_data(cfg: &TrainConfig) -> String {
         camera_list(&cfg.cameras),
         cfg.rectify,
         cfg.height_normalized,
-        if cfg.wide_cameras > 0.0 {
-            format!(", wide cameras={}", cfg.wide_cameras)
+        if cfg.wide_cameras > 0.0 || cfg.floor_scaled {
+            format!(
+                ", floor-scaled={}, wide cameras={}",
+                cfg.floor_scaled, cfg.wide_cameras
+            )
         } else {
             String::new()
         },
@@ -272,7 +282,7 @@ pub fn run(a: TrainArgs) -> Result<()> {
             .and_then(|s| s.cameras.iter().find(|c| c.id == id))
     };
     if cfg.rectify {
-        rectify_streams(real_sh.to_mut(), camera)?;
+        rectify_streams(real_sh.to_mut(), camera, cfg.floor_scaled)?;
     }
     if cfg.height_normalized {
         // Their targets as the model is asked for them.
