@@ -28,10 +28,11 @@
 //! Modules: [`client`] (connection, unary calls), [`session`] (the
 //! bidirectional stream), [`types`] (typed messages), [`sequence`] (replay
 //! files), [`replay`](mod@replay) (whole-sequence drivers), [`report`] (before/after
-//! metrics).
+//! metrics), [`html`] (the self-contained HTML report of `--html`).
 
 pub mod client;
 pub mod error;
+pub mod html;
 pub mod replay;
 pub mod report;
 pub mod sequence;
@@ -43,6 +44,7 @@ pub use client::{
     DEFAULT_SERVER,
 };
 pub use error::ClientError;
+pub use html::{HtmlError, ReportData};
 pub use replay::{adjust_offline, replay, replay_session, Adjusted, ReplayOptions};
 pub use report::{evaluate, Evaluation, PoseMetrics};
 pub use sequence::{Sequence, SequenceError};

@@ -10,7 +10,7 @@ use std::time::Duration;
 use anyhow::{Context, Result};
 use blapose_client::{
     adjust_offline, evaluate, replay, Adjusted, Client, ClientConfig, KeypointLayout, ModelChoice,
-    ReplayOptions, Sequence, TlsOptions, DEFAULT_SERVER,
+    ReplayOptions, ReportData, Sequence, TlsOptions, DEFAULT_SERVER,
 };
 use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -76,7 +76,9 @@ enum Command {
     /// keypoints are sent and the server's lifter produces the poses (--out
     /// then also holds them before adjustment: lifted_3d, T x 17 x 3). With
     /// --camera the file's camera calibration (camera_up, camera_focal,
-    /// camera_principal) is sent and the camera-aware model serves it.
+    /// camera_principal) is sent and the camera-aware model serves it. With
+    /// --html a self-contained HTML report (3D before/after views, bone
+    /// lengths, symmetry, errors) is written.
     Replay {
         #[command(flatten)]
         io: IoArgs,
@@ -100,7 +102,9 @@ enum Command {
     /// Adjust a replay file with one offline call (Bi-GRU by default).
     ///
     /// With --camera the file's camera calibration is sent and the
-    /// camera-aware model of the chosen kind serves it.
+    /// camera-aware model of the chosen kind serves it. With --html a
+    /// self-contained HTML report (3D before/after views, bone lengths,
+    /// symmetry, errors) is written.
     Adjust {
         #[command(flatten)]
         io: IoArgs,
@@ -133,6 +137,13 @@ struct IoArgs {
     /// Write {"frames":T,"before":{..},"after":{..}} (needs gt_3d).
     #[arg(long)]
     json: Option<PathBuf>,
+    /// Write a self-contained HTML report that works offline: the input
+    /// and adjusted skeletons side by side in 3D (play/pause, frame slider,
+    /// drag to orbit), the 16 bone lengths over time, the left/right
+    /// asymmetry and, with gt_3d, the per-frame MPJPE and the before/after
+    /// table.
+    #[arg(long)]
+    html: Option<PathBuf>,
     /// Keypoint layout, overriding the file's (h36m17, sh16, coco17).
     #[arg(long)]
     layout: Option<KeypointLayout>,
@@ -147,13 +158,42 @@ struct IoArgs {
 }
 
 impl IoArgs {
-    /// The replay file, with its camera only when --camera is given.
-    fn load(&self) -> Result<Sequence> {
+    /// The replay file, with its camera only when --camera is given, and
+    /// the file's world up direction in camera axes (`camera_up`), if any,
+    /// for the HTML report's floor.
+    fn load(&self) -> Result<(Sequence, Option<[f32; 3]>)> {
         let mut seq = Sequence::load(&self.file, self.layout)?;
+        let up = seq.camera.map(|c| c.up);
         if !self.camera {
             seq.camera = None;
         }
-        Ok(seq)
+        Ok((seq, up))
+    }
+
+    /// Write the --html report, if asked for.
+    async fn write_html(
+        &self,
+        client: &Client,
+        server: &str,
+        (seq, up): &(Sequence, Option<[f32; 3]>),
+        result: &Adjusted,
+    ) -> Result<()> {
+        let Some(path) = &self.html else {
+            return Ok(());
+        };
+        let title = self.file.file_name().map_or_else(
+            || self.file.display().to_string(),
+            |n| n.to_string_lossy().into_owned(),
+        );
+        let mut data = ReportData::from_adjusted(&title, seq, result, *up)?;
+        // Header lines only: a server that cannot say what it runs still
+        // gets its report.
+        if let Ok(info) = client.model_info().await {
+            data.add_server_info(server, &info, result);
+        }
+        data.write(path)?;
+        println!("wrote {}", path.display());
+        Ok(())
     }
 }
 
@@ -263,7 +303,8 @@ async fn run(cli: Cli) -> Result<()> {
             label,
             server_lifter,
         } => {
-            let seq = io.load()?;
+            let loaded = io.load()?;
+            let seq = &loaded.0;
             let client = connect(&cli.connection).await?;
             let bar = progress_bar(seq.len());
             let options = ReplayOptions {
@@ -272,7 +313,7 @@ async fn run(cli: Cli) -> Result<()> {
                 label,
                 server_lifter,
             };
-            let result = replay(&client, &seq, &options, |n| bar.set_position(n as u64)).await;
+            let result = replay(&client, seq, &options, |n| bar.set_position(n as u64)).await;
             bar.finish_and_clear();
             let result = result?;
             if let Some(s) = &result.session {
@@ -281,13 +322,17 @@ async fn run(cli: Cli) -> Result<()> {
                     s.session_id, s.frames_seen
                 );
             }
-            finish(&io, &seq, &result)
+            finish(&io, seq, &result)?;
+            io.write_html(&client, &cli.connection.server, &loaded, &result)
+                .await
         }
         Command::Adjust { io, model } => {
-            let seq = io.load()?;
+            let loaded = io.load()?;
             let client = connect(&cli.connection).await?;
-            let result = adjust_offline(&client, &seq, model).await?;
-            finish(&io, &seq, &result)
+            let result = adjust_offline(&client, &loaded.0, model).await?;
+            finish(&io, &loaded.0, &result)?;
+            io.write_html(&client, &cli.connection.server, &loaded, &result)
+                .await
         }
         Command::Info { raw } => {
             let client = connect(&cli.connection).await?;
@@ -335,6 +380,8 @@ mod tests {
             "o.npz",
             "--json",
             "m.json",
+            "--html",
+            "r.html",
         ])
         .unwrap();
         assert_eq!(cli.connection.server, "http://h:1");
@@ -349,6 +396,7 @@ mod tests {
                 assert!(!server_lifter, "client poses by default");
                 assert_eq!(io.out, Some(PathBuf::from("o.npz")));
                 assert_eq!(io.json, Some(PathBuf::from("m.json")));
+                assert_eq!(io.html, Some(PathBuf::from("r.html")));
             }
             other => panic!("{other:?}"),
         }
@@ -417,11 +465,16 @@ mod tests {
             Command::Replay { io, .. } | Command::Adjust { io, .. } => io,
             other => panic!("{other:?}"),
         };
-        let with = io(&["blapose-client", "replay", file, "--camera"])
+        let (with, up) = io(&["blapose-client", "replay", file, "--camera"])
             .load()
             .unwrap();
+        assert_eq!(up, with.camera.map(|c| c.up));
         assert!(with.camera.is_some(), "the example carries a calibration");
-        let without = io(&["blapose-client", "adjust", file]).load().unwrap();
+        let (without, up) = io(&["blapose-client", "adjust", file]).load().unwrap();
+        assert!(
+            up.is_some(),
+            "the report's up direction does not need --camera"
+        );
         assert_eq!(without.camera, None);
         assert_eq!(
             Sequence {

@@ -6,10 +6,11 @@
 ...         result = s.send(keypoints, pose)   # (17, 2) pixels, (17, 3) metres
 ...         result.adjusted, result.bone_lengths  # (17, 3), (16,)
 
-See :class:`Client`, :class:`Session`, :mod:`blapose.errors` and :mod:`blapose.aio`.
+See :class:`Client`, :class:`Session`, :mod:`blapose.errors`, :mod:`blapose.aio` and
+:mod:`blapose.report` (``write_html``: a self-contained HTML report of an adjustment).
 """
 
-from . import aio
+from . import aio, report
 from .client import Client, Session
 from .errors import (
     Aborted,
@@ -31,6 +32,7 @@ from .errors import (
     Unimplemented,
     UnknownError,
 )
+from .report import write_html, write_replay_html
 from .types import (
     BONE_NAMES,
     JOINT_NAMES,
@@ -51,6 +53,9 @@ __version__ = "0.1.0"
 
 __all__ = [
     "aio",
+    "report",
+    "write_html",
+    "write_replay_html",
     "Client",
     "Session",
     "Camera",
