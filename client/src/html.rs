@@ -277,9 +277,12 @@ impl ReportData {
     }
 }
 
+/// A parsed JSON value ([`embedded_data`]).
+pub type JsonValue = serde_json::Value;
+
 /// The JSON data embedded in a report page (what [`ReportData::render`]
 /// put there), for tests and tools.
-pub fn embedded_data(html: &str) -> Option<serde_json::Value> {
+pub fn embedded_data(html: &str) -> Option<JsonValue> {
     const START: &str = r#"<script id="blapose-data" type="application/json">"#;
     let start = html.find(START)? + START.len();
     let end = start + html[start..].find("</script>")?;

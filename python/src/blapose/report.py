@@ -32,13 +32,13 @@ from .types import BONE_NAMES, JOINT_NAMES, PARENTS, FrameResult, ReplayFile, Se
 __all__ = [
     "DATA_PLACEHOLDER",
     "FORMAT",
-    "template",
-    "report_data",
+    "metrics",
+    "read_html_data",
     "render_html",
+    "report_data",
+    "template",
     "write_html",
     "write_replay_html",
-    "read_html_data",
-    "metrics",
 ]
 
 #: The template's one placeholder, replaced by the report's JSON data.
@@ -55,7 +55,7 @@ def template() -> str:
 
 
 def _poses(name: str, value: Any, frames: Optional[int]) -> np.ndarray:
-    a = np.asarray(value, dtype=np.float64)
+    a: np.ndarray = np.asarray(value, dtype=np.float64)
     if a.ndim != 3 or a.shape[1:] != (17, 3):
         raise ValueError(f"{name} must have shape (T, 17, 3), got {a.shape}")
     if a.shape[0] == 0:
@@ -76,7 +76,8 @@ def _flat(poses: np.ndarray) -> List[float]:
 def _bone_lengths(poses: np.ndarray) -> np.ndarray:
     child = np.arange(1, 17)
     parent = np.asarray(PARENTS)[child]
-    return np.linalg.norm(poses[:, child] - poses[:, parent], axis=-1)
+    lengths: np.ndarray = np.linalg.norm(poses[:, child] - poses[:, parent], axis=-1)
+    return lengths
 
 
 def _procrustes(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
@@ -95,7 +96,8 @@ def _procrustes(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     r = v @ np.swapaxes(u, 1, 2)
     safe = np.where(norm_y2 > 0, norm_y2, 1.0)
     a = np.where(norm_y2 > 0, s.sum(axis=1) / safe, 0.0)
-    return a[:, None, None] * (y0 @ r) + mu_x
+    aligned: np.ndarray = a[:, None, None] * (y0 @ r) + mu_x
+    return aligned
 
 
 def metrics(pred: Any, gt: Any) -> Dict[str, float]:

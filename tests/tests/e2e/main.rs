@@ -14,11 +14,13 @@
 //!   errors, client-pose sessions beside lifting ones;
 //! - [`security`]: the bearer token and TLS;
 //! - [`shutdown`]: graceful shutdown answers frames already received;
-//! - [`example`]: replaying the shipped example improves its accuracy.
+//! - [`example`]: replaying the shipped example improves its accuracy;
+//! - [`report`]: the HTML report of `replay --html`.
 
 mod errors;
 mod example;
 mod lifter;
+mod report;
 mod security;
 mod sessions;
 mod shutdown;
