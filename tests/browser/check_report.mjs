@@ -84,6 +84,17 @@ async function checkReport(context, file, shotPath) {
   const label2 = await label.textContent();
   assert(label2 !== label1, `${file}: the frame label did not change while playing`);
   const shotB = await views.screenshot();
+
+  // Keys: space toggles playback once, also with the play button focused.
+  await page.locator("#play").focus();
+  await page.keyboard.press(" ");
+  assert(await page.evaluate(() => window.blaposeReport.playing), `${file}: space did not start playback`);
+  await page.keyboard.press(" ");
+  assert(!(await page.evaluate(() => window.blaposeReport.playing)), `${file}: space did not pause`);
+  await page.evaluate(() => window.blaposeReport.setFrame(1));
+  await page.locator("body").focus();
+  await page.keyboard.press("ArrowRight");
+  assert((await page.evaluate(() => window.blaposeReport.frame)) === 2, `${file}: the right arrow did not step a frame`);
   assert(!shotA.equals(shotB), `${file}: the views look the same after playing`);
 
   // Orbit: dragging one view rotates both (a shared camera).
