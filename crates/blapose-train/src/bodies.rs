@@ -60,6 +60,7 @@ use crate::eval::{trial_error_mm, BiGruEstimator, GruEstimator, LengthEstimator}
 use crate::noise::{apply_residual, residual_at, ResidualBank};
 use crate::stature::{StatureInput, StatureRegression};
 use crate::synth::{rebuild_on_floor, sample_rng, MotionSequence};
+use crate::train::trained_config;
 
 /// Default seed of `--benchmark bodies`.
 pub const DEFAULT_SEED: u64 = 2026;
@@ -256,28 +257,17 @@ pub struct BenchModel<'a> {
     pub path: String,
 }
 
-/// A boolean of the weights' `train_config` (false when absent).
-fn trained_with(weights: &LoadedWeights, flag: &str) -> bool {
-    weights
-        .meta
-        .extra
-        .get("train_config")
-        .and_then(|t| serde_json::from_str::<serde_json::Value>(t).ok())
-        .and_then(|v| v.get(flag).and_then(|h| h.as_bool()))
-        .unwrap_or(false)
-}
-
 /// Whether weights were trained with height-normalized targets (their
 /// `train_config`); such estimates are scaled by the camera height, as the
 /// server does.
 pub fn height_normalized(weights: &LoadedWeights) -> bool {
-    trained_with(weights, "height_normalized")
+    trained_config(weights).is_some_and(|c| c.height_normalized)
 }
 
 /// Whether weights read floor-scaled rectified keypoints (their
 /// `train_config`; [`blapose_core::level::scale_to_floor`]).
 pub fn floor_scaled(weights: &LoadedWeights) -> bool {
-    trained_with(weights, "floor_scaled")
+    trained_config(weights).is_some_and(|c| c.floor_scaled)
 }
 
 /// One model's final estimate per trial.

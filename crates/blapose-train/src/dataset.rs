@@ -65,7 +65,7 @@ pub struct EvalSequence {
 /// `camera(subject, id)` finds each stream's calibration.
 pub fn rectify_streams<'a>(
     streams: &mut [EvalSequence],
-    camera: impl Fn(&str, &str) -> Option<&'a Camera>,
+    camera: &impl Fn(&str, &str) -> Option<&'a Camera>,
     floor_scaled: bool,
 ) -> Result<(), TrainError> {
     for t in streams {

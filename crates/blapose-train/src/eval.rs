@@ -28,6 +28,7 @@
 
 use std::collections::BTreeMap;
 
+use blapose_core::camera::Camera;
 use blapose_core::metrics::ActionAggregator;
 use blapose_core::pose::flip_bone_lengths;
 use blapose_core::skeleton::{BONE_NAMES, NUM_BONES};
@@ -176,6 +177,37 @@ impl<E: LengthEstimator> LengthEstimator for HeightCorrected<E> {
             })
             .collect()
     }
+}
+
+/// Evaluate camera-aware weights as the server serves a calibrated
+/// session: every trial's keypoints rectified with its camera (scaled to
+/// the floor when the weights were trained so), and `estimator` scaled by
+/// each view's camera height when the weights are height-normalized.
+/// `camera(subject, id)` finds each trial's calibration.
+pub fn calibrated<'a>(
+    estimator: Box<dyn LengthEstimator>,
+    weights: &LoadedWeights,
+    trials: &mut [EvalSequence],
+    camera: impl Fn(&str, &str) -> Option<&'a Camera>,
+) -> Result<Box<dyn LengthEstimator>, TrainError> {
+    let config = crate::train::trained_config(weights);
+    let (floor_scaled, height_normalized) = config
+        .as_ref()
+        .map_or((false, false), |c| (c.floor_scaled, c.height_normalized));
+    crate::dataset::rectify_streams(trials, &camera, floor_scaled)?;
+    if !height_normalized {
+        return Ok(estimator);
+    }
+    let mut scales = BTreeMap::new();
+    for t in trials.iter() {
+        let cam = camera(&t.subject, &t.camera)
+            .ok_or_else(|| TrainError::Data(format!("no camera {} for {}", t.camera, t.subject)))?;
+        scales.insert(
+            (t.subject.clone(), t.camera.clone()),
+            blapose_core::level::height_scale(cam.center[2]) as f32,
+        );
+    }
+    Ok(Box::new(HeightCorrected::new(estimator, scales)))
 }
 
 /// The online GRU's running mean of per-frame predictions.

@@ -169,6 +169,12 @@ fn one() -> f32 {
     1.0
 }
 
+/// The training configuration recorded in `weights` (`None` when they
+/// carry none, or one this trainer cannot read).
+pub fn trained_config(weights: &blapose_model::LoadedWeights) -> Option<TrainConfig> {
+    serde_json::from_str(weights.meta.extra.get("train_config")?).ok()
+}
+
 /// Research options measured and removed since (models/README.md,
 /// "Removed research options"), each with the test of the value that
 /// meant "off". A checkpoint whose configuration turns one on cannot be

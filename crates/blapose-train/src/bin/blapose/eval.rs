@@ -109,9 +109,6 @@ pub fn run(a: EvalArgs) -> Result<()> {
     };
     let kind = ModelKind::from(model);
     let weights = blapose_model::weights::load(&weights_path, kind)?;
-    let rectify = a.rectify || a.calibrated;
-    let height_correction =
-        a.height_correction || (a.calibrated && blapose_train::bodies::height_normalized(&weights));
     let subjects = known_subjects(&a.subjects)?;
     let t0 = Instant::now();
     let all = H36m::load(&root, &ALL_SUBJECTS, Parts::POSES)?;
@@ -129,12 +126,11 @@ pub fn run(a: EvalArgs) -> Result<()> {
     if a.every > 1 {
         trials = trials.into_iter().step_by(a.every).collect();
     }
-    if rectify {
-        let floor_scaled = a.calibrated && blapose_train::bodies::floor_scaled(&weights);
+    if a.rectify {
         rectify_streams(
             &mut trials,
-            |subject, id| h36m.cameras.get(subject, id),
-            floor_scaled,
+            &|subject, id| h36m.cameras.get(subject, id),
+            false,
         )?;
     }
     if a.skip_frames > 0 {
@@ -175,7 +171,13 @@ pub fn run(a: EvalArgs) -> Result<()> {
         estimator = Box::new(FlipAveraged::new(estimator));
         model_label.push_str("+flip");
     }
-    if height_correction {
+    if a.calibrated {
+        estimator = blapose_train::eval::calibrated(estimator, &weights, &mut trials, |s, id| {
+            h36m.cameras.get(s, id)
+        })?;
+        model_label.push_str("+calibrated");
+    }
+    if a.height_correction {
         let mut scales = std::collections::BTreeMap::new();
         for t in &trials {
             let cam = h36m

@@ -282,7 +282,7 @@ pub fn run(a: TrainArgs) -> Result<()> {
             .and_then(|s| s.cameras.iter().find(|c| c.id == id))
     };
     if cfg.rectify {
-        rectify_streams(real_sh.to_mut(), camera, cfg.floor_scaled)?;
+        rectify_streams(real_sh.to_mut(), &camera, cfg.floor_scaled)?;
     }
     if cfg.height_normalized {
         // Their targets as the model is asked for them.
