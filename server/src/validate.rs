@@ -273,7 +273,7 @@ pub fn camera(
     if height != 0.0 && !level::is_camera_height(height) {
         return Err(InvalidInput::CameraHeight(height));
     }
-    if served.height_normalized && height == 0.0 {
+    if (served.height_normalized || served.floor_scaled) && height == 0.0 {
         return Err(InvalidInput::CameraHeightRequired);
     }
     let length_scale = if served.height_normalized {
@@ -311,7 +311,7 @@ pub fn camera(
     )
     .map_err(InvalidInput::Camera)?;
     let level = if served.floor_scaled {
-        level.scaled_to_floor()
+        level.scaled_to_floor(c.height)
     } else {
         level
     };
@@ -1016,7 +1016,7 @@ mod tests {
             ..calibration()
         };
         let got = camera(Some(&c), &pixels, Some(wide)).unwrap().unwrap();
-        assert!(got.level.is_scaled_to_floor());
+        assert_eq!(got.level.floor_scale_height(), Some(1.5));
         assert!((got.length_scale - (1.5 / level::REFERENCE_CAMERA_HEIGHT) as f32).abs() < 1e-6);
         let refused = |c: pb::CameraCalibration| camera(Some(&c), &pixels, Some(wide)).unwrap_err();
         assert_eq!(

@@ -324,12 +324,14 @@ fn finite(field: &'static str, values: &[f64]) -> Result<(), CalibrationError> {
     }
 }
 
-/// One frame of rectified keypoints divided by its lowest joint's drop
-/// below the horizon (at least [`MIN_FLOOR_DROP`]); see
+/// One frame of rectified keypoints from a camera `camera_height` metres
+/// above the floor, scaled by that height over
+/// [`REFERENCE_CAMERA_HEIGHT`] and divided by the lowest joint's drop below
+/// the horizon (at least [`MIN_FLOOR_DROP`]); see
 /// [`LevelCamera::scaled_to_floor`].
-pub fn scale_to_floor(kp: &Keypoints2d) -> Keypoints2d {
+pub fn scale_to_floor(kp: &Keypoints2d, camera_height: f32) -> Keypoints2d {
     let drop = kp.iter().map(|p| p[1]).fold(f32::MIN, f32::max);
-    let scale = 1.0 / drop.max(MIN_FLOOR_DROP as f32);
+    let scale = camera_height / REFERENCE_CAMERA_HEIGHT as f32 / drop.max(MIN_FLOOR_DROP as f32);
     kp.map(|p| [p[0] * scale, p[1] * scale])
 }
 
@@ -344,9 +346,9 @@ pub struct LevelCamera {
     focal: [f64; 2],
     /// `[cx, cy]` in normalized screen coordinates.
     principal: [f64; 2],
-    /// Scale each frame so its lowest joint lies one unit below the
-    /// horizon ([`LevelCamera::scaled_to_floor`]).
-    floor_scaled: bool,
+    /// The camera height (metres) when each frame is scaled to the floor
+    /// ([`LevelCamera::scaled_to_floor`]).
+    floor_scaled: Option<f32>,
 }
 
 /// Smallest drop of the lowest joint below the horizon that floor scaling
@@ -377,27 +379,28 @@ impl LevelCamera {
             axes: [right, down, forward],
             focal,
             principal,
-            floor_scaled: false,
+            floor_scaled: None,
         })
     }
 
-    /// This camera with its keypoints further divided, frame by frame, by
-    /// the lowest joint's drop below the horizon. For a person standing
-    /// on the floor that drop is `f (h - z_floor) / Z` (camera height `h`,
-    /// depth `Z`), so the scaled picture shows the body in units of the
-    /// camera's height above the floor contact, whatever the distance and
-    /// the lens: a bone of length `L` spans about `L / h` and a
-    /// height-normalized model reads sizes from keypoint spreads instead
-    /// of having to divide one small image quantity by another. Drops
+    /// This camera, `camera_height` metres above the floor, with its
+    /// keypoints further scaled frame by frame by `camera_height /
+    /// REFERENCE_CAMERA_HEIGHT` over the lowest joint's drop below the
+    /// horizon. For a person standing on the floor that drop is `f (h -
+    /// z_floor) / Z` (camera height `h`, depth `Z`), so the scaled picture
+    /// shows the body at a fixed metric scale whatever the distance, the
+    /// lens and the camera height: a bone of length `L` spans about `L /
+    /// 1.56` and a model reads sizes from keypoint spreads directly
+    /// instead of dividing one small image quantity by another. Drops
     /// below [`MIN_FLOOR_DROP`] are taken as it.
-    pub fn scaled_to_floor(mut self) -> Self {
-        self.floor_scaled = true;
+    pub fn scaled_to_floor(mut self, camera_height: f32) -> Self {
+        self.floor_scaled = Some(camera_height);
         self
     }
 
-    /// Whether [`LevelCamera::scaled_to_floor`] applies ([`scale_to_floor`]
-    /// after rectifying).
-    pub fn is_scaled_to_floor(&self) -> bool {
+    /// The camera height [`LevelCamera::scaled_to_floor`] scales with, if
+    /// it applies ([`scale_to_floor`] after rectifying).
+    pub fn floor_scale_height(&self) -> Option<f32> {
         self.floor_scaled
     }
 
@@ -443,10 +446,9 @@ impl LevelCamera {
                 (dot(&ray, down) / z * self.focal[1]) as f32,
             ]
         });
-        if self.floor_scaled {
-            scale_to_floor(&level)
-        } else {
-            level
+        match self.floor_scaled {
+            Some(h) => scale_to_floor(&level, h),
+            None => level,
         }
     }
 
@@ -471,7 +473,7 @@ mod tests {
     use crate::camera::normalize_screen;
 
     #[test]
-    fn floor_scaling_shows_the_body_in_camera_heights_whatever_the_distance() {
+    fn floor_scaling_shows_the_body_at_one_metric_scale_whatever_the_distance() {
         // A flat figure facing a level camera h up: feet on the floor,
         // joints at heights z and sideways offsets x, all at depth d.
         let figure = |h: f32, d: f32, size: f32| -> Keypoints2d {
@@ -481,29 +483,29 @@ mod tests {
                 [x / d, (h - z) / d]
             })
         };
-        let scaled = |kp: &Keypoints2d| scale_to_floor(kp);
-        let near = scaled(&figure(1.5, 3.0, 1.0));
-        let far = scaled(&figure(1.5, 9.0, 1.0));
-        // Twice the camera height and twice the person: the same picture.
-        let double = scaled(&figure(3.0, 5.0, 2.0));
+        let r = REFERENCE_CAMERA_HEIGHT as f32;
+        let near = scale_to_floor(&figure(1.5, 3.0, 1.0), 1.5);
+        let far = scale_to_floor(&figure(1.5, 9.0, 1.0), 1.5);
+        // Twice the person from twice the height: twice the picture.
+        let double = scale_to_floor(&figure(3.0, 5.0, 2.0), 3.0);
         for j in 0..NUM_JOINTS {
             for a in 0..2 {
                 assert!((near[j][a] - far[j][a]).abs() < 1e-5);
-                assert!((near[j][a] - double[j][a]).abs() < 1e-5);
+                assert!((double[j][a] - 2.0 * near[j][a]).abs() < 1e-5);
             }
         }
-        // The lowest joint one unit down; a 1 m rise is 1/(h - 0.1).
-        assert!((near[0][1] - 1.0).abs() < 1e-6);
-        assert!((near[0][1] - near[10][1] - 1.0 / 1.4).abs() < 1e-5);
+        // A 1 m rise spans h / (h - 0.1) / 1.56: metric, at the reference
+        // height's scale.
+        assert!((near[0][1] - near[10][1] - 1.5 / 1.4 / r).abs() < 1e-5);
         // Feet on the horizon are not divided by zero.
-        let flat = scaled(&[[0.1, 0.0]; NUM_JOINTS]);
+        let flat = scale_to_floor(&[[0.1, 0.0]; NUM_JOINTS], 1.5);
         assert!(flat.iter().flatten().all(|v| v.is_finite()));
         // Through a level camera: the same as rectifying, then scaling.
         let cam = LevelCamera::new([0.0, -1.0, 0.0], [2.0, 2.0], [0.0, 0.0]).unwrap();
         let kp = figure(1.5, 4.0, 1.0);
         assert_eq!(
-            cam.clone().scaled_to_floor().rectify(&kp),
-            scale_to_floor(&cam.rectify(&kp))
+            cam.clone().scaled_to_floor(1.5).rectify(&kp),
+            scale_to_floor(&cam.rectify(&kp), 1.5)
         );
     }
 

@@ -281,7 +281,9 @@ pub fn estimate(model: &BenchModel<'_>, trials: &[Trial]) -> Result<Vec<BoneLeng
             camera: "benchmark".into(),
             input: match model.input {
                 BenchInput::None => t.plain.clone(),
-                BenchInput::Calibration if floor => scaled_to_floor(&t.rectified),
+                BenchInput::Calibration if floor => {
+                    scaled_to_floor(&t.rectified, t.camera.height_m as f32)
+                }
                 BenchInput::Calibration => t.rectified.clone(),
             },
             gt: t.lengths,
@@ -306,13 +308,14 @@ pub fn estimate(model: &BenchModel<'_>, trials: &[Trial]) -> Result<Vec<BoneLeng
         .collect())
 }
 
-/// Rectified frames (`17 * 2` values each) scaled to the floor.
-fn scaled_to_floor(rectified: &[f32]) -> Vec<f32> {
+/// Rectified frames (`17 * 2` values each) from a camera `camera_height`
+/// metres up, scaled to the floor.
+fn scaled_to_floor(rectified: &[f32], camera_height: f32) -> Vec<f32> {
     rectified
         .chunks_exact(2 * blapose_core::NUM_JOINTS)
         .flat_map(|f| {
             let kp: Keypoints2d = std::array::from_fn(|j| [f[2 * j], f[2 * j + 1]]);
-            blapose_core::level::scale_to_floor(&kp)
+            blapose_core::level::scale_to_floor(&kp, camera_height)
                 .into_iter()
                 .flatten()
         })

@@ -74,7 +74,7 @@ pub fn rectify_streams<'a>(
         let level = blapose_core::level::LevelCamera::from_camera(cam)
             .map_err(|e| TrainError::Data(format!("{} camera {}: {e}", t.subject, t.camera)))?;
         let level = if floor_scaled {
-            level.scaled_to_floor()
+            level.scaled_to_floor(cam.center[2] as f32)
         } else {
             level
         };

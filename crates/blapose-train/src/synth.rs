@@ -221,9 +221,10 @@ pub struct SynthConfig {
     /// with what the rectified picture shows; estimates are scaled back with
     /// the camera's height ([`blapose_core::level::height_scale`]).
     pub height_normalized: bool,
-    /// Rectified keypoints further scaled, frame by frame, so the lowest
-    /// joint lies one unit below the horizon
-    /// ([`LevelCamera::scaled_to_floor`]): sizes in camera heights.
+    /// Rectified keypoints further scaled, frame by frame, by the camera's
+    /// height over the lowest joint's drop below the horizon
+    /// ([`LevelCamera::scaled_to_floor`]): the body at a fixed metric
+    /// scale, whatever the camera.
     pub floor_scaled: bool,
     /// Probability that a sample is seen through a camera drawn from the
     /// wide distribution ([`crate::bench_camera::wide_cameras`]) instead of
@@ -253,11 +254,11 @@ impl Default for SynthConfig {
 }
 
 impl SynthConfig {
-    /// A camera's level twin as these samples use it (scaled to the floor
-    /// when asked).
-    pub fn level_camera(&self, level: LevelCamera) -> LevelCamera {
+    /// The level twin of a camera `camera_height` metres above the floor
+    /// as these samples use it (scaled to the floor when asked).
+    pub fn level_camera(&self, level: LevelCamera, camera_height: f64) -> LevelCamera {
         if self.floor_scaled {
-            level.scaled_to_floor()
+            level.scaled_to_floor(camera_height as f32)
         } else {
             level
         }
@@ -596,7 +597,7 @@ impl SynthSource {
             .rectify
             .then(|| LevelCamera::from_camera(cam))
             .and_then(Result::ok)
-            .map(|l| cfg.level_camera(l));
+            .map(|l| cfg.level_camera(l, cam.center[2]));
         let mut input = Vec::with_capacity(t_len * FRAME_DIM);
         for (t, p) in cam_poses.iter().enumerate() {
             let shifted = p.map(|j| [j[0] + shift[0], j[1] + shift[1], j[2] + shift[2]]);
@@ -677,7 +678,7 @@ impl SynthSource {
         };
         let flipped = rng.random::<f32>() < cfg.flip_prob;
         let level = if cfg.rectify {
-            Some(cfg.level_camera(LevelCamera::from_camera(cam).ok()?))
+            Some(cfg.level_camera(LevelCamera::from_camera(cam).ok()?, drawn.height_m))
         } else {
             None
         };
