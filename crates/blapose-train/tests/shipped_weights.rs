@@ -4,15 +4,15 @@
 //! `{"every": k, "bigru_sh_mm": x, "gru_sh_mm": y}`: the headline error of
 //! `blapose eval --model M --input sh --every k` on S9/S11, and the same
 //! for the camera-aware pair (`*_rectified_sh_mm`, evaluated with
-//! `--rectify`). Skips when the data, the weights or that file are absent.
+//! `--calibrated`, as the server serves a calibrated session). Skips when the data, the weights or that file are absent.
 //! The weights' training configurations must parse in any case.
 
 use std::path::Path;
 
 use blapose_data::h36m::{H36m, Parts, ALL_SUBJECTS, TEST_SUBJECTS};
 use blapose_model::ModelKind;
-use blapose_train::dataset::{eval_sequences, rectify_streams, subject_lengths, InputKind};
-use blapose_train::eval::{evaluate, BiGruEstimator, GruEstimator, LengthEstimator};
+use blapose_train::dataset::{eval_sequences, subject_lengths, InputKind};
+use blapose_train::eval::{calibrated, evaluate, BiGruEstimator, GruEstimator, LengthEstimator};
 
 #[test]
 fn shipped_weights_reproduce_the_model_card() {
@@ -40,13 +40,6 @@ fn shipped_weights_reproduce_the_model_card() {
         .into_iter()
         .step_by(every)
         .collect();
-    let mut rectified = trials.clone();
-    rectify_streams(
-        &mut rectified,
-        |subject, id| h.cameras.get(subject, id),
-        false,
-    )
-    .unwrap();
     for (kind, file, key) in [
         (
             ModelKind::BiGru,
@@ -68,18 +61,18 @@ fn shipped_weights_reproduce_the_model_card() {
         let Some(expected) = spec[key].as_f64() else {
             continue;
         };
-        let trials = if key.contains("rectified") {
-            &rectified
-        } else {
-            &trials
-        };
         let weights =
             blapose_model::weights::load(models.join(file), kind).expect("shipped weights load");
-        let est: Box<dyn LengthEstimator> = match kind {
+        let mut est: Box<dyn LengthEstimator> = match kind {
             ModelKind::BiGru => Box::new(BiGruEstimator::new(&weights).unwrap()),
             ModelKind::Gru => Box::new(GruEstimator::new(&weights).unwrap()),
         };
-        let r = evaluate(est.as_ref(), trials, &[], kind.as_str(), "sh", file, &[]).unwrap();
+        // The camera-aware pair as a calibrated session is served.
+        let mut trials = trials.clone();
+        if key.contains("rectified") {
+            est = calibrated(est, &weights, &mut trials, |s, id| h.cameras.get(s, id)).unwrap();
+        }
+        let r = evaluate(est.as_ref(), &trials, &[], kind.as_str(), "sh", file, &[]).unwrap();
         assert!(
             (r.mean_bone_error_mm - expected).abs() < 0.05,
             "{file}: {:.3} mm on the subset, model card says {expected:.3}",
