@@ -424,8 +424,27 @@ impl Client {
     /// Re-attach to a session by id (its state is intact if its TTL has not
     /// expired; otherwise the server answers NOT_FOUND).
     pub async fn resume_session(&self, session_id: &str) -> Result<Session, ClientError> {
+        self.resume_session_with_token(session_id, None).await
+    }
+
+    /// Re-attach to a session by id, sending `token` (the latest
+    /// [`SessionToken`](crate::SessionToken) received for it) along: a
+    /// server that holds the session resumes it as
+    /// [`resume_session`](Client::resume_session) does and ignores the
+    /// token; one that does not (another replica sharing the session key,
+    /// or this one after a restart) restores the session from the token,
+    /// as of the token's `frames_seen`. Continue from the answer's
+    /// `frames_seen` either way. A token the server cannot use is refused
+    /// (UNAUTHENTICATED: altered or another key; FAILED_PRECONDITION: other
+    /// weights, another token version, or no key on that server).
+    pub async fn resume_session_with_token(
+        &self,
+        session_id: &str,
+        token: Option<&crate::types::SessionToken>,
+    ) -> Result<Session, ClientError> {
         let resume = pb::ResumeSession {
             session_id: session_id.to_string(),
+            session_token: token.map(|t| t.token.clone()).unwrap_or_default(),
         };
         Session::start(self, pb::stream_request::Kind::Resume(resume)).await
     }

@@ -45,12 +45,12 @@ pub use client::{
 };
 pub use error::ClientError;
 pub use html::{HtmlError, ReportData};
-pub use replay::{adjust_offline, replay, replay_session, Adjusted, ReplayOptions};
+pub use replay::{adjust_offline, replay, replay_across, replay_session, Adjusted, ReplayOptions};
 pub use report::{evaluate, Evaluation, PoseMetrics};
 pub use sequence::{Sequence, SequenceError};
 pub use session::{EventReceiver, FrameRejection, FrameSender, Session, SessionEvent};
 pub use types::{
     AdjustedFrame, CameraCalibration, CameraError, Coordinates, FrameInput, InputFormat,
     KeypointLayout, LiftedPose, LifterDescription, ModelChoice, ModelDescription, ModelInfo,
-    SessionInfo, SessionSummary, MAX_CAMERA_HEIGHT, MIN_CAMERA_HEIGHT,
+    SessionInfo, SessionSummary, SessionToken, MAX_CAMERA_HEIGHT, MIN_CAMERA_HEIGHT,
 };

@@ -25,7 +25,7 @@ use crate::client::{Client, SequenceInput, SessionOptions};
 use crate::error::ClientError;
 use crate::sequence::{write_adjusted, Sequence, SequenceError};
 use crate::session::{Session, SessionEvent};
-use crate::types::{CameraCalibration, ModelChoice, SessionSummary};
+use crate::types::{CameraCalibration, ModelChoice, SessionInfo, SessionSummary, SessionToken};
 
 /// How to stream a sequence.
 #[derive(Debug, Clone)]
@@ -76,6 +76,9 @@ pub struct Adjusted {
     pub elapsed: Duration,
     /// The session (stream only; it is closed at the end).
     pub session: Option<SessionSummary>,
+    /// How many times the session was resumed on the way (a stream that
+    /// failed, see [`replay_across`]); 0 for an uninterrupted replay.
+    pub resumes: u32,
     /// The camera calibration the serving model was given: `Some` when the
     /// camera-aware model adjusted the sequence, `None` for the default
     /// one. For a stream it is the session's, as the server echoed it; the
@@ -101,26 +104,219 @@ impl Adjusted {
 /// Stream `seq` frame by frame on a new session (with `seq.camera`, if
 /// any), pipelined, then close the session. `progress` is called with the
 /// number of frames answered so far.
+///
+/// If the stream fails on the way (the connection drops, the server shuts
+/// down or crashes), the session is resumed and the replay continues: see
+/// [`replay_across`], of which this is the one-server case (a server
+/// restarted with the same `--session-key` restores the session from its
+/// latest token).
 pub async fn replay(
     client: &Client,
     seq: &Sequence,
     options: &ReplayOptions,
     progress: impl FnMut(usize),
 ) -> Result<Adjusted, ClientError> {
+    replay_across(std::slice::from_ref(client), seq, options, progress).await
+}
+
+/// How many times [`replay_across`] resumes a session before it gives up.
+pub const MAX_RESUMES: u32 = 8;
+
+/// [`replay`] with failover across replicas: open the session on
+/// `clients[0]`; whenever the stream fails with a connection-level error
+/// (UNAVAILABLE, UNKNOWN, CANCELLED, or the stream ending early), resume
+/// the session, trying the server it was on first and then the others in
+/// order, sending the latest session token along. A server that holds the
+/// session resumes it; one that does not (another replica sharing the
+/// session key) restores it from the token. Sending then continues at the
+/// first frame the resumed session has not processed, so no frame is
+/// processed twice or skipped:
+///
+/// * restored from a token (as of frame k, at most the frames answered so
+///   far): frames k.. are sent again, and the answers to frames already
+///   answered are dropped (they equal the first ones);
+/// * a held session that processed frames whose answers were lost: with a
+///   token, the session is closed there and restored from the token, so
+///   every frame gets its answer; without one (a server without a session
+///   key) the replay fails with the stream's error, as it would without
+///   failover.
+///
+/// Errors that resuming cannot help (a refused frame, a bad request,
+/// ABORTED because another stream took the session over) end the replay at
+/// once; so does failing to resume anywhere, [`MAX_RESUMES`] times at most,
+/// with the stream's original error. `clients` must not be empty.
+pub async fn replay_across(
+    clients: &[Client],
+    seq: &Sequence,
+    options: &ReplayOptions,
+    mut progress: impl FnMut(usize),
+) -> Result<Adjusted, ClientError> {
     let started = Instant::now();
+    let first_client = clients
+        .first()
+        .ok_or_else(|| ClientError::InvalidInput("replay_across needs a server".into()))?;
     let session_options = SessionOptions {
         label: options.label.as_deref(),
         server_lifter: options.server_lifter,
         camera: seq.camera,
     };
-    let session = client
+    let session = first_client
         .open_session_with(seq.input_format, &session_options)
         .await?;
-    replay_session(session, seq, options, progress)
+    let info = session.info().clone();
+    let mut answers = Answers::new(&info, seq)?;
+    let mut token = info.token.clone();
+    let mut target = 0;
+    let mut session = session;
+    let mut resumes = 0;
+    loop {
+        let error = match stream_frames(
+            session,
+            seq,
+            options,
+            &mut answers,
+            &mut token,
+            &mut progress,
+        )
         .await
-        .map(|adjusted| Adjusted {
+        {
+            Ok(summary) => {
+                let mut done = answers.finish(&info, summary, started);
+                done.resumes = resumes;
+                return Ok(done);
+            }
+            Err(e) => e,
+        };
+        if !resumable(&error) || resumes >= MAX_RESUMES {
+            return Err(error);
+        }
+        resumes += 1;
+        session = match resume(
+            clients,
+            &mut target,
+            &info.session_id,
+            &answers,
+            token.as_ref(),
+        )
+        .await
+        {
+            Some(s) => s,
+            None => return Err(error),
+        };
+    }
+}
+
+/// Whether a failed stream may be resumed: the connection or the server
+/// went away, not a refusal of what was sent.
+fn resumable(e: &ClientError) -> bool {
+    match e {
+        ClientError::Status(s) => matches!(
+            s.code(),
+            tonic::Code::Unavailable | tonic::Code::Unknown | tonic::Code::Cancelled
+        ),
+        ClientError::StreamEnded { .. } | ClientError::Timeout { .. } => true,
+        _ => false,
+    }
+}
+
+/// Resume the session on some server (the current target first), so that
+/// it continues at a frame already answered or the next one; `None` when
+/// no server could (after a few rounds with a short backoff).
+async fn resume(
+    clients: &[Client],
+    target: &mut usize,
+    id: &str,
+    answers: &Answers,
+    token: Option<&SessionToken>,
+) -> Option<Session> {
+    let answered = answers.end() as u64;
+    let mut backoff = Duration::from_millis(100);
+    for round in 0..3 {
+        if round > 0 {
+            tokio::time::sleep(backoff).await;
+            backoff *= 2;
+        }
+        for step in 0..clients.len() {
+            let i = (*target + step) % clients.len();
+            let client = &clients[i];
+            let Ok(session) = client.resume_session_with_token(id, token).await else {
+                continue;
+            };
+            if session.info().frames_seen <= answered {
+                *target = i;
+                return Some(session);
+            }
+            // Held there, with answers lost on the way: start again from
+            // the token, which is as of a frame already answered.
+            let token = token?;
+            drop(session);
+            if client.close_session(id).await.is_err() {
+                continue;
+            }
+            if let Ok(session) = client.resume_session_with_token(id, Some(token)).await {
+                if session.info().frames_seen <= answered {
+                    *target = i;
+                    return Some(session);
+                }
+            }
+        }
+    }
+    None
+}
+
+/// The answers collected so far, for frames `first..first + len`.
+struct Answers {
+    first: usize,
+    lifter: Option<String>,
+    adjusted: Vec<Pose>,
+    lengths: Vec<BoneLengths>,
+    lifted: Vec<Pose>,
+}
+
+impl Answers {
+    fn new(info: &SessionInfo, seq: &Sequence) -> Result<Self, ClientError> {
+        let first = start_frame(info, seq)?;
+        let total = seq.len() - first;
+        Ok(Answers {
+            first,
+            lifter: info.lifter.clone(),
+            adjusted: Vec::with_capacity(total),
+            lengths: Vec::with_capacity(total),
+            lifted: Vec::new(),
+        })
+    }
+
+    /// The first frame without an answer.
+    fn end(&self) -> usize {
+        self.first + self.adjusted.len()
+    }
+
+    fn finish(self, info: &SessionInfo, summary: SessionSummary, started: Instant) -> Adjusted {
+        Adjusted {
+            model: info.model,
+            first_frame: self.first,
+            adjusted: self.adjusted,
+            bone_lengths: self.lengths,
+            lifter: self.lifter,
+            lifted: self.lifted,
             elapsed: started.elapsed(),
-            ..adjusted
+            session: Some(summary),
+            resumes: 0,
+            camera: info.camera,
+        }
+    }
+}
+
+fn start_frame(info: &SessionInfo, seq: &Sequence) -> Result<usize, ClientError> {
+    usize::try_from(info.frames_seen)
+        .ok()
+        .filter(|&f| f <= seq.len())
+        .ok_or_else(|| {
+            ClientError::InvalidInput(format!(
+                "the session has processed {} frames, more than the sequence's {}",
+                info.frames_seen,
+                seq.len()
+            ))
         })
 }
 
@@ -133,7 +329,8 @@ pub async fn replay(
 /// were lost: sending them again would count them twice. The result holds
 /// the frames from there on ([`Adjusted::first_frame`]); the lost answers
 /// are not sent again. `options.label`, `server_lifter` and `seq.camera` are
-/// the session's, fixed when it was opened.
+/// the session's, fixed when it was opened. One stream, no failover (see
+/// [`replay_across`] for that).
 ///
 /// ```no_run
 /// # async fn f(client: &blapose_client::Client, seq: &blapose_client::Sequence) -> Result<(), blapose_client::ClientError> {
@@ -155,19 +352,49 @@ pub async fn replay_session(
     mut progress: impl FnMut(usize),
 ) -> Result<Adjusted, ClientError> {
     let started = Instant::now();
+    let info = session.info().clone();
+    let mut answers = Answers::new(&info, seq)?;
+    let mut token = None;
+    let summary = stream_frames(
+        session,
+        seq,
+        options,
+        &mut answers,
+        &mut token,
+        &mut progress,
+    )
+    .await?;
+    Ok(answers.finish(&info, summary, started))
+}
+
+/// One stream of a replay: send the frames from the session's
+/// `frames_seen` on, pipelined, then close; add the answers to frames not
+/// answered yet to `answers` (an answer to a frame answered before, on a
+/// session restored from an older token, is dropped); keep the latest
+/// session token as of a frame answered in `token`.
+async fn stream_frames(
+    session: Session,
+    seq: &Sequence,
+    options: &ReplayOptions,
+    answers: &mut Answers,
+    token: &mut Option<SessionToken>,
+    progress: &mut impl FnMut(usize),
+) -> Result<SessionSummary, ClientError> {
     let (info, sender, mut receiver) = session.split();
-    let lifter = info.lifter.clone();
-    let camera = info.camera;
-    let first = usize::try_from(info.frames_seen)
-        .ok()
-        .filter(|&f| f <= seq.len())
-        .ok_or_else(|| {
-            ClientError::InvalidInput(format!(
-                "the session has processed {} frames, more than the sequence's {}",
-                info.frames_seen,
-                seq.len()
-            ))
-        })?;
+    let first = start_frame(&info, seq)?;
+    if first > answers.end() {
+        return Err(ClientError::Protocol(format!(
+            "the session continues at frame {first}, but frame {} was not answered",
+            answers.end()
+        )));
+    }
+    if info.lifter != answers.lifter {
+        return Err(ClientError::Protocol(format!(
+            "the resumed session's poses come from {:?}, the replay's from {:?}",
+            info.lifter, answers.lifter
+        )));
+    }
+    let lifter = answers.lifter.clone();
     let total = seq.len() - first;
     let window = Arc::new(Semaphore::new(options.window.max(1)));
 
@@ -205,18 +432,27 @@ pub async fn replay_session(
             }
         }
         let _wake_sender = CloseOnDrop(&window);
-        let mut adjusted = Vec::with_capacity(total);
-        let mut lengths = Vec::with_capacity(total);
-        let mut lifted = Vec::new();
-        while adjusted.len() < total {
-            let answered = adjusted.len() as u64;
-            let expected = (first + adjusted.len()) as u64;
-            let frame = match receiver.next().await? {
+        let mut received = 0usize;
+        let keep_token = |receiver: &mut crate::session::EventReceiver,
+                          token: &mut Option<SessionToken>,
+                          answered: usize| {
+            if let Some(t) = receiver.take_new_token() {
+                if t.frames_seen <= answered as u64 {
+                    *token = Some(t);
+                }
+            }
+        };
+        keep_token(&mut receiver, token, answers.end());
+        while received < total {
+            let expected = (first + received) as u64;
+            let event = receiver.next().await;
+            keep_token(&mut receiver, token, answers.end());
+            let frame = match event? {
                 Some(SessionEvent::Adjusted(f)) => f,
                 Some(SessionEvent::Rejected(r)) => return Err(r.into_error()),
                 Some(SessionEvent::Closed(_)) | None => {
                     return Err(ClientError::StreamEnded {
-                        answered,
+                        answered: received as u64,
                         sent: total as u64,
                     })
                 }
@@ -227,11 +463,11 @@ pub async fn replay_session(
                     frame.frame_index
                 )));
             }
-            if frame.frames_seen != info.frames_seen + answered + 1 {
+            if frame.frames_seen != expected + 1 {
                 return Err(ClientError::Protocol(format!(
                     "frame {expected}: frames_seen is {}, expected {}",
                     frame.frames_seen,
-                    info.frames_seen + answered + 1
+                    expected + 1
                 )));
             }
             if frame.lifter() != lifter.as_deref() {
@@ -241,11 +477,18 @@ pub async fn replay_session(
                     lifter
                 )));
             }
-            lifted.extend(frame.lifted.map(|l| l.pose));
-            adjusted.push(frame.pose);
-            lengths.push(frame.bone_lengths);
+            received += 1;
             window.add_permits(1);
-            progress(adjusted.len());
+            // A frame answered before (the session was restored from an
+            // older token): keep the first answer.
+            if expected as usize == answers.end() {
+                answers.lifted.extend(frame.lifted.map(|l| l.pose));
+                answers.adjusted.push(frame.pose);
+                answers.lengths.push(frame.bone_lengths);
+                progress(answers.adjusted.len());
+            }
+            // A token sent right after this answer is as of it.
+            keep_token(&mut receiver, token, answers.end());
         }
         let summary = match receiver.next().await? {
             Some(SessionEvent::Closed(s)) => s,
@@ -260,22 +503,11 @@ pub async fn replay_session(
                 "an answer after SessionClosed: {extra:?}"
             )));
         }
-        Ok((adjusted, lengths, lifted, summary))
+        Ok(summary)
     };
 
     let ((), received) = tokio::join!(send, receive);
-    let (adjusted, bone_lengths, lifted, summary) = received?;
-    Ok(Adjusted {
-        model: info.model,
-        first_frame: first,
-        adjusted,
-        bone_lengths,
-        lifter,
-        lifted,
-        elapsed: started.elapsed(),
-        session: Some(summary),
-        camera,
-    })
+    received
 }
 
 /// The ticker that paces sending to `fps` frames per second (`None`: no
@@ -305,6 +537,7 @@ pub async fn adjust_offline(
         lifted: Vec::new(),
         elapsed: started.elapsed(),
         session: None,
+        resumes: 0,
         camera: seq.camera,
     })
 }

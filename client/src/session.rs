@@ -20,7 +20,7 @@ use tokio_stream::wrappers::ReceiverStream;
 
 use crate::client::Client;
 use crate::error::ClientError;
-use crate::types::{AdjustedFrame, FrameInput, SessionInfo, SessionSummary};
+use crate::types::{AdjustedFrame, FrameInput, SessionInfo, SessionSummary, SessionToken};
 
 /// A frame the server refused; the session is unchanged and later frames
 /// are processed normally.
@@ -81,6 +81,18 @@ impl FrameSender {
             .map_err(|_| ClientError::Protocol("the session's stream has ended".into()))
     }
 
+    /// Ask the server for a session token (servers with a session key): it
+    /// arrives after the answers to every frame sent before, and
+    /// [`EventReceiver::latest_token`] holds it from then on. A server
+    /// without a key answers with a rejection (FAILED_PRECONDITION,
+    /// frame index 0).
+    pub async fn request_token(&self) -> Result<(), ClientError> {
+        self.send_raw(pb::StreamRequest {
+            kind: Some(RequestKind::TokenRequest(pb::TokenRequest {})),
+        })
+        .await
+    }
+
     /// Ask the server to close the session: it answers every earlier frame,
     /// then sends [`SessionEvent::Closed`] and ends the stream.
     pub async fn close(&self) -> Result<(), ClientError> {
@@ -91,18 +103,51 @@ impl FrameSender {
     }
 }
 
-/// The receiving half of a session.
+/// The receiving half of a session. Session tokens the server sends
+/// (servers with a session key) are not events: the receiver keeps the
+/// latest one ([`EventReceiver::latest_token`]).
 #[derive(Debug)]
 pub struct EventReceiver {
     inner: tonic::Streaming<pb::StreamResponse>,
+    token: Option<SessionToken>,
+    fresh_token: bool,
 }
 
 impl EventReceiver {
+    /// The latest session token: the one in `SessionOpened`, then each one
+    /// the server sent since (every N frames, or on request), each as of
+    /// the frames answered before it; `None` from a server without a key.
+    pub fn latest_token(&self) -> Option<&SessionToken> {
+        self.token.as_ref()
+    }
+
+    /// The latest token if one arrived since the last call (or since the
+    /// session opened, for the first call).
+    pub fn take_new_token(&mut self) -> Option<SessionToken> {
+        if std::mem::take(&mut self.fresh_token) {
+            self.token.clone()
+        } else {
+            None
+        }
+    }
+
     /// The next answer; `Ok(None)` when the server ended the stream with OK,
     /// `Err(ClientError::Status)` when it ended it with an error status.
     pub async fn next(&mut self) -> Result<Option<SessionEvent>, ClientError> {
-        let Some(msg) = self.inner.message().await? else {
-            return Ok(None);
+        let msg = loop {
+            let Some(msg) = self.inner.message().await? else {
+                return Ok(None);
+            };
+            match msg.kind {
+                Some(ResponseKind::Token(t)) => {
+                    self.token = Some(SessionToken {
+                        token: t.token,
+                        frames_seen: t.frames_seen,
+                    });
+                    self.fresh_token = true;
+                }
+                _ => break msg,
+            }
         };
         let event = match msg.kind {
             Some(ResponseKind::Frame(f)) => SessionEvent::Adjusted(AdjustedFrame::from_proto(f)?),
@@ -117,7 +162,9 @@ impl EventReceiver {
                     "a second SessionOpened on one stream".into(),
                 ))
             }
-            None => return Err(ClientError::Protocol("an empty StreamResponse".into())),
+            Some(ResponseKind::Token(_)) | None => {
+                return Err(ClientError::Protocol("an empty StreamResponse".into()))
+            }
         };
         Ok(Some(event))
     }
@@ -187,10 +234,15 @@ impl Session {
                 ))
             }
         };
+        let token = info.token.clone();
         Ok(Session {
             info,
             sender: FrameSender { tx },
-            receiver: EventReceiver { inner },
+            receiver: EventReceiver {
+                inner,
+                fresh_token: token.is_some(),
+                token,
+            },
         })
     }
 
@@ -202,6 +254,11 @@ impl Session {
     /// The session id.
     pub fn id(&self) -> &str {
         &self.info.session_id
+    }
+
+    /// The latest session token (see [`EventReceiver::latest_token`]).
+    pub fn latest_token(&self) -> Option<&SessionToken> {
+        self.receiver.latest_token()
     }
 
     /// Queue one frame (see [`FrameSender::send`]).

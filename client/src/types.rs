@@ -452,6 +452,33 @@ pub struct SessionInfo {
     /// The session's camera calibration as opened: `Some` when the session
     /// is served by the camera-aware model, `None` for the default one.
     pub camera: Option<CameraCalibration>,
+    /// A session token for the state at this answer (`frames_seen`):
+    /// `Some` when the server has a session key, `None` otherwise.
+    pub token: Option<SessionToken>,
+}
+
+/// A session token: the session's whole state, opaque and authenticated by
+/// the server's session key, as of `frames_seen` processed frames. Resuming
+/// with it ([`Client::resume_session_with_token`](crate::Client::resume_session_with_token))
+/// restores the session on a server that does not hold it (another replica
+/// sharing the key, or the same server after a restart).
+#[derive(Clone, PartialEq, Eq)]
+pub struct SessionToken {
+    /// The opaque bytes (about 4.3 kB).
+    pub token: Vec<u8>,
+    /// Frames processed in the state it holds.
+    pub frames_seen: u64,
+}
+
+impl std::fmt::Debug for SessionToken {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "SessionToken {{ {} bytes, frames_seen: {} }}",
+            self.token.len(),
+            self.frames_seen
+        )
+    }
 }
 
 impl SessionInfo {
@@ -477,6 +504,10 @@ impl SessionInfo {
                 .as_ref()
                 .map(CameraCalibration::from_proto)
                 .transpose()?,
+            token: (!msg.session_token.is_empty()).then_some(SessionToken {
+                token: msg.session_token,
+                frames_seen: msg.frames_seen,
+            }),
         })
     }
 }

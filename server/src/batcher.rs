@@ -61,7 +61,7 @@ use tokio::sync::oneshot;
 use crate::backend::{Backend, BackendError, INPUT_DIM, OUTPUT_DIM, STATE_DIM};
 use crate::metrics;
 use crate::models::LoadedLifter;
-use crate::session::{add_prediction, Session};
+use crate::session::{add_prediction, Session, StateCopy};
 use crate::validate;
 
 /// Batching limits.
@@ -87,6 +87,11 @@ pub struct FrameJob {
     /// Lift the pose from the session's window and `input` with the server
     /// lifter (the session must have been opened lifting).
     pub lift: bool,
+    /// Copy the session's state into the answer ([`StepOutput::state`])
+    /// when this frame makes its frames seen a multiple of this (0: never);
+    /// the copy is taken under the same lock as the update, so it is
+    /// exactly the state after this frame (for periodic session tokens).
+    pub state_every: u64,
     /// Where the answer goes.
     pub reply: oneshot::Sender<StepResult>,
 }
@@ -101,6 +106,9 @@ pub struct StepOutput {
     /// The server lifter's pose for this frame (root at 0), for a lifting
     /// frame; `None` when the client sent the pose.
     pub lifted: Option<Pose>,
+    /// The session's state right after this frame, when the job asked for
+    /// it ([`FrameJob::state_every`]).
+    pub state: Option<Box<StateCopy>>,
 }
 
 /// Why an accepted frame was not processed. The session is unchanged.
@@ -813,10 +821,14 @@ fn scatter(job: &FrameJob, hidden: &[f32], lengths: &[f32], lifted: Option<Pose>
         .as_ref()
         .map_or(1.0, |camera| camera.length_scale);
     let estimate = add_prediction(&mut st.lengths, &prediction, scale);
+    let frames_seen = st.frames_seen();
+    let state = (job.state_every > 0 && frames_seen.is_multiple_of(job.state_every))
+        .then(|| Box::new(st.copy_state()));
     Ok(StepOutput {
         lengths: estimate,
-        frames_seen: st.frames_seen(),
+        frames_seen,
         lifted: if job.lift { lifted } else { None },
+        state,
     })
 }
 
@@ -945,6 +957,7 @@ mod tests {
                 epoch,
                 input,
                 lift: false,
+                state_every: 0,
                 reply: tx,
             },
             rx,

@@ -15,6 +15,8 @@ use blapose_model::Precision;
 use clap::builder::TypedValueParser;
 use clap::{Parser, ValueEnum};
 
+use crate::token::SessionKey;
+
 /// Where a model's weights come from.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub enum WeightsSource {
@@ -112,6 +114,12 @@ pub struct ServerConfig {
     pub max_message_bytes: usize,
     /// How long shutdown waits for in-flight work before giving up.
     pub shutdown_grace: Duration,
+    /// The key that authenticates session tokens (shared by replicas);
+    /// `None`: no tokens are issued or accepted.
+    pub session_key: Option<SessionKey>,
+    /// With a key: send a session token every this many processed frames
+    /// of a session (0: only in SessionOpened and on request).
+    pub token_every: u64,
 }
 
 impl Default for ServerConfig {
@@ -135,6 +143,8 @@ impl Default for ServerConfig {
             auth_token: None,
             max_message_bytes: DEFAULT_MAX_MESSAGE_BYTES,
             shutdown_grace: Duration::from_secs(DEFAULT_SHUTDOWN_GRACE_S),
+            session_key: None,
+            token_every: DEFAULT_TOKEN_EVERY,
         }
     }
 }
@@ -149,6 +159,7 @@ const DEFAULT_COMPUTE_THREADS: usize = 1;
 const DEFAULT_MAX_MESSAGE_BYTES: usize = 4 * 1024 * 1024;
 const DEFAULT_SHUTDOWN_GRACE_S: u64 = 10;
 const DEFAULT_OPEN_TIMEOUT_S: u64 = 10;
+const DEFAULT_TOKEN_EVERY: u64 = 100;
 
 /// blapose-server: streaming BLAPose bone-length adjustment over gRPC.
 ///
@@ -285,6 +296,21 @@ pub struct Cli {
     #[arg(long, env = "BLAPOSE_SHUTDOWN_GRACE", default_value = "10s", value_parser = parse_duration)]
     pub shutdown_grace: Duration,
 
+    /// Key authenticating session tokens (HMAC-SHA256), shared by every replica that may resume
+    /// another's sessions: `hex:<digits>`, `base64:<text>`, or else the string's own bytes; at
+    /// least 16 bytes (32 random bytes recommended, e.g. `hex:$(openssl rand -hex 32)`). With
+    /// it, clients get a session token on open/resume, every --token-every frames and on request,
+    /// and a resume with a token restores the session on a replica that does not hold it.
+    /// Without it, no tokens are issued or accepted.
+    #[arg(long, env = "BLAPOSE_SESSION_KEY", value_name = "KEY", hide_env_values = true,
+          value_parser = parse_session_key)]
+    pub session_key: Option<SessionKey>,
+
+    /// With --session-key: send each session a token every N processed frames (0: only when
+    /// opened or resumed and on request).
+    #[arg(long, env = "BLAPOSE_TOKEN_EVERY", value_name = "N", default_value_t = DEFAULT_TOKEN_EVERY)]
+    pub token_every: u64,
+
     /// Act as a health-check client instead: query grpc.health.v1 at --addr, exit 0 if SERVING,
     /// else 1. With --tls-cert it connects over TLS (see --tls-ca, --tls-domain).
     #[arg(long)]
@@ -361,8 +387,16 @@ impl Cli {
             auth_token: self.auth_token.filter(|t| !t.is_empty()),
             max_message_bytes: self.max_message_bytes,
             shutdown_grace: self.shutdown_grace,
+            session_key: self.session_key,
+            token_every: self.token_every,
         }
     }
+}
+
+/// Parse `--session-key` (see [`SessionKey::parse`]); a key shorter than
+/// 16 bytes is a start-up error.
+pub fn parse_session_key(text: &str) -> Result<SessionKey, String> {
+    SessionKey::parse(text).map_err(|e| e.to_string())
 }
 
 /// Parse `f32` or `f16`.
@@ -547,6 +581,30 @@ mod tests {
         assert_eq!(cli.into_config().open_timeout, Duration::from_millis(250));
         assert!(Cli::try_parse_from(["blapose-server", "--open-timeout", "0"]).is_err());
         assert!(Cli::try_parse_from(["blapose-server", "--open-timeout", "0s"]).is_err());
+    }
+
+    #[test]
+    fn session_key_parses_and_short_keys_are_refused() {
+        let cfg = Cli::try_parse_from(["blapose-server"])
+            .unwrap()
+            .into_config();
+        assert_eq!(cfg.session_key, None, "no key, no tokens");
+        assert_eq!(cfg.token_every, 100);
+        let cli = Cli::try_parse_from([
+            "blapose-server",
+            "--session-key",
+            "hex:000102030405060708090a0b0c0d0e0f",
+            "--token-every",
+            "0",
+        ])
+        .unwrap();
+        let cfg = cli.into_config();
+        assert!(cfg.session_key.is_some());
+        assert_eq!(cfg.token_every, 0);
+        let Err(err) = Cli::try_parse_from(["blapose-server", "--session-key", "too-short"]) else {
+            panic!("a 9-byte key is refused");
+        };
+        assert!(err.to_string().contains("at least 16"), "{err}");
     }
 
     #[test]

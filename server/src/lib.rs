@@ -29,7 +29,8 @@
 //! behind it), [`models`] (weights and providers), [`validate`] (client
 //! input), [`stream`] (the bidirectional session protocol), [`offline`]
 //! (whole-sequence requests), [`service`] (the tonic service), [`auth`],
-//! [`metrics`], [`shutdown`], [`telemetry`].
+//! [`metrics`], [`shutdown`], [`telemetry`], [`token`] (portable session
+//! state: session tokens).
 //!
 //! Embedding (tests, load generators): [`spawn`] starts a server on a bound
 //! listener and returns a [`ServerHandle`]; [`serve`] runs until a future
@@ -50,6 +51,7 @@ pub mod shutdown;
 pub mod stream;
 pub mod telemetry;
 pub mod testing;
+pub mod token;
 pub mod validate;
 
 use std::future::Future;
@@ -237,6 +239,14 @@ pub async fn spawn_with_provider(
     .map_err(|e| ServerError::Task(e.to_string()))??;
     let batcher = Arc::new(batcher);
 
+    let tokens = config.session_key.clone().map(|key| {
+        service::Tokens::new(
+            key,
+            config.token_every,
+            provider.as_ref(),
+            lifter.as_deref(),
+        )
+    });
     let (store, purge_guard) = SessionStore::new(config.max_sessions.max(1), config.session_ttl);
     let shutdown = CancellationToken::new();
     let state = Arc::new(AppState {
@@ -249,6 +259,7 @@ pub async fn spawn_with_provider(
         open_timeout: config.open_timeout,
         max_inflight_per_stream: config.max_inflight_per_stream.max(1),
         max_message_bytes: config.max_message_bytes,
+        tokens,
     });
 
     let (health, health_service) = tonic_health::server::health_reporter();

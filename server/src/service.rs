@@ -21,6 +21,7 @@ use crate::models::{CameraReading, LoadedLifter, ModelProvider};
 use crate::offline::OfflineRunner;
 use crate::session::SessionStore;
 use crate::stream::{self, session_status, Outbound};
+use crate::token::{self, SessionKey};
 use crate::validate;
 
 /// Shared server state.
@@ -43,6 +44,64 @@ pub struct AppState {
     pub max_inflight_per_stream: usize,
     /// Request size limit (reported by ModelInfo).
     pub max_message_bytes: usize,
+    /// Session tokens (`--session-key`); `None`: none issued or accepted.
+    pub tokens: Option<Tokens>,
+}
+
+/// What issuing and restoring session tokens needs: the key, how often to
+/// send one, and the ids of the weights a session's state belongs to.
+#[derive(Debug, Clone)]
+pub struct Tokens {
+    /// The shared key.
+    pub key: SessionKey,
+    /// Send a token every this many frames (0: open/resume and on request).
+    pub every: u64,
+    /// The default family's online GRU weights.
+    pub default_weights: [u8; 32],
+    /// The camera-aware family's online GRU weights, if served.
+    pub camera_weights: Option<[u8; 32]>,
+    /// The server lifter's weights and receptive field, if any.
+    pub lifter: Option<([u8; 32], usize)>,
+}
+
+impl Tokens {
+    /// Tokens for a server with these models.
+    pub fn new(
+        key: SessionKey,
+        every: u64,
+        provider: &dyn ModelProvider,
+        lifter: Option<&LoadedLifter>,
+    ) -> Self {
+        let online = |descriptions: Vec<pb::ModelDescription>, camera_aware: bool| {
+            descriptions
+                .iter()
+                .find(|d| d.model == pb::Model::OnlineGru as i32 && d.camera_aware == camera_aware)
+                .map(|d| token::weights_id(&d.weights_sha256))
+        };
+        let all = provider.describe();
+        let default_weights = online(all.clone(), false).unwrap_or_else(|| token::weights_id(""));
+        let camera_weights = online(all, true).or_else(|| {
+            provider
+                .camera_aware()
+                .and_then(|p| online(p.describe(), true).or_else(|| online(p.describe(), false)))
+        });
+        Self {
+            key,
+            every,
+            default_weights,
+            camera_weights,
+            lifter: lifter.map(|l| (token::weights_id(&l.sha256), l.lifter.receptive_field())),
+        }
+    }
+
+    /// The weights id of a session's family.
+    pub fn weights_for(&self, camera: bool) -> Option<[u8; 32]> {
+        if camera {
+            self.camera_weights
+        } else {
+            Some(self.default_weights)
+        }
+    }
 }
 
 impl AppState {

@@ -77,6 +77,11 @@ impl SessionId {
     pub fn as_bytes(&self) -> &[u8; 16] {
         &self.0
     }
+
+    /// The id with these bytes (a session token's).
+    pub fn from_bytes(bytes: [u8; 16]) -> Self {
+        Self(bytes)
+    }
 }
 
 fn hex_value(c: u8) -> Option<u8> {
@@ -204,6 +209,27 @@ impl SessionState {
     pub fn accepts(&self, epoch: u64) -> bool {
         !self.closed && self.epoch == epoch
     }
+
+    /// A copy of the model state (what a session token carries).
+    pub fn copy_state(&self) -> StateCopy {
+        StateCopy {
+            hidden: self.hidden.clone(),
+            lengths: self.lengths,
+            window: self.window.as_deref().map(|w| w.iter().copied().collect()),
+        }
+    }
+}
+
+/// A copy of a session's model state at one moment: what a session token
+/// holds besides the session's fixed configuration.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StateCopy {
+    /// GRU hidden states, `STATE_DIM` floats.
+    pub hidden: Box<[f32]>,
+    /// Running mean and frames seen.
+    pub lengths: RunningLengths,
+    /// The lifter window's frames, oldest first (lifting sessions).
+    pub window: Option<Vec<blapose_core::Keypoints2d>>,
 }
 
 /// Who owns a session now, as the attached stream watches it.
@@ -323,6 +349,9 @@ pub enum SessionError {
     /// The OS random source failed.
     #[error("cannot draw a random session id: {0}")]
     Rng(String),
+    /// A session token's state does not fit the session it describes.
+    #[error("cannot restore the session: {0}")]
+    Restore(String),
 }
 
 #[derive(Debug)]
@@ -476,6 +505,83 @@ impl SessionStore {
                 frames_seen: 0,
                 bone_lengths: None,
             },
+        })
+    }
+
+    /// Re-create a session from a copy of its state (a session token) under
+    /// its old id, attached to the caller as a resume (epoch 2). If a
+    /// session with this id is held after all (another stream restored it
+    /// first), it is resumed instead and `state` is ignored.
+    pub fn restore(
+        &self,
+        id: SessionId,
+        config: SessionConfig,
+        state: StateCopy,
+    ) -> Result<Attachment, SessionError> {
+        if state.hidden.len() != STATE_DIM {
+            return Err(SessionError::Restore(format!(
+                "a hidden state of {} floats, expected {STATE_DIM}",
+                state.hidden.len()
+            )));
+        }
+        let key = self.shared.next_key.fetch_add(1, Ordering::Relaxed);
+        let session = Arc::new(Session::new(id, key, config));
+        {
+            let mut st = session.lock();
+            match (st.window.as_deref_mut(), &state.window) {
+                (Some(window), Some(frames)) => {
+                    if frames.len() > window.frames() {
+                        return Err(SessionError::Restore(format!(
+                            "a lifter window of {} frames, the lifter holds {}",
+                            frames.len(),
+                            window.frames()
+                        )));
+                    }
+                    for frame in frames {
+                        window.push(*frame);
+                    }
+                }
+                (None, None) => {}
+                _ => {
+                    return Err(SessionError::Restore(
+                        "the lifter window does not match the session's configuration".into(),
+                    ))
+                }
+            }
+            st.hidden.copy_from_slice(&state.hidden);
+            st.lengths = state.lengths;
+            st.epoch = 2;
+            session.publish(&st);
+        }
+        let mut inner = self.shared.lock();
+        if inner.sessions.contains_key(&id) {
+            drop(inner);
+            return self.resume(&id.to_string());
+        }
+        if inner.sessions.len() >= self.shared.max_sessions {
+            return Err(SessionError::TooManySessions {
+                max: self.shared.max_sessions,
+            });
+        }
+        inner.sessions.insert(
+            id,
+            Entry {
+                session: session.clone(),
+                expires_at: None,
+            },
+        );
+        metrics::session_opened(inner.sessions.len());
+        drop(inner);
+        let st = session.lock();
+        let snapshot = SessionSnapshot {
+            frames_seen: st.frames_seen(),
+            bone_lengths: st.estimate(),
+        };
+        drop(st);
+        Ok(Attachment {
+            session,
+            epoch: 2,
+            snapshot,
         })
     }
 

@@ -37,8 +37,10 @@ use crate::batcher::{FrameJob, StepResult};
 use crate::metrics;
 use crate::service::AppState;
 use crate::session::{
-    Attachment, Ownership, SessionConfig, SessionError, SessionSnapshot, MAX_LABEL_BYTES,
+    Attachment, Ownership, Session, SessionConfig, SessionError, SessionSnapshot, StateCopy,
+    MAX_LABEL_BYTES,
 };
+use crate::token::PortableState;
 use crate::validate;
 
 /// What the response channel carries.
@@ -48,6 +50,9 @@ pub type Outbound = Result<pb::StreamResponse, Status>;
 enum Pending {
     /// Already known (a refused frame).
     Ready(pb::StreamResponse),
+    /// A token request: answered with the session's state once every
+    /// earlier frame is answered (no later frame is read before that).
+    Token,
     /// In the batcher. `pose` is the client's, `None` when the server
     /// lifts it.
     Step {
@@ -194,13 +199,19 @@ fn open_or_resume(
             Ok(attachment)
         }
         Some(Req::Resume(resume)) => {
-            let attachment = state
-                .store
-                .resume(&resume.session_id)
-                .map_err(session_status)?;
+            let attachment = match state.store.resume(&resume.session_id) {
+                Ok(a) => a,
+                Err(SessionError::NotFound { .. }) if !resume.session_token.is_empty() => {
+                    restore(state, &resume)?
+                }
+                Err(e) => return Err(session_status(e)),
+            };
             tracing::info!(session = %attachment.session.id(), frames_seen = attachment.snapshot.frames_seen, "session resumed");
             Ok(attachment)
         }
+        Some(Req::TokenRequest(_)) => Err(Status::failed_precondition(
+            "a token request arrived before the session was opened: send open or resume first",
+        )),
         Some(Req::Frame(_)) => Err(Status::failed_precondition(
             "a frame arrived before the session was opened: send open or resume first",
         )),
@@ -213,12 +224,125 @@ fn open_or_resume(
     }
 }
 
+/// Restore a session this server does not hold from the resume's token.
+fn restore(state: &AppState, resume: &pb::ResumeSession) -> Result<Attachment, Status> {
+    let tokens = state.tokens.as_ref().ok_or_else(|| {
+        Status::failed_precondition(format!(
+            "no session {:?} on this server, and it has no session key (--session-key), so it \
+             cannot restore sessions from tokens",
+            truncate_label(&resume.session_id)
+        ))
+    })?;
+    let portable =
+        PortableState::open(&resume.session_token, &tokens.key).map_err(|e| e.to_status())?;
+    if !portable
+        .session_id
+        .to_string()
+        .eq_ignore_ascii_case(&resume.session_id)
+    {
+        return Err(Status::invalid_argument(format!(
+            "the session token is for session {}, not {:?}",
+            portable.session_id,
+            truncate_label(&resume.session_id)
+        )));
+    }
+    let camera = validate::camera(
+        portable.camera.as_ref(),
+        &portable.input,
+        state.camera_models(),
+    )
+    .map_err(|e| {
+        Status::failed_precondition(format!(
+            "the session token's camera calibration cannot be served here: {e}"
+        ))
+    })?;
+    let served = tokens.weights_for(camera.is_some());
+    if served != Some(portable.weights_id) {
+        return Err(Status::failed_precondition(format!(
+            "the session token was made for other weights (online GRU sha256 {}) than this \
+             server runs ({}): its state would not continue the same model",
+            hex(&portable.weights_id),
+            served.map_or_else(|| "none".to_string(), |w| hex(&w)),
+        )));
+    }
+    let lifter_frames =
+        match (&portable.window, tokens.lifter) {
+            (None, _) => None,
+            (Some(w), Some((id, frames))) if w.lifter_id == id && w.receptive_field == frames => {
+                Some(frames)
+            }
+            (Some(w), Some(_)) => {
+                return Err(Status::failed_precondition(format!(
+                    "the session token was made for another server lifter (sha256 {}) than this \
+                 server runs",
+                    hex(&w.lifter_id)
+                )))
+            }
+            (Some(_), None) => return Err(Status::failed_precondition(
+                "the session token is for a server_lifter session, and this server runs no lifter",
+            )),
+        };
+    let id = portable.session_id;
+    let config = SessionConfig {
+        input: portable.input,
+        label: portable.label,
+        lifter_frames,
+        camera,
+    };
+    let copy = StateCopy {
+        hidden: portable.hidden.into_boxed_slice(),
+        lengths: portable.lengths,
+        window: portable.window.map(|w| w.frames),
+    };
+    let attachment = state
+        .store
+        .restore(id, config, copy)
+        .map_err(session_status)?;
+    tracing::info!(session = %id, frames_seen = attachment.snapshot.frames_seen, "session restored from a token");
+    Ok(attachment)
+}
+
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// A token for `copy` of `session`'s state, with the frames it has seen;
+/// `None` on a server without a key.
+fn seal(state: &AppState, session: &Session, copy: StateCopy) -> Option<(Vec<u8>, u64)> {
+    let tokens = state.tokens.as_ref()?;
+    let config = session.config();
+    let weights = tokens.weights_for(config.camera.is_some())?;
+    let lifter = if config.lifting() {
+        tokens.lifter
+    } else {
+        None
+    };
+    let frames_seen = copy.lengths.count();
+    let portable = PortableState::new(
+        session.id(),
+        weights,
+        config.input,
+        &config.label,
+        config.camera.as_ref().map(|c| &c.calibration),
+        lifter,
+        copy,
+    );
+    Some((portable.seal(&tokens.key), frames_seen))
+}
+
+fn token_response((token, frames_seen): (Vec<u8>, u64)) -> pb::StreamResponse {
+    pb::StreamResponse {
+        kind: Some(Resp::Token(pb::SessionToken { token, frames_seen })),
+    }
+}
+
 /// The gRPC status for a store error.
 pub fn session_status(e: SessionError) -> Status {
     match e {
         SessionError::TooManySessions { .. } => Status::resource_exhausted(e.to_string()),
         SessionError::NotFound { .. } => Status::not_found(e.to_string()),
         SessionError::Rng(_) => Status::internal(e.to_string()),
+        SessionError::Restore(_) => Status::failed_precondition(e.to_string()),
     }
 }
 
@@ -235,6 +359,16 @@ fn truncate_label(label: &str) -> String {
 }
 
 fn opened_response(state: &AppState, a: &Attachment) -> pb::StreamResponse {
+    // The state at attach time: frames of older epochs are refused from
+    // now on and this stream has sent none yet.
+    let session_token = if state.tokens.is_some() {
+        let copy = a.session.lock().copy_state();
+        seal(state, &a.session, copy)
+            .map(|t| t.0)
+            .unwrap_or_default()
+    } else {
+        Vec::new()
+    };
     pb::StreamResponse {
         kind: Some(Resp::Opened(pb::SessionOpened {
             session_id: a.session.id().to_string(),
@@ -251,6 +385,7 @@ fn opened_response(state: &AppState, a: &Attachment) -> pb::StreamResponse {
                 .camera
                 .as_ref()
                 .map(|c| c.calibration.clone()),
+            session_token,
         })),
     }
 }
@@ -307,6 +442,7 @@ fn submit(state: &AppState, a: &Attachment, frame: pb::Frame) -> Pending {
         epoch: a.epoch,
         input,
         lift: pose.is_none(),
+        state_every: state.tokens.as_ref().map_or(0, |t| t.every),
         reply,
     };
     match state.batcher.submit(job) {
@@ -320,15 +456,37 @@ fn submit(state: &AppState, a: &Attachment, frame: pb::Frame) -> Pending {
     }
 }
 
-/// Wait for the front answer and turn it into a response (`lifter`: the
-/// name lifted frames are answered with).
-async fn next_answer(pending: &mut VecDeque<Pending>, lifter: &str) -> Option<pb::StreamResponse> {
-    let result = match pending.front_mut()? {
-        Pending::Ready(_) => None,
-        Pending::Step { rx, .. } => Some(rx.await),
+/// Wait for the front answer and turn it into responses: the answer, and
+/// a session token after it when one is due (`lifter`: the name lifted
+/// frames are answered with).
+async fn next_answer(
+    state: &AppState,
+    a: &Attachment,
+    pending: &mut VecDeque<Pending>,
+    lifter: &str,
+) -> (Option<pb::StreamResponse>, Option<pb::StreamResponse>) {
+    let result = match pending.front_mut() {
+        None => return (None, None),
+        Some(Pending::Ready(_) | Pending::Token) => None,
+        Some(Pending::Step { rx, .. }) => Some(rx.await),
     };
-    match (pending.pop_front()?, result) {
-        (Pending::Ready(response), _) => Some(response),
+    let Some(front) = pending.pop_front() else {
+        return (None, None);
+    };
+    match (front, result) {
+        (Pending::Ready(response), _) => (Some(response), None),
+        (Pending::Token, _) => {
+            // Every earlier frame is answered and no later one was read:
+            // the state is exactly the one after the frames before the
+            // request. A session no longer ours gets no token (the stream
+            // ends with ABORTED).
+            let copy = {
+                let st = a.session.lock();
+                st.accepts(a.epoch).then(|| st.copy_state())
+            };
+            let token = copy.and_then(|c| seal(state, &a.session, c));
+            (None, token.map(token_response))
+        }
         (
             Pending::Step {
                 frame_index,
@@ -336,13 +494,28 @@ async fn next_answer(pending: &mut VecDeque<Pending>, lifter: &str) -> Option<pb
                 received,
                 ..
             },
-            Some(result),
-        ) => Some(step_response(frame_index, pose, lifter, received, result)),
-        (Pending::Step { frame_index, .. }, None) => Some(frame_error(
-            frame_index,
-            tonic::Code::Internal,
-            "frame was not answered".into(),
-        )),
+            Some(mut result),
+        ) => {
+            let copy = match &mut result {
+                Ok(Ok(output)) => output.state.take(),
+                _ => None,
+            };
+            let token = copy
+                .and_then(|c| seal(state, &a.session, *c))
+                .map(token_response);
+            (
+                Some(step_response(frame_index, pose, lifter, received, result)),
+                token,
+            )
+        }
+        (Pending::Step { frame_index, .. }, None) => (
+            Some(frame_error(
+                frame_index,
+                tonic::Code::Internal,
+                "frame was not answered".into(),
+            )),
+            None,
+        ),
     }
 }
 
@@ -450,8 +623,8 @@ async fn frames(
                     return End::Lost(lost_status(now));
                 }
             }
-            response = next_answer(&mut pending, lifter), if !pending.is_empty() => {
-                if let Some(response) = response {
+            (response, token) = next_answer(state, a, &mut pending, lifter), if !pending.is_empty() => {
+                for response in [response, token].into_iter().flatten() {
                     if tx.send(Ok(response)).await.is_err() {
                         return End::Gone;
                     }
@@ -461,9 +634,20 @@ async fn frames(
                 reading = false;
                 end = End::Fail(shutting_down());
             }
-            message = inbound.message(), if reading && pending.len() < cap => match message {
+            message = inbound.message(),
+                if reading && pending.len() < cap && !pending.iter().any(|p| matches!(p, Pending::Token)) =>
+            match message {
                 Ok(Some(request)) => match request.kind {
                     Some(Req::Frame(frame)) => pending.push_back(submit(state, a, frame)),
+                    Some(Req::TokenRequest(_)) => pending.push_back(if state.tokens.is_some() {
+                        Pending::Token
+                    } else {
+                        Pending::Ready(frame_error(
+                            0,
+                            tonic::Code::FailedPrecondition,
+                            "this server has no session key (--session-key): it issues no session tokens".into(),
+                        ))
+                    }),
                     Some(Req::Close(_)) => {
                         reading = false;
                         end = End::Close;

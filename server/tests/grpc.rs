@@ -467,6 +467,7 @@ async fn protocol_errors_end_the_stream_with_the_right_code() {
         (
             request(Req::Resume(pb::ResumeSession {
                 session_id: "00112233445566778899aabbccddeeff".into(),
+                session_token: Vec::new(),
             })),
             Code::NotFound,
             "no session",
@@ -474,6 +475,7 @@ async fn protocol_errors_end_the_stream_with_the_right_code() {
         (
             request(Req::Resume(pb::ResumeSession {
                 session_id: "garbage".into(),
+                session_token: Vec::new(),
             })),
             Code::NotFound,
             "no session",
@@ -680,6 +682,7 @@ async fn a_dropped_stream_can_be_resumed_and_a_live_one_is_taken_over() {
     resumed
         .send(request(Req::Resume(pb::ResumeSession {
             session_id: opened.session_id.clone(),
+            session_token: Vec::new(),
         })))
         .await;
     match resumed.next().await.unwrap() {
@@ -705,6 +708,7 @@ async fn a_dropped_stream_can_be_resumed_and_a_live_one_is_taken_over() {
     thief
         .send(request(Req::Resume(pb::ResumeSession {
             session_id: opened.session_id.clone(),
+            session_token: Vec::new(),
         })))
         .await;
     assert!(matches!(thief.next().await.unwrap(), Some(Resp::Opened(_))));
@@ -726,6 +730,7 @@ async fn a_dropped_stream_can_be_resumed_and_a_live_one_is_taken_over() {
     let mut late = Conn::new(&mut c).await;
     late.send(request(Req::Resume(pb::ResumeSession {
         session_id: opened.session_id,
+        session_token: Vec::new(),
     })))
     .await;
     assert_eq!(late.status().await.code(), Code::NotFound);
@@ -753,6 +758,7 @@ async fn detached_sessions_expire_after_the_ttl() {
         let mut late = Conn::new(&mut c).await;
         late.send(request(Req::Resume(pb::ResumeSession {
             session_id: opened.session_id.clone(),
+            session_token: Vec::new(),
         })))
         .await;
         match late.next().await {
@@ -1135,6 +1141,7 @@ async fn sessions_with_a_camera_get_the_camera_aware_model() {
         &mut c,
         request(Req::Resume(pb::ResumeSession {
             session_id: opened.session_id.clone(),
+            session_token: Vec::new(),
         })),
     )
     .await;

@@ -49,6 +49,12 @@ impl SlidingWindow {
         self.buf.len()
     }
 
+    /// The frames held, oldest first (pushing them in this order into an
+    /// empty window of the same size rebuilds this one).
+    pub fn iter(&self) -> impl ExactSizeIterator<Item = &Keypoints2d> {
+        self.buf.iter()
+    }
+
     /// Whether no frame has been pushed.
     pub fn is_empty(&self) -> bool {
         self.buf.is_empty()

@@ -48,6 +48,18 @@ impl RunningMean {
     pub fn count(&self) -> u64 {
         self.count
     }
+
+    /// The running sum of the predictions (f64), per bone.
+    pub fn sum(&self) -> &[f64; OUTPUT_DIM] {
+        &self.sum
+    }
+
+    /// A mean with exactly this `sum` over `count` predictions (what
+    /// [`RunningMean::sum`] and [`RunningMean::count`] gave): restores a
+    /// saved mean bit for bit.
+    pub fn from_parts(sum: [f64; OUTPUT_DIM], count: u64) -> Self {
+        Self { sum, count }
+    }
 }
 
 #[cfg(test)]

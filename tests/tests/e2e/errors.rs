@@ -131,6 +131,7 @@ async fn bad_opens_and_first_messages_end_the_stream_with_the_right_code() {
             pb::StreamRequest {
                 kind: Some(Kind::Resume(pb::ResumeSession {
                     session_id: "0123456789abcdef0123456789abcdef".into(),
+                    session_token: Vec::new(),
                 })),
             },
             Code::NotFound,

@@ -64,16 +64,22 @@ class InputFormat(_message.Message):
     def __init__(self, layout: _Optional[_Union[KeypointLayout, str]] = ..., image_size: _Optional[_Union[ImageSize, _Mapping]] = ..., normalized: _Optional[bool] = ...) -> None: ...
 
 class StreamRequest(_message.Message):
-    __slots__ = ("open", "resume", "frame", "close")
+    __slots__ = ("open", "resume", "frame", "close", "token_request")
     OPEN_FIELD_NUMBER: _ClassVar[int]
     RESUME_FIELD_NUMBER: _ClassVar[int]
     FRAME_FIELD_NUMBER: _ClassVar[int]
     CLOSE_FIELD_NUMBER: _ClassVar[int]
+    TOKEN_REQUEST_FIELD_NUMBER: _ClassVar[int]
     open: OpenSession
     resume: ResumeSession
     frame: Frame
     close: CloseSession
-    def __init__(self, open: _Optional[_Union[OpenSession, _Mapping]] = ..., resume: _Optional[_Union[ResumeSession, _Mapping]] = ..., frame: _Optional[_Union[Frame, _Mapping]] = ..., close: _Optional[_Union[CloseSession, _Mapping]] = ...) -> None: ...
+    token_request: TokenRequest
+    def __init__(self, open: _Optional[_Union[OpenSession, _Mapping]] = ..., resume: _Optional[_Union[ResumeSession, _Mapping]] = ..., frame: _Optional[_Union[Frame, _Mapping]] = ..., close: _Optional[_Union[CloseSession, _Mapping]] = ..., token_request: _Optional[_Union[TokenRequest, _Mapping]] = ...) -> None: ...
+
+class TokenRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
 
 class OpenSession(_message.Message):
     __slots__ = ("input_format", "model", "client_label", "server_lifter", "camera")
@@ -90,10 +96,12 @@ class OpenSession(_message.Message):
     def __init__(self, input_format: _Optional[_Union[InputFormat, _Mapping]] = ..., model: _Optional[_Union[Model, str]] = ..., client_label: _Optional[str] = ..., server_lifter: _Optional[bool] = ..., camera: _Optional[_Union[CameraCalibration, _Mapping]] = ...) -> None: ...
 
 class ResumeSession(_message.Message):
-    __slots__ = ("session_id",)
+    __slots__ = ("session_id", "session_token")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    SESSION_TOKEN_FIELD_NUMBER: _ClassVar[int]
     session_id: str
-    def __init__(self, session_id: _Optional[str] = ...) -> None: ...
+    session_token: bytes
+    def __init__(self, session_id: _Optional[str] = ..., session_token: _Optional[bytes] = ...) -> None: ...
 
 class Frame(_message.Message):
     __slots__ = ("frame_index", "keypoints_2d", "confidence", "pose_3d")
@@ -112,19 +120,29 @@ class CloseSession(_message.Message):
     def __init__(self) -> None: ...
 
 class StreamResponse(_message.Message):
-    __slots__ = ("opened", "frame", "error", "closed")
+    __slots__ = ("opened", "frame", "error", "closed", "token")
     OPENED_FIELD_NUMBER: _ClassVar[int]
     FRAME_FIELD_NUMBER: _ClassVar[int]
     ERROR_FIELD_NUMBER: _ClassVar[int]
     CLOSED_FIELD_NUMBER: _ClassVar[int]
+    TOKEN_FIELD_NUMBER: _ClassVar[int]
     opened: SessionOpened
     frame: AdjustedFrame
     error: FrameError
     closed: SessionClosed
-    def __init__(self, opened: _Optional[_Union[SessionOpened, _Mapping]] = ..., frame: _Optional[_Union[AdjustedFrame, _Mapping]] = ..., error: _Optional[_Union[FrameError, _Mapping]] = ..., closed: _Optional[_Union[SessionClosed, _Mapping]] = ...) -> None: ...
+    token: SessionToken
+    def __init__(self, opened: _Optional[_Union[SessionOpened, _Mapping]] = ..., frame: _Optional[_Union[AdjustedFrame, _Mapping]] = ..., error: _Optional[_Union[FrameError, _Mapping]] = ..., closed: _Optional[_Union[SessionClosed, _Mapping]] = ..., token: _Optional[_Union[SessionToken, _Mapping]] = ...) -> None: ...
+
+class SessionToken(_message.Message):
+    __slots__ = ("token", "frames_seen")
+    TOKEN_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_SEEN_FIELD_NUMBER: _ClassVar[int]
+    token: bytes
+    frames_seen: int
+    def __init__(self, token: _Optional[bytes] = ..., frames_seen: _Optional[int] = ...) -> None: ...
 
 class SessionOpened(_message.Message):
-    __slots__ = ("session_id", "resumed", "frames_seen", "bone_lengths", "input_format", "model", "session_ttl_ms", "lifter", "camera")
+    __slots__ = ("session_id", "resumed", "frames_seen", "bone_lengths", "input_format", "model", "session_ttl_ms", "lifter", "camera", "session_token")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     RESUMED_FIELD_NUMBER: _ClassVar[int]
     FRAMES_SEEN_FIELD_NUMBER: _ClassVar[int]
@@ -134,6 +152,7 @@ class SessionOpened(_message.Message):
     SESSION_TTL_MS_FIELD_NUMBER: _ClassVar[int]
     LIFTER_FIELD_NUMBER: _ClassVar[int]
     CAMERA_FIELD_NUMBER: _ClassVar[int]
+    SESSION_TOKEN_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     resumed: bool
     frames_seen: int
@@ -143,7 +162,8 @@ class SessionOpened(_message.Message):
     session_ttl_ms: int
     lifter: str
     camera: CameraCalibration
-    def __init__(self, session_id: _Optional[str] = ..., resumed: _Optional[bool] = ..., frames_seen: _Optional[int] = ..., bone_lengths: _Optional[_Iterable[float]] = ..., input_format: _Optional[_Union[InputFormat, _Mapping]] = ..., model: _Optional[_Union[Model, str]] = ..., session_ttl_ms: _Optional[int] = ..., lifter: _Optional[str] = ..., camera: _Optional[_Union[CameraCalibration, _Mapping]] = ...) -> None: ...
+    session_token: bytes
+    def __init__(self, session_id: _Optional[str] = ..., resumed: _Optional[bool] = ..., frames_seen: _Optional[int] = ..., bone_lengths: _Optional[_Iterable[float]] = ..., input_format: _Optional[_Union[InputFormat, _Mapping]] = ..., model: _Optional[_Union[Model, str]] = ..., session_ttl_ms: _Optional[int] = ..., lifter: _Optional[str] = ..., camera: _Optional[_Union[CameraCalibration, _Mapping]] = ..., session_token: _Optional[bytes] = ...) -> None: ...
 
 class AdjustedFrame(_message.Message):
     __slots__ = ("frame_index", "adjusted_pose_3d", "bone_lengths", "frames_seen", "lifter", "lifted_pose_3d")

@@ -72,10 +72,10 @@ class PoseAdjustmentServicer:
         1. The first request MUST be `open` (start a new session) or `resume`
         (re-attach to an existing session by id). It is answered by exactly
         one StreamResponse with `opened` (carrying the session id). Any other
-        first request ends the stream with FAILED_PRECONDITION (frame or close
-        before open) or INVALID_ARGUMENT (empty request); none within the
-        server's open timeout (10 s by default) ends it with
-        DEADLINE_EXCEEDED.
+        first request ends the stream with FAILED_PRECONDITION (frame, close
+        or token_request before open) or INVALID_ARGUMENT (empty request);
+        none within the server's open timeout (10 s by default) ends it
+        with DEADLINE_EXCEEDED.
         2. Then any number of `frame` requests. Each frame is answered by exactly
         one StreamResponse, either `frame` (AdjustedFrame) or `error`
         (FrameError), in the order the frames were sent. Frames may be

@@ -1,0 +1,724 @@
+//! Portable session state: a session exported as an opaque, versioned,
+//! authenticated *session token* that any replica sharing the session key
+//! can restore exactly.
+//!
+//! A session lives in one server's memory; a token lets it outlive that
+//! server. It holds everything the answers after it depend on: the GRU
+//! hidden state (f32, bit for bit), the running mean's f64 sums and count
+//! (so the estimate continues bit for bit, not from a rounded mean), the
+//! input format, the camera calibration as the client sent it (the level
+//! camera and length scale are rebuilt from it by the same validation an
+//! open runs), the client label, the server lifter's window of normalized
+//! keypoints for a lifting session, and the SHA-256 of the weights the
+//! state belongs to (the online GRU of the session's family, and the
+//! lifter's) so that a replica with other weights refuses it instead of
+//! continuing a state its model never produced.
+//!
+//! # Layout (version 1)
+//!
+//! A simple explicit binary layout, all integers and floats little-endian,
+//! rather than a private protobuf message: the token is dominated by 1,024
+//! raw f32 (4 KiB) that protobuf would store the same way, every field is
+//! fixed or length-prefixed, and an explicit layout makes the exact bytes
+//! that are authenticated and the version check obvious (a decoder that
+//! rejects any trailing or missing byte is a few lines, with no
+//! "unknown fields" leniency to reason about).
+//!
+//! ```text
+//! offset size  field
+//! 0      4     magic "BLPT"
+//! 4      1     version (1)
+//! 5      1     flags: bit 0 camera calibration present, bit 1 lifter window present
+//! 6      16    session id
+//! 22     32    SHA-256 of the session family's online GRU weights
+//! 54     8     frames seen (u64) = the running mean's count
+//! 62     1     keypoint layout (1 H36M-17, 2 SH-16, 3 COCO-17)
+//! 63     1     coordinates (0 normalized, 1 pixels)
+//! 64     4+4   image width, height (u32; 0 when normalized)
+//! 72     1+n   client label (length byte, UTF-8)
+//! ..     128   running sums of the 16 bone-length predictions (f64)
+//! ..     4+4h  hidden-state length h (u32) and the hidden state (f32)
+//! [camera] 2+c length (u16) and the prost encoding of the CameraCalibration
+//! [lifter] 32  SHA-256 of the lifter weights
+//!          2+2 receptive field, frames held w (u16 each)
+//!          136w the window's frames, oldest first (17 x 2 f32 each)
+//! end-32 32    HMAC-SHA256(session key, every byte before it)
+//! ```
+//!
+//! A session without a camera or lifter gives a 4,333-byte token (plus its
+//! label); the hidden state is 4,096 of them. The magic and the version are
+//! read before the MAC is checked (a later version may authenticate
+//! differently); everything else is read only from authenticated bytes.
+//! Tokens do not expire: the TTL governs a replica's memory, not the token.
+//!
+//! HMAC-SHA256 (RFC 2104) is computed here over the `sha2` crate that the
+//! server already uses for weights hashes (the `hmac` crate is not in this
+//! workspace's offline registry); it is checked against RFC 4231's test
+//! vectors, and MACs are compared in constant time.
+
+use blapose_core::layouts::{Coordinates, KeypointLayout};
+use blapose_core::{Keypoints2d, NUM_BONES, NUM_JOINTS};
+use blapose_proto::v1 as pb;
+use prost::Message;
+use sha2::{Digest, Sha256};
+
+use crate::session::{InputSpec, RunningLengths, SessionId, StateCopy, STATE_DIM};
+
+/// The token format this server writes and reads.
+pub const TOKEN_VERSION: u8 = 1;
+/// First bytes of every token.
+pub const MAGIC: [u8; 4] = *b"BLPT";
+/// Bytes of the MAC at the end of a token.
+pub const MAC_BYTES: usize = 32;
+/// Shortest session key accepted, in bytes.
+pub const MIN_KEY_BYTES: usize = 16;
+
+const FLAG_CAMERA: u8 = 1;
+const FLAG_LIFTER: u8 = 2;
+const FRAME_FLOATS: usize = NUM_JOINTS * 2;
+
+/// Why a token was refused or a key not accepted.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum TokenError {
+    /// Not a session token at all (too short, wrong magic).
+    #[error("the session token is not a blapose session token ({0})")]
+    NotAToken(String),
+    /// Another token format version.
+    #[error("the session token has format version {found}; this server reads version {TOKEN_VERSION} (a replica of another release made it)")]
+    Version {
+        /// The token's version.
+        found: u8,
+    },
+    /// The MAC does not match: altered, truncated or another key.
+    #[error("the session token failed authentication: it was altered or truncated, or made under another session key")]
+    Unauthenticated,
+    /// Authentic but undecodable (only a server bug could make one).
+    #[error("the session token is malformed: {0}")]
+    Malformed(String),
+    /// A key shorter than [`MIN_KEY_BYTES`].
+    #[error("the session key has {0} bytes; at least {MIN_KEY_BYTES} are required")]
+    KeyTooShort(usize),
+    /// A key that does not decode.
+    #[error("the session key does not decode: {0}")]
+    KeyEncoding(String),
+}
+
+impl TokenError {
+    /// The gRPC status a resume with such a token ends with.
+    pub fn to_status(&self) -> tonic::Status {
+        match self {
+            Self::NotAToken(_)
+            | Self::Malformed(_)
+            | Self::KeyTooShort(_)
+            | Self::KeyEncoding(_) => tonic::Status::invalid_argument(self.to_string()),
+            Self::Version { .. } => tonic::Status::failed_precondition(self.to_string()),
+            Self::Unauthenticated => tonic::Status::unauthenticated(self.to_string()),
+        }
+    }
+}
+
+/// The secret replicas share to authenticate tokens (never printed).
+#[derive(Clone, PartialEq, Eq)]
+pub struct SessionKey(Box<[u8]>);
+
+impl std::fmt::Debug for SessionKey {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "SessionKey({} bytes, redacted)", self.0.len())
+    }
+}
+
+impl SessionKey {
+    /// A key of these bytes (at least [`MIN_KEY_BYTES`]).
+    pub fn new(bytes: &[u8]) -> Result<Self, TokenError> {
+        if bytes.len() < MIN_KEY_BYTES {
+            return Err(TokenError::KeyTooShort(bytes.len()));
+        }
+        Ok(Self(bytes.into()))
+    }
+
+    /// Parse `--session-key`: `hex:<hex digits>`, `base64:<standard or
+    /// URL-safe base64, padding optional>`, or else the string's own UTF-8
+    /// bytes. At least 16 bytes after decoding.
+    pub fn parse(text: &str) -> Result<Self, TokenError> {
+        let bytes = if let Some(hex) = text.strip_prefix("hex:") {
+            decode_hex(hex.trim())?
+        } else if let Some(b64) = text.strip_prefix("base64:") {
+            decode_base64(b64.trim())?
+        } else {
+            text.as_bytes().to_vec()
+        };
+        Self::new(&bytes)
+    }
+
+    fn mac(&self, message: &[u8]) -> [u8; 32] {
+        hmac_sha256(&self.0, message)
+    }
+}
+
+fn decode_hex(text: &str) -> Result<Vec<u8>, TokenError> {
+    if !text.len().is_multiple_of(2) {
+        return Err(TokenError::KeyEncoding(
+            "hex: an odd number of digits".into(),
+        ));
+    }
+    text.as_bytes()
+        .chunks_exact(2)
+        .map(|pair| {
+            let digit = |c: u8| (c as char).to_digit(16);
+            match (digit(pair[0]), digit(pair[1])) {
+                (Some(hi), Some(lo)) => Ok((hi * 16 + lo) as u8),
+                _ => Err(TokenError::KeyEncoding(format!(
+                    "hex: {:?} is not a hex byte",
+                    String::from_utf8_lossy(pair)
+                ))),
+            }
+        })
+        .collect()
+}
+
+fn decode_base64(text: &str) -> Result<Vec<u8>, TokenError> {
+    let text = text.trim_end_matches('=');
+    let mut out = Vec::with_capacity(text.len() * 3 / 4);
+    let (mut acc, mut bits) = (0u32, 0u32);
+    for c in text.bytes() {
+        let v = match c {
+            b'A'..=b'Z' => c - b'A',
+            b'a'..=b'z' => c - b'a' + 26,
+            b'0'..=b'9' => c - b'0' + 52,
+            b'+' | b'-' => 62,
+            b'/' | b'_' => 63,
+            _ => {
+                return Err(TokenError::KeyEncoding(format!(
+                    "base64: {:?} is not a base64 character",
+                    c as char
+                )))
+            }
+        };
+        acc = (acc << 6) | u32::from(v);
+        bits += 6;
+        if bits >= 8 {
+            bits -= 8;
+            out.push((acc >> bits) as u8);
+            acc &= (1 << bits) - 1;
+        }
+    }
+    if bits >= 6 {
+        return Err(TokenError::KeyEncoding("base64: bad length".into()));
+    }
+    Ok(out)
+}
+
+/// HMAC-SHA256 (RFC 2104).
+pub fn hmac_sha256(key: &[u8], message: &[u8]) -> [u8; 32] {
+    let mut block = [0u8; 64];
+    if key.len() > 64 {
+        block[..32].copy_from_slice(&Sha256::digest(key));
+    } else {
+        block[..key.len()].copy_from_slice(key);
+    }
+    let mut inner = Sha256::new();
+    inner.update(block.map(|b| b ^ 0x36));
+    inner.update(message);
+    let inner = inner.finalize();
+    let mut outer = Sha256::new();
+    outer.update(block.map(|b| b ^ 0x5c));
+    outer.update(inner);
+    outer.finalize().into()
+}
+
+fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+/// A 32-byte weights id from a weights hash as the server reports it
+/// (lowercase hex SHA-256); any other string (a test provider's) is hashed.
+pub fn weights_id(sha256_hex: &str) -> [u8; 32] {
+    match decode_hex(sha256_hex) {
+        Ok(bytes) if bytes.len() == 32 => {
+            let mut id = [0u8; 32];
+            id.copy_from_slice(&bytes);
+            id
+        }
+        _ => Sha256::digest(sha256_hex.as_bytes()).into(),
+    }
+}
+
+/// The lifter part of a lifting session's state.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PortableWindow {
+    /// The lifter weights it belongs to.
+    pub lifter_id: [u8; 32],
+    /// The lifter's receptive field (the window's size).
+    pub receptive_field: usize,
+    /// The frames held, oldest first.
+    pub frames: Vec<Keypoints2d>,
+}
+
+/// Everything a token carries, decoded.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PortableState {
+    /// The session's id.
+    pub session_id: SessionId,
+    /// The online GRU weights of the session's family.
+    pub weights_id: [u8; 32],
+    /// Input format.
+    pub input: InputSpec,
+    /// Client label.
+    pub label: String,
+    /// The camera calibration as opened.
+    pub camera: Option<pb::CameraCalibration>,
+    /// The GRU state and running mean.
+    pub hidden: Vec<f32>,
+    /// The running mean.
+    pub lengths: RunningLengths,
+    /// The lifter's window, for a lifting session.
+    pub window: Option<PortableWindow>,
+}
+
+impl PortableState {
+    /// Frames processed in this state.
+    pub fn frames_seen(&self) -> u64 {
+        self.lengths.count()
+    }
+
+    /// Assemble from a session's parts and a copy of its state.
+    pub fn new(
+        session_id: SessionId,
+        weights_id: [u8; 32],
+        input: InputSpec,
+        label: &str,
+        camera: Option<&pb::CameraCalibration>,
+        lifter: Option<([u8; 32], usize)>,
+        state: StateCopy,
+    ) -> Self {
+        let window = match (lifter, state.window) {
+            (Some((lifter_id, receptive_field)), Some(frames)) => Some(PortableWindow {
+                lifter_id,
+                receptive_field,
+                frames,
+            }),
+            _ => None,
+        };
+        Self {
+            session_id,
+            weights_id,
+            input,
+            label: label.to_string(),
+            camera: camera.cloned(),
+            hidden: state.hidden.into_vec(),
+            lengths: state.lengths,
+            window,
+        }
+    }
+
+    /// Encode and authenticate under `key`.
+    pub fn seal(&self, key: &SessionKey) -> Vec<u8> {
+        let camera = self.camera.as_ref().map(|c| c.encode_to_vec());
+        let mut out = Vec::with_capacity(
+            4400 + camera.as_ref().map_or(0, Vec::len)
+                + self
+                    .window
+                    .as_ref()
+                    .map_or(0, |w| 36 + w.frames.len() * FRAME_FLOATS * 4),
+        );
+        out.extend_from_slice(&MAGIC);
+        out.push(TOKEN_VERSION);
+        let mut flags = 0;
+        if camera.is_some() {
+            flags |= FLAG_CAMERA;
+        }
+        if self.window.is_some() {
+            flags |= FLAG_LIFTER;
+        }
+        out.push(flags);
+        out.extend_from_slice(self.session_id.as_bytes());
+        out.extend_from_slice(&self.weights_id);
+        out.extend_from_slice(&self.lengths.count().to_le_bytes());
+        out.push(match self.input.layout {
+            KeypointLayout::H36m17 => 1,
+            KeypointLayout::Sh16 => 2,
+            KeypointLayout::Coco17 => 3,
+        });
+        let (tag, w, h) = match self.input.coordinates {
+            Coordinates::Normalized => (0u8, 0u32, 0u32),
+            Coordinates::Pixels { width, height } => (1, width, height),
+        };
+        out.push(tag);
+        out.extend_from_slice(&w.to_le_bytes());
+        out.extend_from_slice(&h.to_le_bytes());
+        // Labels are at most 128 bytes (MAX_LABEL_BYTES); cut at a char
+        // boundary all the same.
+        let mut end = self.label.len().min(255);
+        while !self.label.is_char_boundary(end) {
+            end -= 1;
+        }
+        out.push(end as u8);
+        out.extend_from_slice(&self.label.as_bytes()[..end]);
+        for s in self.lengths.sum() {
+            out.extend_from_slice(&s.to_le_bytes());
+        }
+        out.extend_from_slice(&(self.hidden.len() as u32).to_le_bytes());
+        for v in &self.hidden {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        if let Some(camera) = &camera {
+            out.extend_from_slice(&(camera.len().min(u16::MAX as usize) as u16).to_le_bytes());
+            out.extend_from_slice(camera);
+        }
+        if let Some(w) = &self.window {
+            out.extend_from_slice(&w.lifter_id);
+            out.extend_from_slice(&(w.receptive_field as u16).to_le_bytes());
+            out.extend_from_slice(&(w.frames.len() as u16).to_le_bytes());
+            for frame in &w.frames {
+                for v in frame.iter().flatten() {
+                    out.extend_from_slice(&v.to_le_bytes());
+                }
+            }
+        }
+        let mac = key.mac(&out);
+        out.extend_from_slice(&mac);
+        out
+    }
+
+    /// Check and decode a token made under `key`.
+    pub fn open(token: &[u8], key: &SessionKey) -> Result<Self, TokenError> {
+        if token.len() < MAGIC.len() + 1 {
+            return Err(TokenError::NotAToken(format!(
+                "{} bytes, too short",
+                token.len()
+            )));
+        }
+        if token[..4] != MAGIC {
+            return Err(TokenError::NotAToken("wrong leading bytes".into()));
+        }
+        if token[4] != TOKEN_VERSION {
+            return Err(TokenError::Version { found: token[4] });
+        }
+        if token.len() < 6 + MAC_BYTES {
+            return Err(TokenError::Unauthenticated);
+        }
+        let (body, mac) = token.split_at(token.len() - MAC_BYTES);
+        if !constant_time_eq(&key.mac(body), mac) {
+            return Err(TokenError::Unauthenticated);
+        }
+        decode_body(body)
+    }
+}
+
+/// A cursor over authenticated bytes.
+struct Reader<'a> {
+    bytes: &'a [u8],
+    at: usize,
+}
+
+impl<'a> Reader<'a> {
+    fn take(&mut self, n: usize, what: &str) -> Result<&'a [u8], TokenError> {
+        let end = self
+            .at
+            .checked_add(n)
+            .filter(|&e| e <= self.bytes.len())
+            .ok_or_else(|| TokenError::Malformed(format!("ends inside {what}")))?;
+        let s = &self.bytes[self.at..end];
+        self.at = end;
+        Ok(s)
+    }
+    fn array<const N: usize>(&mut self, what: &str) -> Result<[u8; N], TokenError> {
+        let mut a = [0u8; N];
+        a.copy_from_slice(self.take(N, what)?);
+        Ok(a)
+    }
+    fn u8(&mut self, what: &str) -> Result<u8, TokenError> {
+        Ok(self.array::<1>(what)?[0])
+    }
+    fn u16(&mut self, what: &str) -> Result<u16, TokenError> {
+        Ok(u16::from_le_bytes(self.array(what)?))
+    }
+    fn u32(&mut self, what: &str) -> Result<u32, TokenError> {
+        Ok(u32::from_le_bytes(self.array(what)?))
+    }
+    fn u64(&mut self, what: &str) -> Result<u64, TokenError> {
+        Ok(u64::from_le_bytes(self.array(what)?))
+    }
+    fn f32s(&mut self, n: usize, what: &str) -> Result<Vec<f32>, TokenError> {
+        let bytes = self.take(
+            n.checked_mul(4)
+                .ok_or_else(|| TokenError::Malformed(format!("{what}: too long")))?,
+            what,
+        )?;
+        Ok(bytes
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect())
+    }
+}
+
+fn decode_body(body: &[u8]) -> Result<PortableState, TokenError> {
+    let bad = |what: String| TokenError::Malformed(what);
+    let mut r = Reader { bytes: body, at: 6 };
+    let flags = body[5];
+    if flags & !(FLAG_CAMERA | FLAG_LIFTER) != 0 {
+        return Err(bad(format!("unknown flags {flags:#x}")));
+    }
+    let session_id = SessionId::from_bytes(r.array("the session id")?);
+    let weights_id = r.array("the weights hash")?;
+    let count = r.u64("frames seen")?;
+    let layout = match r.u8("the layout")? {
+        1 => KeypointLayout::H36m17,
+        2 => KeypointLayout::Sh16,
+        3 => KeypointLayout::Coco17,
+        other => return Err(bad(format!("unknown layout {other}"))),
+    };
+    let tag = r.u8("the coordinates")?;
+    let (width, height) = (r.u32("the image width")?, r.u32("the image height")?);
+    let coordinates = match tag {
+        0 => Coordinates::Normalized,
+        1 => Coordinates::Pixels { width, height },
+        other => return Err(bad(format!("unknown coordinates {other}"))),
+    };
+    let label_len = usize::from(r.u8("the label length")?);
+    let label = std::str::from_utf8(r.take(label_len, "the label")?)
+        .map_err(|_| bad("the label is not UTF-8".into()))?
+        .to_string();
+    let mut sum = [0f64; NUM_BONES];
+    for s in &mut sum {
+        *s = f64::from_le_bytes(r.array("the running sums")?);
+    }
+    let hidden_len = r.u32("the hidden-state length")? as usize;
+    if hidden_len != STATE_DIM {
+        return Err(bad(format!(
+            "a hidden state of {hidden_len} floats; this server's model has {STATE_DIM}"
+        )));
+    }
+    let hidden = r.f32s(hidden_len, "the hidden state")?;
+    let camera = if flags & FLAG_CAMERA != 0 {
+        let n = usize::from(r.u16("the camera length")?);
+        let bytes = r.take(n, "the camera")?;
+        Some(
+            pb::CameraCalibration::decode(bytes)
+                .map_err(|e| bad(format!("the camera does not decode: {e}")))?,
+        )
+    } else {
+        None
+    };
+    let window = if flags & FLAG_LIFTER != 0 {
+        let lifter_id = r.array("the lifter hash")?;
+        let receptive_field = usize::from(r.u16("the receptive field")?);
+        let held = usize::from(r.u16("the window length")?);
+        if held > receptive_field {
+            return Err(bad(format!(
+                "a window of {held} frames for a receptive field of {receptive_field}"
+            )));
+        }
+        let flat = r.f32s(held * FRAME_FLOATS, "the lifter window")?;
+        let frames = flat
+            .chunks_exact(FRAME_FLOATS)
+            .map(|f| std::array::from_fn(|j| [f[2 * j], f[2 * j + 1]]))
+            .collect();
+        Some(PortableWindow {
+            lifter_id,
+            receptive_field,
+            frames,
+        })
+    } else {
+        None
+    };
+    if r.at != body.len() {
+        return Err(bad(format!("{} bytes left over", body.len() - r.at)));
+    }
+    Ok(PortableState {
+        session_id,
+        weights_id,
+        input: InputSpec {
+            layout,
+            coordinates,
+        },
+        label,
+        camera,
+        hidden,
+        lengths: RunningLengths::from_parts(sum, count),
+        window,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    fn key(byte: u8) -> SessionKey {
+        SessionKey::new(&[byte; 32]).unwrap()
+    }
+
+    fn state(camera: bool, lifter: bool) -> PortableState {
+        let mut lengths = RunningLengths::new();
+        for k in 0..7 {
+            lengths.push(&std::array::from_fn(|b| 0.1 + 0.013 * (b + k) as f32));
+        }
+        PortableState {
+            session_id: SessionId::from_bytes([7; 16]),
+            weights_id: weights_id("ab"),
+            input: InputSpec {
+                layout: KeypointLayout::Coco17,
+                coordinates: Coordinates::Pixels {
+                    width: 1920,
+                    height: 1080,
+                },
+            },
+            label: "cam é".into(),
+            camera: camera.then(|| pb::CameraCalibration {
+                up: vec![0.0, -1.0, 0.1],
+                focal_x: 1000.0,
+                focal_y: 1000.0,
+                principal_x: 960.0,
+                principal_y: 540.0,
+                image_size: None,
+                height: 1.7,
+            }),
+            hidden: (0..STATE_DIM).map(|i| (i as f32 * 0.37).sin()).collect(),
+            lengths,
+            window: lifter.then(|| PortableWindow {
+                lifter_id: weights_id("lifter"),
+                receptive_field: 27,
+                frames: (0..5)
+                    .map(|f| [[f as f32 * 0.1, -0.5]; NUM_JOINTS])
+                    .collect(),
+            }),
+        }
+    }
+
+    #[test]
+    fn hmac_matches_rfc_4231() {
+        let hex = |b: &[u8]| b.iter().map(|x| format!("{x:02x}")).collect::<String>();
+        // Test case 1.
+        assert_eq!(
+            hex(&hmac_sha256(&[0x0b; 20], b"Hi There")),
+            "b0344c61d8db38535ca8afceaf0bf12b881dc200c9833da726e9376c2e32cff7"
+        );
+        // Test case 2.
+        assert_eq!(
+            hex(&hmac_sha256(b"Jefe", b"what do ya want for nothing?")),
+            "5bdcc146bf60754e6a042426089575c75a003f089d2739839dec58b964ec3843"
+        );
+        // Test case 6: a key longer than the block.
+        assert_eq!(
+            hex(&hmac_sha256(
+                &[0xaa; 131],
+                b"Test Using Larger Than Block-Size Key - Hash Key First"
+            )),
+            "60e431591ee0b67f0d8a26aacbf5b77f8e0bc6213728c5140546040f0ee37f54"
+        );
+    }
+
+    #[test]
+    fn tokens_round_trip_exactly() {
+        for (camera, lifter) in [(false, false), (true, false), (false, true), (true, true)] {
+            let s = state(camera, lifter);
+            let token = s.seal(&key(1));
+            let back = PortableState::open(&token, &key(1)).unwrap();
+            assert_eq!(back, s);
+            assert_eq!(back.frames_seen(), 7);
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&back.hidden), bits(&s.hidden));
+            assert_eq!(back.lengths.sum(), s.lengths.sum());
+        }
+        let plain = state(false, false).seal(&key(1));
+        // 4,333 bytes + the label's 6.
+        assert_eq!(plain.len(), 4333 + 6, "token size");
+    }
+
+    #[test]
+    fn altered_truncated_and_foreign_tokens_are_typed_errors() {
+        let good = state(true, true).seal(&key(1));
+        assert_eq!(
+            PortableState::open(&good, &key(2)),
+            Err(TokenError::Unauthenticated)
+        );
+        for cut in [0, 1, 4, 5, 6, 37, 38, 100, good.len() - 1] {
+            let err = PortableState::open(&good[..cut], &key(1)).unwrap_err();
+            assert!(
+                matches!(err, TokenError::NotAToken(_) | TokenError::Unauthenticated),
+                "cut {cut}: {err:?}"
+            );
+        }
+        // Every single bit flip is refused.
+        for byte in 0..good.len() {
+            for bit in 0..8 {
+                let mut t = good.clone();
+                t[byte] ^= 1 << bit;
+                let err = PortableState::open(&t, &key(1)).unwrap_err();
+                if byte == 4 {
+                    assert!(matches!(err, TokenError::Version { .. }), "{err:?}");
+                } else if byte < 4 {
+                    assert!(matches!(err, TokenError::NotAToken(_)), "{err:?}");
+                } else {
+                    assert_eq!(err, TokenError::Unauthenticated, "byte {byte} bit {bit}");
+                }
+            }
+        }
+        let mut v2 = good.clone();
+        v2[4] = 2;
+        assert_eq!(
+            PortableState::open(&v2, &key(1)),
+            Err(TokenError::Version { found: 2 })
+        );
+        assert_eq!(
+            TokenError::Version { found: 2 }.to_status().code(),
+            tonic::Code::FailedPrecondition
+        );
+        assert_eq!(
+            TokenError::Unauthenticated.to_status().code(),
+            tonic::Code::Unauthenticated
+        );
+    }
+
+    #[test]
+    fn random_bytes_never_panic() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(23);
+        let good = state(false, true).seal(&key(1));
+        for i in 0..20_000 {
+            let len = rng.random_range(0..6000);
+            let mut t: Vec<u8> = (0..len).map(|_| rng.random()).collect();
+            if i % 2 == 0 && t.len() > 5 {
+                t[..5].copy_from_slice(&good[..5]);
+            }
+            assert!(PortableState::open(&t, &key(1)).is_err());
+        }
+        // Authentic but malformed bodies (a server bug or a leaked key) are
+        // refused without a panic too.
+        for cut in 6..200 {
+            let mut body = good[..cut].to_vec();
+            let mac = key(1).mac(&body);
+            body.extend_from_slice(&mac);
+            assert!(matches!(
+                PortableState::open(&body, &key(1)),
+                Err(TokenError::Malformed(_))
+            ));
+        }
+    }
+
+    #[test]
+    fn keys_parse_from_hex_base64_or_raw_and_must_be_16_bytes() {
+        let raw = SessionKey::parse("0123456789abcdef").unwrap();
+        assert_eq!(&*raw.0, b"0123456789abcdef");
+        let hex = SessionKey::parse("hex:000102030405060708090a0b0c0d0e0f").unwrap();
+        assert_eq!(&*hex.0, &(0u8..16).collect::<Vec<_>>()[..]);
+        let b64 = SessionKey::parse("base64:AAECAwQFBgcICQoLDA0ODw==").unwrap();
+        assert_eq!(b64, hex);
+        let b64 = SessionKey::parse("base64:AAECAwQFBgcICQoLDA0ODw").unwrap();
+        assert_eq!(b64, hex);
+        assert_eq!(SessionKey::parse("short"), Err(TokenError::KeyTooShort(5)));
+        assert_eq!(
+            SessionKey::parse("hex:00010203"),
+            Err(TokenError::KeyTooShort(4))
+        );
+        assert!(matches!(
+            SessionKey::parse("hex:zz"),
+            Err(TokenError::KeyEncoding(_))
+        ));
+        assert!(matches!(
+            SessionKey::parse("base64:!!!!"),
+            Err(TokenError::KeyEncoding(_))
+        ));
+        assert!(!format!("{raw:?}").contains("0123"), "keys are not printed");
+    }
+}

@@ -1,0 +1,442 @@
+//! Session tokens (portable session state) over real gRPC with the real
+//! embedded models: a session taken at frame k on one server and resumed
+//! from its token on a second server with the same key continues exactly,
+//! every answer equal BIT FOR BIT to an uninterrupted run's on one server
+//! (default, camera-aware and server-lifter sessions); and every bad token
+//! is refused with the documented status, no server needed beyond it.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use blapose_proto::v1 as pb;
+use blapose_server::token::SessionKey;
+use blapose_server::{ServerConfig, ServerHandle, WeightsSource};
+use pb::pose_adjustment_client::PoseAdjustmentClient;
+use pb::stream_request::Kind as Req;
+use pb::stream_response::Kind as Resp;
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::transport::Channel;
+use tonic::Code;
+
+const KEY: &str = "hex:3f1c9a0b7d2e4f6a8b1c3d5e7f9a0b2c4d6e8f0a1b3c5d7e9f1a2b4c6d8e0f1a";
+const N: u64 = 57;
+const K: u64 = 30;
+const EVERY: u64 = 10;
+
+fn models(file: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../models")
+        .join(file)
+}
+
+fn config(key: Option<&str>) -> ServerConfig {
+    ServerConfig {
+        session_key: key.map(|k| SessionKey::parse(k).unwrap()),
+        token_every: EVERY,
+        lifter_weights: Some(models("lifter_videopose27_causal.safetensors")),
+        session_ttl: Duration::from_secs(30),
+        ..ServerConfig::default()
+    }
+}
+
+async fn start(config: ServerConfig) -> (ServerHandle, PoseAdjustmentClient<Channel>) {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let server = blapose_server::spawn(config, listener).await.unwrap();
+    let client = PoseAdjustmentClient::connect(format!("http://{}", server.local_addr()))
+        .await
+        .unwrap();
+    (server, client)
+}
+
+/// A 3D pose (metres, camera frame) that moves a little with `t`.
+fn pose(t: u64) -> [[f32; 3]; 17] {
+    let base: [[f32; 3]; 17] = [
+        [0.0, 0.0, 4.0],
+        [-0.13, 0.0, 4.0],
+        [-0.13, 0.45, 4.0],
+        [-0.13, 0.88, 4.0],
+        [0.13, 0.0, 4.0],
+        [0.13, 0.45, 4.0],
+        [0.13, 0.88, 4.0],
+        [0.0, -0.25, 4.0],
+        [0.0, -0.5, 4.0],
+        [0.0, -0.6, 4.0],
+        [0.0, -0.72, 4.0],
+        [0.17, -0.5, 4.0],
+        [0.2, -0.22, 4.0],
+        [0.22, 0.02, 4.0],
+        [-0.17, -0.5, 4.0],
+        [-0.2, -0.22, 4.0],
+        [-0.22, 0.02, 4.0],
+    ];
+    let t = t as f32;
+    std::array::from_fn(|j| {
+        let [x, y, z] = base[j];
+        let j = j as f32;
+        [
+            x + 0.03 * (0.3 * t + j).sin(),
+            y + 0.02 * (0.2 * t + 0.5 * j).cos(),
+            z + 0.05 * (0.1 * t + j).sin(),
+        ]
+    })
+}
+
+fn frame(t: u64, lifting: bool) -> pb::StreamRequest {
+    let p = pose(t);
+    // Pixels of a 1000 x 1000 image, focal length 1150, centred.
+    let keypoints = p
+        .iter()
+        .flat_map(|[x, y, z]| [1150.0 * x / z + 500.0, 1150.0 * y / z + 500.0])
+        .collect();
+    pb::StreamRequest {
+        kind: Some(Req::Frame(pb::Frame {
+            frame_index: t,
+            keypoints_2d: keypoints,
+            confidence: vec![],
+            pose_3d: if lifting {
+                vec![]
+            } else {
+                p.iter().flatten().copied().collect()
+            },
+        })),
+    }
+}
+
+fn calibration() -> pb::CameraCalibration {
+    let tilt = 12f32.to_radians();
+    pb::CameraCalibration {
+        up: vec![0.0, -tilt.cos(), -tilt.sin()],
+        focal_x: 1150.0,
+        focal_y: 1150.0,
+        principal_x: 500.0,
+        principal_y: 500.0,
+        image_size: None,
+        height: 1.6,
+    }
+}
+
+#[derive(Debug, Clone, Copy)]
+enum Kind {
+    Plain,
+    Camera,
+    Lifter,
+}
+
+fn open(kind: Kind) -> pb::StreamRequest {
+    pb::StreamRequest {
+        kind: Some(Req::Open(pb::OpenSession {
+            input_format: Some(pb::InputFormat {
+                layout: pb::KeypointLayout::H36m17 as i32,
+                coordinates: Some(pb::input_format::Coordinates::ImageSize(pb::ImageSize {
+                    width: 1000,
+                    height: 1000,
+                })),
+            }),
+            model: 0,
+            client_label: format!("{kind:?}"),
+            server_lifter: matches!(kind, Kind::Lifter),
+            camera: matches!(kind, Kind::Camera).then(calibration),
+        })),
+    }
+}
+
+fn resume(id: &str, token: &[u8]) -> pb::StreamRequest {
+    pb::StreamRequest {
+        kind: Some(Req::Resume(pb::ResumeSession {
+            session_id: id.to_string(),
+            session_token: token.to_vec(),
+        })),
+    }
+}
+
+fn token_request() -> pb::StreamRequest {
+    pb::StreamRequest {
+        kind: Some(Req::TokenRequest(pb::TokenRequest {})),
+    }
+}
+
+/// Run `requests` on one stream; every response until the stream ends
+/// (or its status).
+async fn exchange(
+    client: &mut PoseAdjustmentClient<Channel>,
+    requests: Vec<pb::StreamRequest>,
+) -> (Vec<Resp>, Result<(), tonic::Status>) {
+    let (tx, rx) = mpsc::channel(requests.len() + 1);
+    for r in requests {
+        tx.send(r).await.unwrap();
+    }
+    drop(tx);
+    let mut inbound = match client.stream(ReceiverStream::new(rx)).await {
+        Ok(r) => r.into_inner(),
+        Err(status) => return (vec![], Err(status)),
+    };
+    let mut out = Vec::new();
+    loop {
+        match tokio::time::timeout(Duration::from_secs(60), inbound.message())
+            .await
+            .expect("an answer within 60 s")
+        {
+            Ok(Some(m)) => out.extend(m.kind),
+            Ok(None) => return (out, Ok(())),
+            Err(status) => return (out, Err(status)),
+        }
+    }
+}
+
+fn opened(r: &[Resp]) -> &pb::SessionOpened {
+    match r.first() {
+        Some(Resp::Opened(o)) => o,
+        other => panic!("expected SessionOpened, got {other:?}"),
+    }
+}
+
+fn frames(r: &[Resp]) -> Vec<&pb::AdjustedFrame> {
+    r.iter()
+        .filter_map(|m| match m {
+            Resp::Frame(f) => Some(f),
+            Resp::Error(e) => panic!("frame refused: {e:?}"),
+            _ => None,
+        })
+        .collect()
+}
+
+fn tokens(r: &[Resp]) -> Vec<&pb::SessionToken> {
+    r.iter()
+        .filter_map(|m| match m {
+            Resp::Token(t) => Some(t),
+            _ => None,
+        })
+        .collect()
+}
+
+fn bits(v: &[f32]) -> Vec<u32> {
+    v.iter().map(|x| x.to_bits()).collect()
+}
+
+fn assert_same_frame(a: &pb::AdjustedFrame, b: &pb::AdjustedFrame) {
+    assert_eq!(a.frame_index, b.frame_index);
+    assert_eq!(a.frames_seen, b.frames_seen, "frame {}", a.frame_index);
+    assert_eq!(
+        bits(&a.bone_lengths),
+        bits(&b.bone_lengths),
+        "frame {}: lengths differ",
+        a.frame_index
+    );
+    assert_eq!(
+        bits(&a.adjusted_pose_3d),
+        bits(&b.adjusted_pose_3d),
+        "frame {}: poses differ",
+        a.frame_index
+    );
+    assert_eq!(bits(&a.lifted_pose_3d), bits(&b.lifted_pose_3d));
+    assert_eq!(a.lifter, b.lifter);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_session_resumed_from_its_token_on_another_server_continues_bit_for_bit() {
+    let (server_a, mut a) = start(config(Some(KEY))).await;
+    let (server_b, mut b) = start(config(Some(KEY))).await;
+    for kind in [Kind::Plain, Kind::Camera, Kind::Lifter] {
+        let lifting = matches!(kind, Kind::Lifter);
+        // Uninterrupted on A, with a token request after frame K - 1.
+        let mut requests = vec![open(kind)];
+        for t in 0..N {
+            requests.push(frame(t, lifting));
+            if t == K - 1 {
+                requests.push(token_request());
+            }
+        }
+        requests.push(pb::StreamRequest {
+            kind: Some(Req::Close(pb::CloseSession {})),
+        });
+        let (whole, end) = exchange(&mut a, requests).await;
+        end.unwrap();
+        let o = opened(&whole);
+        assert!(!o.session_token.is_empty(), "a token on open");
+        let whole_frames = frames(&whole);
+        assert_eq!(whole_frames.len() as u64, N);
+        // Periodic tokens every 10 frames, each right after its frame's
+        // answer, plus the requested one at K (after frame K - 1's answer,
+        // and identical to the periodic token of the same state).
+        let all_tokens = tokens(&whole);
+        let seen: Vec<u64> = all_tokens.iter().map(|t| t.frames_seen).collect();
+        assert_eq!(seen, [10, 20, 30, 30, 40, 50], "{kind:?}");
+        assert_eq!(all_tokens[2].token, all_tokens[3].token);
+        for (i, m) in whole.iter().enumerate() {
+            if let Resp::Token(t) = m {
+                match &whole[i - 1] {
+                    Resp::Frame(f) => assert_eq!(f.frames_seen, t.frames_seen),
+                    Resp::Token(prev) => assert_eq!(prev.frames_seen, t.frames_seen),
+                    other => panic!("a token after {other:?}"),
+                }
+            }
+        }
+        let token = &all_tokens[3];
+        let size = token.token.len();
+        println!("{kind:?}: token of {size} bytes at frame {K}");
+        if matches!(kind, Kind::Plain) {
+            assert!(size < 4500, "{size} bytes");
+        }
+
+        // B has never seen the session: it restores it from the token.
+        let mut requests = vec![resume(&o.session_id, &token.token)];
+        requests.extend((K..N).map(|t| frame(t, lifting)));
+        let (resumed, end) = exchange(&mut b, requests).await;
+        end.unwrap();
+        let r = opened(&resumed);
+        assert!(r.resumed);
+        assert_eq!(r.session_id, o.session_id);
+        assert_eq!(r.frames_seen, K);
+        assert_eq!(
+            bits(&r.bone_lengths),
+            bits(&whole_frames[K as usize - 1].bone_lengths)
+        );
+        assert_eq!(r.input_format, o.input_format);
+        assert_eq!(r.camera, o.camera);
+        assert_eq!(r.lifter, o.lifter);
+        assert_eq!(
+            r.session_token, token.token,
+            "the same state, the same token"
+        );
+        let after = frames(&resumed);
+        assert_eq!(after.len() as u64, N - K);
+        for (x, y) in after.iter().zip(&whole_frames[K as usize..]) {
+            assert_same_frame(x, y);
+        }
+        // B's periodic tokens are A's, byte for byte.
+        let b_tokens = tokens(&resumed);
+        assert_eq!(b_tokens.len(), 2);
+        assert_eq!(b_tokens[0].token, all_tokens[4].token);
+        assert_eq!(b_tokens[1].token, all_tokens[5].token);
+        // B holds it now; a resume there ignores the token.
+        let (again, end) = exchange(&mut b, vec![resume(&o.session_id, &token.token)]).await;
+        end.unwrap();
+        assert_eq!(opened(&again).frames_seen, N);
+    }
+    server_a.shutdown().await.unwrap();
+    server_b.shutdown().await.unwrap();
+}
+
+/// A safetensors file's bytes with one more `__metadata__` entry.
+fn relabeled(path: &std::path::Path) -> Vec<u8> {
+    let bytes = std::fs::read(path).unwrap();
+    let n = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+    let mut header: serde_json::Value = serde_json::from_slice(&bytes[8..8 + n]).unwrap();
+    header["__metadata__"]["tokens_test"] = "another copy".into();
+    let header = serde_json::to_vec(&header).unwrap();
+    let mut out = (header.len() as u64).to_le_bytes().to_vec();
+    out.extend_from_slice(&header);
+    out.extend_from_slice(&bytes[8 + n..]);
+    out
+}
+
+async fn status_of(
+    client: &mut PoseAdjustmentClient<Channel>,
+    first: pb::StreamRequest,
+) -> tonic::Status {
+    let (responses, end) = exchange(client, vec![first]).await;
+    match end {
+        Err(status) => status,
+        Ok(()) => panic!("expected an error status, got {responses:?}"),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn bad_tokens_are_refused_with_a_status_naming_the_problem() {
+    let (server_a, mut a) = start(config(Some(KEY))).await;
+    let mut requests = vec![open(Kind::Plain)];
+    requests.extend((0..12).map(|t| frame(t, false)));
+    let (run, end) = exchange(&mut a, requests).await;
+    end.unwrap();
+    let id = opened(&run).session_id.clone();
+    let token = tokens(&run)[0].token.clone();
+    // A detached session held by A: restore it elsewhere.
+    let (server_b, mut b) = start(config(Some(KEY))).await;
+
+    // Altered anywhere after the version byte, or truncated.
+    for at in [10, 100, 2000, token.len() - 1] {
+        let mut t = token.clone();
+        t[at] ^= 0x20;
+        let s = status_of(&mut b, resume(&id, &t)).await;
+        assert_eq!(s.code(), Code::Unauthenticated, "byte {at}: {s:?}");
+        assert!(s.message().contains("altered"), "{}", s.message());
+    }
+    for cut in [40, token.len() / 2, token.len() - 1] {
+        let s = status_of(&mut b, resume(&id, &token[..cut])).await;
+        assert_eq!(s.code(), Code::Unauthenticated, "cut {cut}: {s:?}");
+    }
+    // Not a token at all.
+    let s = status_of(&mut b, resume(&id, b"hello")).await;
+    assert_eq!(s.code(), Code::InvalidArgument, "{s:?}");
+    // Another version.
+    let mut v2 = token.clone();
+    v2[4] = 2;
+    let s = status_of(&mut b, resume(&id, &v2)).await;
+    assert_eq!(s.code(), Code::FailedPrecondition, "{s:?}");
+    assert!(s.message().contains("version 2"), "{}", s.message());
+    // Another session's id.
+    let other = "0123456789abcdef0123456789abcdef";
+    let s = status_of(&mut b, resume(other, &token)).await;
+    assert_eq!(s.code(), Code::InvalidArgument, "{s:?}");
+    assert!(s.message().contains("not"), "{}", s.message());
+    // Without a token an unknown session is still NOT_FOUND.
+    let s = status_of(&mut b, resume(&id, &[])).await;
+    assert_eq!(s.code(), Code::NotFound, "{s:?}");
+    server_b.shutdown().await.unwrap();
+
+    // Another key.
+    let (server_c, mut c) = start(config(Some("another key of enough bytes"))).await;
+    let s = status_of(&mut c, resume(&id, &token)).await;
+    assert_eq!(s.code(), Code::Unauthenticated, "{s:?}");
+    server_c.shutdown().await.unwrap();
+
+    // Other weights under the same key: the shipped GRU with one more
+    // metadata entry (the same model, other bytes, so another SHA-256).
+    let other_weights = std::env::temp_dir().join(format!(
+        "blapose-tokens-test-{}.safetensors",
+        std::process::id()
+    ));
+    std::fs::write(
+        &other_weights,
+        relabeled(&models("bone_length_gru.safetensors")),
+    )
+    .unwrap();
+    let (server_d, mut d) = start(ServerConfig {
+        weights: WeightsSource::File(other_weights.clone()),
+        ..config(Some(KEY))
+    })
+    .await;
+    let _ = std::fs::remove_file(&other_weights);
+    let s = status_of(&mut d, resume(&id, &token)).await;
+    assert_eq!(s.code(), Code::FailedPrecondition, "{s:?}");
+    assert!(s.message().contains("other weights"), "{}", s.message());
+    server_d.shutdown().await.unwrap();
+
+    // No key: no tokens issued or accepted, token requests refused per
+    // frame, everything else as before.
+    let (server_e, mut e) = start(config(None)).await;
+    let s = status_of(&mut e, resume(&id, &token)).await;
+    assert_eq!(s.code(), Code::FailedPrecondition, "{s:?}");
+    assert!(s.message().contains("--session-key"), "{}", s.message());
+    let (run, end) = exchange(
+        &mut e,
+        vec![
+            open(Kind::Plain),
+            frame(0, false),
+            token_request(),
+            frame(1, false),
+        ],
+    )
+    .await;
+    end.unwrap();
+    assert!(opened(&run).session_token.is_empty());
+    assert!(tokens(&run).is_empty());
+    match &run[2] {
+        Resp::Error(err) => assert_eq!(err.code, Code::FailedPrecondition as i32),
+        other => panic!("expected a FrameError, got {other:?}"),
+    }
+    assert_eq!(frames(&run[3..]).len(), 1);
+    server_e.shutdown().await.unwrap();
+    server_a.shutdown().await.unwrap();
+}
