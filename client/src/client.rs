@@ -152,6 +152,8 @@ impl<'a> SessionOptions<'a> {
             client_label: self.label.unwrap_or_default().to_string(),
             server_lifter: self.server_lifter,
             camera: self.camera.as_ref().map(CameraCalibration::to_proto),
+            // The library keeps them (EventReceiver::latest_token).
+            session_tokens: true,
         }
     }
 }
@@ -445,6 +447,7 @@ impl Client {
         let resume = pb::ResumeSession {
             session_id: session_id.to_string(),
             session_token: token.map(|t| t.token.clone()).unwrap_or_default(),
+            session_tokens: true,
         };
         Session::start(self, pb::stream_request::Kind::Resume(resume)).await
     }

@@ -91,7 +91,7 @@ pub async fn run(
             .await
             .unwrap_or_else(|_| Err(no_open_in_time(open_timeout)))
     };
-    let attachment = tokio::select! {
+    let (attachment, periodic_tokens) = tokio::select! {
         first = first => match open_or_resume(&state, first) {
             Ok(a) => a,
             Err(status) => {
@@ -121,7 +121,12 @@ pub async fn run(
         metrics::stream_attached(1);
         let end = {
             let _guard = state.batcher.stream_guard();
-            frames(&state, &attachment, &mut inbound, &tx).await
+            // Periodic tokens only for clients that read them.
+            let token_every = match &state.tokens {
+                Some(t) if periodic_tokens => t.every,
+                _ => 0,
+            };
+            frames(&state, &attachment, token_every, &mut inbound, &tx).await
         };
         metrics::stream_attached(-1);
         finish(&state, &attachment, end, &tx).await;
@@ -149,10 +154,12 @@ fn no_open_in_time(waited: std::time::Duration) -> Status {
     ))
 }
 
+/// The attachment, and whether the client asked for periodic session
+/// tokens.
 fn open_or_resume(
     state: &AppState,
     first: Result<Option<pb::StreamRequest>, Status>,
-) -> Result<Attachment, Status> {
+) -> Result<(Attachment, bool), Status> {
     let request = match first {
         Ok(Some(r)) => r,
         Ok(None) => {
@@ -196,7 +203,7 @@ fn open_or_resume(
                 camera = open.camera.is_some(),
                 "session opened"
             );
-            Ok(attachment)
+            Ok((attachment, open.session_tokens))
         }
         Some(Req::Resume(resume)) => {
             let attachment = match state.store.resume(&resume.session_id) {
@@ -207,7 +214,7 @@ fn open_or_resume(
                 Err(e) => return Err(session_status(e)),
             };
             tracing::info!(session = %attachment.session.id(), frames_seen = attachment.snapshot.frames_seen, "session resumed");
-            Ok(attachment)
+            Ok((attachment, resume.session_tokens))
         }
         Some(Req::TokenRequest(_)) => Err(Status::failed_precondition(
             "a token request arrived before the session was opened: send open or resume first",
@@ -415,7 +422,7 @@ fn frame_error(frame_index: u64, code: tonic::Code, message: String) -> pb::Stre
 }
 
 /// Validate and submit one frame; the returned entry answers it.
-fn submit(state: &AppState, a: &Attachment, frame: pb::Frame) -> Pending {
+fn submit(state: &AppState, a: &Attachment, token_every: u64, frame: pb::Frame) -> Pending {
     let received = Instant::now();
     let index = frame.frame_index;
     let config = a.session.config();
@@ -442,7 +449,7 @@ fn submit(state: &AppState, a: &Attachment, frame: pb::Frame) -> Pending {
         epoch: a.epoch,
         input,
         lift: pose.is_none(),
-        state_every: state.tokens.as_ref().map_or(0, |t| t.every),
+        state_every: token_every,
         reply,
     };
     match state.batcher.submit(job) {
@@ -591,6 +598,7 @@ fn lost_status(owner: Ownership) -> Status {
 async fn frames(
     state: &AppState,
     a: &Attachment,
+    token_every: u64,
     inbound: &mut Streaming<pb::StreamRequest>,
     tx: &mpsc::Sender<Outbound>,
 ) -> End {
@@ -638,7 +646,7 @@ async fn frames(
                 if reading && pending.len() < cap && !pending.iter().any(|p| matches!(p, Pending::Token)) =>
             match message {
                 Ok(Some(request)) => match request.kind {
-                    Some(Req::Frame(frame)) => pending.push_back(submit(state, a, frame)),
+                    Some(Req::Frame(frame)) => pending.push_back(submit(state, a, token_every, frame)),
                     Some(Req::TokenRequest(_)) => pending.push_back(if state.tokens.is_some() {
                         Pending::Token
                     } else {

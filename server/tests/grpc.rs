@@ -238,6 +238,7 @@ fn open_with_camera(camera: Option<pb::CameraCalibration>) -> pb::StreamRequest 
             client_label: "test".into(),
             server_lifter: false,
             camera,
+            session_tokens: false,
         })),
     }
 }
@@ -468,6 +469,7 @@ async fn protocol_errors_end_the_stream_with_the_right_code() {
             request(Req::Resume(pb::ResumeSession {
                 session_id: "00112233445566778899aabbccddeeff".into(),
                 session_token: Vec::new(),
+                session_tokens: false,
             })),
             Code::NotFound,
             "no session",
@@ -476,6 +478,7 @@ async fn protocol_errors_end_the_stream_with_the_right_code() {
             request(Req::Resume(pb::ResumeSession {
                 session_id: "garbage".into(),
                 session_token: Vec::new(),
+                session_tokens: false,
             })),
             Code::NotFound,
             "no session",
@@ -683,6 +686,7 @@ async fn a_dropped_stream_can_be_resumed_and_a_live_one_is_taken_over() {
         .send(request(Req::Resume(pb::ResumeSession {
             session_id: opened.session_id.clone(),
             session_token: Vec::new(),
+            session_tokens: false,
         })))
         .await;
     match resumed.next().await.unwrap() {
@@ -709,6 +713,7 @@ async fn a_dropped_stream_can_be_resumed_and_a_live_one_is_taken_over() {
         .send(request(Req::Resume(pb::ResumeSession {
             session_id: opened.session_id.clone(),
             session_token: Vec::new(),
+            session_tokens: false,
         })))
         .await;
     assert!(matches!(thief.next().await.unwrap(), Some(Resp::Opened(_))));
@@ -731,6 +736,7 @@ async fn a_dropped_stream_can_be_resumed_and_a_live_one_is_taken_over() {
     late.send(request(Req::Resume(pb::ResumeSession {
         session_id: opened.session_id,
         session_token: Vec::new(),
+        session_tokens: false,
     })))
     .await;
     assert_eq!(late.status().await.code(), Code::NotFound);
@@ -759,6 +765,7 @@ async fn detached_sessions_expire_after_the_ttl() {
         late.send(request(Req::Resume(pb::ResumeSession {
             session_id: opened.session_id.clone(),
             session_token: Vec::new(),
+            session_tokens: false,
         })))
         .await;
         match late.next().await {
@@ -1142,6 +1149,7 @@ async fn sessions_with_a_camera_get_the_camera_aware_model() {
         request(Req::Resume(pb::ResumeSession {
             session_id: opened.session_id.clone(),
             session_token: Vec::new(),
+            session_tokens: false,
         })),
     )
     .await;

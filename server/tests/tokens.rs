@@ -137,6 +137,7 @@ fn open(kind: Kind) -> pb::StreamRequest {
             client_label: format!("{kind:?}"),
             server_lifter: matches!(kind, Kind::Lifter),
             camera: matches!(kind, Kind::Camera).then(calibration),
+            session_tokens: true,
         })),
     }
 }
@@ -146,6 +147,7 @@ fn resume(id: &str, token: &[u8]) -> pb::StreamRequest {
         kind: Some(Req::Resume(pb::ResumeSession {
             session_id: id.to_string(),
             session_token: token.to_vec(),
+            session_tokens: true,
         })),
     }
 }
@@ -351,6 +353,19 @@ async fn bad_tokens_are_refused_with_a_status_naming_the_problem() {
     end.unwrap();
     let id = opened(&run).session_id.clone();
     let token = tokens(&run)[0].token.clone();
+    // A client that does not ask for them (one that predates tokens) gets
+    // no SessionToken responses, only the token in SessionOpened.
+    let mut quiet = open(Kind::Plain);
+    if let Some(Req::Open(o)) = &mut quiet.kind {
+        o.session_tokens = false;
+    }
+    let mut requests = vec![quiet];
+    requests.extend((0..25).map(|t| frame(t, false)));
+    let (quiet_run, end) = exchange(&mut a, requests).await;
+    end.unwrap();
+    assert!(!opened(&quiet_run).session_token.is_empty());
+    assert!(tokens(&quiet_run).is_empty());
+    assert_eq!(frames(&quiet_run).len(), 25);
     // A detached session held by A: restore it elsewhere.
     let (server_b, mut b) = start(config(Some(KEY))).await;
 

@@ -37,6 +37,7 @@ fn open_request(
             client_label: "hostile".into(),
             server_lifter: false,
             camera: None,
+            session_tokens: false,
         })),
     }
 }
@@ -132,6 +133,7 @@ async fn bad_opens_and_first_messages_end_the_stream_with_the_right_code() {
                 kind: Some(Kind::Resume(pb::ResumeSession {
                     session_id: "0123456789abcdef0123456789abcdef".into(),
                     session_token: Vec::new(),
+                    session_tokens: false,
                 })),
             },
             Code::NotFound,

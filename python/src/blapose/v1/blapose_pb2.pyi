@@ -82,26 +82,30 @@ class TokenRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class OpenSession(_message.Message):
-    __slots__ = ("input_format", "model", "client_label", "server_lifter", "camera")
+    __slots__ = ("input_format", "model", "client_label", "server_lifter", "camera", "session_tokens")
     INPUT_FORMAT_FIELD_NUMBER: _ClassVar[int]
     MODEL_FIELD_NUMBER: _ClassVar[int]
     CLIENT_LABEL_FIELD_NUMBER: _ClassVar[int]
     SERVER_LIFTER_FIELD_NUMBER: _ClassVar[int]
     CAMERA_FIELD_NUMBER: _ClassVar[int]
+    SESSION_TOKENS_FIELD_NUMBER: _ClassVar[int]
     input_format: InputFormat
     model: Model
     client_label: str
     server_lifter: bool
     camera: CameraCalibration
-    def __init__(self, input_format: _Optional[_Union[InputFormat, _Mapping]] = ..., model: _Optional[_Union[Model, str]] = ..., client_label: _Optional[str] = ..., server_lifter: _Optional[bool] = ..., camera: _Optional[_Union[CameraCalibration, _Mapping]] = ...) -> None: ...
+    session_tokens: bool
+    def __init__(self, input_format: _Optional[_Union[InputFormat, _Mapping]] = ..., model: _Optional[_Union[Model, str]] = ..., client_label: _Optional[str] = ..., server_lifter: _Optional[bool] = ..., camera: _Optional[_Union[CameraCalibration, _Mapping]] = ..., session_tokens: _Optional[bool] = ...) -> None: ...
 
 class ResumeSession(_message.Message):
-    __slots__ = ("session_id", "session_token")
+    __slots__ = ("session_id", "session_token", "session_tokens")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     SESSION_TOKEN_FIELD_NUMBER: _ClassVar[int]
+    SESSION_TOKENS_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     session_token: bytes
-    def __init__(self, session_id: _Optional[str] = ..., session_token: _Optional[bytes] = ...) -> None: ...
+    session_tokens: bool
+    def __init__(self, session_id: _Optional[str] = ..., session_token: _Optional[bytes] = ..., session_tokens: _Optional[bool] = ...) -> None: ...
 
 class Frame(_message.Message):
     __slots__ = ("frame_index", "keypoints_2d", "confidence", "pose_3d")
