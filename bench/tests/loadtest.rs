@@ -266,7 +266,7 @@ impl ModelProvider for Counted {
     fn camera_aware(&self) -> Option<Arc<dyn ModelProvider>> {
         self.inner.camera_aware()
     }
-    fn height_normalized(&self) -> bool {
-        self.inner.height_normalized()
+    fn camera_reading(&self) -> blapose_server::CameraReading {
+        self.inner.camera_reading()
     }
 }

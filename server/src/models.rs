@@ -174,9 +174,9 @@ pub enum WeightsError {
         /// The Bi-GRU's origin.
         bigru: String,
         /// How the GRU reads a calibration.
-        gru_reading: CameraReading,
+        gru_reading: Box<CameraReading>,
         /// How the Bi-GRU does.
-        bigru_reading: CameraReading,
+        bigru_reading: Box<CameraReading>,
     },
     /// The `--lifter-weights` file cannot be served. (The cause is part of
     /// the message, not a `source()`, so an error chain prints it once.)
@@ -439,8 +439,8 @@ impl WeightsProvider {
             return Err(WeightsError::MixedCameraReading {
                 gru: gru.origin,
                 bigru: bigru.origin,
-                gru_reading: camera_reading,
-                bigru_reading,
+                gru_reading: Box::new(camera_reading),
+                bigru_reading: Box::new(bigru_reading),
             }
             .into());
         }

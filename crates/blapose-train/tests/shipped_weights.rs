@@ -84,7 +84,8 @@ fn shipped_weights_reproduce_the_model_card() {
 /// Every shipped bone-length file's `train_config`, written before some
 /// research options were removed, still parses into [`TrainConfig`] and
 /// serializes back to the same values (the server judges a file's family
-/// by `rectify` and `height_normalized` there).
+/// by `rectify`, `height_normalized`, `floor_scaled` and `wide_cameras`
+/// there).
 #[test]
 fn shipped_train_configs_still_parse() {
     use blapose_train::lengths::LengthStrategy;
@@ -117,13 +118,25 @@ fn shipped_train_configs_still_parse() {
         );
         assert_eq!(cfg.lengths, LengthStrategy::Ansur);
         assert_eq!(cfg.noise, NoiseKind::Residual);
-        assert_eq!(cfg.shift_plane, ShiftPlane::Ground);
-        // Written before the held-out split: trained on every ANSUR person.
-        assert_eq!(
-            cfg.ansur_people,
-            blapose_train::ansur_split::AnsurPeople::All,
-            "{file}"
-        );
+        if rectify {
+            // The camera-aware pair: any calibrated camera, metric floor
+            // scaling, bodies outside the benchmark's held-out split.
+            assert!(cfg.floor_scaled, "{file}");
+            assert_eq!(cfg.wide_cameras, 1.0, "{file}");
+            assert_eq!(
+                cfg.ansur_people,
+                blapose_train::ansur_split::AnsurPeople::Train,
+                "{file}"
+            );
+        } else {
+            assert_eq!(cfg.shift_plane, ShiftPlane::Ground);
+            // Written before the held-out split: every ANSUR person.
+            assert_eq!(
+                cfg.ansur_people,
+                blapose_train::ansur_split::AnsurPeople::All,
+                "{file}"
+            );
+        }
         // As the trainer writes it (f32 fields in their shortest form).
         let new: serde_json::Value =
             serde_json::from_str(&serde_json::to_string(&cfg).unwrap()).unwrap();

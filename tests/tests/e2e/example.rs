@@ -56,6 +56,7 @@ async fn replaying_the_examples_improves_them() {
     // The examples carry their camera's calibration: with it the
     // camera-aware pair serves them, without it the default pair.
     let mut after_by_family = Vec::new();
+    let mut per_family: Vec<[Vec<Evaluation>; 2]> = Vec::new();
     for family in ["default", "camera-aware"] {
         let (mut online, mut offline) = (Vec::new(), Vec::new());
         for file in &files {
@@ -88,6 +89,7 @@ async fn replaying_the_examples_improves_them() {
             println!("{family} {name}: MPJPE {before:.2} -> {after:.2} mm");
         }
         after_by_family.push(afters);
+        per_family.push([online.clone(), offline.clone()]);
         if family == "default" {
             // The default pair repairs the examples' bone lengths, and the
             // offline Bi-GRU their MPJPE.
@@ -106,12 +108,30 @@ async fn replaying_the_examples_improves_them() {
             );
         }
     }
-    // The camera-aware pair really served the calibrated replays (its
-    // results differ from the default pair's). It is trained on Human3.6M's
-    // camera placements only; on these synthetic cameras (1.4 m high, far
-    // off) it does not repair the lengths (models/README.md, Session 10).
-    for (default, aware) in after_by_family[0].iter().zip(&after_by_family[1]) {
-        assert!((default - aware).abs() > 0.1, "{default} vs {aware}");
+    // With their cameras the camera-aware pair (trained for any calibrated
+    // camera, models/README.md) repairs every example's bone lengths, and
+    // on average does better than the default pair (not on each: on the
+    // run and the march the default pair is closer; models/README.md).
+    for (name, default) in ["stream (gru)", "offline (bigru)"]
+        .iter()
+        .zip(&after_by_family[0])
+    {
+        let i = usize::from(*name != "stream (gru)");
+        let aware = &per_family[1][i];
+        for (file, e) in files.iter().zip(aware) {
+            assert!(
+                e.after.bone_error_mm < e.before.bone_error_mm,
+                "{} {name}, camera-aware: bone error {:.1} -> {:.1} mm",
+                file.display(),
+                e.before.bone_error_mm,
+                e.after.bone_error_mm
+            );
+        }
+        let aware_after = after_by_family[1][i];
+        assert!(
+            aware_after < *default,
+            "{name}: camera-aware {aware_after:.2} mm vs default {default:.2} mm"
+        );
     }
     server.shutdown().await;
 }
