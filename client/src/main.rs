@@ -148,11 +148,13 @@ struct IoArgs {
     #[arg(long)]
     layout: Option<KeypointLayout>,
     /// Send the file's camera calibration, so the server's camera-aware
-    /// models serve the sequence. They are trained on Human3.6M's camera
-    /// placements (1.5-1.6 m high, 3-6 m away) and beat the default models
-    /// there; on other placements they can do worse (on the shipped CMU
-    /// examples, 1.4 m high, they make the lengths worse), so the default
-    /// is not to send it.
+    /// models serve the sequence. They need the camera's height above the
+    /// floor (camera_height) and were trained for cameras 0.5-3 m high,
+    /// -35 to +15 degrees from level, 40-100 degrees across; other
+    /// calibrations are refused, naming the value. They read people's
+    /// sizes better than the default models on such cameras (on the
+    /// shipped CMU examples: 5.8 mm streamed against 7.6) but worse on
+    /// Human3.6M's own (models/README.md).
     #[arg(long)]
     camera: bool,
 }
