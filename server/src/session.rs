@@ -368,6 +368,21 @@ struct Inner {
     shutdown: bool,
 }
 
+impl Inner {
+    /// Hold `session` under `id`, attached (opened, or restored from a
+    /// token).
+    fn admit(&mut self, id: SessionId, session: &Arc<Session>) {
+        self.sessions.insert(
+            id,
+            Entry {
+                session: session.clone(),
+                expires_at: None,
+            },
+        );
+        metrics::session_opened(self.sessions.len());
+    }
+}
+
 #[derive(Debug)]
 struct Shared {
     inner: Mutex<Inner>,
@@ -489,14 +504,7 @@ impl SessionStore {
         if inner.sessions.contains_key(&id) {
             return Err(SessionError::Rng("duplicate session id drawn".into()));
         }
-        inner.sessions.insert(
-            id,
-            Entry {
-                session: session.clone(),
-                expires_at: None,
-            },
-        );
-        metrics::session_opened(inner.sessions.len());
+        inner.admit(id, &session);
         drop(inner);
         Ok(Attachment {
             session,
@@ -563,14 +571,7 @@ impl SessionStore {
                 max: self.shared.max_sessions,
             });
         }
-        inner.sessions.insert(
-            id,
-            Entry {
-                session: session.clone(),
-                expires_at: None,
-            },
-        );
-        metrics::session_opened(inner.sessions.len());
+        inner.admit(id, &session);
         drop(inner);
         let st = session.lock();
         let snapshot = SessionSnapshot {
