@@ -51,15 +51,15 @@
 //! differently); everything else is read only from authenticated bytes.
 //! Tokens do not expire: the TTL governs a replica's memory, not the token.
 //!
-//! HMAC-SHA256 (RFC 2104) is computed here over the `sha2` crate that the
-//! server already uses for weights hashes (the `hmac` crate is not in this
-//! workspace's offline registry); it is checked against RFC 4231's test
-//! vectors, and MACs are compared in constant time.
+//! HMAC-SHA256 comes from the `hmac` crate over `sha2` (checked here
+//! against RFC 4231's test vectors); MACs are verified in constant time
+//! (`Mac::verify_slice`).
 
 use blapose_core::layouts::{Coordinates, KeypointLayout};
 use blapose_core::{Keypoints2d, NUM_BONES, NUM_JOINTS};
 use blapose_proto::v1 as pb;
 use prost::Message;
+use hmac::Mac;
 use sha2::{Digest, Sha256};
 
 use crate::session::{InputSpec, RunningLengths, SessionId, StateCopy, STATE_DIM};
@@ -153,6 +153,15 @@ impl SessionKey {
     fn mac(&self, message: &[u8]) -> [u8; 32] {
         hmac_sha256(&self.0, message)
     }
+
+    /// Whether `mac` authenticates `message` (compared in constant time).
+    fn verifies(&self, message: &[u8], mac: &[u8]) -> bool {
+        let Ok(mut check) = HmacSha256::new_from_slice(&self.0) else {
+            return false;
+        };
+        check.update(message);
+        check.verify_slice(mac).is_ok()
+    }
 }
 
 fn decode_hex(text: &str) -> Result<Vec<u8>, TokenError> {
@@ -208,27 +217,14 @@ fn decode_base64(text: &str) -> Result<Vec<u8>, TokenError> {
     Ok(out)
 }
 
-/// HMAC-SHA256 (RFC 2104).
+/// HMAC-SHA256 (RFC 2104) of `message` under `key`.
 pub fn hmac_sha256(key: &[u8], message: &[u8]) -> [u8; 32] {
-    let mut block = [0u8; 64];
-    if key.len() > 64 {
-        block[..32].copy_from_slice(&Sha256::digest(key));
-    } else {
-        block[..key.len()].copy_from_slice(key);
-    }
-    let mut inner = Sha256::new();
-    inner.update(block.map(|b| b ^ 0x36));
-    inner.update(message);
-    let inner = inner.finalize();
-    let mut outer = Sha256::new();
-    outer.update(block.map(|b| b ^ 0x5c));
-    outer.update(inner);
-    outer.finalize().into()
+    let mut mac = HmacSha256::new_from_slice(key).expect("HMAC takes keys of any length");
+    mac.update(message);
+    mac.finalize().into_bytes().into()
 }
 
-fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
-    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
-}
+type HmacSha256 = hmac::Hmac<Sha256>;
 
 /// A 32-byte weights id from a weights hash as the server reports it
 /// (lowercase hex SHA-256); any other string (a test provider's) is hashed.
@@ -398,7 +394,7 @@ impl PortableState {
             return Err(TokenError::Unauthenticated);
         }
         let (body, mac) = token.split_at(token.len() - MAC_BYTES);
-        if !constant_time_eq(&key.mac(body), mac) {
+        if !key.verifies(body, mac) {
             return Err(TokenError::Unauthenticated);
         }
         decode_body(body)
