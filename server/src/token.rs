@@ -58,8 +58,8 @@
 use blapose_core::layouts::{Coordinates, KeypointLayout};
 use blapose_core::{Keypoints2d, NUM_BONES, NUM_JOINTS};
 use blapose_proto::v1 as pb;
-use prost::Message;
 use hmac::Mac;
+use prost::Message;
 use sha2::{Digest, Sha256};
 
 use crate::session::{InputSpec, RunningLengths, SessionId, StateCopy, STATE_DIM};
