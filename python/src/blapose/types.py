@@ -142,7 +142,10 @@ class Camera:
         focal: ``(fx, fy)`` in pixels.
         principal: ``(cx, cy)`` in pixels.
         image_size: ``(w, h)`` the values refer to; needed with normalized keypoints.
-        height: camera height above the floor in metres (0.3-10), or None.
+        height: camera height above the floor in metres (0.3-10), or None. The shipped
+            camera-aware models require it: they were trained for cameras 0.5-3 m high,
+            -35 to +15 degrees from level, 40-100 degrees across, and the server refuses
+            other calibrations with ``InvalidArgument`` naming the value.
     """
 
     up: Tuple[float, float, float]
