@@ -195,11 +195,23 @@ pub fn calibrated<'a>(
         .as_ref()
         .map_or((false, false), |c| (c.floor_scaled, c.height_normalized));
     crate::dataset::rectify_streams(trials, &camera, floor_scaled)?;
-    if !height_normalized {
-        return Ok(estimator);
+    if height_normalized {
+        height_corrected(estimator, trials, camera)
+    } else {
+        Ok(estimator)
     }
+}
+
+/// `estimator` scaled by each trial's camera height over the reference
+/// height ([`HeightCorrected`]); `camera(subject, id)` finds each trial's
+/// calibration.
+pub fn height_corrected<'a>(
+    estimator: Box<dyn LengthEstimator>,
+    trials: &[EvalSequence],
+    camera: impl Fn(&str, &str) -> Option<&'a Camera>,
+) -> Result<Box<dyn LengthEstimator>, TrainError> {
     let mut scales = BTreeMap::new();
-    for t in trials.iter() {
+    for t in trials {
         let cam = camera(&t.subject, &t.camera)
             .ok_or_else(|| TrainError::Data(format!("no camera {} for {}", t.camera, t.subject)))?;
         scales.insert(

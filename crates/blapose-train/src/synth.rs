@@ -57,7 +57,7 @@ use serde::{Deserialize, Serialize};
 use crate::bench_camera::{draw_camera_seeing, wide_cameras};
 use crate::error::TrainError;
 use crate::lengths::{normal_f32, LengthSampler};
-use crate::noise::{apply_residual, residual_at, NoiseKind, ResidualBank};
+use crate::noise::{apply_residual, residual_at, MetricResidual, NoiseKind, ResidualBank};
 
 /// Values per input frame.
 pub const FRAME_DIM: usize = NUM_JOINTS * 2;
@@ -261,6 +261,17 @@ impl SynthConfig {
             level.scaled_to_floor(camera_height as f32)
         } else {
             level
+        }
+    }
+
+    /// The target of a sample with `lengths` seen from a camera
+    /// `camera_height` metres up (height-normalized when asked).
+    fn target(&self, lengths: &BoneLengths, camera_height: f64) -> BoneLengths {
+        if self.height_normalized {
+            let k = (1.0 / height_scale(camera_height)) as f32;
+            lengths.map(|l| l * k)
+        } else {
+            *lengths
         }
     }
 
@@ -601,7 +612,7 @@ impl SynthSource {
         let mut input = Vec::with_capacity(t_len * FRAME_DIM);
         for (t, p) in cam_poses.iter().enumerate() {
             let shifted = p.map(|j| [j[0] + shift[0], j[1] + shift[1], j[2] + shift[2]]);
-            let mut kp: Keypoints2d = k.project_pose(&shifted);
+            let kp: Keypoints2d = k.project_pose(&shifted);
             let depth = shifted[0][2];
             let residual = match cfg.noise {
                 NoiseKind::None => None,
@@ -613,25 +624,12 @@ impl SynthSource {
                     residual_at(tr, u.min((tr.len() - 1) as f32))
                 }),
             };
-            if let Some(r) = residual {
-                apply_residual(&mut kp, &r, depth, k.focal);
-            }
-            if let Some(level) = &level {
-                kp = level.rectify(&kp);
-            }
-            if flipped {
-                kp = flip_keypoints_normalized(&kp);
-            }
+            let kp = as_read(kp, residual, depth, k.focal, level.as_ref(), flipped);
             input.extend(kp.iter().flatten());
         }
         Sample {
             input,
-            target: if cfg.height_normalized {
-                let k = (1.0 / height_scale(cam.center[2])) as f32;
-                lengths.map(|l| l * k)
-            } else {
-                lengths
-            },
+            target: cfg.target(&lengths, cam.center[2]),
             sequence: seq_idx,
             camera: cam_idx,
             stride,
@@ -685,7 +683,7 @@ impl SynthSource {
         let mut input = Vec::with_capacity(cfg.seq_len * FRAME_DIM);
         for (t, p) in world.iter().enumerate() {
             let c = cam.world_to_camera_pose(p);
-            let mut kp: Keypoints2d = k.project_pose(&c);
+            let kp: Keypoints2d = k.project_pose(&c);
             let residual = match cfg.noise {
                 NoiseKind::None => None,
                 NoiseKind::Gaussian => Some(self.residuals.gaussian(rng)),
@@ -693,25 +691,12 @@ impl SynthSource {
                     track.map(|tr| residual_at(tr, offset + t as f32 * window.stride))
                 }
             };
-            if let Some(r) = residual {
-                apply_residual(&mut kp, &r, c[0][2], k.focal);
-            }
-            if let Some(level) = &level {
-                kp = level.rectify(&kp);
-            }
-            if flipped {
-                kp = flip_keypoints_normalized(&kp);
-            }
+            let kp = as_read(kp, residual, c[0][2], k.focal, level.as_ref(), flipped);
             input.extend(kp.iter().flatten());
         }
         Some(Sample {
             input,
-            target: if cfg.height_normalized {
-                let k = (1.0 / height_scale(drawn.height_m)) as f32;
-                lengths.map(|l| l * k)
-            } else {
-                *lengths
-            },
+            target: cfg.target(lengths, drawn.height_m),
             sequence: window.sequence,
             camera: WIDE_CAMERA,
             stride: window.stride,
@@ -739,6 +724,29 @@ impl SynthSource {
             targets,
         }
     }
+}
+
+/// One projected frame as the network reads it: detector noise (`residual`,
+/// metric, at the root's `depth`), then rectified by `level` when given,
+/// then mirrored when `flipped`.
+fn as_read(
+    mut kp: Keypoints2d,
+    residual: Option<MetricResidual>,
+    depth: f32,
+    focal: [f32; 2],
+    level: Option<&LevelCamera>,
+    flipped: bool,
+) -> Keypoints2d {
+    if let Some(r) = residual {
+        apply_residual(&mut kp, &r, depth, focal);
+    }
+    if let Some(level) = level {
+        kp = level.rectify(&kp);
+    }
+    if flipped {
+        kp = flip_keypoints_normalized(&kp);
+    }
+    kp
 }
 
 /// `root` and `dirs` turned by `yaw` radians about the vertical (world `z`)

@@ -15,8 +15,7 @@ use blapose_train::dataset::{
     eval_sequences, mean_subject_lengths, rectify_streams, subject_lengths, InputKind,
 };
 use blapose_train::eval::{
-    evaluate, markdown, BiGruEstimator, FlipAveraged, GruEstimator, HeightCorrected,
-    LengthEstimator,
+    evaluate, markdown, BiGruEstimator, FlipAveraged, GruEstimator, LengthEstimator,
 };
 
 use crate::bodies::{Benchmark, BodiesArgs};
@@ -178,18 +177,9 @@ pub fn run(a: EvalArgs) -> Result<()> {
         model_label.push_str("+calibrated");
     }
     if a.height_correction {
-        let mut scales = std::collections::BTreeMap::new();
-        for t in &trials {
-            let cam = h36m
-                .cameras
-                .get(&t.subject, &t.camera)
-                .ok_or_else(|| anyhow::anyhow!("no camera {} for {}", t.camera, t.subject))?;
-            scales.insert(
-                (t.subject.clone(), t.camera.clone()),
-                blapose_core::level::height_scale(cam.center[2]) as f32,
-            );
-        }
-        estimator = Box::new(HeightCorrected::new(estimator, scales));
+        estimator = blapose_train::eval::height_corrected(estimator, &trials, |s, id| {
+            h36m.cameras.get(s, id)
+        })?;
         model_label.push_str("+height");
     }
     let report = evaluate(
