@@ -186,35 +186,18 @@ fn decode_hex(text: &str) -> Result<Vec<u8>, TokenError> {
 }
 
 fn decode_base64(text: &str) -> Result<Vec<u8>, TokenError> {
-    let text = text.trim_end_matches('=');
-    let mut out = Vec::with_capacity(text.len() * 3 / 4);
-    let (mut acc, mut bits) = (0u32, 0u32);
-    for c in text.bytes() {
-        let v = match c {
-            b'A'..=b'Z' => c - b'A',
-            b'a'..=b'z' => c - b'a' + 26,
-            b'0'..=b'9' => c - b'0' + 52,
-            b'+' | b'-' => 62,
-            b'/' | b'_' => 63,
-            _ => {
-                return Err(TokenError::KeyEncoding(format!(
-                    "base64: {:?} is not a base64 character",
-                    c as char
-                )))
-            }
-        };
-        acc = (acc << 6) | u32::from(v);
-        bits += 6;
-        if bits >= 8 {
-            bits -= 8;
-            out.push((acc >> bits) as u8);
-            acc &= (1 << bits) - 1;
-        }
-    }
-    if bits >= 6 {
-        return Err(TokenError::KeyEncoding("base64: bad length".into()));
-    }
-    Ok(out)
+    use base64::engine::{DecodePaddingMode, GeneralPurpose, GeneralPurposeConfig};
+    use base64::{alphabet, Engine};
+    let config =
+        GeneralPurposeConfig::new().with_decode_padding_mode(DecodePaddingMode::Indifferent);
+    let alphabet = if text.contains(['-', '_']) {
+        &alphabet::URL_SAFE
+    } else {
+        &alphabet::STANDARD
+    };
+    GeneralPurpose::new(alphabet, config)
+        .decode(text)
+        .map_err(|e| TokenError::KeyEncoding(format!("base64: {e}")))
 }
 
 /// HMAC-SHA256 (RFC 2104) of `message` under `key`.
