@@ -6,5 +6,6 @@
 //! an in-process or running server, with latency percentiles, error counts
 //! and the server's own batch-size histogram.
 
+pub mod failover;
 pub mod loadtest;
 pub mod machine;

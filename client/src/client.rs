@@ -91,35 +91,54 @@ impl Default for ClientConfig {
     }
 }
 
-/// Adds the bearer token to every request.
-#[derive(Debug, Clone)]
-pub struct BearerAuth {
-    header: Option<AsciiMetadataValue>,
+/// The gRPC metadata key that ties a session's streams and calls together
+/// for a load balancer: `deploy/haproxy.cfg` hashes on it (consistent
+/// hashing), so every stream of one session reaches the same replica while
+/// it is up.
+pub const AFFINITY_HEADER: &str = "blapose-affinity";
+
+/// A fresh affinity key (32 random hex digits) for one session.
+pub fn new_affinity_key() -> String {
+    format!("{:032x}", rand::random::<u128>())
 }
 
-impl BearerAuth {
+/// Metadata added to every request: the bearer token, and the session's
+/// affinity key on a [`Client::with_affinity`] handle.
+#[derive(Debug, Clone)]
+pub struct CallMetadata {
+    authorization: Option<AsciiMetadataValue>,
+    affinity: Option<AsciiMetadataValue>,
+}
+
+impl CallMetadata {
     fn new(token: Option<&str>) -> Result<Self, ClientError> {
-        let header = token
+        let authorization = token
             .map(|t| {
                 MetadataValue::try_from(format!("Bearer {t}"))
                     .map_err(|_| ClientError::InvalidToken)
             })
             .transpose()?;
-        Ok(BearerAuth { header })
+        Ok(CallMetadata {
+            authorization,
+            affinity: None,
+        })
     }
 }
 
-impl tonic::service::Interceptor for BearerAuth {
+impl tonic::service::Interceptor for CallMetadata {
     fn call(&mut self, mut req: tonic::Request<()>) -> Result<tonic::Request<()>, tonic::Status> {
-        if let Some(h) = &self.header {
+        if let Some(h) = &self.authorization {
             req.metadata_mut().insert("authorization", h.clone());
+        }
+        if let Some(key) = &self.affinity {
+            req.metadata_mut().insert(AFFINITY_HEADER, key.clone());
         }
         Ok(req)
     }
 }
 
 /// The generated stub with authentication applied.
-pub(crate) type Stub = PoseAdjustmentClient<InterceptedService<Channel, BearerAuth>>;
+pub(crate) type Stub = PoseAdjustmentClient<InterceptedService<Channel, CallMetadata>>;
 
 /// How to open a session (see [`Client::open_session_with`]). Build it
 /// from `SessionOptions::default()` (`..Default::default()` in a literal)
@@ -162,6 +181,8 @@ impl<'a> SessionOptions<'a> {
 #[derive(Debug, Clone)]
 pub struct Client {
     stub: Stub,
+    /// What the stub adds to every call.
+    metadata: CallMetadata,
     channel: Channel,
     config: ClientConfig,
 }
@@ -290,7 +311,7 @@ impl Client {
     /// Connect, retrying with exponential backoff (see [`ClientConfig`]).
     pub async fn connect(config: ClientConfig) -> Result<Client, ClientError> {
         let endpoint = build_endpoint(&config)?;
-        let auth = BearerAuth::new(config.token.as_deref())?;
+        let auth = CallMetadata::new(config.token.as_deref())?;
         let attempts = config.connect_attempts.max(1);
         let mut backoff = config.retry_backoff;
         let mut last_error = String::new();
@@ -313,12 +334,22 @@ impl Client {
         })
     }
 
-    fn from_channel(channel: Channel, auth: BearerAuth, config: ClientConfig) -> Client {
+    /// A client that connects at its first call instead of now (and
+    /// reconnects as needed): for a fallback replica that may be down when
+    /// the program starts. Fails only on a bad URL, TLS setting or token.
+    pub fn connect_lazy(config: ClientConfig) -> Result<Client, ClientError> {
+        let endpoint = build_endpoint(&config)?;
+        let auth = CallMetadata::new(config.token.as_deref())?;
+        Ok(Client::from_channel(endpoint.connect_lazy(), auth, config))
+    }
+
+    fn from_channel(channel: Channel, auth: CallMetadata, config: ClientConfig) -> Client {
         let stub = PoseAdjustmentClient::with_interceptor(channel.clone(), auth.clone())
             .max_decoding_message_size(config.max_message_bytes)
             .max_encoding_message_size(config.max_message_bytes);
         Client {
             stub,
+            metadata: auth,
             channel,
             config,
         }
@@ -334,12 +365,31 @@ impl Client {
         self.channel.clone()
     }
 
+    /// The same connection, sending `key` as the [`AFFINITY_HEADER`] on
+    /// every call: use it for every stream and call of one session (see
+    /// [`new_affinity_key`]) so that a load balancer hashing on it keeps
+    /// the session on one replica. [`replay_across`](crate::replay_across)
+    /// does this itself.
+    pub fn with_affinity(&self, key: &str) -> Result<Client, ClientError> {
+        let mut auth = self.metadata.clone();
+        auth.affinity = Some(MetadataValue::try_from(key).map_err(|_| {
+            ClientError::InvalidInput(format!(
+                "the affinity key {key:?} is not a valid gRPC metadata value"
+            ))
+        })?);
+        Ok(Client::from_channel(
+            self.channel.clone(),
+            auth,
+            self.config.clone(),
+        ))
+    }
+
     /// The same connection with a different bearer token (tests of the
     /// server's authentication use it).
     pub fn with_token(&self, token: Option<&str>) -> Result<Client, ClientError> {
         let mut config = self.config.clone();
         config.token = token.map(str::to_string);
-        let auth = BearerAuth::new(token)?;
+        let auth = CallMetadata::new(token)?;
         Ok(Client::from_channel(self.channel.clone(), auth, config))
     }
 
@@ -558,11 +608,32 @@ mod tests {
     #[test]
     fn token_with_newline_is_refused() {
         assert!(matches!(
-            BearerAuth::new(Some("a\nb")),
+            CallMetadata::new(Some("a\nb")),
             Err(ClientError::InvalidToken)
         ));
-        assert!(BearerAuth::new(Some("secret")).unwrap().header.is_some());
-        assert!(BearerAuth::new(None).unwrap().header.is_none());
+        assert!(CallMetadata::new(Some("secret"))
+            .unwrap()
+            .authorization
+            .is_some());
+        assert!(CallMetadata::new(None).unwrap().authorization.is_none());
+        let key = new_affinity_key();
+        assert_eq!(key.len(), 32);
+        assert!(key.chars().all(|c| c.is_ascii_hexdigit()));
+        assert_ne!(key, new_affinity_key());
+    }
+
+    #[tokio::test]
+    async fn an_affinity_handle_sends_the_key_on_every_call() {
+        use tonic::service::Interceptor;
+        let client = Client::connect_lazy(ClientConfig::new("http://127.0.0.1:1")).unwrap();
+        let mut plain = CallMetadata::new(None).unwrap();
+        let sent = plain.call(tonic::Request::new(())).unwrap();
+        assert!(sent.metadata().get(AFFINITY_HEADER).is_none());
+        let keyed = client.with_affinity("0123abcd").unwrap();
+        let mut metadata = keyed.metadata.clone();
+        let sent = metadata.call(tonic::Request::new(())).unwrap();
+        assert_eq!(sent.metadata().get(AFFINITY_HEADER).unwrap(), "0123abcd");
+        assert!(client.with_affinity("not\nascii").is_err());
     }
 
     fn calibration() -> CameraCalibration {

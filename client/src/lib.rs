@@ -40,8 +40,8 @@ pub mod session;
 pub mod types;
 
 pub use client::{
-    Client, ClientConfig, OfflineAdjustment, SequenceInput, SessionOptions, TlsOptions,
-    DEFAULT_SERVER,
+    new_affinity_key, Client, ClientConfig, OfflineAdjustment, SequenceInput, SessionOptions,
+    TlsOptions, AFFINITY_HEADER, DEFAULT_SERVER,
 };
 pub use error::ClientError;
 pub use html::{HtmlError, ReportData};

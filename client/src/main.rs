@@ -9,8 +9,8 @@ use std::time::Duration;
 
 use anyhow::{Context, Result};
 use blapose_client::{
-    adjust_offline, evaluate, replay, Adjusted, Client, ClientConfig, KeypointLayout, ModelChoice,
-    ReplayOptions, ReportData, Sequence, TlsOptions, DEFAULT_SERVER,
+    adjust_offline, evaluate, replay_across, Adjusted, Client, ClientConfig, KeypointLayout,
+    ModelChoice, ReplayOptions, ReportData, Sequence, TlsOptions, DEFAULT_SERVER,
 };
 use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -30,7 +30,10 @@ struct Cli {
 
 #[derive(Debug, Args)]
 struct ConnectionArgs {
-    /// Server URL (http:// or https://).
+    /// Server URL (http:// or https://). Several, comma-separated, are
+    /// replicas sharing a --session-key: `replay` opens the session on the
+    /// first and, when a server fails mid-stream, resumes it on the next
+    /// one from the latest session token; other commands use the first.
     #[arg(long, global = true, env = "BLAPOSE_SERVER", default_value = DEFAULT_SERVER)]
     server: String,
     /// Bearer token, if the server requires one.
@@ -207,8 +210,42 @@ fn seconds(v: f64, what: &str) -> Result<Duration> {
     Ok(Duration::from_secs_f64(v))
 }
 
+impl ConnectionArgs {
+    /// The --server URLs, in order.
+    fn servers(&self) -> Vec<&str> {
+        self.server
+            .split(',')
+            .map(str::trim)
+            .filter(|s| !s.is_empty())
+            .collect()
+    }
+
+    /// The first --server URL.
+    fn first_server(&self) -> Result<&str> {
+        self.servers()
+            .first()
+            .copied()
+            .context("--server names no server")
+    }
+}
+
+/// Connect to the first --server.
 async fn connect(args: &ConnectionArgs) -> Result<Client> {
-    let mut config = ClientConfig::new(args.server.clone());
+    Ok(Client::connect(client_config(args, args.first_server()?)?).await?)
+}
+
+/// Connect to the first --server, and lazily (at first use) to the others,
+/// which may be down for now: they are only needed to fail over.
+async fn connect_all(args: &ConnectionArgs) -> Result<Vec<Client>> {
+    let mut clients = vec![connect(args).await?];
+    for server in args.servers().into_iter().skip(1) {
+        clients.push(Client::connect_lazy(client_config(args, server)?)?);
+    }
+    Ok(clients)
+}
+
+fn client_config(args: &ConnectionArgs, server: &str) -> Result<ClientConfig> {
+    let mut config = ClientConfig::new(server);
     config.token = args.token.clone();
     config.connect_timeout = seconds(args.connect_timeout, "--connect-timeout")?;
     config.request_timeout = seconds(args.timeout, "--timeout")?;
@@ -221,7 +258,7 @@ async fn connect(args: &ConnectionArgs) -> Result<Client> {
             .transpose()?,
         domain: args.tls_domain.clone(),
     };
-    Ok(Client::connect(config).await?)
+    Ok(config)
 }
 
 fn progress_bar(total: usize) -> ProgressBar {
@@ -307,7 +344,7 @@ async fn run(cli: Cli) -> Result<()> {
         } => {
             let loaded = io.load()?;
             let seq = &loaded.0;
-            let client = connect(&cli.connection).await?;
+            let clients = connect_all(&cli.connection).await?;
             let bar = progress_bar(seq.len());
             let options = ReplayOptions {
                 fps,
@@ -315,7 +352,8 @@ async fn run(cli: Cli) -> Result<()> {
                 label,
                 server_lifter,
             };
-            let result = replay(&client, seq, &options, |n| bar.set_position(n as u64)).await;
+            let result =
+                replay_across(&clients, seq, &options, |n| bar.set_position(n as u64)).await;
             bar.finish_and_clear();
             let result = result?;
             if let Some(s) = &result.session {
@@ -324,16 +362,27 @@ async fn run(cli: Cli) -> Result<()> {
                     s.session_id, s.frames_seen
                 );
             }
+            if result.resumes > 0 {
+                println!(
+                    "the stream failed and the session was resumed {} time(s); every frame was answered once",
+                    result.resumes
+                );
+            }
             finish(&io, seq, &result)?;
-            io.write_html(&client, &cli.connection.server, &loaded, &result)
-                .await
+            io.write_html(
+                &clients[0],
+                cli.connection.first_server()?,
+                &loaded,
+                &result,
+            )
+            .await
         }
         Command::Adjust { io, model } => {
             let loaded = io.load()?;
             let client = connect(&cli.connection).await?;
             let result = adjust_offline(&client, &loaded.0, model).await?;
             finish(&io, &loaded.0, &result)?;
-            io.write_html(&client, &cli.connection.server, &loaded, &result)
+            io.write_html(&client, cli.connection.first_server()?, &loaded, &result)
                 .await
         }
         Command::Info { raw } => {
@@ -386,7 +435,17 @@ mod tests {
             "r.html",
         ])
         .unwrap();
-        assert_eq!(cli.connection.server, "http://h:1");
+        assert_eq!(cli.connection.servers(), ["http://h:1"]);
+        let replicas = Cli::try_parse_from([
+            "blapose-client",
+            "replay",
+            "x.npz",
+            "--server",
+            "http://a:1, http://b:2,",
+        ])
+        .unwrap();
+        assert_eq!(replicas.connection.servers(), ["http://a:1", "http://b:2"]);
+        assert_eq!(replicas.connection.first_server().unwrap(), "http://a:1");
         match cli.command {
             Command::Replay {
                 io,

@@ -21,7 +21,7 @@ use std::time::{Duration, Instant};
 use blapose_core::{BoneLengths, Pose};
 use tokio::sync::Semaphore;
 
-use crate::client::{Client, SequenceInput, SessionOptions};
+use crate::client::{new_affinity_key, Client, SequenceInput, SessionOptions};
 use crate::error::ClientError;
 use crate::sequence::{write_adjusted, Sequence, SequenceError};
 use crate::session::{Session, SessionEvent};
@@ -152,9 +152,20 @@ pub async fn replay_across(
     mut progress: impl FnMut(usize),
 ) -> Result<Adjusted, ClientError> {
     let started = Instant::now();
-    let first_client = clients
-        .first()
-        .ok_or_else(|| ClientError::InvalidInput("replay_across needs a server".into()))?;
+    if clients.is_empty() {
+        return Err(ClientError::InvalidInput(
+            "replay_across needs a server".into(),
+        ));
+    }
+    // Every stream and call of this session carries one affinity key, so
+    // a load balancer in front of replicas keeps it on one of them.
+    let affinity = new_affinity_key();
+    let clients = clients
+        .iter()
+        .map(|c| c.with_affinity(&affinity))
+        .collect::<Result<Vec<_>, _>>()?;
+    let clients = clients.as_slice();
+    let first_client = &clients[0];
     let session_options = SessionOptions {
         label: options.label.as_deref(),
         server_lifter: options.server_lifter,

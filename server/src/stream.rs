@@ -101,7 +101,7 @@ pub async fn run(
             }
         },
         _ = state.draining.cancelled() => {
-            let _ = tx.send(Err(shutting_down())).await;
+            let _ = tx.send(Err(shutting_down(state.tokens.is_some()))).await;
             return;
         }
     };
@@ -136,13 +136,22 @@ pub async fn run(
 }
 
 /// The status a stream ends with at shutdown. Sessions live in this
-/// server's memory only, so they end with it: resuming elsewhere (or here
-/// after a restart) finds no session.
-fn shutting_down() -> Status {
-    Status::unavailable(
-        "the server is shutting down: every frame it received was answered, and its sessions \
-         end with it; reconnect later (or to another server) and open a new session",
-    )
+/// server's memory: without a session key they end with it (resuming
+/// elsewhere, or here after a restart, finds no session); with one, the
+/// stream's last message before this status is a session token as of every
+/// frame answered, from which another replica restores the session.
+fn shutting_down(tokens: bool) -> Status {
+    if tokens {
+        Status::unavailable(
+            "the server is shutting down: every frame it received was answered and the session's \
+             latest token sent; resume the session with that token on another replica",
+        )
+    } else {
+        Status::unavailable(
+            "the server is shutting down: every frame it received was answered, and its sessions \
+             end with it; reconnect later (or to another server) and open a new session",
+        )
+    }
 }
 
 /// The status a stream ends with when its first message did not arrive
@@ -640,7 +649,12 @@ async fn frames(
             }
             _ = state.draining.cancelled(), if reading => {
                 reading = false;
-                end = End::Fail(shutting_down());
+                end = End::Fail(shutting_down(state.tokens.is_some()));
+                // A final token, as of every frame answered: the client
+                // resumes on another replica without re-sending any frame.
+                if state.tokens.is_some() {
+                    pending.push_back(Pending::Token);
+                }
             }
             message = inbound.message(),
                 if reading && pending.len() < cap && !pending.iter().any(|p| matches!(p, Pending::Token)) =>

@@ -455,3 +455,51 @@ async fn bad_tokens_are_refused_with_a_status_naming_the_problem() {
     server_e.shutdown().await.unwrap();
     server_a.shutdown().await.unwrap();
 }
+
+/// A draining server (SIGTERM) ends each stream with a final token as of
+/// every frame answered, then UNAVAILABLE saying to resume elsewhere with
+/// it: the client re-sends nothing.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_draining_server_sends_each_stream_a_final_token() {
+    let (server, mut client) = start(config(Some(KEY))).await;
+    let (tx, rx) = mpsc::channel(32);
+    tx.send(open(Kind::Plain)).await.unwrap();
+    for t in 0..12 {
+        tx.send(frame(t, false)).await.unwrap();
+    }
+    let mut inbound = client
+        .stream(ReceiverStream::new(rx))
+        .await
+        .unwrap()
+        .into_inner();
+    let mut answered = 0;
+    while answered < 12 {
+        if let Some(Resp::Frame(_)) = inbound.message().await.unwrap().unwrap().kind {
+            answered += 1;
+        }
+    }
+    // The stream stays open (tx is alive) while the server drains.
+    let shutdown = tokio::spawn(server.shutdown());
+    let mut last = None;
+    let status = loop {
+        match tokio::time::timeout(Duration::from_secs(30), inbound.message())
+            .await
+            .expect("the drain ends the stream")
+        {
+            Ok(Some(m)) => last = m.kind,
+            Ok(None) => panic!("the stream ended without a status"),
+            Err(status) => break status,
+        }
+    };
+    drop(tx);
+    shutdown.await.unwrap().unwrap();
+    assert_eq!(status.code(), Code::Unavailable, "{status:?}");
+    assert!(status.message().contains("token"), "{}", status.message());
+    match last {
+        Some(Resp::Token(t)) => {
+            assert_eq!(t.frames_seen, 12);
+            assert!(!t.token.is_empty());
+        }
+        other => panic!("the last message before the status is not a token: {other:?}"),
+    }
+}

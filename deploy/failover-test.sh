@@ -1,0 +1,163 @@
+#!/usr/bin/env bash
+# Failover, tested for real: three blapose replicas sharing a session key,
+# HAProxy in front of them (deploy/haproxy.cfg), all on loopback, and
+# 32 sessions streaming the example sequences through the balancer.
+#
+#   1. frames/s of one replica alone, then of three behind the balancer
+#      (unpaced; on one machine the replicas share its cores);
+#   2. SIGKILL: one replica is killed mid-stream; every session on it
+#      resumes on another replica from its latest session token;
+#   3. SIGTERM: the killed replica is restarted, then another one is
+#      drained; its sessions get a final token and resume elsewhere.
+#
+# Each case passes only if no frame is lost or answered twice and every
+# bone length equals the undisturbed run's within 1e-6 m (the `failover`
+# binary in bench/ checks it).
+#
+#   deploy/failover-test.sh [--json PATH] [--sessions N] [--fps F]
+#
+# Needs haproxy (installed with apt-get when missing and run as root) and
+# builds blapose-server and the failover binary in release mode.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+json=""
+sessions=32
+fps=40
+while [[ $# -gt 0 ]]; do
+    case "$1" in
+        --json) json="$2"; shift 2 ;;
+        --sessions) sessions="$2"; shift 2 ;;
+        --fps) fps="$2"; shift 2 ;;
+        -h|--help) sed -n '2,21p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+        *) echo "unknown argument: $1 (see --help)" >&2; exit 2 ;;
+    esac
+done
+
+if ! command -v haproxy >/dev/null; then
+    if [[ $(id -u) -eq 0 ]] && command -v apt-get >/dev/null; then
+        echo "== installing haproxy (apt-get)"
+        apt-get update -qq >/dev/null
+        DEBIAN_FRONTEND=noninteractive apt-get install -y -qq haproxy >/dev/null
+    else
+        echo "haproxy is not installed (Debian: apt-get install haproxy)" >&2
+        exit 1
+    fi
+fi
+
+echo "== building blapose-server and the failover check"
+cargo build --release --quiet -p blapose-server -p blapose-bench --bin blapose-server --bin failover
+server=target/release/blapose-server
+failover=target/release/failover
+
+work=$(mktemp -d -t blapose-failover.XXXXXX)
+pids=()
+haproxy_pid=""
+cleanup() {
+    for pid in "${pids[@]}" $haproxy_pid; do
+        kill "$pid" 2>/dev/null || true
+    done
+    wait 2>/dev/null || true
+    rm -rf "$work"
+}
+trap cleanup EXIT
+
+free_port() {
+    python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])'
+}
+
+key="hex:$(python3 -c 'import secrets; print(secrets.token_hex(32))')"
+ports=("$(free_port)" "$(free_port)" "$(free_port)")
+lb_port=$(free_port)
+stats_port=$(free_port)
+
+start_replica() { # index
+    local i=$1
+    BLAPOSE_SESSION_KEY="$key" "$server" --addr "127.0.0.1:${ports[$i]}" --no-metrics \
+        --token-every 25 --shutdown-grace 10s >>"$work/replica$((i + 1)).log" 2>&1 &
+    pids[$i]=$!
+    for _ in $(seq 1 100); do
+        if "$server" --health-check --addr "127.0.0.1:${ports[$i]}" >/dev/null 2>&1; then
+            return 0
+        fi
+        sleep 0.1
+    done
+    echo "replica $((i + 1)) did not become healthy; its log:" >&2
+    cat "$work/replica$((i + 1)).log" >&2
+    exit 1
+}
+
+# The balancer's view: how many replicas it has UP.
+replicas_up() {
+    curl -fsS "http://127.0.0.1:$stats_port/;csv" 2>/dev/null |
+        awk -F, '$1 == "blapose" && $2 ~ /^replica/ && $18 == "UP"' | wc -l
+}
+
+wait_up() { # count
+    for _ in $(seq 1 100); do
+        if [[ $(replicas_up) -eq $1 ]]; then
+            return 0
+        fi
+        sleep 0.1
+    done
+    echo "HAProxy does not see $1 replicas up; its log:" >&2
+    cat "$work/haproxy.log" >&2
+    exit 1
+}
+
+echo "== three replicas and HAProxy on loopback (balancer :$lb_port)"
+for i in 0 1 2; do
+    start_replica "$i"
+done
+BLAPOSE_LB_ADDR="127.0.0.1:$lb_port" BLAPOSE_LB_STATS="127.0.0.1:$stats_port" \
+    BLAPOSE_REPLICA_1="127.0.0.1:${ports[0]}" BLAPOSE_REPLICA_2="127.0.0.1:${ports[1]}" \
+    BLAPOSE_REPLICA_3="127.0.0.1:${ports[2]}" \
+    haproxy -db -f deploy/haproxy.cfg >"$work/haproxy.log" 2>&1 &
+haproxy_pid=$!
+wait_up 3
+lb="http://127.0.0.1:$lb_port"
+
+echo "== throughput: $sessions sessions, one replica alone"
+"$failover" --server "http://127.0.0.1:${ports[0]}" --sessions "$sessions" --throughput \
+    --json "$work/one.json"
+echo "== throughput: $sessions sessions, three replicas behind HAProxy"
+"$failover" --server "$lb" --sessions "$sessions" --throughput --json "$work/three.json"
+
+echo "== SIGKILL replica 1 mid-stream"
+"$failover" --server "$lb" --sessions "$sessions" --fps "$fps" \
+    --victim-pid "${pids[0]}" --signal kill --json "$work/kill.json"
+wait "${pids[0]}" 2>/dev/null || true
+
+echo "== restart replica 1, then SIGTERM (drain) replica 2 mid-stream"
+start_replica 0
+wait_up 3
+"$failover" --server "$lb" --sessions "$sessions" --fps "$fps" \
+    --victim-pid "${pids[1]}" --signal term --json "$work/drain.json"
+drain_status=0
+wait "${pids[1]}" || drain_status=$?
+if [[ $drain_status -ne 0 ]]; then
+    echo "the drained replica exited with status $drain_status, not 0" >&2
+    exit 1
+fi
+
+report=$(python3 - "$work" <<'EOF'
+import json, sys
+d = sys.argv[1]
+load = lambda name: json.load(open(f"{d}/{name}.json"))
+report = load("kill")
+report["drain"] = load("drain")
+one, three = load("one"), load("three")
+report["throughput"] = {
+    "sessions": one["sessions"],
+    "one_replica_fps": round(one["frames_per_second"], 1),
+    "three_replicas_fps": round(three["frames_per_second"], 1),
+}
+print(json.dumps(report, indent=2))
+EOF
+)
+echo "$report"
+if [[ -n "$json" ]]; then
+    echo "$report" >"$json"
+    echo "wrote $json"
+fi
+echo "failover test passed"
