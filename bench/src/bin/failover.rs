@@ -59,9 +59,12 @@ struct Args {
     /// that still passes.
     #[arg(long, default_value_t = 1e-6)]
     tolerance: f64,
-    /// Only measure frames per second: one unpaced run, no signal.
+    /// Only measure frames per second: unpaced runs (--rounds), no signal.
     #[arg(long)]
     throughput: bool,
+    /// With --throughput: runs to take the median frames per second of.
+    #[arg(long, default_value_t = 9)]
+    rounds: usize,
     /// Write the report as JSON.
     #[arg(long, value_name = "PATH")]
     json: Option<PathBuf>,
@@ -141,19 +144,37 @@ async fn main() -> Result<()> {
             window: args.window,
             ..ReplayOptions::default()
         };
-        let started = Instant::now();
-        let runs = run_sessions(&client, &sequences, args.sessions, &options, no_progress).await;
-        let fps = frames_per_second(&runs, started.elapsed());
-        let failed = runs.iter().filter(|r| r.result.is_err()).count();
+        let mut rates = Vec::with_capacity(args.rounds.max(1));
+        let mut failed = 0;
+        for _ in 0..args.rounds.max(1) {
+            let started = Instant::now();
+            let runs = run_sessions(
+                &client,
+                &sequences,
+                args.sessions,
+                &options,
+                no_progress.clone(),
+            )
+            .await;
+            rates.push(frames_per_second(&runs, started.elapsed()));
+            failed += runs.iter().filter(|r| r.result.is_err()).count();
+        }
+        rates.sort_by(f64::total_cmp);
+        let fps = rates[rates.len() / 2];
         println!(
-            "{} sessions, {total} frames, unpaced (window {}): {fps:.0} frames/s, {failed} failed",
-            args.sessions, args.window
+            "{} sessions, {total} frames, unpaced (window {}), median of {} runs: {fps:.0} frames/s (min {:.0}, max {:.0}), {failed} sessions failed",
+            args.sessions,
+            args.window,
+            rates.len(),
+            rates[0],
+            rates[rates.len() - 1]
         );
         if let Some(path) = &args.json {
             write_json(
                 path,
                 &serde_json::json!({"sessions": args.sessions, "frames": total,
-                    "frames_per_second": fps, "sessions_failed": failed}),
+                    "rounds": rates.len(), "frames_per_second": fps,
+                    "frames_per_second_all": rates, "sessions_failed": failed}),
             )?;
         }
         ensure!(failed == 0, "{failed} sessions failed");
