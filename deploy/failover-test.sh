@@ -15,6 +15,11 @@
 # binary in bench/ checks it).
 #
 #   deploy/failover-test.sh [--json PATH] [--sessions N] [--fps F]
+#                           [--image TAG [--engine podman|docker]]
+#
+# With --image the replicas are containers of that image (host network,
+# e.g. one built by docker/build-local.sh), signalled through their init
+# process; otherwise they are this checkout's release binary.
 #
 # Needs haproxy (installed with apt-get when missing and run as root) and
 # builds blapose-server and the failover binary in release mode.
@@ -24,12 +29,16 @@ cd "$(dirname "$0")/.."
 json=""
 sessions=32
 fps=40
+image=""
+engine=podman
 while [[ $# -gt 0 ]]; do
     case "$1" in
         --json) json="$2"; shift 2 ;;
         --sessions) sessions="$2"; shift 2 ;;
         --fps) fps="$2"; shift 2 ;;
-        -h|--help) sed -n '2,21p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+        --image) image="$2"; shift 2 ;;
+        --engine) engine="$2"; shift 2 ;;
+        -h|--help) sed -n '2,27p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
         *) echo "unknown argument: $1 (see --help)" >&2; exit 2 ;;
     esac
 done
@@ -50,12 +59,22 @@ cargo build --release --quiet -p blapose-server -p blapose-bench --bin blapose-s
 server=target/release/blapose-server
 failover=target/release/failover
 
+if [[ -n "$image" ]] && ! "$engine" image exists "$image" 2>/dev/null &&
+    ! "$engine" image inspect "$image" >/dev/null 2>&1; then
+    echo "no image $image in $engine (build one with docker/build-local.sh)" >&2
+    exit 1
+fi
+
 work=$(mktemp -d -t blapose-failover.XXXXXX)
 pids=()
+containers=()
 haproxy_pid=""
 cleanup() {
     for pid in "${pids[@]}" $haproxy_pid; do
         kill "$pid" 2>/dev/null || true
+    done
+    for c in "${containers[@]}"; do
+        "$engine" rm -f "$c" >/dev/null 2>&1 || true
     done
     wait 2>/dev/null || true
     rm -rf "$work"
@@ -73,9 +92,23 @@ stats_port=$(free_port)
 
 start_replica() { # index
     local i=$1
-    BLAPOSE_SESSION_KEY="$key" "$server" --addr "127.0.0.1:${ports[$i]}" --no-metrics \
-        --token-every 25 --shutdown-grace 10s >>"$work/replica$((i + 1)).log" 2>&1 &
-    pids[$i]=$!
+    if [[ -n "$image" ]]; then
+        local name="blapose-failover-$$-$((i + 1))-$RANDOM"
+        if [[ -n "${containers[$i]:-}" ]]; then
+            "$engine" rm -f "${containers[$i]}" >/dev/null 2>&1 || true
+        fi
+        "$engine" run -d --name "$name" --network host \
+            -e BLAPOSE_SESSION_KEY="$key" -e BLAPOSE_ADDR="127.0.0.1:${ports[$i]}" \
+            "$image" --no-metrics --token-every 25 --shutdown-grace 10s >/dev/null
+        containers[$i]=$name
+        # The container's init (tini), which forwards SIGTERM to the server;
+        # SIGKILL to it ends the container at once.
+        pids[$i]=$("$engine" inspect -f '{{.State.Pid}}' "$name")
+    else
+        BLAPOSE_SESSION_KEY="$key" "$server" --addr "127.0.0.1:${ports[$i]}" --no-metrics \
+            --token-every 25 --shutdown-grace 10s >>"$work/replica$((i + 1)).log" 2>&1 &
+        pids[$i]=$!
+    fi
     for _ in $(seq 1 100); do
         if "$server" --health-check --addr "127.0.0.1:${ports[$i]}" >/dev/null 2>&1; then
             return 0
@@ -83,8 +116,27 @@ start_replica() { # index
         sleep 0.1
     done
     echo "replica $((i + 1)) did not become healthy; its log:" >&2
-    cat "$work/replica$((i + 1)).log" >&2
+    replica_log "$i" >&2
     exit 1
+}
+
+replica_log() { # index
+    if [[ -n "$image" ]]; then
+        "$engine" logs "${containers[$1]}" 2>&1 || true
+    else
+        cat "$work/replica$(($1 + 1)).log"
+    fi
+}
+
+# Wait for replica `index` to exit; its exit status.
+replica_exit() { # index
+    if [[ -n "$image" ]]; then
+        "$engine" wait "${containers[$1]}" 2>/dev/null | tail -n 1
+    else
+        local status=0
+        wait "${pids[$1]}" 2>/dev/null || status=$?
+        echo "$status"
+    fi
 }
 
 # The balancer's view: how many replicas it has UP.
@@ -105,7 +157,7 @@ wait_up() { # count
     exit 1
 }
 
-echo "== three replicas and HAProxy on loopback (balancer :$lb_port)"
+echo "== three replicas${image:+ (containers of $image)} and HAProxy on loopback (balancer :$lb_port)"
 for i in 0 1 2; do
     start_replica "$i"
 done
@@ -126,17 +178,17 @@ echo "== throughput: $sessions sessions, three replicas behind HAProxy"
 echo "== SIGKILL replica 1 mid-stream"
 "$failover" --server "$lb" --sessions "$sessions" --fps "$fps" \
     --victim-pid "${pids[0]}" --signal kill --json "$work/kill.json"
-wait "${pids[0]}" 2>/dev/null || true
+replica_exit 0 >/dev/null
 
 echo "== restart replica 1, then SIGTERM (drain) replica 2 mid-stream"
 start_replica 0
 wait_up 3
 "$failover" --server "$lb" --sessions "$sessions" --fps "$fps" \
     --victim-pid "${pids[1]}" --signal term --json "$work/drain.json"
-drain_status=0
-wait "${pids[1]}" || drain_status=$?
-if [[ $drain_status -ne 0 ]]; then
-    echo "the drained replica exited with status $drain_status, not 0" >&2
+drain_status=$(replica_exit 1)
+if [[ "$drain_status" != 0 ]]; then
+    echo "the drained replica exited with status $drain_status, not 0; its log:" >&2
+    replica_log 1 >&2
     exit 1
 fi
 
