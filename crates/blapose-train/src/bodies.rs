@@ -57,6 +57,7 @@ use crate::bench_camera::{draw_camera_seeing, CameraRange, DrawnCamera};
 use crate::dataset::EvalSequence;
 use crate::error::TrainError;
 use crate::eval::{trial_error_mm, BiGruEstimator, GruEstimator, LengthEstimator};
+use crate::height_fusion::HeightFusion;
 use crate::noise::{apply_residual, residual_at, ResidualBank};
 use crate::stature::{StatureInput, StatureRegression};
 use crate::synth::{rebuild_on_floor, sample_rng, MotionSequence};
@@ -580,6 +581,60 @@ pub struct BodiesInput<'a> {
     /// ([`StatureRegression::fit_training`]): rows `stature-regression`
     /// (`height`, `height+sex`) after the models' (`None`: no such rows).
     pub stature: Option<&'a StatureRegression>,
+    /// Training data to fit each model's [`HeightFusion`] on: rows
+    /// `height` and `calibration+height` (`None`: no such rows).
+    pub fit_set: Option<FitSet<'a>>,
+}
+
+/// What the height-fusion rows are fitted on: built like the benchmark,
+/// but from training data only, so the held-out individuals and the test
+/// subjects never enter the fit.
+pub struct FitSet<'a> {
+    /// ANSUR training-split people (never the held-out split).
+    pub people: Vec<&'a Person>,
+    /// The training subjects' motion (never S9/S11).
+    pub motions: Vec<MotionSequence>,
+    /// Seed of the fit trials (not the benchmark's).
+    pub seed: u64,
+}
+
+/// Every `k`-th ANSUR training-split person of `everyone`, `n` at most,
+/// for [`FitSet::people`]: never one of the held-out split, both sexes as
+/// the survey has them.
+pub fn fit_people(everyone: &[Person], n: usize) -> Vec<&Person> {
+    let training: Vec<&Person> = everyone
+        .iter()
+        .filter(|p| !crate::ansur_split::is_held_out(p.subject_id, p.sex))
+        .collect();
+    let step = (training.len() / n.max(1)).max(1);
+    training.into_iter().step_by(step).take(n).collect()
+}
+
+/// The `input` of a model's row given the person's stature.
+fn with_height(input: BenchInput) -> &'static str {
+    match input {
+        BenchInput::None => "height",
+        BenchInput::Calibration => "calibration+height",
+    }
+}
+
+/// Each individual's stature, in trial order (`people` as in
+/// [`stature_rows`]).
+fn statures(people: &[&Person], trials: &[Trial]) -> Result<Vec<f64>, TrainError> {
+    trials
+        .iter()
+        .zip(people)
+        .map(|(t, p)| {
+            if p.subject_id == t.subject_id {
+                Ok(f64::from(p.stature_m))
+            } else {
+                Err(TrainError::InvalidArgument(format!(
+                    "person {} is not the individual of trial {}",
+                    p.subject_id, t.subject_id
+                )))
+            }
+        })
+        .collect()
 }
 
 /// The stature regression's rows: each individual's lengths predicted
@@ -642,7 +697,21 @@ pub fn run(
     let t0 = Instant::now();
     let trials = build_trials(&input.people, &input.motions, input.residuals, cfg)?;
     let truth: Vec<BoneLengths> = trials.iter().map(|t| t.lengths).collect();
+    let fit_trials = match &input.fit_set {
+        Some(f) => {
+            let fit_cfg = BodiesConfig {
+                seed: f.seed,
+                limit: None,
+                ..cfg.clone()
+            };
+            let fit_trials = build_trials(&f.people, &f.motions, input.residuals, &fit_cfg)?;
+            let fit_statures = statures(&f.people, &fit_trials)?;
+            Some((fit_trials, fit_statures, statures(&input.people, &trials)?))
+        }
+        None => None,
+    };
     let mut rows = Vec::with_capacity(models.len());
+    let mut fused_rows = Vec::new();
     for m in models {
         let t = Instant::now();
         let pred = estimate(m, &trials)?;
@@ -650,7 +719,40 @@ pub fn run(
         r.weights = m.path.clone();
         r.seconds = t.elapsed().as_secs_f64();
         rows.push(r);
+        if let Some((fit_trials, fit_statures, test_statures)) = &fit_trials {
+            let t = Instant::now();
+            let fit_pred = estimate(m, fit_trials)?;
+            let samples: Vec<_> = fit_statures
+                .iter()
+                .zip(&fit_pred)
+                .zip(fit_trials)
+                .map(|((&h, &e), tr)| (h, e, tr.lengths))
+                .collect();
+            let fusion = HeightFusion::fit(&samples)?;
+            let fused: Vec<BoneLengths> = test_statures
+                .iter()
+                .zip(&pred)
+                .map(|(&h, e)| fusion.predict(h, e))
+                .collect();
+            let mut r = named_row(
+                m.kind.as_str(),
+                with_height(m.input),
+                &fused,
+                &truth,
+                &input.prior,
+            )?;
+            r.weights = format!(
+                "{} + per-bone least squares on stature and the estimate over {} training-split \
+                 people on training-subject motion (mean estimate weight {:.2})",
+                m.path,
+                fusion.people,
+                fusion.mean_estimate_weight()
+            );
+            r.seconds = t.elapsed().as_secs_f64();
+            fused_rows.push(r);
+        }
     }
+    rows.extend(fused_rows);
     if let Some(reg) = input.stature {
         rows.extend(stature_rows(reg, &input.people, &trials, &input.prior)?);
     }
@@ -770,6 +872,31 @@ pub fn markdown(r: &BodiesReport) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_fit_set_never_holds_a_held_out_person() {
+        use blapose_data::ansur::Sex;
+        let everyone: Vec<Person> = (0..2000u64)
+            .map(|i| Person {
+                subject_id: i,
+                sex: if i % 3 == 0 { Sex::Female } else { Sex::Male },
+                stature_m: 1.7,
+                lengths: [0.3; NUM_BONES],
+            })
+            .collect();
+        let held_out = everyone
+            .iter()
+            .filter(|p| crate::ansur_split::is_held_out(p.subject_id, p.sex))
+            .count();
+        assert!(held_out > 0, "the split holds some of them out");
+        let fit = fit_people(&everyone, 500);
+        assert_eq!(fit.len(), 500);
+        assert!(fit
+            .iter()
+            .all(|p| !crate::ansur_split::is_held_out(p.subject_id, p.sex)));
+        assert!(fit.iter().any(|p| p.sex == Sex::Female));
+        assert!(fit.iter().any(|p| p.sex == Sex::Male));
+    }
 
     #[test]
     fn slope_and_ratio_on_a_hand_made_case() {

@@ -31,6 +31,7 @@ pub mod error;
 pub mod eval;
 pub mod eval_adjust;
 pub mod fastnet;
+pub mod height_fusion;
 pub mod lengths;
 pub mod lifter;
 pub mod loader;

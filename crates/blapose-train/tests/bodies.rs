@@ -191,6 +191,7 @@ fn a_tiny_benchmark_run_gives_well_formed_deterministic_rows() {
         prior: mean_body(train.people()).unwrap(),
         training_mean: mean_subject_lengths(&f.set.subject_lengths, &TRAIN_SUBJECTS).unwrap(),
         stature: Some(&stature),
+        fit_set: None,
     };
     let specs = SHIPPED_MODELS;
     let weights: Vec<_> = specs
@@ -274,6 +275,7 @@ fn a_tiny_benchmark_run_gives_well_formed_deterministic_rows() {
     // Without the regression the model rows are exactly the same.
     let bare = BodiesInput {
         stature: None,
+        fit_set: None,
         ..input
     };
     let without = blapose_train::bodies::run(&bare, &models, &cfg).unwrap();

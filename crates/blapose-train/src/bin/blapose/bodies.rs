@@ -11,8 +11,8 @@ use anyhow::Result;
 use blapose_data::h36m::{H36m, Parts, TRAIN_SUBJECTS};
 use blapose_train::ansur_split::{AnsurPeople, AnsurSplit};
 use blapose_train::bodies::{
-    markdown, mean_body, test_motions, BenchModel, BodiesConfig, BodiesInput, DEFAULT_FRAMES,
-    DEFAULT_SEED, SHIPPED_MODELS,
+    fit_people, markdown, mean_body, test_motions, BenchModel, BodiesConfig, BodiesInput, FitSet,
+    DEFAULT_FRAMES, DEFAULT_SEED, SHIPPED_MODELS,
 };
 use blapose_train::dataset::{mean_subject_lengths, TrainingSet};
 use blapose_train::lengths::TrainingLengthStats;
@@ -40,7 +40,15 @@ pub struct BodiesArgs {
     /// Folder with bone_length_{gru,bigru}{,_rectified}.safetensors.
     #[arg(long, default_value = "models")]
     models_dir: PathBuf,
+    /// Training-split people to fit the height-fusion rows on (`height`,
+    /// `calibration+height`), on the training subjects' motion; 0: no such
+    /// rows.
+    #[arg(long, default_value_t = 630)]
+    fit_individuals: usize,
 }
+
+/// Seed of the height-fusion fit trials (never the benchmark's).
+const FIT_SEED: u64 = 7;
 
 /// The benchmark's test subjects (their motion, never their bodies).
 const MOTION_SUBJECTS: [&str; 2] = ["S9", "S11"];
@@ -60,6 +68,16 @@ pub fn run(root: &Path, a: &BodiesArgs, json: Option<&Path>) -> Result<()> {
     let motions = test_motions(&h36m, &MOTION_SUBJECTS)?;
     // The stature-regression baseline: fitted on the training split only.
     let stature = StatureRegression::fit_training(&split.everyone)?;
+    let fit_set = if a.fit_individuals > 0 {
+        let train_h36m = H36m::load(root, &TRAIN_SUBJECTS, Parts::POSES)?;
+        Some(FitSet {
+            people: fit_people(&split.everyone, a.fit_individuals),
+            motions: test_motions(&train_h36m, &TRAIN_SUBJECTS)?,
+            seed: FIT_SEED,
+        })
+    } else {
+        None
+    };
     let input = BodiesInput {
         people: split.held_out(),
         motions,
@@ -67,6 +85,7 @@ pub fn run(root: &Path, a: &BodiesArgs, json: Option<&Path>) -> Result<()> {
         prior,
         training_mean,
         stature: Some(&stature),
+        fit_set,
     };
     eprintln!(
         "loaded {} held-out individuals, {} test sequences in {:.1}s",
