@@ -45,6 +45,7 @@ from .types import (
     ReplayFile,
     SequenceResult,
     SessionInfo,
+    SessionToken,
     adjust_pose,
     load_replay,
 )
@@ -65,6 +66,7 @@ __all__ = [
     "ReplayFile",
     "SequenceResult",
     "SessionInfo",
+    "SessionToken",
     "adjust_pose",
     "load_replay",
     "JOINT_NAMES",

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import secrets
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, List, Optional, Tuple, Union
 from typing import Sequence as Seq
@@ -11,13 +12,14 @@ from urllib.parse import urlparse
 import grpc
 import numpy as np
 
-from .errors import FrameRejected, ProtocolError, RpcError, Unavailable, status_code
+from .errors import Cancelled, FrameRejected, ProtocolError, RpcError, Unavailable, UnknownError, status_code
 from .types import (
     Camera,
     FrameResult,
     Layout,
     SequenceResult,
     SessionInfo,
+    SessionToken,
     adjust_pose,
     input_format,
     layout_value,
@@ -68,6 +70,30 @@ def metadata(token: Optional[str]) -> Tuple[Tuple[str, str], ...]:
     return (("authorization", f"Bearer {token}"),) if token else ()
 
 
+#: The gRPC metadata key a load balancer hashes on to keep a session on one replica.
+AFFINITY_HEADER = "blapose-affinity"
+
+#: How many times in a row a session resumes (with no new answer in between) before giving up.
+MAX_RESUMES = 8
+
+#: A session holding a token asks for a fresh one (``TokenRequest``) once this many frames were
+#: answered since it, so the frames kept to send again stay few (a server's ``--token-every`` may be 0).
+TOKEN_REFRESH = 500
+
+
+def new_affinity() -> str:
+    """A random affinity key: 32 lowercase hex characters."""
+    return secrets.token_hex(16)
+
+
+def urls(url: "Union[str, Seq[str]]") -> List[str]:
+    """One server URL, or a list of replicas (the first is tried first)."""
+    out = [url] if isinstance(url, str) else list(url)
+    if not out or not all(isinstance(u, str) and u for u in out):
+        raise ValueError(f"expected a server URL or a non-empty list of them, got {url!r}")
+    return out
+
+
 def _array(values, shape: Tuple[int, ...], what: str) -> np.ndarray:
     a = np.asarray(values, dtype=np.float32)
     if a.size != int(np.prod(shape)):
@@ -84,32 +110,66 @@ class PendingFrame:
     request: pb.StreamRequest
     frame_index: int
     pose: Optional[np.ndarray]  # (17, 3), None in server-lifter sessions
+    #: Sent again after a restore from a token: its answer was received before and is dropped.
+    replay: bool = False
 
 
 class SessionCore:
     """The session bookkeeping behind :class:`blapose.Session` and its asyncio twin.
 
     It numbers frames, keeps the frames in flight in order, matches answers to
-    them, and after a resume decides which in-flight frames the server already
-    processed (answers rebuilt locally) and which must be sent again.
+    them, keeps the latest session token (and the frames answered since it, to
+    send again after a restore from it), and after a resume decides which
+    in-flight frames the server already processed (answers rebuilt locally),
+    which must be sent again, and which answered frames must be sent again
+    with their answers dropped (a session restored from a token).
     """
 
     def __init__(self, joints: int, server_lifter: bool) -> None:
         self.joints = joints
         self.server_lifter = server_lifter
         self.info: Optional[SessionInfo] = None
-        self.frames_seen = 0  # processed frames known to the client
+        self.frames_seen = 0  # processed frames whose answers the client has (received or rebuilt)
+        self.server_seen = 0  # processed frames of the attached server's session, as its answers tell
         self.next_index = 0
         self.pending: "list[PendingFrame]" = []
         self.ready: "list[FrameResult]" = []
         self.resumes = 0
         self.recovered = 0
+        self.in_a_row = 0  # resumes since the last new answer
+        self.token: Optional[SessionToken] = None
+        # Frames answered since the token (session frames token.frames_seen ..
+        # frames_seen), to send again after a restore from it; empty without a token.
+        self.history: "list[PendingFrame]" = []
+        self.token_asked = False  # a TokenRequest is on its way
 
     def attached(self, info: SessionInfo, first: bool) -> None:
         self.info = info
+        self.server_seen = info.frames_seen
         if first:
             self.frames_seen = info.frames_seen
             self.next_index = max(self.next_index, info.frames_seen)
+
+    def offer_token(self, token: SessionToken) -> None:
+        """Keep ``token`` if it is the latest one usable to restore the session:
+        as of a frame answered, and not older than the one kept."""
+        base = self.token.frames_seen if self.token is not None else self.frames_seen
+        if not base <= token.frames_seen <= self.frames_seen:
+            return
+        del self.history[: token.frames_seen - base]
+        self.token = token
+        self.token_asked = False
+
+    def wants_token(self) -> bool:
+        """Whether to ask for a fresh token now (many frames answered since the one kept)."""
+        if self.token is None or self.token_asked or len(self.history) < TOKEN_REFRESH:
+            return False
+        self.token_asked = True
+        return True
+
+    def _answered(self, frame: PendingFrame) -> None:
+        if self.token is not None:
+            self.history.append(frame)
 
     def make_frame(
         self,
@@ -141,9 +201,14 @@ class SessionCore:
         self.next_index = int(frame_index) + 1
         return PendingFrame(pb.StreamRequest(frame=frame), int(frame_index), p)
 
-    def answer(self, resp: pb.StreamResponse) -> Union[FrameResult, FrameRejected]:
-        """Match one stream response to the oldest frame in flight."""
+    def answer(self, resp: pb.StreamResponse) -> Union[FrameResult, FrameRejected, None]:
+        """Match one stream response to the oldest frame in flight; None for a
+        session token (kept) or the answer to a frame sent again (dropped)."""
         kind = resp.WhichOneof("kind")
+        if kind == "token":
+            assert self.info is not None
+            self.offer_token(SessionToken(self.info.session_id, resp.token.frames_seen, resp.token.token))
+            return None
         if not self.pending:
             raise ProtocolError(f"got a {kind!r} response with no frame in flight")
         frame = self.pending.pop(0)
@@ -151,35 +216,66 @@ class SessionCore:
             msg = resp.frame
             if msg.frame_index != frame.frame_index:
                 raise ProtocolError(f"answer for frame {msg.frame_index}, expected {frame.frame_index}")
+            if msg.frames_seen != self.server_seen + 1:
+                raise ProtocolError(f"frames_seen {msg.frames_seen}, expected {self.server_seen + 1}")
+            self.server_seen = msg.frames_seen
+            if frame.replay:
+                return None  # answered before, by the session in the same state
             if msg.frames_seen != self.frames_seen + 1:
                 raise ProtocolError(f"frames_seen {msg.frames_seen}, expected {self.frames_seen + 1}")
             self.frames_seen = msg.frames_seen
+            self.in_a_row = 0
+            self._answered(frame)
             return FrameResult.from_proto(msg)
         if kind == "error":
             msg = resp.error
+            if frame.replay:
+                raise ProtocolError(
+                    f"frame {frame.frame_index}, sent again to the session restored from its token, was "
+                    f"refused ({status_code(msg.code).name}: {msg.message}) although it was processed before"
+                )
             return FrameRejected(msg.frame_index, status_code(msg.code), msg.message)
         raise ProtocolError(f"expected a frame answer, got {kind!r}")
 
     def after_resume(self) -> "list[PendingFrame]":
         """Account for the frames in flight when the connection dropped, once
-        ``attached`` has stored the resumed session's ``info``.
+        ``attached`` has stored the resumed session's ``info``; returns the
+        frames to send again, in order.
 
-        The first ``info.frames_seen - frames_seen`` of them were processed (their
-        answers are rebuilt locally and queued in ``ready``); the rest are
-        returned, to be sent again in order. Assumes none of the lost answers was
-        a refusal (a refused frame is not counted; see the README).
+        * Restored from a token behind the answers received (``info.frames_seen``
+          below ``frames_seen``): the frames answered since then are sent again
+          (marked ``replay``: their answers are dropped), then every frame in flight.
+        * Otherwise the first ``info.frames_seen - frames_seen`` frames in flight
+          were processed (their answers are rebuilt locally and queued in
+          ``ready``) and the rest are sent again. Assumes none of the lost answers
+          was a refusal (a refused frame is not counted; see the README).
         """
         info = self.info
         assert info is not None
-        processed = info.frames_seen - self.frames_seen
-        if processed < 0 or processed > len(self.pending):
+        self.token_asked = False  # a request on the old stream is lost with it
+        fresh = [f for f in self.pending if not f.replay]
+        behind = self.frames_seen - info.frames_seen
+        if behind > 0:
+            base = self.token.frames_seen if self.token is not None else self.frames_seen
+            if info.frames_seen < base or len(self.history) != self.frames_seen - base:
+                raise ProtocolError(
+                    f"resumed session has frames_seen={info.frames_seen}, but {self.frames_seen} were "
+                    "answered and the frames since are not known any more"
+                )
+            again = self.history[info.frames_seen - base :]
+            self.pending = [replace(f, replay=True) for f in again] + fresh
+            self.resumes += 1
+            self.in_a_row += 1
+            return list(self.pending)
+        processed = -behind
+        if processed > len(fresh):
             raise ProtocolError(
                 f"resumed session has frames_seen={info.frames_seen}, but {self.frames_seen} were "
-                f"answered and {len(self.pending)} were in flight"
+                f"answered and {len(fresh)} were in flight"
             )
         lengths = info.bone_lengths
         for i in range(processed):
-            f = self.pending.pop(0)
+            f = fresh.pop(0)
             assert lengths is not None
             adjusted = adjust_pose(f.pose, lengths) if f.pose is not None else np.full((17, 3), np.nan, np.float32)
             self.ready.append(
@@ -191,15 +287,34 @@ class SessionCore:
                     recovered=True,
                 )
             )
+            self._answered(f)
+        self.pending = fresh
         self.recovered += processed
         self.frames_seen = info.frames_seen
         self.resumes += 1
+        self.in_a_row += 1
         return list(self.pending)
 
 
-def resumable(err: RpcError) -> bool:
-    """A dropped connection (not a server shutting down, whose sessions end with it)."""
-    return isinstance(err, Unavailable) and "shutting down" not in err.details
+def resumable(err: RpcError, token: bool = False) -> bool:
+    """Whether resuming may help after a stream failed with ``err``.
+
+    Without a session token: a dropped connection (UNAVAILABLE), not a server
+    shutting down, whose sessions end with it. With one (``token``), as the
+    Rust client's failover: also a server shutting down (its last message was
+    a token), UNKNOWN and CANCELLED (a connection dying mid-answer).
+    """
+    if isinstance(err, Unavailable):
+        return token or "shutting down" not in err.details
+    return token and isinstance(err, (UnknownError, Cancelled))
+
+
+def resume_request(session_id: str, token: Optional[SessionToken]) -> pb.StreamRequest:
+    """``resume`` with the latest token (restores the session where it is not held)."""
+    req = pb.ResumeSession(session_id=session_id, session_tokens=True)
+    if token is not None:
+        req.session_token = token.token
+    return pb.StreamRequest(resume=req)
 
 
 def open_request(
@@ -217,6 +332,7 @@ def open_request(
         model=model_value(model),  # type: ignore[arg-type]
         client_label=label or "",
         server_lifter=server_lifter,
+        session_tokens=True,
     )
     if camera is not None:
         req.camera.CopyFrom(camera.to_proto())

@@ -24,11 +24,22 @@ import concurrent.futures
 import functools
 from pathlib import Path
 from types import TracebackType
-from typing import Any, AsyncIterator, Callable, Iterable, Iterator, Optional, Tuple, Type, TypeVar, Union
+from typing import Any, AsyncIterator, Callable, Iterable, Iterator, Optional, Sequence, Tuple, Type, TypeVar, Union
 
+from . import _common as c
 from . import client as _sync
 from .errors import FrameRejected
-from .types import ArrayLike, Camera, ClosedSession, FrameResult, Layout, ModelInfo, SequenceResult, SessionInfo
+from .types import (
+    ArrayLike,
+    Camera,
+    ClosedSession,
+    FrameResult,
+    Layout,
+    ModelInfo,
+    SequenceResult,
+    SessionInfo,
+    SessionToken,
+)
 
 __all__ = ["Client", "Session"]
 
@@ -37,7 +48,8 @@ _DONE = object()
 
 
 class Client:
-    """An asyncio connection to a blapose server; arguments as :class:`blapose.Client`.
+    """An asyncio connection to a blapose server (or to several replicas: a
+    list of URLs); arguments as :class:`blapose.Client`.
 
     ``max_workers`` bounds the threads running blocking calls: one per session
     operation in progress (so at least the number of sessions used at once).
@@ -45,7 +57,7 @@ class Client:
 
     def __init__(
         self,
-        url: str = "http://127.0.0.1:50051",
+        url: Union[str, Sequence[str]] = "http://127.0.0.1:50051",
         token: Optional[str] = None,
         tls: Optional[bool] = None,
         ca_cert: Optional[Union[str, bytes, Path]] = None,
@@ -102,9 +114,9 @@ class Client:
             confidence=confidence,
         )
 
-    async def close_session(self, session_id: str) -> ClosedSession:
+    async def close_session(self, session_id: str, *, affinity: Optional[str] = None) -> ClosedSession:
         """Close a session by id (see :meth:`blapose.Client.close_session`)."""
-        return await self._run(self.sync.close_session, session_id)
+        return await self._run(self.sync.close_session, session_id, affinity=affinity)
 
     async def session(
         self,
@@ -117,6 +129,7 @@ class Client:
         label: Optional[str] = None,
         auto_resume: bool = True,
         resume_timeout: float = 30.0,
+        max_resumes: int = c.MAX_RESUMES,
     ) -> "Session":
         """Open an online session (see :meth:`blapose.Client.session`)."""
         s = await self._run(
@@ -129,12 +142,31 @@ class Client:
             label=label,
             auto_resume=auto_resume,
             resume_timeout=resume_timeout,
+            max_resumes=max_resumes,
         )
         return Session(self, s)
 
-    async def resume(self, session_id: str, *, auto_resume: bool = True, resume_timeout: float = 30.0) -> "Session":
-        """Re-attach to a detached session by id (see :meth:`blapose.Client.resume`)."""
-        s = await self._run(self.sync.resume, session_id, auto_resume=auto_resume, resume_timeout=resume_timeout)
+    async def resume(
+        self,
+        session_id: str,
+        *,
+        token: Optional[Union[SessionToken, bytes]] = None,
+        affinity: Optional[str] = None,
+        auto_resume: bool = True,
+        resume_timeout: float = 30.0,
+        max_resumes: int = c.MAX_RESUMES,
+    ) -> "Session":
+        """Re-attach to a detached session by id, or restore it from its token
+        (see :meth:`blapose.Client.resume`)."""
+        s = await self._run(
+            self.sync.resume,
+            session_id,
+            token=token,
+            affinity=affinity,
+            auto_resume=auto_resume,
+            resume_timeout=resume_timeout,
+            max_resumes=max_resumes,
+        )
         return Session(self, s)
 
 
@@ -167,6 +199,25 @@ class Session:
     @property
     def recovered(self) -> int:
         return self.sync.recovered
+
+    @property
+    def token(self) -> Optional[SessionToken]:
+        """The latest session token (see :attr:`blapose.Session.token`)."""
+        return self.sync.token
+
+    @property
+    def affinity(self) -> str:
+        """The session's ``blapose-affinity`` key."""
+        return self.sync.affinity
+
+    @property
+    def url(self) -> str:
+        """The URL of the server the session is attached to."""
+        return self.sync.url
+
+    async def request_token(self) -> SessionToken:
+        """Ask for a session token now (see :meth:`blapose.Session.request_token`)."""
+        return await self._client._run(self.sync.request_token)
 
     async def send(
         self,

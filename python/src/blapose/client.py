@@ -7,18 +7,22 @@ import threading
 import time
 from pathlib import Path
 from types import TracebackType
-from typing import Generator, Iterable, Iterator, Optional, Tuple, Type, Union
+from typing import Dict, Generator, Iterable, Iterator, List, Optional, Sequence, Tuple, Type, Union
 
 import grpc
 
 from . import _common as c
 from .errors import (
     BlaposeError,
+    Cancelled,
     DeadlineExceeded,
+    FailedPrecondition,
     FrameRejected,
+    NotFound,
     ProtocolError,
     RpcError,
     Unavailable,
+    UnknownError,
     from_grpc_error,
 )
 from .types import (
@@ -31,6 +35,7 @@ from .types import (
     ModelInfo,
     SequenceResult,
     SessionInfo,
+    SessionToken,
     _lengths,
 )
 from .v1 import blapose_pb2 as pb
@@ -41,46 +46,63 @@ __all__ = ["Client", "Session"]
 _END = object()
 
 
+Metadata = Tuple[Tuple[str, str], ...]
+
+
 class Client:
-    """A connection to a blapose server.
+    """A connection to a blapose server, or to several replicas of one.
 
     Args:
-        url: ``http://host:port`` for plaintext, ``https://host[:port]`` for TLS.
+        url: ``http://host:port`` for plaintext, ``https://host[:port]`` for TLS;
+            or a list of such URLs, replicas sharing a ``--session-key``: calls
+            go to the first that answers, and a session whose server goes away
+            resumes on another one from its latest session token (see
+            :class:`Session`).
         token: bearer token (the server's ``--auth-token``), sent on every call.
         tls: force TLS on (True) or off (False); default: from the URL scheme.
         ca_cert: PEM bytes or a path of the CA to trust (TLS); default: system roots.
         tls_domain: the name to verify the server certificate against, if not the URL's host.
         timeout: seconds for unary calls and for a session's open/resume answer.
 
-    Use it as a context manager (or call :meth:`close`) to release the channel.
+    Use it as a context manager (or call :meth:`close`) to release the channels.
     """
 
     def __init__(
         self,
-        url: str = "http://127.0.0.1:50051",
+        url: Union[str, Sequence[str]] = "http://127.0.0.1:50051",
         token: Optional[str] = None,
         tls: Optional[bool] = None,
         ca_cert: Optional[Union[str, bytes, Path]] = None,
         tls_domain: Optional[str] = None,
         timeout: float = 30.0,
     ) -> None:
-        self.url = url
+        #: Every server URL, in the order they are tried.
+        self.urls: List[str] = c.urls(url)
+        #: The first server URL.
+        self.url = self.urls[0]
         self.timeout = timeout
-        endpoint = c.parse_url(url, tls)
         options = list(c.CHANNEL_OPTIONS)
         if tls_domain:
             options.append(("grpc.ssl_target_name_override", tls_domain))
-        if endpoint.tls:
-            self._channel = grpc.secure_channel(endpoint.target, c.credentials(ca_cert), options=options)
-        else:
-            self._channel = grpc.insecure_channel(endpoint.target, options=options)
-        self._stub = pb_grpc.PoseAdjustmentStub(self._channel)
-        self._metadata = c.metadata(token)
+        self._channels: List[grpc.Channel] = []
+        for u in self.urls:
+            endpoint = c.parse_url(u, tls)
+            if endpoint.tls:
+                channel = grpc.secure_channel(endpoint.target, c.credentials(ca_cert), options=options)
+            else:
+                channel = grpc.insecure_channel(endpoint.target, options=options)
+            self._channels.append(channel)
+        self._stubs = [pb_grpc.PoseAdjustmentStub(ch) for ch in self._channels]
+        self._channel = self._channels[0]
+        self._stub = self._stubs[0]
+        self._current = 0  # the server the last successful call went to: tried first
+        self._metadata: Metadata = c.metadata(token)
 
     # -- lifecycle ---------------------------------------------------------
     def close(self) -> None:
-        """Close the channel (open sessions' streams end; their sessions stay resumable)."""
-        self._channel.close()
+        """Close the channels (open sessions' streams end; their sessions stay resumable)."""
+        for ch in self._channels:
+            ch.close()
 
     def __enter__(self) -> "Client":
         return self
@@ -88,23 +110,69 @@ class Client:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def wait_ready(self, timeout: Optional[float] = None) -> None:
-        """Block until the channel is connected (raises :class:`Unavailable` after ``timeout``)."""
+    def _order(self, first: Optional[int] = None) -> List[int]:
+        """Server indices, ``first`` (default: the current one) first, then the others in order."""
+        n = len(self._stubs)
+        start = self._current if first is None else first
+        return [(start + k) % n for k in range(n)]
+
+    def _wait_ready(self, i: int, timeout: float) -> None:
+        ready = grpc.channel_ready_future(self._channels[i])
         try:
-            grpc.channel_ready_future(self._channel).result(timeout=timeout or self.timeout)
+            ready.result(timeout=timeout)
         except grpc.FutureTimeoutError:
-            raise Unavailable(f"could not connect to {self.url} within {timeout or self.timeout} s") from None
+            ready.cancel()  # stops its connectivity polling
+            raise Unavailable(f"could not connect to {self.urls[i]} within {timeout:g} s") from None
+
+    def wait_ready(self, timeout: Optional[float] = None) -> None:
+        """Block until a channel is connected (raises :class:`Unavailable` after ``timeout``).
+
+        With several servers, they are tried in turn (the current one first) and
+        the first connected one becomes the current one.
+        """
+        total = timeout or self.timeout
+        if len(self._stubs) == 1:
+            try:
+                self._wait_ready(0, total)
+            except Unavailable:
+                raise Unavailable(f"could not connect to {self.url} within {total} s") from None
+            return
+        deadline = time.monotonic() + total
+        while True:
+            for i in self._order():
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise Unavailable(f"could not connect to any of {self.urls} within {total} s")
+                try:
+                    self._wait_ready(i, min(remaining, 0.5))
+                except Unavailable:
+                    continue
+                self._current = i
+                return
 
     # -- unary calls -------------------------------------------------------
-    def _unary(self, method, request):
-        try:
-            return method(request, timeout=self.timeout, metadata=self._metadata)
-        except grpc.RpcError as e:
-            raise from_grpc_error(e) from None
+    def _unary(self, name: str, request, metadata: Optional[Metadata] = None, first: Optional[int] = None):
+        """Call ``name`` on the current server; on UNAVAILABLE, on the next ones in turn."""
+        last: Optional[RpcError] = None
+        for i in self._order(first):
+            try:
+                resp = getattr(self._stubs[i], name)(
+                    request, timeout=self.timeout, metadata=self._metadata if metadata is None else metadata
+                )
+            except grpc.RpcError as e:
+                err = from_grpc_error(e)
+                if isinstance(err, Unavailable):
+                    last = err
+                    continue
+                raise err from None
+            self._current = i
+            return resp
+        assert last is not None
+        raise last
 
     def info(self) -> ModelInfo:
         """What the server runs: models, weights, layouts, limits (``ModelInfo``)."""
-        return ModelInfo.from_proto(self._unary(self._stub.ModelInfo, pb.ModelInfoRequest()))
+        return ModelInfo.from_proto(self._unary("ModelInfo", pb.ModelInfoRequest()))
 
     def adjust_sequence(
         self,
@@ -132,12 +200,39 @@ class Client:
             :class:`SequenceResult` with ``adjusted`` (T, 17, 3) and ``bone_lengths`` (T, 16).
         """
         req, t = c.sequence_request(keypoints, poses, layout, image_size, model, camera, confidence)
-        return c.sequence_result(self._unary(self._stub.AdjustSequence, req), t)
+        return c.sequence_result(self._unary("AdjustSequence", req), t)
 
-    def close_session(self, session_id: str) -> ClosedSession:
-        """Close a (detached) session by id (``CloseSession``); unknown id: :class:`NotFound`."""
-        resp = self._unary(self._stub.CloseSession, pb.CloseSessionRequest(session_id=session_id))
-        return ClosedSession(session_id, resp.frames_seen, _lengths(resp.bone_lengths))
+    def _close_session(self, session_id: str, metadata: Metadata, first: Optional[int] = None) -> ClosedSession:
+        """``CloseSession`` on each server in turn until one holds the session."""
+        req = pb.CloseSessionRequest(session_id=session_id)
+        missing: Optional[RpcError] = None
+        for i in self._order(first):
+            try:
+                resp = self._stubs[i].CloseSession(req, timeout=self.timeout, metadata=metadata)
+            except grpc.RpcError as e:
+                err = from_grpc_error(e)
+                if isinstance(err, (NotFound, Unavailable)):
+                    missing = err if missing is None or isinstance(err, NotFound) else missing
+                    continue
+                raise err from None
+            return ClosedSession(session_id, resp.frames_seen, _lengths(resp.bone_lengths))
+        assert missing is not None
+        raise missing
+
+    def close_session(self, session_id: str, *, affinity: Optional[str] = None) -> ClosedSession:
+        """Close a (detached) session by id (``CloseSession``); unknown id: :class:`NotFound`.
+
+        With several servers, each is asked in turn until one holds the session.
+        ``affinity``: the session's :attr:`Session.affinity` (sent as the
+        ``blapose-affinity`` header, so a load balancer routes the call to the
+        replica holding the session).
+        """
+        return self._close_session(session_id, self._session_metadata(affinity))
+
+    def _session_metadata(self, affinity: Optional[str]) -> Metadata:
+        if not affinity:
+            return self._metadata
+        return self._metadata + ((c.AFFINITY_HEADER, affinity),)
 
     # -- sessions ----------------------------------------------------------
     def session(
@@ -151,8 +246,11 @@ class Client:
         label: Optional[str] = None,
         auto_resume: bool = True,
         resume_timeout: float = 30.0,
+        max_resumes: int = c.MAX_RESUMES,
     ) -> "Session":
         """Open an online session (a ``Stream`` with ``open``); use it as a context manager.
+
+        With several servers, the session opens on the first one that answers.
 
         Args:
             layout: keypoint layout, ``"coco17"``, ``"h36m17"`` or ``"sh16"``.
@@ -162,38 +260,58 @@ class Client:
             camera: a calibration, to be served by the camera-aware online GRU.
             server_lifter: send keypoints only; the server lifts them (it must run a lifter).
             label: free-form label for the server's logs.
-            auto_resume: after a dropped connection, resume the session transparently.
+            auto_resume: after a dropped connection (or, with a session token, a
+                server gone away), resume the session transparently.
             resume_timeout: how long to keep trying to resume before giving up.
+            max_resumes: give up after this many resumes in a row with no new
+                answer in between (the stream's error is raised).
 
         Raises:
             InvalidArgument: bad layout/image size/model/camera; ResourceExhausted: too
             many sessions; Unauthenticated; Unavailable; DeadlineExceeded.
         """
         req, joints = c.open_request(layout, image_size, model, camera, server_lifter, label)
-        return Session(self, req, joints, server_lifter, auto_resume, resume_timeout)
+        return Session(self, req, joints, server_lifter, auto_resume, resume_timeout, None, max_resumes)
 
     def resume(
         self,
         session_id: str,
         *,
+        token: Optional[Union[SessionToken, bytes]] = None,
+        affinity: Optional[str] = None,
         auto_resume: bool = True,
         resume_timeout: float = 30.0,
+        max_resumes: int = c.MAX_RESUMES,
     ) -> "Session":
         """Re-attach to a detached session by id; continue from ``session.info.frames_seen``.
 
-        Unknown/expired/closed id: :class:`NotFound`.
+        Args:
+            session_id: the session's id.
+            token: its latest :class:`SessionToken` (:attr:`Session.token`), or the
+                token's bytes: a server that does not hold the session (another
+                replica with the same ``--session-key``, or the same server after a
+                restart) restores it from the token, as of ``token.frames_seen``.
+            affinity: the session's :attr:`Session.affinity` key, so a load balancer
+                routes the resume to the replica holding it; default: a new key.
+
+        With several servers, each is tried in turn until one resumes the session.
+        Unknown/expired/closed id (and no token): :class:`NotFound`; a token made
+        under another session key: :class:`Unauthenticated`; for other weights (or
+        a server without a key): :class:`FailedPrecondition`.
         """
-        req = pb.StreamRequest(resume=pb.ResumeSession(session_id=session_id))
-        return Session(self, req, -1, False, auto_resume, resume_timeout)
+        if isinstance(token, (bytes, bytearray)):
+            token = SessionToken(session_id, -1, bytes(token))
+        req = c.resume_request(session_id, token)
+        return Session(self, req, -1, False, auto_resume, resume_timeout, affinity, max_resumes)
 
 
 class _Attachment:
     """One ``Stream`` call: a request iterator fed from a queue, and its responses."""
 
-    def __init__(self, client: Client, first: pb.StreamRequest) -> None:
+    def __init__(self, stub: pb_grpc.PoseAdjustmentStub, first: pb.StreamRequest, metadata: Metadata) -> None:
         self._q: "queue.Queue[object]" = queue.Queue()
         self._q.put(first)
-        self.call = client._stub.Stream(self._requests(), metadata=client._metadata)
+        self.call = stub.Stream(self._requests(), metadata=metadata)
 
     def _requests(self) -> Iterator[pb.StreamRequest]:
         while True:
@@ -224,6 +342,11 @@ class Session:
     closes the session (``close``); ``detach`` ends the stream but keeps the
     session on the server for its TTL (resume it with :meth:`Client.resume`).
 
+    Every call of the session (its streams, its resumes, its close) carries the
+    gRPC header ``blapose-affinity: <affinity>``, a random key made when the
+    session opened, so a load balancer hashing on it keeps the session on one
+    replica.
+
     Resumption (``auto_resume=True``): when the connection drops (UNAVAILABLE,
     other than a server shutting down), the session re-attaches with ``resume``
     and continues from ``SessionOpened.frames_seen``. Every frame you passed is
@@ -236,6 +359,22 @@ class Session:
     in server-lifter sessions, whose lifted pose is not known). This assumes no
     lost answer was an in-band refusal (a refused frame is not counted, and
     the protocol cannot tell which lost frame it was).
+
+    Failover with session tokens: sessions always ask for tokens; a server
+    started with ``--session-key`` sends them (see :attr:`token`). While the
+    session holds one, it also resumes after its server went away (shut down,
+    crashed, unreachable: UNAVAILABLE, UNKNOWN, CANCELLED, or the stream ending
+    early), trying its current server first and then the client's other
+    servers in order, with the latest token: a replica that does not hold the
+    session restores it from the token, the frames answered since the token are
+    sent again (their answers, identical, are dropped), and the frames in
+    flight follow. If the server holding the session processed frames whose
+    answers were lost, the session is closed there and restored from the token,
+    so every frame gets its real answer (none ``recovered``). The answers equal
+    those of an uninterrupted session. It gives up after ``max_resumes`` resumes
+    in a row without a new answer, or when no server resumed it within
+    ``resume_timeout`` (raising a server's refusal, e.g. :class:`Unauthenticated`
+    for a replica with another key, or else the stream's error).
     """
 
     def __init__(
@@ -246,17 +385,26 @@ class Session:
         server_lifter: bool,
         auto_resume: bool,
         resume_timeout: float,
+        affinity: Optional[str] = None,
+        max_resumes: int = c.MAX_RESUMES,
     ) -> None:
         self._client = client
         self.auto_resume = auto_resume
         self.resume_timeout = resume_timeout
+        self.max_resumes = max_resumes
+        self._affinity = affinity or c.new_affinity()
+        self._metadata = client._session_metadata(self._affinity)
         self._core = c.SessionCore(joints, server_lifter)
         self._failed: Optional[BaseException] = None
         self._done = False
         self._epoch = 0
-        self._att = self._attach(first)
-        info = self._core.info
-        assert info is not None
+        att, info, token, i = self._first_attach(first)
+        self._att = att
+        self._target = i
+        client._current = i
+        self._core.attached(info, first=True)
+        if token is not None:
+            self._core.offer_token(token)
         if first.WhichOneof("kind") == "resume":
             # a resumed session keeps its input format and lifter
             self._core.server_lifter = info.lifter is not None
@@ -288,9 +436,57 @@ class Session:
         """Frames whose answers were lost and rebuilt locally (``recovered=True``)."""
         return self._core.recovered
 
+    @property
+    def token(self) -> Optional[SessionToken]:
+        """The latest session token as of a frame answered (None from a server
+        without ``--session-key``): resume the session anywhere with it
+        (:meth:`Client.resume`). Tokens arrive on open/resume, every
+        ``--token-every`` frames, on :meth:`request_token`, and when the server
+        shuts down."""
+        return self._core.token
+
+    @property
+    def affinity(self) -> str:
+        """The session's affinity key (the ``blapose-affinity`` header of its calls)."""
+        return self._affinity
+
+    @property
+    def url(self) -> str:
+        """The URL of the server the session is attached to."""
+        return self._client.urls[self._target]
+
     # -- stream plumbing -----------------------------------------------------
-    def _attach(self, first: pb.StreamRequest) -> _Attachment:
-        att = _Attachment(self._client, first)
+    def _first_attach(
+        self, first: pb.StreamRequest
+    ) -> Tuple[_Attachment, SessionInfo, Optional[SessionToken], int]:
+        """Open/resume on the client's servers in turn; a second round if one was unreachable
+        (a connection that has just dropped can fail the first call on it, "Stream removed")."""
+        last: Optional[RpcError] = None
+        for round_ in range(2):
+            unreachable = False
+            for i in self._client._order():
+                try:
+                    att, info, token = self._attach(i, first)
+                except Unavailable as e:
+                    unreachable = True
+                    last = last if isinstance(last, NotFound) else e
+                    continue
+                except NotFound as e:  # (resume) not held there
+                    last = e
+                    continue
+                return att, info, token, i
+            if not unreachable:
+                break
+            if round_ == 0:
+                time.sleep(0.1)
+        assert last is not None
+        raise last
+
+    def _attach(
+        self, target: int, first: pb.StreamRequest
+    ) -> Tuple[_Attachment, SessionInfo, Optional[SessionToken]]:
+        """Open a stream to server ``target`` and read its ``SessionOpened``."""
+        att = _Attachment(self._client._stubs[target], first, self._metadata)
         timed_out = threading.Event()
 
         def expire() -> None:
@@ -315,8 +511,10 @@ class Session:
             att.cancel()
             raise ProtocolError(f"first response is {resp.WhichOneof('kind')!r}, not 'opened'")
         info = SessionInfo.from_proto(resp.opened)
-        self._core.attached(info, first=self._core.info is None)
-        return att
+        token = None
+        if resp.opened.session_token:
+            token = SessionToken(info.session_id, info.frames_seen, resp.opened.session_token)
+        return att, info, token
 
     def _begin(self) -> int:
         """Start a send/stream/close: answers to frames of an abandoned stream() are read and dropped."""
@@ -335,53 +533,119 @@ class Session:
         if self._done:
             raise BlaposeError("the session is closed or detached")
 
-    def _resume(self, cause: RpcError) -> None:
+    def _resume_at(self, i: int) -> Optional[Tuple[_Attachment, SessionInfo, Optional[SessionToken]]]:
+        """Resume on server ``i`` at a frame already answered or the next one (None: not there)."""
+        token = self._core.token
+        req = c.resume_request(self.session_id, token)
+        att, info, opened_token = self._attach(i, req)
+        if token is None or info.frames_seen <= self._core.frames_seen:
+            return att, info, opened_token
+        # Held there, ahead of the answers received (answers lost in flight):
+        # close it there and restore it from the token, as of a frame answered.
+        att.cancel()
+        try:
+            self._client._close_session(self.session_id, self._metadata, first=i)
+            att, info, opened_token = self._attach(i, req)
+        except RpcError:
+            return None
+        if info.frames_seen > self._core.frames_seen:
+            att.cancel()
+            return None
+        return att, info, opened_token
+
+    def _resume(self, cause: BaseException) -> None:
+        if self._core.in_a_row >= self.max_resumes:
+            raise cause
         deadline = time.monotonic() + self.resume_timeout
         self._att.cancel()
-        req = pb.StreamRequest(resume=pb.ResumeSession(session_id=self.session_id))
+        servers = len(self._client._stubs)
+        refused: Dict[int, RpcError] = {}
         delay = 0.05
         while True:
+            for i in self._client._order(self._target):
+                if i in refused:
+                    continue
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    break
+                try:
+                    # No waiting for a server that is down: the call fails fast
+                    # (UNAVAILABLE) and the next server is tried, or the round
+                    # repeats after a short backoff.
+                    got = self._resume_at(i)
+                except (Unavailable, DeadlineExceeded, UnknownError, Cancelled):
+                    continue
+                except RpcError as e:
+                    refused[i] = e  # NotFound, Unauthenticated, FailedPrecondition, ...
+                    continue
+                if got is None:
+                    continue
+                att, info, token = got
+                self._att = att
+                self._target = i
+                self._core.attached(info, first=False)
+                for frame in self._core.after_resume():
+                    att.send(frame.request)
+                if token is not None:
+                    self._core.offer_token(token)
+                return
             remaining = deadline - time.monotonic()
-            if remaining <= 0:
+            if remaining <= 0 or len(refused) == servers:
+                if refused:
+                    raise list(refused.values())[-1]
                 raise cause
+            time.sleep(min(delay, remaining))
+            delay = min(delay * 2, 1.0)
+
+    def _recover(self, err: BaseException) -> None:
+        """After the stream failed with ``err``: resume, or mark the session failed and raise."""
+        failover = self._core.token is not None
+        if self.auto_resume and (
+            c.resumable(err, failover) if isinstance(err, RpcError) else failover and isinstance(err, ProtocolError)
+        ):
             try:
-                self._client.wait_ready(timeout=remaining)
-                self._att = self._attach(req)
-                break
-            except Unavailable:
-                time.sleep(min(delay, max(0.0, deadline - time.monotonic())))
-                delay = min(delay * 2, 1.0)
-        for frame in self._core.after_resume():
-            self._att.send(frame.request)
+                self._resume(err)
+            except BaseException as e2:
+                self._failed = e2
+                raise
+            return
+        self._failed = err
+        raise err
+
+    def _next_response(self) -> Optional[pb.StreamResponse]:
+        """The next response on the stream; None after a resume."""
+        try:
+            return self._att.next()
+        except grpc.RpcError as e:
+            err: BaseException = from_grpc_error(e)
+        except StopIteration:
+            err = ProtocolError("the server ended the stream with frames in flight")
+        self._recover(err)
+        return None
 
     def _receive(self) -> Union[FrameResult, FrameRejected]:
         while True:
             if self._core.ready:
                 return self._core.ready.pop(0)
+            resp = self._next_response()
+            if resp is None:
+                continue
             try:
-                resp = self._att.next()
-            except grpc.RpcError as e:
-                err = from_grpc_error(e)
-                if self.auto_resume and c.resumable(err):
-                    try:
-                        self._resume(err)
-                    except BaseException as e2:
-                        self._failed = e2
-                        raise
-                    continue
-                self._failed = err
-                raise err from None
-            except StopIteration:
-                self._failed = ProtocolError("the server ended the stream with frames in flight")
-                raise self._failed from None
-            try:
-                return self._core.answer(resp)
+                result = self._core.answer(resp)
             except ProtocolError as e:
                 self._failed = e
                 self._att.cancel()
                 raise
+            if result is not None:
+                return result
 
     # -- frames --------------------------------------------------------------
+    def _send_frame(self, frame: c.PendingFrame) -> None:
+        self._core.pending.append(frame)
+        self._att.send(frame.request)
+        if self._core.wants_token():
+            self._att.send(pb.StreamRequest(token_request=pb.TokenRequest()))
+
     def send(
         self,
         keypoints: ArrayLike,
@@ -402,9 +666,7 @@ class Session:
             ValueError: wrong shapes or non-finite values (nothing was sent).
         """
         self._begin()
-        frame = self._core.make_frame(keypoints, pose, confidence, frame_index)
-        self._core.pending.append(frame)
-        self._att.send(frame.request)
+        self._send_frame(self._core.make_frame(keypoints, pose, confidence, frame_index))
         result = self._receive()
         if isinstance(result, FrameRejected):
             raise result
@@ -443,9 +705,7 @@ class Session:
                     except StopIteration:
                         exhausted = True
                         break
-                    frame = self._core.make_frame(*c.split_item(item))
-                    self._core.pending.append(frame)
-                    self._att.send(frame.request)
+                    self._send_frame(self._core.make_frame(*c.split_item(item)))
                 if not self._core.pending and not self._core.ready:
                     return
                 result = self._receive()
@@ -456,19 +716,60 @@ class Session:
             if self._epoch == epoch:
                 self._drain()
 
+    def request_token(self) -> SessionToken:
+        """Ask the server for a session token as of every frame answered so far
+        (``TokenRequest``); it becomes :attr:`token`.
+
+        Raises:
+            FailedPrecondition: the server has no ``--session-key``.
+        """
+        self._begin()
+        while True:
+            self._att.send(pb.StreamRequest(token_request=pb.TokenRequest()))
+            while True:
+                resp = self._next_response()
+                if resp is None:  # resumed: answer the frames sent again, then ask again
+                    self._drain()
+                    break
+                kind = resp.WhichOneof("kind")
+                if kind == "token":
+                    self._core.answer(resp)
+                    token = self._core.token
+                    if token is not None and resp.token.frames_seen == self._core.frames_seen:
+                        return token
+                elif kind == "error":
+                    raise FailedPrecondition(
+                        f"the server sends no session token: {resp.error.message}",
+                        grpc.StatusCode.FAILED_PRECONDITION,
+                    )
+                else:
+                    self._failed = ProtocolError(f"expected a session token, got {kind!r}")
+                    self._att.cancel()
+                    raise self._failed
+
     # -- ending ----------------------------------------------------------------
     def close(self) -> ClosedSession:
         """Close the session for good (``close``): frames_seen and final lengths."""
         self._begin()
         self._done = True
-        self._att.send(pb.StreamRequest(close=pb.CloseSession()))
-        self._att.end()
-        try:
-            resp = self._att.next()
-        except grpc.RpcError as e:
-            raise from_grpc_error(e) from None
-        except StopIteration:
-            raise ProtocolError("the stream ended without SessionClosed") from None
+        while True:
+            self._att.send(pb.StreamRequest(close=pb.CloseSession()))
+            self._att.end()
+            try:
+                resp = self._att.next()
+                while resp.WhichOneof("kind") == "token":
+                    resp = self._att.next()
+            except grpc.RpcError as e:
+                err = from_grpc_error(e)
+                if self.auto_resume and self._core.token is not None and c.resumable(err, True):
+                    # The server went away: close the session where it resumes.
+                    self._recover(err)
+                    self._drain()
+                    continue
+                raise err from None
+            except StopIteration:
+                raise ProtocolError("the stream ended without SessionClosed") from None
+            break
         if resp.WhichOneof("kind") != "closed":
             raise ProtocolError(f"expected 'closed', got {resp.WhichOneof('kind')!r}")
         msg = resp.closed
@@ -479,7 +780,11 @@ class Session:
         )
 
     def detach(self) -> str:
-        """End this stream but keep the session (for the server's TTL); returns its id."""
+        """End this stream but keep the session (for the server's TTL); returns its id.
+
+        Resume it later with ``client.resume(id, token=session.token,
+        affinity=session.affinity)``.
+        """
         if not self._done:
             self._done = True
             self._att.end()
@@ -509,7 +814,7 @@ class Session:
             if self._failed is None:
                 self.close()
             else:
-                self._client.close_session(self.session_id)
+                self._client._close_session(self.session_id, self._metadata, first=self._target)
         except BlaposeError:
             pass
         finally:

@@ -30,6 +30,7 @@ __all__ = [
     "FrameResult",
     "SequenceResult",
     "ClosedSession",
+    "SessionToken",
     "ModelInfo",
     "ReplayFile",
     "load_replay",
@@ -276,6 +277,28 @@ class ClosedSession:
     session_id: str
     frames_seen: int
     bone_lengths: Optional[np.ndarray]
+
+
+@dataclass(frozen=True)
+class SessionToken:
+    """A session token: the session's whole state, as of ``frames_seen`` frames,
+    authenticated by the servers' shared ``--session-key``.
+
+    Pass it to :meth:`blapose.Client.resume` to restore the session on any
+    replica with the same key (sessions resume with it automatically; see
+    :class:`blapose.Session`). Whoever holds it can resume the session: treat
+    it as a secret.
+
+    Attributes:
+        session_id: the session it belongs to.
+        frames_seen: frames processed in the state it holds; a session restored
+            from it continues with this frame.
+        token: the opaque bytes (about 4.3 kB).
+    """
+
+    session_id: str
+    frames_seen: int
+    token: bytes = field(repr=False)
 
 
 @dataclass(frozen=True)
