@@ -19,6 +19,7 @@ pub mod isa;
 pub mod layouts;
 pub mod level;
 pub mod metrics;
+pub mod missing;
 pub mod pose;
 pub mod skeleton;
 

@@ -477,6 +477,11 @@ pub struct EvalReport {
     pub curve: Vec<CurvePoint>,
     /// Wall-clock seconds of the model pass.
     pub seconds: f64,
+    /// With `--drop-joints`: the headline is the model reading the trials
+    /// with lost joints held (confidence honoured); this compares it with
+    /// the clean trials and with the garbage fed as is.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub drop_joints: Option<crate::joint_dropout::DropJointsReport>,
 }
 
 /// One trial's estimate in the JSON report.
@@ -685,6 +690,7 @@ pub fn evaluate(
         baselines: base,
         curve,
         seconds,
+        drop_joints: None,
     })
 }
 

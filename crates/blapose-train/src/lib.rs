@@ -32,6 +32,7 @@ pub mod eval;
 pub mod eval_adjust;
 pub mod fastnet;
 pub mod height_fusion;
+pub mod joint_dropout;
 pub mod lengths;
 pub mod lifter;
 pub mod loader;

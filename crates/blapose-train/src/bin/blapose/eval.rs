@@ -1,22 +1,24 @@
 //! `blapose eval`: which trials (subjects, cameras, every k-th, from which
-//! frame, at which rate, rectified or not) and which estimator (plain,
-//! flip-averaged, height-corrected) the flags ask for; the protocol itself
+//! frame, at which rate, rectified or not, with joints lost or not) and
+//! which estimator (plain, flip-averaged, height-corrected) the flags ask
+//! for; the protocol itself
 //! is [`blapose_train::eval`]. Why here: these are choices of an
 //! evaluation run, not of the protocol.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::Result;
 use blapose_core::BoneLengths;
 use blapose_data::h36m::{H36m, Parts, ALL_SUBJECTS, TRAIN_SUBJECTS};
-use blapose_model::ModelKind;
+use blapose_model::{LoadedWeights, ModelKind};
 use blapose_train::dataset::{
-    eval_sequences, mean_subject_lengths, rectify_streams, subject_lengths, InputKind,
+    eval_sequences, mean_subject_lengths, rectify_streams, subject_lengths, EvalSequence, InputKind,
 };
 use blapose_train::eval::{
-    evaluate, markdown, BiGruEstimator, FlipAveraged, GruEstimator, LengthEstimator,
+    evaluate, markdown, BiGruEstimator, EvalReport, FlipAveraged, GruEstimator, LengthEstimator,
 };
+use blapose_train::joint_dropout::{drop_joints, DropJointsReport};
 
 use crate::bodies::{Benchmark, BodiesArgs};
 use crate::common::{camera_list, known_subjects, ModelArg};
@@ -92,6 +94,16 @@ pub struct EvalArgs {
     /// Evaluate only every k-th trial (quick subsets; 1 = all).
     #[arg(long, default_value_t = 1)]
     every: usize,
+    /// Lose each joint of each frame with this probability, its
+    /// coordinates replaced by garbage (seeded, --drop-seed): the headline
+    /// is then the model reading the lost joints held at their last
+    /// detection (what honouring confidence 0 gives), reported beside the
+    /// clean score and the garbage fed as is (blapose_train::joint_dropout).
+    #[arg(long, value_name = "P")]
+    drop_joints: Option<f64>,
+    /// Seed of --drop-joints.
+    #[arg(long, default_value_t = 0, requires = "drop_joints")]
+    drop_seed: u64,
     /// Data root (default: $BLAPOSE_DATA or ../shared/data).
     #[arg(long)]
     data: Option<PathBuf>,
@@ -161,37 +173,50 @@ pub fn run(a: EvalArgs) -> Result<()> {
         ("training_mean", mean_of(&TRAIN_SUBJECTS)?),
         ("all_subjects_mean", mean_of(&ALL_SUBJECTS)?),
     ];
-    let mut estimator: Box<dyn LengthEstimator> = match kind {
-        ModelKind::BiGru => Box::new(BiGruEstimator::new(&weights)?),
-        ModelKind::Gru => Box::new(GruEstimator::new(&weights)?),
+    let score = |trials: Vec<EvalSequence>| {
+        score_trials(&a, kind, &weights, &weights_path, &h36m, trials, &baselines)
     };
-    let mut model_label = kind.as_str().to_string();
-    if a.flip_average {
-        estimator = Box::new(FlipAveraged::new(estimator));
-        model_label.push_str("+flip");
-    }
-    if a.calibrated {
-        estimator = blapose_train::eval::calibrated(estimator, &weights, &mut trials, |s, id| {
-            h36m.cameras.get(s, id)
-        })?;
-        model_label.push_str("+calibrated");
-    }
-    if a.height_correction {
-        estimator = blapose_train::eval::height_corrected(estimator, &trials, |s, id| {
-            h36m.cameras.get(s, id)
-        })?;
-        model_label.push_str("+height");
-    }
-    let report = evaluate(
-        estimator.as_ref(),
-        &trials,
-        &baselines,
-        &model_label,
-        a.input.name(),
-        &weights_path.display().to_string(),
-        &a.subjects,
-    )?;
+    let report = match a.drop_joints {
+        None => score(trials)?,
+        Some(probability) => {
+            let dropped = drop_joints(&trials, probability, a.drop_seed)?;
+            let lost_share = dropped.lost as f64 / dropped.joints.max(1) as f64;
+            let empty_frames = dropped.empty_frames;
+            let clean = score(trials)?.mean_bone_error_mm;
+            let without = score(dropped.garbage)?.mean_bone_error_mm;
+            let mut report = score(dropped.held)?;
+            let with = report.mean_bone_error_mm;
+            report.drop_joints = Some(DropJointsReport {
+                probability,
+                seed: a.drop_seed,
+                lost_share,
+                empty_frames,
+                clean_mm: clean,
+                with_confidence_mm: with,
+                without_confidence_mm: without,
+                rise_mm: with - clean,
+                rise_without_confidence_mm: without - clean,
+            });
+            report
+        }
+    };
     println!("{}", markdown(&report));
+    if let Some(d) = &report.drop_joints {
+        println!(
+            "joints lost: {:.1} % (p = {}, seed {}), {} frames lost every joint\n\
+             clean {:.2} mm | lost joints held (confidence honoured) {:.2} mm ({:+.2}) | \
+             garbage fed as is {:.2} mm ({:+.2})",
+            100.0 * d.lost_share,
+            d.probability,
+            d.seed,
+            d.empty_frames,
+            d.clean_mm,
+            d.with_confidence_mm,
+            d.rise_mm,
+            d.without_confidence_mm,
+            d.rise_without_confidence_mm
+        );
+    }
     println!(
         "model pass: {:.1}s for {} frames ({:.0} frames/s)",
         report.seconds,
@@ -210,4 +235,48 @@ pub fn run(a: EvalArgs) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// The model (with --flip-average, --calibrated, --height-correction as
+/// asked) scored on `trials`.
+#[allow(clippy::too_many_arguments)]
+fn score_trials(
+    a: &EvalArgs,
+    kind: ModelKind,
+    weights: &LoadedWeights,
+    weights_path: &Path,
+    h36m: &H36m,
+    mut trials: Vec<EvalSequence>,
+    baselines: &[(&str, BoneLengths)],
+) -> Result<EvalReport> {
+    let mut estimator: Box<dyn LengthEstimator> = match kind {
+        ModelKind::BiGru => Box::new(BiGruEstimator::new(weights)?),
+        ModelKind::Gru => Box::new(GruEstimator::new(weights)?),
+    };
+    let mut model_label = kind.as_str().to_string();
+    if a.flip_average {
+        estimator = Box::new(FlipAveraged::new(estimator));
+        model_label.push_str("+flip");
+    }
+    if a.calibrated {
+        estimator = blapose_train::eval::calibrated(estimator, weights, &mut trials, |s, id| {
+            h36m.cameras.get(s, id)
+        })?;
+        model_label.push_str("+calibrated");
+    }
+    if a.height_correction {
+        estimator = blapose_train::eval::height_corrected(estimator, &trials, |s, id| {
+            h36m.cameras.get(s, id)
+        })?;
+        model_label.push_str("+height");
+    }
+    Ok(evaluate(
+        estimator.as_ref(),
+        &trials,
+        baselines,
+        &model_label,
+        a.input.name(),
+        &weights_path.display().to_string(),
+        &a.subjects,
+    )?)
 }
