@@ -97,7 +97,9 @@ start_replica() { # index
         if [[ -n "${containers[$i]:-}" ]]; then
             "$engine" rm -f "${containers[$i]}" >/dev/null 2>&1 || true
         fi
-        "$engine" run -d --name "$name" --network host \
+        # --no-healthcheck: HAProxy checks the replicas itself (and podman
+        # without systemd cannot schedule the image's HEALTHCHECK).
+        "$engine" run -d --no-healthcheck --name "$name" --network host \
             -e BLAPOSE_SESSION_KEY="$key" -e BLAPOSE_ADDR="127.0.0.1:${ports[$i]}" \
             "$image" --no-metrics --token-every 25 --shutdown-grace 10s >/dev/null
         containers[$i]=$name
