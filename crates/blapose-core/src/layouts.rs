@@ -241,6 +241,20 @@ impl KeypointLayout {
         })
     }
 
+    /// Which Human3.6M-17 joints a frame has when only the joints
+    /// `present` (this layout's order) were detected: a converted joint is
+    /// missing when any joint it is made from is (e.g. COCO-17's thorax,
+    /// made from the shoulders and the nose). Found by converting the
+    /// missing joints' indicator through the same (affine) rules.
+    pub fn present_h36m17(&self, present: &[bool]) -> Result<[bool; NUM_JOINTS], LayoutError> {
+        let indicator: Vec<[f32; 2]> = present
+            .iter()
+            .map(|&p| [if p { 0.0 } else { 1.0 }, 0.0])
+            .collect();
+        let converted = self.to_h36m17(&indicator)?;
+        Ok(std::array::from_fn(|j| converted[j][0].abs() < 1e-6))
+    }
+
     /// Convert a flat buffer of frames (`T * num_joints * 2` values).
     pub fn sequence_to_h36m17(&self, flat: &[f32]) -> Result<Vec<Keypoints2d>, LayoutError> {
         let per_frame = self.num_joints() * 2;
@@ -387,6 +401,34 @@ impl FromStr for KeypointLayout {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn missing_source_joints_make_their_converted_joints_missing() {
+        let all = KeypointLayout::Coco17.present_h36m17(&[true; 17]).unwrap();
+        assert!(all.iter().all(|&p| p));
+        // COCO's eyes and ears feed no Human3.6M joint; the nose feeds the
+        // thorax, spine, neck/nose and head.
+        let mut face = [true; 17];
+        for name in ["l_eye", "r_eye", "l_ear", "r_ear"] {
+            face[COCO17_JOINTS.iter().position(|n| *n == name).unwrap()] = false;
+        }
+        assert!(KeypointLayout::Coco17
+            .present_h36m17(&face)
+            .unwrap()
+            .iter()
+            .all(|&p| p));
+        face[COCO17_JOINTS.iter().position(|n| *n == "nose").unwrap()] = false;
+        let got = KeypointLayout::Coco17.present_h36m17(&face).unwrap();
+        let missing: Vec<&str> = (0..NUM_JOINTS)
+            .filter(|&j| !got[j])
+            .map(|j| JOINT_NAMES[j])
+            .collect();
+        assert_eq!(missing, ["spine", "thorax", "neck_nose", "head"]);
+        let mut h = [true; NUM_JOINTS];
+        h[3] = false;
+        assert_eq!(KeypointLayout::H36m17.present_h36m17(&h).unwrap(), h);
+        assert!(KeypointLayout::Sh16.present_h36m17(&[true; 3]).is_err());
+    }
 
     #[test]
     fn names_round_trip() {
