@@ -54,14 +54,14 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use blapose_core::{BoneLengths, Keypoints2d, Pose};
+use blapose_core::{BoneLengths, Keypoints2d, Pose, NUM_JOINTS};
 use blapose_lifters::trained::FRAME_VALUES;
 use tokio::sync::oneshot;
 
 use crate::backend::{Backend, BackendError, INPUT_DIM, OUTPUT_DIM, STATE_DIM};
 use crate::metrics;
 use crate::models::LoadedLifter;
-use crate::session::{add_prediction, Session, StateCopy};
+use crate::session::{add_prediction, Session, SessionState, StateCopy};
 use crate::validate;
 
 /// Batching limits.
@@ -82,8 +82,12 @@ pub struct FrameJob {
     pub session: Arc<Session>,
     /// The epoch of the stream that sent it.
     pub epoch: u64,
-    /// Normalized Human3.6M-17 keypoints, joint-major (x, y).
+    /// Normalized Human3.6M-17 keypoints, joint-major (x, y); a missing
+    /// joint's pair is a placeholder, replaced by its held position
+    /// ([`blapose_core::missing::HeldJoints`]) when the frame runs.
     pub input: [f32; INPUT_DIM],
+    /// Which joints were detected.
+    pub present: [bool; NUM_JOINTS],
     /// Lift the pose from the session's window and `input` with the server
     /// lifter (the session must have been opened lifting).
     pub lift: bool,
@@ -99,8 +103,10 @@ pub struct FrameJob {
 /// A processed frame.
 #[derive(Debug, Clone, PartialEq)]
 pub struct StepOutput {
-    /// The session's running-mean estimate after this frame.
-    pub lengths: BoneLengths,
+    /// The session's running-mean estimate after this frame; `None` for a
+    /// frame without a detected joint before any frame was read (no
+    /// estimate yet).
+    pub lengths: Option<BoneLengths>,
     /// Frames processed in the session, this one included.
     pub frames_seen: u64,
     /// The server lifter's pose for this frame (root at 0), for a lifting
@@ -538,6 +544,9 @@ fn run_batch<B: Backend>(
     let started = Instant::now();
     buf.rows.clear();
     let mut answers: Vec<Option<StepResult>> = batch.iter().map(|_| None).collect();
+    for (item, answer) in batch.iter_mut().zip(answers.iter_mut()) {
+        *answer = fill_missing(&mut item.job);
+    }
     buf.lifted.clear();
     buf.lifted.resize(batch.len(), None);
     if let Some(lifter) = &shared.lifter {
@@ -791,8 +800,40 @@ fn step_alone<B: Backend>(
     }
 }
 
-/// Write one successful row back: the GRU state, the prediction and, for a
-/// lifting frame, the frame into the lifter's window, all under one lock.
+/// Fill the frame's missing joints from its session's held ones. A frame
+/// without a detected joint is answered here and leaves the model state,
+/// the estimate and the held joints as they were: it only counts among the
+/// frames seen. `Some` when the frame is answered (or superseded).
+fn fill_missing(job: &mut FrameJob) -> Option<StepResult> {
+    if !job.present.contains(&false) {
+        return None;
+    }
+    let mut st = job.session.lock();
+    if !st.accepts(job.epoch) {
+        return Some(Err(StepError::Superseded));
+    }
+    if st.held.fill(&mut job.input, &job.present) {
+        return None;
+    }
+    st.skipped += 1;
+    let frames_seen = st.frames_seen();
+    Some(Ok(StepOutput {
+        lengths: st.estimate(),
+        frames_seen,
+        lifted: None,
+        state: due_state(job, &st, frames_seen),
+    }))
+}
+
+/// The state copy a job asked for, if this frame makes it due.
+fn due_state(job: &FrameJob, st: &SessionState, frames_seen: u64) -> Option<Box<StateCopy>> {
+    (job.state_every > 0 && frames_seen.is_multiple_of(job.state_every))
+        .then(|| Box::new(st.copy_state()))
+}
+
+/// Write one successful row back: the GRU state, the prediction, the
+/// detected joints and, for a lifting frame, the frame into the lifter's
+/// window, all under one lock.
 fn scatter(job: &FrameJob, hidden: &[f32], lengths: &[f32], lifted: Option<Pose>) -> StepResult {
     if !hidden.iter().chain(lengths).all(|v| v.is_finite()) {
         return Err(StepError::NonFinite);
@@ -811,6 +852,7 @@ fn scatter(job: &FrameJob, hidden: &[f32], lengths: &[f32], lifted: Option<Pose>
         window.push(keypoints(&job.input));
     }
     st.hidden.copy_from_slice(hidden);
+    st.held.remember(&job.input, &job.present);
     let mut prediction = [0.0f32; OUTPUT_DIM];
     prediction.copy_from_slice(lengths);
     // A height-normalized model's lengths, back at the camera's height.
@@ -822,10 +864,9 @@ fn scatter(job: &FrameJob, hidden: &[f32], lengths: &[f32], lifted: Option<Pose>
         .map_or(1.0, |camera| camera.length_scale);
     let estimate = add_prediction(&mut st.lengths, &prediction, scale);
     let frames_seen = st.frames_seen();
-    let state = (job.state_every > 0 && frames_seen.is_multiple_of(job.state_every))
-        .then(|| Box::new(st.copy_state()));
+    let state = due_state(job, &st, frames_seen);
     Ok(StepOutput {
-        lengths: estimate,
+        lengths: Some(estimate),
         frames_seen,
         lifted: if job.lift { lifted } else { None },
         state,
@@ -956,6 +997,7 @@ mod tests {
                 session: session.clone(),
                 epoch,
                 input,
+                present: [true; NUM_JOINTS],
                 lift: false,
                 state_every: 0,
                 reply: tx,
@@ -1002,8 +1044,8 @@ mod tests {
         // Each log starts with its model's warm-up step.
         assert_eq!(default_log.lock().unwrap()[1..], [vec![0.5]]);
         assert_eq!(aware_log.lock().unwrap()[1..], [vec![rectified[1]]]);
-        assert_eq!(a.lengths[0], 0.25);
-        assert_eq!(b.lengths[0], rectified[0]);
+        assert_eq!(a.lengths.unwrap()[0], 0.25);
+        assert_eq!(b.lengths.unwrap()[0], rectified[0]);
         batcher.close();
     }
 
@@ -1037,7 +1079,7 @@ mod tests {
             let mean_of_running_sums: f32 =
                 (1..=f).map(|k| (k * (k + 1) / 2) as f32).sum::<f32>() / f as f32;
             assert!(
-                (out.lengths[0] - mean_of_running_sums).abs() < 1e-3,
+                (out.lengths.unwrap()[0] - mean_of_running_sums).abs() < 1e-3,
                 "session {s} frame {f}"
             );
         }
@@ -1249,7 +1291,7 @@ mod tests {
         assert!(matches!(answer(ra).await, Err(StepError::Model(_))));
         let ob = answer(rb).await.unwrap();
         assert_eq!(ob.frames_seen, 1);
-        assert_eq!(ob.lengths[0], 3.0);
+        assert_eq!(ob.lengths.unwrap()[0], 3.0);
         assert_eq!(a.session.lock().frames_seen(), 0);
         assert!(a.session.lock().hidden.iter().all(|&v| v == 0.0));
         // The retry ran b alone (a batch of one after the failed pair).

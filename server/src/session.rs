@@ -32,6 +32,7 @@ use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
 
 use blapose_core::level::LevelCamera;
+use blapose_core::missing::HeldJoints;
 use blapose_core::BoneLengths;
 use blapose_lifters::SlidingWindow;
 use blapose_proto::v1 as pb;
@@ -192,12 +193,19 @@ pub struct SessionState {
     /// (normalized Human3.6M-17 keypoints); `None` unless the session lifts.
     /// Only the batcher pushes to it, together with `hidden` and `lengths`.
     pub window: Option<Box<SlidingWindow>>,
+    /// Each joint's last detected position (normalized Human3.6M-17), what
+    /// a missing joint is read as ([`blapose_core::missing`]).
+    pub held: HeldJoints,
+    /// Frames answered without a detected joint: they changed nothing
+    /// else, and count among the frames seen.
+    pub skipped: u64,
 }
 
 impl SessionState {
-    /// Frames processed.
+    /// Frames processed: those the model read, and those without a
+    /// detected joint.
     pub fn frames_seen(&self) -> u64 {
-        self.lengths.count()
+        self.lengths.count() + self.skipped
     }
 
     /// The running-mean length estimate; `None` before the first frame.
@@ -216,6 +224,8 @@ impl SessionState {
             hidden: self.hidden.clone(),
             lengths: self.lengths,
             window: self.window.as_deref().map(|w| w.iter().copied().collect()),
+            held: self.held,
+            skipped: self.skipped,
         }
     }
 }
@@ -230,6 +240,17 @@ pub struct StateCopy {
     pub lengths: RunningLengths,
     /// The lifter window's frames, oldest first (lifting sessions).
     pub window: Option<Vec<blapose_core::Keypoints2d>>,
+    /// Each joint's last detected position.
+    pub held: HeldJoints,
+    /// Frames answered without a detected joint.
+    pub skipped: u64,
+}
+
+impl StateCopy {
+    /// Frames processed in this state ([`SessionState::frames_seen`]).
+    pub fn frames_seen(&self) -> u64 {
+        self.lengths.count() + self.skipped
+    }
 }
 
 /// Who owns a session now, as the attached stream watches it.
@@ -262,6 +283,8 @@ impl Session {
             window: config
                 .lifter_frames
                 .map(|frames| Box::new(SlidingWindow::new(frames))),
+            held: HeldJoints::default(),
+            skipped: 0,
         };
         let (owner, _) = watch::channel(Ownership {
             epoch: 1,
@@ -558,6 +581,8 @@ impl SessionStore {
             }
             st.hidden.copy_from_slice(&state.hidden);
             st.lengths = state.lengths;
+            st.held = state.held;
+            st.skipped = state.skipped;
             st.epoch = 2;
             session.publish(&st);
         }

@@ -309,6 +309,8 @@ fn restore(state: &AppState, resume: &pb::ResumeSession) -> Result<Attachment, S
         hidden: portable.hidden.into_boxed_slice(),
         lengths: portable.lengths,
         window: portable.window.map(|w| w.frames),
+        held: portable.held,
+        skipped: portable.skipped,
     };
     let attachment = state
         .store
@@ -333,7 +335,7 @@ fn seal(state: &AppState, session: &Session, copy: StateCopy) -> Option<(Vec<u8>
     } else {
         None
     };
-    let frames_seen = copy.lengths.count();
+    let frames_seen = copy.frames_seen();
     let portable = PortableState::new(
         session.id(),
         weights,
@@ -438,11 +440,12 @@ fn submit(state: &AppState, a: &Attachment, token_every: u64, frame: pb::Frame) 
     // A lifting session's frame carries keypoints only; its pose comes
     // from the batcher.
     let valid = if config.lifting() {
-        validate::keypoints_frame(&config.input, &frame).map(|input| (input, None))
+        validate::keypoints_frame(&config.input, &frame)
+            .map(|(input, present)| (input, present, None))
     } else {
-        validate::frame(&config.input, &frame).map(|v| (v.input, Some(v.pose)))
+        validate::frame(&config.input, &frame).map(|v| (v.input, v.present, Some(v.pose)))
     };
-    let (input, pose) = match valid {
+    let (input, present, pose) = match valid {
         Ok(v) => v,
         Err(e) => {
             return Pending::Ready(frame_error(
@@ -457,6 +460,7 @@ fn submit(state: &AppState, a: &Attachment, token_every: u64, frame: pb::Frame) 
         session: a.session.clone(),
         epoch: a.epoch,
         input,
+        present,
         lift: pose.is_none(),
         state_every: token_every,
         reply,
@@ -565,14 +569,17 @@ fn step_response(
             )
         }
     };
-    match bones::adjust_pose(&pose, &output.lengths) {
+    // No estimate yet (a first frame without a detected joint): the pose
+    // as it is, with its own lengths.
+    let lengths = output.lengths.unwrap_or_else(|| bones::bone_lengths(&pose));
+    match bones::adjust_pose(&pose, &lengths) {
         Ok(adjusted) => {
             metrics::frame_ok(received.elapsed());
             pb::StreamResponse {
                 kind: Some(Resp::Frame(pb::AdjustedFrame {
                     frame_index,
                     adjusted_pose_3d: adjusted.iter().flatten().copied().collect(),
-                    bone_lengths: output.lengths.to_vec(),
+                    bone_lengths: lengths.to_vec(),
                     frames_seen: output.frames_seen,
                     lifter: if lifted.is_some() {
                         lifter.to_string()

@@ -14,7 +14,7 @@
 //! lifter's) so that a replica with other weights refuses it instead of
 //! continuing a state its model never produced.
 //!
-//! # Layout (version 1)
+//! # Layout (version 2)
 //!
 //! A simple explicit binary layout, all integers and floats little-endian,
 //! rather than a private protobuf message: the token is dominated by 1,024
@@ -27,17 +27,21 @@
 //! ```text
 //! offset size  field
 //! 0      4     magic "BLPT"
-//! 4      1     version (1)
+//! 4      1     version (2)
 //! 5      1     flags: bit 0 camera calibration present, bit 1 lifter window present
 //! 6      16    session id
 //! 22     32    SHA-256 of the session family's online GRU weights
-//! 54     8     frames seen (u64) = the running mean's count
+//! 54     8     frames the model read (u64) = the running mean's count
 //! 62     1     keypoint layout (1 H36M-17, 2 SH-16, 3 COCO-17)
 //! 63     1     coordinates (0 normalized, 1 pixels)
 //! 64     4+4   image width, height (u32; 0 when normalized)
 //! 72     1+n   client label (length byte, UTF-8)
 //! ..     128   running sums of the 16 bone-length predictions (f64)
 //! ..     4+4h  hidden-state length h (u32) and the hidden state (f32)
+//! ..     8     frames answered without a detected joint (u64); frames seen
+//!              = this + the running mean's count
+//! ..     4+136 joints seen so far (u32, bit j = joint j), then each joint's
+//!              last detected position (17 x 2 f32; 0 for joints not seen)
 //! [camera] 2+c length (u16) and the prost encoding of the CameraCalibration
 //! [lifter] 32  SHA-256 of the lifter weights
 //!          2+2 receptive field, frames held w (u16 each)
@@ -45,8 +49,9 @@
 //! end-32 32    HMAC-SHA256(session key, every byte before it)
 //! ```
 //!
-//! A session without a camera or lifter gives a 4,333-byte token (plus its
-//! label); the hidden state is 4,096 of them. The magic and the version are
+//! A session without a camera or lifter gives a 4,481-byte token (plus its
+//! label); the hidden state is 4,096 of them. Version 1 (before missing
+//! joints were held) lacked the two missing-joint fields. The magic and the version are
 //! read before the MAC is checked (a later version may authenticate
 //! differently); everything else is read only from authenticated bytes.
 //! Tokens do not expire: the TTL governs a replica's memory, not the token.
@@ -56,6 +61,7 @@
 //! (`Mac::verify_slice`).
 
 use blapose_core::layouts::{Coordinates, KeypointLayout};
+use blapose_core::missing::HeldJoints;
 use blapose_core::{Keypoints2d, NUM_BONES, NUM_JOINTS};
 use blapose_proto::v1 as pb;
 use hmac::Mac;
@@ -65,7 +71,7 @@ use sha2::{Digest, Sha256};
 use crate::session::{InputSpec, RunningLengths, SessionId, StateCopy, STATE_DIM};
 
 /// The token format this server writes and reads.
-pub const TOKEN_VERSION: u8 = 1;
+pub const TOKEN_VERSION: u8 = 2;
 /// First bytes of every token.
 pub const MAGIC: [u8; 4] = *b"BLPT";
 /// Bytes of the MAC at the end of a token.
@@ -252,12 +258,16 @@ pub struct PortableState {
     pub lengths: RunningLengths,
     /// The lifter's window, for a lifting session.
     pub window: Option<PortableWindow>,
+    /// Each joint's last detected position.
+    pub held: HeldJoints,
+    /// Frames answered without a detected joint.
+    pub skipped: u64,
 }
 
 impl PortableState {
     /// Frames processed in this state.
     pub fn frames_seen(&self) -> u64 {
-        self.lengths.count()
+        self.lengths.count() + self.skipped
     }
 
     /// Assemble from a session's parts and a copy of its state.
@@ -287,6 +297,8 @@ impl PortableState {
             hidden: state.hidden.into_vec(),
             lengths: state.lengths,
             window,
+            held: state.held,
+            skipped: state.skipped,
         }
     }
 
@@ -294,7 +306,7 @@ impl PortableState {
     pub fn seal(&self, key: &SessionKey) -> Vec<u8> {
         let camera = self.camera.as_ref().map(|c| c.encode_to_vec());
         let mut out = Vec::with_capacity(
-            4400 + camera.as_ref().map_or(0, Vec::len)
+            4550 + camera.as_ref().map_or(0, Vec::len)
                 + self
                     .window
                     .as_ref()
@@ -339,6 +351,20 @@ impl PortableState {
         out.extend_from_slice(&(self.hidden.len() as u32).to_le_bytes());
         for v in &self.hidden {
             out.extend_from_slice(&v.to_le_bytes());
+        }
+        out.extend_from_slice(&self.skipped.to_le_bytes());
+        let seen = self
+            .held
+            .last()
+            .iter()
+            .enumerate()
+            .filter(|(_, p)| p.is_some())
+            .fold(0u32, |m, (j, _)| m | 1 << j);
+        out.extend_from_slice(&seen.to_le_bytes());
+        for p in self.held.last() {
+            for v in p.unwrap_or([0.0; 2]) {
+                out.extend_from_slice(&v.to_le_bytes());
+            }
         }
         if let Some(camera) = &camera {
             out.extend_from_slice(&(camera.len().min(u16::MAX as usize) as u16).to_le_bytes());
@@ -469,6 +495,17 @@ fn decode_body(body: &[u8]) -> Result<PortableState, TokenError> {
         )));
     }
     let hidden = r.f32s(hidden_len, "the hidden state")?;
+    let skipped = r.u64("the frames without a detected joint")?;
+    let seen = r.u32("the joints seen")?;
+    if seen >> NUM_JOINTS != 0 {
+        return Err(bad(format!(
+            "joints seen {seen:#x} beyond joint {NUM_JOINTS}"
+        )));
+    }
+    let positions = r.f32s(FRAME_FLOATS, "the held joints")?;
+    let held = HeldJoints::from_last(std::array::from_fn(|j| {
+        (seen >> j & 1 == 1).then(|| [positions[2 * j], positions[2 * j + 1]])
+    }));
     let camera = if flags & FLAG_CAMERA != 0 {
         let n = usize::from(r.u16("the camera length")?);
         let bytes = r.take(n, "the camera")?;
@@ -516,6 +553,8 @@ fn decode_body(body: &[u8]) -> Result<PortableState, TokenError> {
         hidden,
         lengths: RunningLengths::from_parts(sum, count),
         window,
+        held,
+        skipped,
     })
 }
 
@@ -562,6 +601,10 @@ mod tests {
                     .map(|f| [[f as f32 * 0.1, -0.5]; NUM_JOINTS])
                     .collect(),
             }),
+            held: HeldJoints::from_last(std::array::from_fn(|j| {
+                (j % 3 != 1).then_some([j as f32 * 0.05, -0.25 - j as f32 * 0.01])
+            })),
+            skipped: 2,
         }
     }
 
@@ -595,14 +638,15 @@ mod tests {
             let token = s.seal(&key(1));
             let back = PortableState::open(&token, &key(1)).unwrap();
             assert_eq!(back, s);
-            assert_eq!(back.frames_seen(), 7);
+            assert_eq!(back.frames_seen(), 7 + 2, "read and skipped frames");
+            assert_eq!(back.held, s.held, "joints seen and not seen");
             let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
             assert_eq!(bits(&back.hidden), bits(&s.hidden));
             assert_eq!(back.lengths.sum(), s.lengths.sum());
         }
         let plain = state(false, false).seal(&key(1));
-        // 4,333 bytes + the label's 6.
-        assert_eq!(plain.len(), 4333 + 6, "token size");
+        // 4,481 bytes + the label's 6.
+        assert_eq!(plain.len(), 4481 + 6, "token size");
     }
 
     #[test]
@@ -634,14 +678,15 @@ mod tests {
                 }
             }
         }
-        let mut v2 = good.clone();
-        v2[4] = 2;
+        // A version-1 token (before missing joints were held) is refused.
+        let mut v1 = good.clone();
+        v1[4] = 1;
         assert_eq!(
-            PortableState::open(&v2, &key(1)),
-            Err(TokenError::Version { found: 2 })
+            PortableState::open(&v1, &key(1)),
+            Err(TokenError::Version { found: 1 })
         );
         assert_eq!(
-            TokenError::Version { found: 2 }.to_status().code(),
+            TokenError::Version { found: 1 }.to_status().code(),
             tonic::Code::FailedPrecondition
         );
         assert_eq!(

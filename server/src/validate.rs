@@ -146,6 +146,9 @@ pub enum InvalidInput {
     /// `num_frames` is zero.
     #[error("num_frames must be >= 1")]
     NoFrames,
+    /// A lifting session's frame has no detected joint: nothing to lift.
+    #[error("every joint is missing (confidence below {MISSING_CONFIDENCE}): a server_lifter session has nothing to lift; the session is unchanged")]
+    NothingToLift,
     /// Every joint of every frame has a confidence below
     /// [`MISSING_CONFIDENCE`]: there is nothing to read.
     #[error("every joint of every frame is missing (confidence below {MISSING_CONFIDENCE}): nothing to read")]
@@ -364,20 +367,20 @@ pub fn offline_model(value: i32) -> Result<OfflineModel, InvalidInput> {
     }
 }
 
-/// In `AdjustSequence`, a joint whose detector confidence is below this is
-/// *missing*: its coordinates are not read (any value, NaN included), and
-/// the models read it held at its last detection in the sequence (before
-/// its first detection: at that one; never detected: at the frame's
-/// centroid of detected joints), [`blapose_core::missing`]. Measured with
+/// A joint whose detector confidence is below this is *missing*: its
+/// coordinates are not read (any value, NaN included), and the models read
+/// it held at its last detection ([`blapose_core::missing`]: in a session,
+/// before its first detection at the centroid of the frame's detected
+/// joints; in `AdjustSequence`, at its first detection). Measured with
 /// `blapose eval --drop-joints 0.2`: holding costs nothing measurable where
 /// garbage fed as is costs the Bi-GRU 1.6 mm (models/README.md).
 pub const MISSING_CONFIDENCE: f32 = 0.1;
 
-/// One `AdjustSequence` frame's model input and which of its Human3.6M
-/// joints were detected (confidence at least [`MISSING_CONFIDENCE`]; all,
-/// without confidences). Missing joints' coordinates are not validated;
-/// they are placeholders for [`hold_fill_sequence`] to replace.
-fn sequence_frame_input(
+/// One frame's model input and which of its Human3.6M joints were detected
+/// (confidence at least [`MISSING_CONFIDENCE`]; all, without confidences).
+/// Missing joints' coordinates are not validated; they are placeholders
+/// for the hold to replace.
+fn detected_input(
     spec: &InputSpec,
     keypoints: &[f32],
     confidence: &[f32],
@@ -519,33 +522,42 @@ pub fn pose(values: &[f32]) -> Result<Pose, InvalidInput> {
 /// A validated frame.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ValidFrame {
-    /// Model input.
+    /// Model input (missing joints: placeholders).
     pub input: [f32; INPUT_DIM],
+    /// Which Human3.6M joints were detected.
+    pub present: [bool; NUM_JOINTS],
     /// Pose to adjust.
     pub pose: Pose,
 }
 
 /// Validate a streamed frame.
 pub fn frame(spec: &InputSpec, frame: &pb::Frame) -> Result<ValidFrame, InvalidInput> {
+    let (input, present) = detected_input(spec, &frame.keypoints_2d, &frame.confidence)?;
     Ok(ValidFrame {
-        input: model_input(spec, &frame.keypoints_2d, &frame.confidence)?,
+        input,
+        present,
         pose: pose(&frame.pose_3d)?,
     })
 }
 
 /// Validate a streamed frame of a session whose poses the server lifts:
-/// `pose_3d` must be empty; the keypoints become the model's (and the
-/// lifter's) input.
+/// `pose_3d` must be empty, and some joint detected (there is nothing to
+/// lift otherwise); the keypoints become the model's (and the lifter's)
+/// input, with which joints were detected.
 pub fn keypoints_frame(
     spec: &InputSpec,
     frame: &pb::Frame,
-) -> Result<[f32; INPUT_DIM], InvalidInput> {
+) -> Result<([f32; INPUT_DIM], [bool; NUM_JOINTS]), InvalidInput> {
     if !frame.pose_3d.is_empty() {
         return Err(InvalidInput::PoseInLiftingSession {
             got: frame.pose_3d.len(),
         });
     }
-    model_input(spec, &frame.keypoints_2d, &frame.confidence)
+    let (input, present) = detected_input(spec, &frame.keypoints_2d, &frame.confidence)?;
+    if !present.contains(&true) {
+        return Err(InvalidInput::NothingToLift);
+    }
+    Ok((input, present))
 }
 
 /// Check a pose the server lifter produced as a client's pose is checked
@@ -615,7 +627,7 @@ pub fn sequence(
         } else {
             &req.confidence[t * joints..(t + 1) * joints]
         };
-        let (input, detected) = sequence_frame_input(&spec, kp, conf).map_err(in_frame)?;
+        let (input, detected) = detected_input(&spec, kp, conf).map_err(in_frame)?;
         inputs.extend_from_slice(&input);
         present.extend_from_slice(&detected);
         poses.push(pose(&req.poses_3d[t * POSE_VALUES..(t + 1) * POSE_VALUES]).map_err(in_frame)?);
@@ -878,9 +890,19 @@ mod tests {
         };
         assert_eq!(
             keypoints_frame(&s, &f),
-            model_input(&s, &kp, &[]),
+            model_input(&s, &kp, &[]).map(|input| (input, [true; NUM_JOINTS])),
             "the same input as a client-pose frame"
         );
+        // Nothing detected: nothing to lift (the session is unchanged).
+        f.confidence = vec![0.0; 17];
+        assert_eq!(keypoints_frame(&s, &f), Err(InvalidInput::NothingToLift));
+        f.confidence = vec![1.0; 17];
+        f.confidence[0] = 0.0;
+        f.keypoints_2d[0] = f32::NAN;
+        let (_, present) = keypoints_frame(&s, &f).unwrap();
+        assert!(!present[JOINT_NAMES.iter().position(|n| *n == "neck_nose").unwrap()]);
+        f.keypoints_2d[0] = kp[0];
+        f.confidence.clear();
         f.pose_3d = standing_pose();
         let err = keypoints_frame(&s, &f).unwrap_err();
         assert_eq!(err, InvalidInput::PoseInLiftingSession { got: 51 });

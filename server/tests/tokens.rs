@@ -2,8 +2,11 @@
 //! embedded models: a session taken at frame k on one server and resumed
 //! from its token on a second server with the same key continues exactly,
 //! every answer equal BIT FOR BIT to an uninterrupted run's on one server
-//! (default, camera-aware and server-lifter sessions); and every bad token
-//! is refused with the documented status, no server needed beyond it.
+//! (default, camera-aware and server-lifter sessions, their frames losing
+//! joints as a detector does, so the held joints travel too); and every
+//! bad token is refused with the documented status, no server needed
+//! beyond it. Missing joints themselves: their coordinates are never read,
+//! and a frame without a detected joint changes nothing but the count.
 
 use std::path::PathBuf;
 use std::time::Duration;
@@ -82,18 +85,40 @@ fn pose(t: u64) -> [[f32; 3]; 17] {
     })
 }
 
-fn frame(t: u64, lifting: bool) -> pb::StreamRequest {
+/// Frame `t`, with a detector's gaps: every third frame loses one joint
+/// (confidence 0), and a client-pose session's frames 5 and 35 lose every
+/// joint ([`NO_JOINT`]); a lost joint's coordinates are garbage drawn
+/// from `garbage` (NaN for odd seeds).
+fn frame_with(t: u64, lifting: bool, garbage: u64) -> pb::StreamRequest {
     let p = pose(t);
     // Pixels of a 1000 x 1000 image, focal length 1150, centred.
-    let keypoints = p
+    let mut keypoints: Vec<f32> = p
         .iter()
         .flat_map(|[x, y, z]| [1150.0 * x / z + 500.0, 1150.0 * y / z + 500.0])
         .collect();
+    let mut confidence = vec![0.9; 17];
+    if t.is_multiple_of(3) {
+        confidence[(t as usize * 7) % 17] = 0.0;
+    }
+    if !lifting && NO_JOINT.contains(&t) {
+        confidence = vec![0.05; 17];
+    }
+    for (j, &c) in confidence.iter().enumerate() {
+        if c < 0.1 {
+            let g = if garbage % 2 == 1 {
+                f32::NAN
+            } else {
+                (garbage as f32 * 37.0 + j as f32 * 11.0) % 1000.0
+            };
+            keypoints[2 * j] = g;
+            keypoints[2 * j + 1] = -g;
+        }
+    }
     pb::StreamRequest {
         kind: Some(Req::Frame(pb::Frame {
             frame_index: t,
             keypoints_2d: keypoints,
-            confidence: vec![],
+            confidence,
             pose_3d: if lifting {
                 vec![]
             } else {
@@ -101,6 +126,13 @@ fn frame(t: u64, lifting: bool) -> pb::StreamRequest {
             },
         })),
     }
+}
+
+/// Frames of a client-pose session without a detected joint.
+const NO_JOINT: [u64; 2] = [5, 35];
+
+fn frame(t: u64, lifting: bool) -> pb::StreamRequest {
+    frame_with(t, lifting, 0)
 }
 
 fn calibration() -> pb::CameraCalibration {
@@ -384,12 +416,12 @@ async fn bad_tokens_are_refused_with_a_status_naming_the_problem() {
     // Not a token at all.
     let s = status_of(&mut b, resume(&id, b"hello")).await;
     assert_eq!(s.code(), Code::InvalidArgument, "{s:?}");
-    // Another version.
-    let mut v2 = token.clone();
-    v2[4] = 2;
-    let s = status_of(&mut b, resume(&id, &v2)).await;
+    // Another version (1: before missing joints were held).
+    let mut v1 = token.clone();
+    v1[4] = 1;
+    let s = status_of(&mut b, resume(&id, &v1)).await;
     assert_eq!(s.code(), Code::FailedPrecondition, "{s:?}");
-    assert!(s.message().contains("version 2"), "{}", s.message());
+    assert!(s.message().contains("version 1"), "{}", s.message());
     // Another session's id.
     let other = "0123456789abcdef0123456789abcdef";
     let s = status_of(&mut b, resume(other, &token)).await;
@@ -502,4 +534,66 @@ async fn a_draining_server_sends_each_stream_a_final_token() {
         }
         other => panic!("the last message before the status is not a token: {other:?}"),
     }
+}
+
+/// A lost joint's coordinates are never read (two kinds of garbage, NaN
+/// among them, give the same answers bit for bit), and a frame without a
+/// detected joint changes nothing but the frame count: it is answered with
+/// the estimate as it stood, and the session goes on exactly as if it had
+/// not been sent.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn missing_joints_are_not_read_and_empty_frames_change_nothing() {
+    let (server, mut client) = start(config(None)).await;
+    let run = |frames: Vec<pb::StreamRequest>| {
+        let mut requests = vec![open(Kind::Plain)];
+        requests.extend(frames);
+        requests
+    };
+    let (a, end) = exchange(
+        &mut client,
+        run((0..N).map(|t| frame_with(t, false, 2)).collect()),
+    )
+    .await;
+    end.unwrap();
+    let (b, end) = exchange(
+        &mut client,
+        run((0..N).map(|t| frame_with(t, false, 7)).collect()),
+    )
+    .await;
+    end.unwrap();
+    let (a, b) = (frames(&a), frames(&b));
+    assert_eq!(a.len() as u64, N);
+    for (x, y) in a.iter().zip(&b) {
+        assert_same_frame(x, y);
+    }
+    // Without the empty frames: the same session, two frames fewer.
+    let kept: Vec<u64> = (0..N).filter(|t| !NO_JOINT.contains(t)).collect();
+    let (c, end) = exchange(
+        &mut client,
+        run(kept.iter().map(|&t| frame_with(t, false, 2)).collect()),
+    )
+    .await;
+    end.unwrap();
+    let c = frames(&c);
+    for (x, &t) in c.iter().zip(&kept) {
+        let y = a[t as usize];
+        let before = NO_JOINT.iter().filter(|&&e| e < t).count() as u64;
+        assert_eq!(x.frames_seen + before, y.frames_seen, "frame {t}");
+        assert_eq!(bits(&x.bone_lengths), bits(&y.bone_lengths), "frame {t}");
+        assert_eq!(
+            bits(&x.adjusted_pose_3d),
+            bits(&y.adjusted_pose_3d),
+            "frame {t}"
+        );
+    }
+    for &e in &NO_JOINT {
+        let (empty, prev) = (a[e as usize], a[e as usize - 1]);
+        assert_eq!(empty.frames_seen, e + 1, "an empty frame counts");
+        assert_eq!(
+            bits(&empty.bone_lengths),
+            bits(&prev.bone_lengths),
+            "frame {e}: the estimate as it stood"
+        );
+    }
+    server.shutdown().await.unwrap();
 }

@@ -84,8 +84,9 @@ fn centroid(frame: &[f32], present: &[bool]) -> Option<[f32; 2]> {
 }
 
 /// The online form of [`hold_fill_sequence`]: each joint's last detected
-/// position, carried from frame to frame of one stream.
-#[derive(Debug, Clone, PartialEq)]
+/// position, carried from frame to frame of one stream (a session's state:
+/// session tokens carry it).
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct HeldJoints {
     last: [Option<[f32; 2]>; NUM_JOINTS],
 }
@@ -99,24 +100,37 @@ impl Default for HeldJoints {
 }
 
 impl HeldJoints {
-    /// Fill the missing joints of `frame` (34 values) in place and
-    /// remember the detected ones. `false` when no joint was detected: the
-    /// frame carries nothing new (the caller should leave its estimate
-    /// unchanged) and is left as it was.
-    pub fn fill(&mut self, frame: &mut [f32; FRAME], present: &[bool; NUM_JOINTS]) -> bool {
+    /// From each joint's last detected position (`None`: not yet seen).
+    pub fn from_last(last: [Option<[f32; 2]>; NUM_JOINTS]) -> Self {
+        Self { last }
+    }
+
+    /// Each joint's last detected position (`None`: not yet seen).
+    pub fn last(&self) -> &[Option<[f32; 2]>; NUM_JOINTS] {
+        &self.last
+    }
+
+    /// Fill the missing joints of `frame` (34 values) in place: held at
+    /// their last detection, or at the centroid of this frame's detected
+    /// joints if never seen. `false` when no joint was detected: the frame
+    /// carries nothing to read, and is left as it was. Changes nothing
+    /// here (see [`Self::remember`]).
+    pub fn fill(&self, frame: &mut [f32; FRAME], present: &[bool; NUM_JOINTS]) -> bool {
         let Some(c) = centroid(frame, present) else {
             return false;
         };
-        for j in 0..NUM_JOINTS {
-            let xy = &mut frame[2 * j..2 * j + 2];
-            if present[j] {
-                self.last[j] = Some([xy[0], xy[1]]);
-            } else {
-                let held = self.last[j].unwrap_or(c);
-                xy.copy_from_slice(&held);
-            }
+        for j in (0..NUM_JOINTS).filter(|&j| !present[j]) {
+            let held = self.last[j].unwrap_or(c);
+            frame[2 * j..2 * j + 2].copy_from_slice(&held);
         }
         true
+    }
+
+    /// Remember the detected joints of `frame` (once it was read).
+    pub fn remember(&mut self, frame: &[f32; FRAME], present: &[bool; NUM_JOINTS]) {
+        for j in (0..NUM_JOINTS).filter(|&j| present[j]) {
+            self.last[j] = Some([frame[2 * j], frame[2 * j + 1]]);
+        }
     }
 }
 
@@ -176,15 +190,26 @@ mod tests {
     #[test]
     fn online_holding_matches_and_an_empty_frame_is_reported() {
         let mut held = HeldJoints::default();
-        let mut f0: [f32; FRAME] = std::array::from_fn(|i| i as f32);
-        assert!(held.fill(&mut f0, &[true; NUM_JOINTS]));
-        let mut f1: [f32; FRAME] = std::array::from_fn(|i| 1000.0 + i as f32);
         let mut present = [true; NUM_JOINTS];
         present[4] = false;
+        // Never seen yet: the centroid of the detected joints.
+        let mut f0: [f32; FRAME] = std::array::from_fn(|i| i as f32);
+        assert!(held.fill(&mut f0, &present));
+        let cx = (0..NUM_JOINTS)
+            .filter(|&j| j != 4)
+            .map(|j| 2.0 * j as f32)
+            .sum::<f32>()
+            / 16.0;
+        assert!((f0[8] - cx).abs() < 1e-4);
+        held.remember(&f0, &[true; NUM_JOINTS]);
+        let mut f1: [f32; FRAME] = std::array::from_fn(|i| 1000.0 + i as f32);
         assert!(held.fill(&mut f1, &present));
-        assert_eq!(&f1[8..10], &[8.0, 9.0], "joint 4 held from frame 0");
+        assert_eq!(&f1[8..10], &f0[8..10], "joint 4 held from frame 0");
+        assert_eq!(f1[10], 1010.0, "detected joints untouched");
         let mut f2 = [7.0; FRAME];
         assert!(!held.fill(&mut f2, &[false; NUM_JOINTS]));
         assert_eq!(f2, [7.0; FRAME], "an empty frame is left alone");
+        let copy = HeldJoints::from_last(*held.last());
+        assert_eq!(copy, held);
     }
 }

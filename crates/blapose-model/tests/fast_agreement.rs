@@ -144,6 +144,42 @@ fn every_isa_and_thread_count_agrees_with_scalar() {
     assert!(tested >= 3);
 }
 
+/// A step's bits depend on its inputs and state only: not on the thread
+/// count, nor on the order the panels ran in (it alternates between
+/// steps), nor on how many steps the scratch has seen. A session restored
+/// from a token on another replica therefore continues bit for bit.
+#[test]
+fn a_step_is_bit_exact_whatever_the_threads_and_the_step_parity() {
+    candle_single_threaded();
+    let weights = LoadedWeights::random(ModelKind::Gru, 5).unwrap();
+    let frames = random_frames(3, 7);
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    let mut answers = Vec::new();
+    for threads in [1, 2] {
+        let engine = OnlineGruEngine::new(&weights, threads).unwrap();
+        for warm_steps in [0, 1] {
+            let mut scratch = engine.scratch(1);
+            let mut y = vec![0.0; OUTPUT_DIM];
+            let mut junk = vec![0.0; STATE_DIM];
+            for _ in 0..warm_steps {
+                engine
+                    .step(&frames[..INPUT_DIM], &mut junk, &mut y, &mut scratch)
+                    .unwrap();
+            }
+            let mut hidden = vec![0.0; STATE_DIM];
+            let mut outs = Vec::new();
+            for t in 0..3 {
+                let x = &frames[t * INPUT_DIM..(t + 1) * INPUT_DIM];
+                engine.step(x, &mut hidden, &mut y, &mut scratch).unwrap();
+                outs.extend(bits(&y));
+            }
+            outs.extend(bits(&hidden));
+            answers.push(outs);
+        }
+    }
+    assert!(answers.windows(2).all(|w| w[0] == w[1]));
+}
+
 #[test]
 fn unavailable_or_mismatched_configs_are_refused() {
     candle_single_threaded();

@@ -19,9 +19,13 @@
 //!    per AVX2 tile, re-streaming the whole panel from L2 for every tile
 //!    made large batches L2-bandwidth bound;
 //! 4. each thread checks its new states for non-finite values (absurd
-//!    inputs can overflow) while they are in cache; the output shares are
-//!    summed, and only if everything is finite are the states copied over
-//!    the caller's and the outputs written.
+//!    inputs can overflow) while they are in cache; each panel's share of
+//!    the outputs is kept apart and the shares are summed in panel order,
+//!    so a step's result does not depend on the thread count or on the
+//!    order panels ran in (below): a session restored on another replica,
+//!    or sharing a batch differently, gets the same bits. Only if
+//!    everything is finite are the states copied over the caller's and the
+//!    outputs written.
 //!
 //! At batch 1 the step is bound by streaming the 9.4 MB of f32 weights from
 //! L3, so the panel order alternates between calls: the panels used last
@@ -90,7 +94,7 @@ impl StepScratch {
             embedded: vec![0.0; batch * EMBED_DIM],
             packed: vec![0.0; 2 * batch * (EMBED_DIM + HIDDEN)],
             new_state: AlignedBuf::zeros(ITEMS * batch * LANES),
-            partial_out: vec![0.0; threads * batch * OUTPUT_DIM],
+            partial_out: vec![0.0; ITEMS * batch * OUTPUT_DIM],
             block_acc: AlignedBuf::zeros(threads * batch * BLOCK_ACC),
             block_wbuf: AlignedBuf::zeros(threads * BLOCK_WBUF),
             reverse: false,
@@ -116,7 +120,7 @@ impl StepScratch {
 struct ThreadBufs<'a> {
     /// New states of the group's panels, `[panel][row][16]`.
     new_state: &'a mut [f32],
-    /// Per thread: output share, `batch x 16`.
+    /// Per panel: output share, `batch x 16`.
     partial: &'a mut [f32],
     /// Per thread: blocked-kernel partial sums.
     acc: &'a mut [f32],
@@ -129,7 +133,7 @@ impl<'a> ThreadBufs<'a> {
     /// and of the rest.
     fn split(self, panels: usize, threads: usize, batch: usize) -> (Self, Self) {
         let (s_l, s_r) = self.new_state.split_at_mut(panels * batch * LANES);
-        let (p_l, p_r) = self.partial.split_at_mut(threads * batch * OUTPUT_DIM);
+        let (p_l, p_r) = self.partial.split_at_mut(panels * batch * OUTPUT_DIM);
         let (a_l, a_r) = self.acc.split_at_mut(threads * batch * BLOCK_ACC);
         let (w_l, w_r) = self.wbuf.split_at_mut(threads * BLOCK_WBUF);
         (
@@ -319,17 +323,18 @@ impl OnlineGruEngine {
         };
         let bufs = ThreadBufs {
             new_state: &mut scratch.new_state.as_mut_slice()[..ITEMS * batch * LANES],
-            partial: &mut scratch.partial_out[..self.threads * batch * OUTPUT_DIM],
+            partial: &mut scratch.partial_out[..ITEMS * batch * OUTPUT_DIM],
             acc: &mut scratch.block_acc.as_mut_slice()[..self.threads * batch * BLOCK_ACC],
             wbuf: &mut scratch.block_wbuf.as_mut_slice()[..self.threads * BLOCK_WBUF],
         };
         let states_ok = self.run_items(0..ITEMS, bufs, self.threads, &ctx);
 
-        // Commit only if every new state and output is finite. The output
-        // shares are summed into thread 0's share (scratch), not `out`.
+        // Commit only if every new state and output is finite. The panels'
+        // output shares are summed, in panel order, into panel 0's share
+        // (scratch), not `out`.
         let new_state = &scratch.new_state.as_slice()[..ITEMS * batch * LANES];
-        let (y, others) = scratch.partial_out[..self.threads * batch * OUTPUT_DIM]
-            .split_at_mut(batch * OUTPUT_DIM);
+        let (y, others) =
+            scratch.partial_out[..ITEMS * batch * OUTPUT_DIM].split_at_mut(batch * OUTPUT_DIM);
         for share in others.chunks_exact(batch * OUTPUT_DIM) {
             for (yo, p) in y.iter_mut().zip(share) {
                 *yo += p;
@@ -403,9 +408,8 @@ impl OnlineGruEngine {
         } = bufs;
         let acc = &mut acc[..batch * BLOCK_ACC];
         let wbuf = &mut wbuf[..BLOCK_WBUF];
-        let y = &mut partial[..batch * OUTPUT_DIM];
-        y.fill(0.0);
         assert_eq!(new_state.len(), items.len() * batch * LANES);
+        assert_eq!(partial.len(), items.len() * batch * OUTPUT_DIM);
         assert!(ctx
             .packed
             .iter()
@@ -416,6 +420,9 @@ impl OnlineGruEngine {
             let (g, p) = (i / PANELS, i % PANELS);
             let gru = &self.grus[g];
             let out = &mut new_state[(i - first) * batch * LANES..(i - first + 1) * batch * LANES];
+            let y = &mut partial
+                [(i - first) * batch * OUTPUT_DIM..(i - first + 1) * batch * OUTPUT_DIM];
+            y.fill(0.0);
             let args = TileArgs {
                 w: gru.panel_ptr(p),
                 half: gru.is_half(),
