@@ -464,7 +464,7 @@ pub struct SessionInfo {
 /// sharing the key, or the same server after a restart).
 #[derive(Clone, PartialEq, Eq)]
 pub struct SessionToken {
-    /// The opaque bytes (about 4.3 kB).
+    /// The opaque bytes (about 4.5 kB).
     pub token: Vec<u8>,
     /// Frames processed in the state it holds.
     pub frames_seen: u64,

@@ -293,7 +293,7 @@ class SessionToken:
         session_id: the session it belongs to.
         frames_seen: frames processed in the state it holds; a session restored
             from it continues with this frame.
-        token: the opaque bytes (about 4.3 kB).
+        token: the opaque bytes (about 4.5 kB).
     """
 
     session_id: str
