@@ -12,6 +12,7 @@ use blapose_core::skeleton::{BONE_NAMES, JOINT_NAMES};
 use blapose_proto::v1 as pb;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
+use tokio_stream::{Stream, StreamExt};
 use tokio_util::sync::CancellationToken;
 use tonic::{Request, Response, Status, Streaming};
 
@@ -20,7 +21,7 @@ use crate::metrics;
 use crate::models::{CameraReading, LoadedLifter, ModelProvider};
 use crate::offline::OfflineRunner;
 use crate::session::SessionStore;
-use crate::stream::{self, session_status, Outbound};
+use crate::stream::{self, session_status};
 use crate::token::{self, SessionKey};
 use crate::validate;
 
@@ -141,9 +142,13 @@ fn fail<T>(status: Status, rpc: &'static str) -> Result<T, Status> {
     Err(status)
 }
 
+/// A stream's responses, unboxed from the channel ([`stream::Outbound`]).
+pub type ResponseStream =
+    std::pin::Pin<Box<dyn Stream<Item = Result<pb::StreamResponse, Status>> + Send>>;
+
 #[tonic::async_trait]
 impl pb::pose_adjustment_server::PoseAdjustment for PoseService {
-    type StreamStream = ReceiverStream<Outbound>;
+    type StreamStream = ResponseStream;
 
     async fn stream(
         &self,
@@ -154,7 +159,9 @@ impl pb::pose_adjustment_server::PoseAdjustment for PoseService {
         // the channel while the stream task is still reading.
         let (tx, rx) = mpsc::channel(self.state.max_inflight_per_stream.max(1) + 2);
         tokio::spawn(stream::run(self.state.clone(), inbound, tx));
-        Ok(Response::new(ReceiverStream::new(rx)))
+        Ok(Response::new(Box::pin(
+            ReceiverStream::new(rx).map(|r| r.map(|response| *response)),
+        )))
     }
 
     async fn close_session(
