@@ -10,7 +10,7 @@
 //! | `image_size`   | `(2,)`      | `[width, height]` in pixels (positive integers)  |
 //! | `layout`       | `()`/`(1,)` | optional keypoint layout code, see below         |
 //! | `gt_3d`        | `(T, 17, 3)`| optional ground truth, same frame as `pose_3d`   |
-//! | `confidence`   | `(T, J)`    | optional per-joint detector confidence (>= 0)    |
+//! | `confidence`   | `(T, J)`    | optional per-joint detector confidence (>= 0); below 0.1 a joint is missing and its keypoint not read (NaN allowed) |
 //! | `fps`          | `()`/`(1,)` | optional frame rate of the recording             |
 //! | `camera_up`    | `(3,)`      | optional: world up in camera axes (x right, y down, z forward) |
 //! | `camera_focal` | `(2,)`      | optional: `[fx, fy]` focal lengths in pixels, > 0 |
@@ -44,6 +44,7 @@
 
 use std::path::{Path, PathBuf};
 
+use blapose_core::missing::MISSING_CONFIDENCE;
 use blapose_core::pose::poses_as_flat;
 use blapose_core::skeleton::{NUM_BONES, NUM_JOINTS};
 use blapose_core::{BoneLengths, Pose};
@@ -300,7 +301,20 @@ impl Sequence {
                 expected: t,
             });
         }
-        if let Some((frame, joint)) = first_non_finite(&self.keypoints_2d, j * 2, 2) {
+        // A missing joint's coordinates are not read (the server's rule),
+        // so any value, NaN included, is fine there.
+        let missing = |i: usize| {
+            self.confidence
+                .get(i / 2)
+                .is_some_and(|&c| c < MISSING_CONFIDENCE)
+        };
+        if let Some((frame, joint)) = self
+            .keypoints_2d
+            .iter()
+            .enumerate()
+            .position(|(i, v)| !v.is_finite() && !missing(i))
+            .map(|i| (i / (j * 2), (i % (j * 2)) / 2))
+        {
             return Err(SequenceError::NonFinite {
                 key: KEY_KEYPOINTS,
                 frame,
@@ -841,6 +855,12 @@ mod tests {
             ),
             "{e}"
         );
+        // The same NaN on a missing joint (confidence below 0.1) is fine:
+        // its keypoint is not read.
+        let mut c = vec![0.9; 34];
+        c[17 + 4] = 0.05;
+        n.insert(KEY_CONFIDENCE, Array::new(vec![2, 17], c).unwrap());
+        assert!(Sequence::from_npz(&n, None).is_ok());
         let mut n = npz(2, 17);
         let mut c = vec![0.5; 34];
         c[20] = -1.0;

@@ -367,14 +367,14 @@ pub fn offline_model(value: i32) -> Result<OfflineModel, InvalidInput> {
     }
 }
 
-/// A joint whose detector confidence is below this is *missing*: its
-/// coordinates are not read (any value, NaN included), and the models read
-/// it held at its last detection ([`blapose_core::missing`]: in a session,
-/// before its first detection at the centroid of the frame's detected
-/// joints; in `AdjustSequence`, at its first detection). Measured with
-/// `blapose eval --drop-joints 0.2`: holding costs nothing measurable where
-/// garbage fed as is costs the Bi-GRU 1.6 mm (models/README.md).
-pub const MISSING_CONFIDENCE: f32 = 0.1;
+/// Where a joint counts as missing: [`blapose_core::missing::MISSING_CONFIDENCE`]
+/// (its coordinates are not read; the models read it held at its last
+/// detection: in a session, before its first detection at the centroid of
+/// the frame's detected joints; in `AdjustSequence`, at its first
+/// detection). Measured with `blapose eval --drop-joints 0.2`: holding
+/// costs nothing measurable where garbage fed as is costs the Bi-GRU
+/// 1.6 mm (models/README.md).
+pub use blapose_core::missing::MISSING_CONFIDENCE;
 
 /// One frame's model input and which of its Human3.6M joints were detected
 /// (confidence at least [`MISSING_CONFIDENCE`]; all, without confidences).

@@ -14,6 +14,11 @@
 
 use crate::skeleton::NUM_JOINTS;
 
+/// A joint whose detector confidence is below this is *missing*: its
+/// coordinates are not read (any value, NaN included), and the models read
+/// it held (this module). The server and the clients share this one value.
+pub const MISSING_CONFIDENCE: f32 = 0.1;
+
 /// Values per frame.
 const FRAME: usize = NUM_JOINTS * 2;
 

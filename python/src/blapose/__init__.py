@@ -11,6 +11,7 @@ See :class:`Client`, :class:`Session`, :mod:`blapose.errors`, :mod:`blapose.aio`
 """
 
 from . import aio, report
+from ._common import MISSING_CONFIDENCE
 from .client import Client, Session
 from .errors import (
     Aborted,
@@ -53,6 +54,7 @@ from .types import (
 __version__ = "0.1.0"
 
 __all__ = [
+    "MISSING_CONFIDENCE",
     "aio",
     "report",
     "write_html",

@@ -94,6 +94,23 @@ def urls(url: "Union[str, Seq[str]]") -> List[str]:
     return out
 
 
+#: Below this detector confidence a joint is missing: the server does not read
+#: its keypoint (NaN is fine there) and the models hold it at its last detection.
+MISSING_CONFIDENCE = 0.1
+
+
+def _keypoints(values, confidence, shape: Tuple[int, ...]) -> np.ndarray:
+    """Keypoints of ``shape`` (..., J, 2); a missing joint's (confidence below
+    :data:`MISSING_CONFIDENCE`) may be anything, NaN included: it is sent as 0."""
+    a = np.array(values, dtype=np.float32)
+    if confidence is not None and a.size == int(np.prod(shape)):
+        c = np.asarray(confidence, dtype=np.float32)
+        if c.size * 2 == a.size:
+            a = a.reshape(-1, 2)
+            a[c.ravel() < MISSING_CONFIDENCE] = 0.0
+    return _array(a, shape, "keypoints")
+
+
 def _array(values, shape: Tuple[int, ...], what: str) -> np.ndarray:
     a = np.asarray(values, dtype=np.float32)
     if a.size != int(np.prod(shape)):
@@ -179,7 +196,7 @@ class SessionCore:
         frame_index: Optional[int] = None,
     ) -> PendingFrame:
         j = self.joints if self.joints > 0 else int(np.asarray(keypoints).size // 2)
-        kp = _array(keypoints, (j, 2), "keypoints")
+        kp = _keypoints(keypoints, confidence, (j, 2))
         frame = pb.Frame(keypoints_2d=kp.ravel().tolist())
         p = None
         if self.server_lifter:
@@ -353,7 +370,7 @@ def sequence_request(
     t = int(kp.shape[0]) if kp.ndim >= 1 else 0
     if joints < 0:
         joints = int(kp[0].size // 2) if t else 0
-    kp = _array(kp, (t, joints, 2), "keypoints")
+    kp = _keypoints(kp, confidence, (t, joints, 2))
     ps = _array(poses, (t, 17, 3), "poses")
     req = pb.AdjustSequenceRequest(
         input_format=input_format(value, image_size),

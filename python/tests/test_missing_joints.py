@@ -1,0 +1,55 @@
+"""Detector confidences: a joint below ``blapose.MISSING_CONFIDENCE`` is missing,
+its keypoint is not read (NaN is fine), and a frame without a detected joint
+leaves the estimate as it stood."""
+
+from __future__ import annotations
+
+import blapose
+import numpy as np
+from conftest import EXAMPLES, Server
+
+
+def _frames(garbage: float):
+    seq = blapose.load_replay(EXAMPLES[0])
+    frames = []
+    for t, (kp, pose) in enumerate(zip(seq.keypoints_2d, seq.pose_3d)):
+        kp = np.array(kp, dtype=np.float32)
+        conf = np.ones(kp.shape[0], np.float32)
+        if t % 4 == 1:
+            conf[(3 * t) % kp.shape[0]] = 0.0
+            kp[(3 * t) % kp.shape[0]] = garbage
+        if t == 9:
+            conf[:] = 0.0
+            kp[:] = garbage
+        frames.append((kp, pose, conf))
+    return seq, frames
+
+
+def _run(server: Server, garbage: float):
+    seq, frames = _frames(garbage)
+    with blapose.Client(server.url) as client:
+        with client.session(layout=seq.layout, image_size=seq.image_size) as s:
+            results = list(s.stream(frames))
+            s.close()
+        offline = client.adjust_sequence(
+            np.stack([f[0] for f in frames]),
+            seq.pose_3d,
+            layout=seq.layout,
+            image_size=seq.image_size,
+            confidence=np.stack([f[2] for f in frames]),
+        )
+    return results, offline
+
+
+def test_missing_keypoints_are_not_read(server: Server) -> None:
+    assert blapose.MISSING_CONFIDENCE == 0.1
+    nan, nan_offline = _run(server, float("nan"))
+    big, big_offline = _run(server, 5000.0)
+    assert len(nan) == len(big) > 10
+    for a, b in zip(nan, big):
+        np.testing.assert_array_equal(a.bone_lengths, b.bone_lengths)
+        np.testing.assert_array_equal(a.adjusted, b.adjusted)
+    np.testing.assert_array_equal(nan_offline.bone_lengths, big_offline.bone_lengths)
+    # The frame without a detected joint: the estimate as it stood, counted.
+    np.testing.assert_array_equal(nan[9].bone_lengths, nan[8].bone_lengths)
+    assert nan[9].frames_seen == 10
