@@ -173,6 +173,7 @@ impl<'a> SessionOptions<'a> {
             camera: self.camera.as_ref().map(CameraCalibration::to_proto),
             // The library keeps them (EventReceiver::latest_token).
             session_tokens: true,
+            subject: None,
         }
     }
 }
@@ -255,6 +256,7 @@ impl<'a> SequenceInput<'a> {
             confidence: self.confidence.to_vec(),
             poses_3d: self.poses_3d.as_flattened().as_flattened().to_vec(),
             camera: self.camera.as_ref().map(CameraCalibration::to_proto),
+            subject: None,
         })
     }
 }

@@ -103,9 +103,11 @@ pub struct FrameJob {
 /// A processed frame.
 #[derive(Debug, Clone, PartialEq)]
 pub struct StepOutput {
-    /// The session's running-mean estimate after this frame; `None` for a
-    /// frame without a detected joint before any frame was read (no
-    /// estimate yet).
+    /// The lengths the session answers with after this frame
+    /// ([`SessionConfig::served`](crate::session::SessionConfig::served):
+    /// its running-mean estimate, or its subject's); `None` for a frame
+    /// without a detected joint before any frame was read (no estimate
+    /// yet).
     pub lengths: Option<BoneLengths>,
     /// Frames processed in the session, this one included.
     pub frames_seen: u64,
@@ -818,7 +820,7 @@ fn fill_missing(job: &mut FrameJob) -> Option<StepResult> {
     st.skipped += 1;
     let frames_seen = st.frames_seen();
     Some(Ok(StepOutput {
-        lengths: st.estimate(),
+        lengths: job.session.config().served(st.estimate()),
         frames_seen,
         lifted: None,
         state: due_state(job, &st, frames_seen),
@@ -866,7 +868,7 @@ fn scatter(job: &FrameJob, hidden: &[f32], lengths: &[f32], lifted: Option<Pose>
     let frames_seen = st.frames_seen();
     let state = due_state(job, &st, frames_seen);
     Ok(StepOutput {
-        lengths: Some(estimate),
+        lengths: job.session.config().served(Some(estimate)),
         frames_seen,
         lifted: if job.lift { lifted } else { None },
         state,
@@ -979,6 +981,7 @@ mod tests {
             label: String::new(),
             lifter_frames: None,
             camera: None,
+            subject: None,
         }
     }
 

@@ -260,6 +260,7 @@ pub async fn spawn_with_provider(
         max_inflight_per_stream: config.max_inflight_per_stream.max(1),
         max_message_bytes: config.max_message_bytes,
         tokens,
+        stature: Arc::new(models::embedded_stature_model()?),
     });
 
     let (health, health_service) = tonic_health::server::health_reporter();

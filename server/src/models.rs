@@ -19,6 +19,7 @@ use std::sync::Arc;
 
 use blapose_core::level::{CameraEnvelope, WIDE_CAMERA_ENVELOPE};
 use blapose_lifters::{TrainedLifter, TrainedLifterError};
+use blapose_model::stature::StatureModel;
 use blapose_model::weights::{self, LoadedWeights};
 use blapose_model::{ModelError, ModelKind, OfflineBiGruEngine, OnlineGruEngine, Precision};
 use blapose_proto::v1 as pb;
@@ -28,6 +29,14 @@ use crate::backend::{Backend, BackendError, SequenceBackend};
 use crate::config::WeightsSource;
 use crate::engine;
 use crate::error::ServerError;
+
+/// The stature model sessions and requests with a subject are answered
+/// with: `models/stature_regression.json` (written by `blapose
+/// fit-stature`), embedded.
+pub fn embedded_stature_model() -> Result<StatureModel, ServerError> {
+    StatureModel::from_json(include_str!("../../models/stature_regression.json"))
+        .map_err(|e| ServerError::Stature(e.to_string()))
+}
 
 /// `pub fn $name() -> Option<&'static [u8]>`: the weights file `build.rs`
 /// found for `$cfg` (its path in the environment variable `$env`), or

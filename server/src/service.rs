@@ -7,8 +7,10 @@
 
 use std::sync::Arc;
 
+use blapose_core::bones;
 use blapose_core::layouts::KeypointLayout;
 use blapose_core::skeleton::{BONE_NAMES, JOINT_NAMES};
+use blapose_model::stature::StatureModel;
 use blapose_proto::v1 as pb;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
@@ -47,6 +49,8 @@ pub struct AppState {
     pub max_message_bytes: usize,
     /// Session tokens (`--session-key`); `None`: none issued or accepted.
     pub tokens: Option<Tokens>,
+    /// The stature model subjects are answered with (embedded).
+    pub stature: Arc<StatureModel>,
 }
 
 /// What issuing and restoring session tokens needs: the key, how often to
@@ -197,10 +201,35 @@ impl pb::pose_adjustment_server::PoseAdjustment for PoseService {
             Ok(s) => s,
             Err(e) => return fail(e.to_status(), "AdjustSequence"),
         };
+        let subject =
+            match validate::subject(request.get_ref().subject.as_ref(), &self.state.stature) {
+                Ok(s) => s,
+                Err(e) => return fail(e.to_status(), "AdjustSequence"),
+            };
         let model = match seq.model {
             validate::OfflineModel::BiGru => pb::Model::OfflineBigru,
             validate::OfflineModel::OnlineGru => pb::Model::OnlineGru,
         };
+        if let Some(subject) = subject {
+            // Every frame gets the subject's lengths; no model needs to run.
+            let mut poses = Vec::with_capacity(seq.poses.len());
+            for pose in &seq.poses {
+                match bones::adjust_pose(pose, &subject.lengths) {
+                    Ok(p) => poses.push(p),
+                    Err(e) => {
+                        return fail(
+                            Status::internal(format!("adjustment failed: {e}")),
+                            "AdjustSequence",
+                        )
+                    }
+                }
+            }
+            return Ok(Response::new(pb::AdjustSequenceResponse {
+                model: model as i32,
+                adjusted_poses_3d: poses.iter().flatten().flatten().copied().collect(),
+                bone_lengths: subject.lengths.repeat(poses.len()),
+            }));
+        }
         match self.state.offline.adjust(seq).await {
             Ok(done) => Ok(Response::new(pb::AdjustSequenceResponse {
                 model: model as i32,

@@ -133,6 +133,17 @@ pub struct SessionCamera {
     pub length_scale: f32,
 }
 
+/// A session's (or request's) subject: the person's stature and sex as
+/// sent, and the lengths the stature model gives them, which the session
+/// answers with.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SessionSubject {
+    /// As sent in `OpenSession.subject`.
+    pub subject: pb::Subject,
+    /// The stature regression's lengths for it.
+    pub lengths: BoneLengths,
+}
+
 /// Immutable description of a session.
 #[derive(Debug, Clone)]
 pub struct SessionConfig {
@@ -146,12 +157,24 @@ pub struct SessionConfig {
     /// `Some`: the camera-aware model serves the session, fed its keypoints
     /// rectified with this camera; `None`: the default model.
     pub camera: Option<SessionCamera>,
+    /// `Some`: the session answers with its subject's stature-regression
+    /// lengths instead of the model's running estimate.
+    pub subject: Option<SessionSubject>,
 }
 
 impl SessionConfig {
     /// Whether the server lifts this session's poses.
     pub fn lifting(&self) -> bool {
         self.lifter_frames.is_some()
+    }
+
+    /// The lengths the session answers with, given its model's running
+    /// estimate: its subject's when it has one.
+    pub fn served(&self, estimate: Option<BoneLengths>) -> Option<BoneLengths> {
+        match &self.subject {
+            Some(s) => Some(s.lengths),
+            None => estimate,
+        }
     }
 }
 
@@ -449,7 +472,7 @@ fn mark_closed(session: &Session) -> SessionSnapshot {
     session.publish(&st);
     SessionSnapshot {
         frames_seen: st.frames_seen(),
-        bone_lengths: st.estimate(),
+        bone_lengths: session.config.served(st.estimate()),
     }
 }
 
@@ -601,7 +624,7 @@ impl SessionStore {
         let st = session.lock();
         let snapshot = SessionSnapshot {
             frames_seen: st.frames_seen(),
-            bone_lengths: st.estimate(),
+            bone_lengths: session.config.served(st.estimate()),
         };
         drop(st);
         Ok(Attachment {
@@ -633,7 +656,7 @@ impl SessionStore {
             epoch: st.epoch,
             snapshot: SessionSnapshot {
                 frames_seen: st.frames_seen(),
-                bone_lengths: st.estimate(),
+                bone_lengths: session.config.served(st.estimate()),
             },
         };
         drop(st);
@@ -728,6 +751,7 @@ mod tests {
             label: String::new(),
             lifter_frames: None,
             camera: None,
+            subject: None,
         }
     }
 

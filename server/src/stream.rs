@@ -197,6 +197,8 @@ fn open_or_resume(
             };
             let camera = validate::camera(open.camera.as_ref(), &input, state.camera_models())
                 .map_err(|e| e.to_status())?;
+            let subject = validate::subject(open.subject.as_ref(), &state.stature)
+                .map_err(|e| e.to_status())?;
             let label = truncate_label(&open.client_label);
             let attachment = state
                 .store
@@ -205,6 +207,7 @@ fn open_or_resume(
                     label,
                     lifter_frames,
                     camera,
+                    subject,
                 })
                 .map_err(session_status)?;
             tracing::info!(
@@ -213,6 +216,7 @@ fn open_or_resume(
                 layout = %input.layout,
                 server_lifter = open.server_lifter,
                 camera = open.camera.is_some(),
+                subject = open.subject.is_some(),
                 "session opened"
             );
             Ok((attachment, open.session_tokens))
@@ -275,6 +279,11 @@ fn restore(state: &AppState, resume: &pb::ResumeSession) -> Result<Attachment, S
             "the session token's camera calibration cannot be served here: {e}"
         ))
     })?;
+    let subject = validate::subject(portable.subject.as_ref(), &state.stature).map_err(|e| {
+        Status::failed_precondition(format!(
+            "the session token's subject cannot be served here: {e}"
+        ))
+    })?;
     let served = tokens.weights_for(camera.is_some());
     if served != Some(portable.weights_id) {
         return Err(Status::failed_precondition(format!(
@@ -307,6 +316,7 @@ fn restore(state: &AppState, resume: &pb::ResumeSession) -> Result<Attachment, S
         label: portable.label,
         lifter_frames,
         camera,
+        subject,
     };
     let copy = StateCopy {
         hidden: portable.hidden.into_boxed_slice(),
@@ -339,7 +349,7 @@ fn seal(state: &AppState, session: &Session, copy: StateCopy) -> Option<(Vec<u8>
         None
     };
     let frames_seen = copy.frames_seen();
-    let portable = PortableState::new(
+    let mut portable = PortableState::new(
         session.id(),
         weights,
         config.input,
@@ -348,6 +358,7 @@ fn seal(state: &AppState, session: &Session, copy: StateCopy) -> Option<(Vec<u8>
         lifter,
         copy,
     );
+    portable.subject = config.subject.as_ref().map(|s| s.subject);
     Some((portable.seal(&tokens.key), frames_seen))
 }
 
@@ -407,6 +418,7 @@ fn opened_response(state: &AppState, a: &Attachment) -> pb::StreamResponse {
                 .as_ref()
                 .map(|c| c.calibration.clone()),
             session_token,
+            subject: a.session.config().subject.as_ref().map(|s| s.subject),
         })),
     }
 }

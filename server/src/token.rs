@@ -28,7 +28,8 @@
 //! offset size  field
 //! 0      4     magic "BLPT"
 //! 4      1     version (2)
-//! 5      1     flags: bit 0 camera calibration present, bit 1 lifter window present
+//! 5      1     flags: bit 0 camera calibration present, bit 1 lifter window
+//!              present, bit 2 subject present
 //! 6      16    session id
 //! 22     32    SHA-256 of the session family's online GRU weights
 //! 54     8     frames the model read (u64) = the running mean's count
@@ -43,6 +44,8 @@
 //! ..     4+136 joints seen so far (u32, bit j = joint j), then each joint's
 //!              last detected position (17 x 2 f32; 0 for joints not seen)
 //! [camera] 2+c length (u16) and the prost encoding of the CameraCalibration
+//! [subject] 4+1 stature (f32, metres) and sex (u8: 0 unspecified, 1 female,
+//!          2 male)
 //! [lifter] 32  SHA-256 of the lifter weights
 //!          2+2 receptive field, frames held w (u16 each)
 //!          136w the window's frames, oldest first (17 x 2 f32 each)
@@ -81,6 +84,7 @@ pub const MIN_KEY_BYTES: usize = 16;
 
 const FLAG_CAMERA: u8 = 1;
 const FLAG_LIFTER: u8 = 2;
+const FLAG_SUBJECT: u8 = 4;
 const FRAME_FLOATS: usize = NUM_JOINTS * 2;
 
 /// Why a token was refused or a key not accepted.
@@ -262,6 +266,8 @@ pub struct PortableState {
     pub held: HeldJoints,
     /// Frames answered without a detected joint.
     pub skipped: u64,
+    /// The subject as opened.
+    pub subject: Option<pb::Subject>,
 }
 
 impl PortableState {
@@ -299,6 +305,7 @@ impl PortableState {
             window,
             held: state.held,
             skipped: state.skipped,
+            subject: None,
         }
     }
 
@@ -320,6 +327,9 @@ impl PortableState {
         }
         if self.window.is_some() {
             flags |= FLAG_LIFTER;
+        }
+        if self.subject.is_some() {
+            flags |= FLAG_SUBJECT;
         }
         out.push(flags);
         out.extend_from_slice(self.session_id.as_bytes());
@@ -369,6 +379,10 @@ impl PortableState {
         if let Some(camera) = &camera {
             out.extend_from_slice(&(camera.len().min(u16::MAX as usize) as u16).to_le_bytes());
             out.extend_from_slice(camera);
+        }
+        if let Some(subject) = &self.subject {
+            out.extend_from_slice(&subject.height_m.to_le_bytes());
+            out.push(u8::try_from(subject.sex).unwrap_or(u8::MAX));
         }
         if let Some(w) = &self.window {
             out.extend_from_slice(&w.lifter_id);
@@ -461,7 +475,7 @@ fn decode_body(body: &[u8]) -> Result<PortableState, TokenError> {
     let bad = |what: String| TokenError::Malformed(what);
     let mut r = Reader { bytes: body, at: 6 };
     let flags = body[5];
-    if flags & !(FLAG_CAMERA | FLAG_LIFTER) != 0 {
+    if flags & !(FLAG_CAMERA | FLAG_LIFTER | FLAG_SUBJECT) != 0 {
         return Err(bad(format!("unknown flags {flags:#x}")));
     }
     let session_id = SessionId::from_bytes(r.array("the session id")?);
@@ -516,6 +530,13 @@ fn decode_body(body: &[u8]) -> Result<PortableState, TokenError> {
     } else {
         None
     };
+    let subject = if flags & FLAG_SUBJECT != 0 {
+        let height_m = f32::from_le_bytes(r.array("the subject's stature")?);
+        let sex = i32::from(r.u8("the subject's sex")?);
+        Some(pb::Subject { height_m, sex })
+    } else {
+        None
+    };
     let window = if flags & FLAG_LIFTER != 0 {
         let lifter_id = r.array("the lifter hash")?;
         let receptive_field = usize::from(r.u16("the receptive field")?);
@@ -555,6 +576,7 @@ fn decode_body(body: &[u8]) -> Result<PortableState, TokenError> {
         window,
         held,
         skipped,
+        subject,
     })
 }
 
@@ -605,6 +627,10 @@ mod tests {
                 (j % 3 != 1).then_some([j as f32 * 0.05, -0.25 - j as f32 * 0.01])
             })),
             skipped: 2,
+            subject: camera.then_some(pb::Subject {
+                height_m: 1.72,
+                sex: 1,
+            }),
         }
     }
 

@@ -19,12 +19,13 @@ use blapose_core::missing::hold_fill_sequence;
 pub use blapose_core::pose::POSE_VALUES;
 use blapose_core::skeleton::JOINT_NAMES;
 use blapose_core::{Pose, NUM_JOINTS};
+use blapose_model::stature::{Sex, StatureModel, MAX_STATURE_M, MIN_STATURE_M};
 pub use blapose_proto::convert::layout_to_proto;
 use blapose_proto::v1 as pb;
 
 use crate::backend::INPUT_DIM;
 use crate::models::CameraReading;
-use crate::session::{InputSpec, SessionCamera};
+use crate::session::{InputSpec, SessionCamera, SessionSubject};
 
 /// Largest accepted magnitude of a 2D keypoint value (pixels or normalized).
 pub const MAX_KEYPOINT_ABS: f32 = 1e6;
@@ -146,6 +147,12 @@ pub enum InvalidInput {
     /// `num_frames` is zero.
     #[error("num_frames must be >= 1")]
     NoFrames,
+    /// `subject.height_m` outside the stature model's range.
+    #[error("subject.height_m is {0} m; it must be between {MIN_STATURE_M} and {MAX_STATURE_M} m")]
+    SubjectHeight(f32),
+    /// `subject.sex` is not a known value.
+    #[error("subject.sex {0} is not a known value (0 unspecified, 1 female, 2 male)")]
+    SubjectSex(i32),
     /// A lifting session's frame has no detected joint: nothing to lift.
     #[error("every joint is missing (confidence below {MISSING_CONFIDENCE}): a server_lifter session has nothing to lift; the session is unchanged")]
     NothingToLift,
@@ -365,6 +372,30 @@ pub fn offline_model(value: i32) -> Result<OfflineModel, InvalidInput> {
         Ok(pb::Model::OnlineGru) => Ok(OfflineModel::OnlineGru),
         Err(_) => Err(InvalidInput::UnknownModel(value)),
     }
+}
+
+/// Validate an optional subject and give it its stature-regression
+/// lengths (`model`: the server's stature model).
+pub fn subject(
+    subject: Option<&pb::Subject>,
+    model: &StatureModel,
+) -> Result<Option<SessionSubject>, InvalidInput> {
+    let Some(s) = subject else {
+        return Ok(None);
+    };
+    if !(s.height_m.is_finite() && (MIN_STATURE_M..=MAX_STATURE_M).contains(&s.height_m)) {
+        return Err(InvalidInput::SubjectHeight(s.height_m));
+    }
+    let sex = match pb::Sex::try_from(s.sex) {
+        Ok(pb::Sex::Unspecified) => None,
+        Ok(pb::Sex::Female) => Some(Sex::Female),
+        Ok(pb::Sex::Male) => Some(Sex::Male),
+        Err(_) => return Err(InvalidInput::SubjectSex(s.sex)),
+    };
+    Ok(Some(SessionSubject {
+        subject: *s,
+        lengths: model.predict(s.height_m, sex),
+    }))
 }
 
 /// Where a joint counts as missing: [`blapose_core::missing::MISSING_CONFIDENCE`]
@@ -939,6 +970,7 @@ mod tests {
             confidence: vec![0.9; 3 * 17],
             poses_3d: standing_pose().repeat(3),
             camera: None,
+            subject: None,
         };
         let clean = sequence(&req, None).unwrap().inputs;
         // Joint 5 lost in frame 1, joint 2 lost in frame 0.
@@ -987,6 +1019,7 @@ mod tests {
             confidence: vec![],
             poses_3d: standing_pose().repeat(3),
             camera: None,
+            subject: None,
         };
         let ok = sequence(&req, None).unwrap();
         assert_eq!(ok.model, OfflineModel::BiGru);
@@ -1222,6 +1255,7 @@ mod tests {
             confidence: vec![],
             poses_3d: standing_pose().repeat(2),
             camera: None,
+            subject: None,
         };
         let plain = sequence(&req, Some(ANY_CAMERA)).unwrap();
         req.camera = Some(calibration());

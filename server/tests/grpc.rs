@@ -239,6 +239,7 @@ fn open_with_camera(camera: Option<pb::CameraCalibration>) -> pb::StreamRequest 
             server_lifter: false,
             camera,
             session_tokens: false,
+            subject: None,
         })),
     }
 }
@@ -259,6 +260,7 @@ fn sequence_request(n: u64, camera: Option<pb::CameraCalibration>) -> pb::Adjust
         confidence: vec![],
         poses_3d: frames.iter().flat_map(|f| f.pose_3d.clone()).collect(),
         camera,
+        subject: None,
     }
 }
 
@@ -829,6 +831,7 @@ async fn auth_token_and_message_size_are_enforced() {
         confidence: vec![],
         poses_3d: vec![0.0; 510],
         camera: None,
+        subject: None,
     };
     let err = authed.adjust_sequence(big).await.unwrap_err();
     assert_eq!(err.code(), Code::OutOfRange, "{}", err.message());
@@ -1339,5 +1342,76 @@ async fn height_normalized_models_are_scaled_by_the_camera_height() {
     let (mut conn, _) = Conn::open(&mut c).await;
     conn.send(frame(0)).await;
     assert!((conn.frame().await.bone_lengths[0] - expected_mean(0, 1)).abs() < 1e-6);
+    server.shutdown().await.unwrap();
+}
+
+/// A subject's stature: every answer's lengths are the stature model's for
+/// it (sessions and AdjustSequence alike), echoed on open; a stature out of
+/// range, or an unknown sex, is INVALID_ARGUMENT naming the field.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_subject_is_answered_with_the_stature_models_lengths() {
+    let server = start(config(), Duration::ZERO).await;
+    let mut c = client(server.local_addr()).await;
+    let stature = blapose_server::models::embedded_stature_model().unwrap();
+    let subject = pb::Subject {
+        height_m: 1.64,
+        sex: pb::Sex::Female as i32,
+    };
+    let want = stature.predict(1.64, Some(blapose_model::stature::Sex::Female));
+    let mut req = sequence_request(6, None);
+    req.subject = Some(subject);
+    let done = c.adjust_sequence(req.clone()).await.unwrap().into_inner();
+    for lengths in done.bone_lengths.chunks_exact(16) {
+        assert_eq!(lengths, want.as_slice());
+    }
+    let (tx, rx) = mpsc::channel(8);
+    let mut open = open_with_camera(None);
+    if let Some(Req::Open(o)) = &mut open.kind {
+        o.subject = Some(subject);
+    }
+    tx.send(open).await.unwrap();
+    tx.send(frame(0)).await.unwrap();
+    let mut responses = c
+        .stream(ReceiverStream::new(rx))
+        .await
+        .unwrap()
+        .into_inner();
+    match responses.message().await.unwrap().and_then(|r| r.kind) {
+        Some(Resp::Opened(o)) => assert_eq!(o.subject, Some(subject)),
+        other => panic!("{other:?}"),
+    }
+    match responses.message().await.unwrap().and_then(|r| r.kind) {
+        Some(Resp::Frame(f)) => assert_eq!(f.bone_lengths, want.to_vec()),
+        other => panic!("{other:?}"),
+    }
+    drop(tx);
+    for (bad, field) in [
+        (
+            pb::Subject {
+                height_m: 0.9,
+                sex: 0,
+            },
+            "subject.height_m",
+        ),
+        (
+            pb::Subject {
+                height_m: f32::NAN,
+                sex: 0,
+            },
+            "subject.height_m",
+        ),
+        (
+            pb::Subject {
+                height_m: 1.7,
+                sex: 7,
+            },
+            "subject.sex",
+        ),
+    ] {
+        req.subject = Some(bad);
+        let err = c.adjust_sequence(req.clone()).await.unwrap_err();
+        assert_eq!(err.code(), Code::InvalidArgument);
+        assert!(err.message().contains(field), "{}", err.message());
+    }
     server.shutdown().await.unwrap();
 }

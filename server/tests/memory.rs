@@ -32,6 +32,7 @@ async fn an_idle_session_costs_well_under_16_kib() {
         label: "camera-01".into(),
         lifter_frames: None,
         camera: None,
+        subject: None,
     };
     let mut attachments = Vec::with_capacity(n);
     for _ in 0..n {

@@ -153,7 +153,14 @@ enum Kind {
     Plain,
     Camera,
     Lifter,
+    Subject,
 }
+
+/// The subject of `Kind::Subject` sessions.
+const SUBJECT: pb::Subject = pb::Subject {
+    height_m: 1.81,
+    sex: pb::Sex::Male as i32,
+};
 
 fn open(kind: Kind) -> pb::StreamRequest {
     pb::StreamRequest {
@@ -170,6 +177,7 @@ fn open(kind: Kind) -> pb::StreamRequest {
             server_lifter: matches!(kind, Kind::Lifter),
             camera: matches!(kind, Kind::Camera).then(calibration),
             session_tokens: true,
+            subject: matches!(kind, Kind::Subject).then_some(SUBJECT),
         })),
     }
 }
@@ -271,7 +279,8 @@ fn assert_same_frame(a: &pb::AdjustedFrame, b: &pb::AdjustedFrame) {
 async fn a_session_resumed_from_its_token_on_another_server_continues_bit_for_bit() {
     let (server_a, mut a) = start(config(Some(KEY))).await;
     let (server_b, mut b) = start(config(Some(KEY))).await;
-    for kind in [Kind::Plain, Kind::Camera, Kind::Lifter] {
+    let stature = blapose_server::models::embedded_stature_model().unwrap();
+    for kind in [Kind::Plain, Kind::Camera, Kind::Lifter, Kind::Subject] {
         let lifting = matches!(kind, Kind::Lifter);
         // Uninterrupted on A, with a token request after frame K - 1.
         let mut requests = vec![open(kind)];
@@ -290,6 +299,14 @@ async fn a_session_resumed_from_its_token_on_another_server_continues_bit_for_bi
         assert!(!o.session_token.is_empty(), "a token on open");
         let whole_frames = frames(&whole);
         assert_eq!(whole_frames.len() as u64, N);
+        if matches!(kind, Kind::Subject) {
+            // The subject's stature-regression lengths, every frame.
+            assert_eq!(o.subject, Some(SUBJECT));
+            let want = stature.predict(1.81, Some(blapose_model::stature::Sex::Male));
+            for f in &whole_frames {
+                assert_eq!(bits(&f.bone_lengths), bits(&want));
+            }
+        }
         // Periodic tokens every 10 frames, each right after its frame's
         // answer, plus the requested one at K (after frame K - 1's answer,
         // and identical to the periodic token of the same state).
@@ -328,6 +345,7 @@ async fn a_session_resumed_from_its_token_on_another_server_continues_bit_for_bi
         );
         assert_eq!(r.input_format, o.input_format);
         assert_eq!(r.camera, o.camera);
+        assert_eq!(r.subject, o.subject, "the token carries the subject");
         assert_eq!(r.lifter, o.lifter);
         assert_eq!(
             r.session_token, token.token,

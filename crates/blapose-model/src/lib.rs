@@ -20,6 +20,7 @@ pub mod fast;
 pub mod init;
 pub mod names;
 pub mod reference;
+pub mod stature;
 pub mod symmetry;
 pub mod weights;
 

@@ -28,6 +28,7 @@
 use blapose_core::skeleton::NUM_BONES;
 use blapose_core::BoneLengths;
 use blapose_data::ansur::Sex;
+use blapose_model::stature::{StatureLines, StatureModel, STATURE_FORMAT};
 
 use crate::ansur_split::{is_held_out, Person};
 
@@ -214,6 +215,31 @@ impl StatureRegression {
             }
             .ok_or(StatureError::NoFitForSex(sex_name(sex))),
         }
+    }
+
+    /// The served form ([`blapose_model::stature::StatureModel`], written by
+    /// `blapose fit-stature`); both sexes must have a fit.
+    pub fn to_model(&self, source: &str) -> Result<StatureModel, StatureError> {
+        let lines = |fit: &LinearFit| StatureLines {
+            intercept: fit.intercept.to_vec(),
+            slope: fit.slope.to_vec(),
+            people: fit.people,
+        };
+        let female = self
+            .female
+            .as_ref()
+            .ok_or(StatureError::NoFitForSex("female"))?;
+        let male = self
+            .male
+            .as_ref()
+            .ok_or(StatureError::NoFitForSex("male"))?;
+        Ok(StatureModel {
+            format: STATURE_FORMAT.into(),
+            source: source.into(),
+            pooled: lines(&self.pooled),
+            female: lines(female),
+            male: lines(male),
+        })
     }
 
     /// The lengths of someone `stature_m` tall; `sex` is read only by

@@ -38,6 +38,7 @@ fn open_request(
             server_lifter: false,
             camera: None,
             session_tokens: false,
+            subject: None,
         })),
     }
 }
@@ -400,6 +401,7 @@ async fn bad_offline_requests_are_invalid_argument() {
         confidence: vec![],
         poses_3d: seq.pose_3d.as_flattened().as_flattened().to_vec(),
         camera: None,
+        subject: None,
     };
     client
         .adjust_sequence_raw(good.clone())

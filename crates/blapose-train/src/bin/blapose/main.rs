@@ -20,6 +20,7 @@ mod eval;
 mod eval_adjust;
 mod lifter;
 mod report;
+mod stature;
 mod train;
 
 use anyhow::Result;
@@ -64,6 +65,9 @@ enum Command {
     /// Print the training data statistics, the ANSUR calibration and the
     /// detector residuals; time the augmentation pipeline.
     DataReport(report::DataReportArgs),
+    /// Fit the stature regression (bone lengths from height and sex) on
+    /// the ANSUR II training split and write the file the server embeds.
+    FitStature(stature::FitStatureArgs),
 }
 
 fn main() -> Result<()> {
@@ -75,6 +79,7 @@ fn main() -> Result<()> {
         Command::Finetune(args) => lifter::finetune(*args),
         Command::EvalAdjust(args) => eval_adjust::run(*args),
         Command::BenchTrain(args) => report::bench_train(args),
+        Command::FitStature(args) => stature::run(args),
     }
 }
 
