@@ -19,6 +19,12 @@ class Model(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     MODEL_UNSPECIFIED: _ClassVar[Model]
     MODEL_ONLINE_GRU: _ClassVar[Model]
     MODEL_OFFLINE_BIGRU: _ClassVar[Model]
+
+class Sex(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    SEX_UNSPECIFIED: _ClassVar[Sex]
+    SEX_FEMALE: _ClassVar[Sex]
+    SEX_MALE: _ClassVar[Sex]
 KEYPOINT_LAYOUT_UNSPECIFIED: KeypointLayout
 KEYPOINT_LAYOUT_H36M_17: KeypointLayout
 KEYPOINT_LAYOUT_SH_16: KeypointLayout
@@ -26,6 +32,9 @@ KEYPOINT_LAYOUT_COCO_17: KeypointLayout
 MODEL_UNSPECIFIED: Model
 MODEL_ONLINE_GRU: Model
 MODEL_OFFLINE_BIGRU: Model
+SEX_UNSPECIFIED: Sex
+SEX_FEMALE: Sex
+SEX_MALE: Sex
 
 class ImageSize(_message.Message):
     __slots__ = ("width", "height")
@@ -82,20 +91,30 @@ class TokenRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class OpenSession(_message.Message):
-    __slots__ = ("input_format", "model", "client_label", "server_lifter", "camera", "session_tokens")
+    __slots__ = ("input_format", "model", "client_label", "server_lifter", "camera", "session_tokens", "subject")
     INPUT_FORMAT_FIELD_NUMBER: _ClassVar[int]
     MODEL_FIELD_NUMBER: _ClassVar[int]
     CLIENT_LABEL_FIELD_NUMBER: _ClassVar[int]
     SERVER_LIFTER_FIELD_NUMBER: _ClassVar[int]
     CAMERA_FIELD_NUMBER: _ClassVar[int]
     SESSION_TOKENS_FIELD_NUMBER: _ClassVar[int]
+    SUBJECT_FIELD_NUMBER: _ClassVar[int]
     input_format: InputFormat
     model: Model
     client_label: str
     server_lifter: bool
     camera: CameraCalibration
     session_tokens: bool
-    def __init__(self, input_format: _Optional[_Union[InputFormat, _Mapping]] = ..., model: _Optional[_Union[Model, str]] = ..., client_label: _Optional[str] = ..., server_lifter: _Optional[bool] = ..., camera: _Optional[_Union[CameraCalibration, _Mapping]] = ..., session_tokens: _Optional[bool] = ...) -> None: ...
+    subject: Subject
+    def __init__(self, input_format: _Optional[_Union[InputFormat, _Mapping]] = ..., model: _Optional[_Union[Model, str]] = ..., client_label: _Optional[str] = ..., server_lifter: _Optional[bool] = ..., camera: _Optional[_Union[CameraCalibration, _Mapping]] = ..., session_tokens: _Optional[bool] = ..., subject: _Optional[_Union[Subject, _Mapping]] = ...) -> None: ...
+
+class Subject(_message.Message):
+    __slots__ = ("height_m", "sex")
+    HEIGHT_M_FIELD_NUMBER: _ClassVar[int]
+    SEX_FIELD_NUMBER: _ClassVar[int]
+    height_m: float
+    sex: Sex
+    def __init__(self, height_m: _Optional[float] = ..., sex: _Optional[_Union[Sex, str]] = ...) -> None: ...
 
 class ResumeSession(_message.Message):
     __slots__ = ("session_id", "session_token", "session_tokens")
@@ -146,7 +165,7 @@ class SessionToken(_message.Message):
     def __init__(self, token: _Optional[bytes] = ..., frames_seen: _Optional[int] = ...) -> None: ...
 
 class SessionOpened(_message.Message):
-    __slots__ = ("session_id", "resumed", "frames_seen", "bone_lengths", "input_format", "model", "session_ttl_ms", "lifter", "camera", "session_token")
+    __slots__ = ("session_id", "resumed", "frames_seen", "bone_lengths", "input_format", "model", "session_ttl_ms", "lifter", "camera", "session_token", "subject")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     RESUMED_FIELD_NUMBER: _ClassVar[int]
     FRAMES_SEEN_FIELD_NUMBER: _ClassVar[int]
@@ -157,6 +176,7 @@ class SessionOpened(_message.Message):
     LIFTER_FIELD_NUMBER: _ClassVar[int]
     CAMERA_FIELD_NUMBER: _ClassVar[int]
     SESSION_TOKEN_FIELD_NUMBER: _ClassVar[int]
+    SUBJECT_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     resumed: bool
     frames_seen: int
@@ -167,7 +187,8 @@ class SessionOpened(_message.Message):
     lifter: str
     camera: CameraCalibration
     session_token: bytes
-    def __init__(self, session_id: _Optional[str] = ..., resumed: _Optional[bool] = ..., frames_seen: _Optional[int] = ..., bone_lengths: _Optional[_Iterable[float]] = ..., input_format: _Optional[_Union[InputFormat, _Mapping]] = ..., model: _Optional[_Union[Model, str]] = ..., session_ttl_ms: _Optional[int] = ..., lifter: _Optional[str] = ..., camera: _Optional[_Union[CameraCalibration, _Mapping]] = ..., session_token: _Optional[bytes] = ...) -> None: ...
+    subject: Subject
+    def __init__(self, session_id: _Optional[str] = ..., resumed: _Optional[bool] = ..., frames_seen: _Optional[int] = ..., bone_lengths: _Optional[_Iterable[float]] = ..., input_format: _Optional[_Union[InputFormat, _Mapping]] = ..., model: _Optional[_Union[Model, str]] = ..., session_ttl_ms: _Optional[int] = ..., lifter: _Optional[str] = ..., camera: _Optional[_Union[CameraCalibration, _Mapping]] = ..., session_token: _Optional[bytes] = ..., subject: _Optional[_Union[Subject, _Mapping]] = ...) -> None: ...
 
 class AdjustedFrame(_message.Message):
     __slots__ = ("frame_index", "adjusted_pose_3d", "bone_lengths", "frames_seen", "lifter", "lifted_pose_3d")
@@ -220,7 +241,7 @@ class CloseSessionResponse(_message.Message):
     def __init__(self, frames_seen: _Optional[int] = ..., bone_lengths: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class AdjustSequenceRequest(_message.Message):
-    __slots__ = ("input_format", "model", "num_frames", "keypoints_2d", "confidence", "poses_3d", "camera")
+    __slots__ = ("input_format", "model", "num_frames", "keypoints_2d", "confidence", "poses_3d", "camera", "subject")
     INPUT_FORMAT_FIELD_NUMBER: _ClassVar[int]
     MODEL_FIELD_NUMBER: _ClassVar[int]
     NUM_FRAMES_FIELD_NUMBER: _ClassVar[int]
@@ -228,6 +249,7 @@ class AdjustSequenceRequest(_message.Message):
     CONFIDENCE_FIELD_NUMBER: _ClassVar[int]
     POSES_3D_FIELD_NUMBER: _ClassVar[int]
     CAMERA_FIELD_NUMBER: _ClassVar[int]
+    SUBJECT_FIELD_NUMBER: _ClassVar[int]
     input_format: InputFormat
     model: Model
     num_frames: int
@@ -235,7 +257,8 @@ class AdjustSequenceRequest(_message.Message):
     confidence: _containers.RepeatedScalarFieldContainer[float]
     poses_3d: _containers.RepeatedScalarFieldContainer[float]
     camera: CameraCalibration
-    def __init__(self, input_format: _Optional[_Union[InputFormat, _Mapping]] = ..., model: _Optional[_Union[Model, str]] = ..., num_frames: _Optional[int] = ..., keypoints_2d: _Optional[_Iterable[float]] = ..., confidence: _Optional[_Iterable[float]] = ..., poses_3d: _Optional[_Iterable[float]] = ..., camera: _Optional[_Union[CameraCalibration, _Mapping]] = ...) -> None: ...
+    subject: Subject
+    def __init__(self, input_format: _Optional[_Union[InputFormat, _Mapping]] = ..., model: _Optional[_Union[Model, str]] = ..., num_frames: _Optional[int] = ..., keypoints_2d: _Optional[_Iterable[float]] = ..., confidence: _Optional[_Iterable[float]] = ..., poses_3d: _Optional[_Iterable[float]] = ..., camera: _Optional[_Union[CameraCalibration, _Mapping]] = ..., subject: _Optional[_Union[Subject, _Mapping]] = ...) -> None: ...
 
 class AdjustSequenceResponse(_message.Message):
     __slots__ = ("model", "adjusted_poses_3d", "bone_lengths")
