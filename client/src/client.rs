@@ -20,7 +20,7 @@ use crate::error::ClientError;
 use crate::session::Session;
 use crate::types::{
     lengths_from_flat, pose_from_flat, CameraCalibration, InputFormat, ModelChoice, ModelInfo,
-    SessionSummary,
+    SessionSummary, Subject,
 };
 
 /// Default server address (the server's own default `--addr`).
@@ -155,6 +155,9 @@ pub struct SessionOptions<'a> {
     /// [`ModelDescription::camera_aware`](crate::ModelDescription::camera_aware));
     /// `None` (the default) gets the default model.
     pub camera: Option<CameraCalibration>,
+    /// The person's stature (and sex): `Some` answers with the stature
+    /// regression's lengths for it ([`Subject`]).
+    pub subject: Option<Subject>,
 }
 
 impl<'a> SessionOptions<'a> {
@@ -173,7 +176,7 @@ impl<'a> SessionOptions<'a> {
             camera: self.camera.as_ref().map(CameraCalibration::to_proto),
             // The library keeps them (EventReceiver::latest_token).
             session_tokens: true,
-            subject: None,
+            subject: self.subject.as_ref().map(Subject::to_proto),
         }
     }
 }
@@ -213,10 +216,13 @@ pub struct SequenceInput<'a> {
     /// Optional camera calibration: `Some` runs the camera-aware model of
     /// the chosen kind (the server must have one), `None` the default one.
     pub camera: Option<CameraCalibration>,
+    /// Optional stature (and sex): `Some` answers every frame with the
+    /// stature regression's lengths.
+    pub subject: Option<Subject>,
 }
 
 impl<'a> SequenceInput<'a> {
-    /// A sequence's arrays and camera (its `camera`, if any, is sent).
+    /// A sequence's arrays, camera and subject (each sent when present).
     pub fn from_sequence(seq: &'a crate::sequence::Sequence) -> Self {
         SequenceInput {
             input_format: seq.input_format,
@@ -224,6 +230,7 @@ impl<'a> SequenceInput<'a> {
             confidence: &seq.confidence,
             poses_3d: &seq.pose_3d,
             camera: seq.camera,
+            subject: seq.subject,
         }
     }
 
@@ -256,7 +263,7 @@ impl<'a> SequenceInput<'a> {
             confidence: self.confidence.to_vec(),
             poses_3d: self.poses_3d.as_flattened().as_flattened().to_vec(),
             camera: self.camera.as_ref().map(CameraCalibration::to_proto),
-            subject: None,
+            subject: self.subject.as_ref().map(Subject::to_proto),
         })
     }
 }
@@ -678,6 +685,7 @@ mod tests {
             gt_3d: None,
             fps: None,
             camera: None,
+            subject: None,
         };
         let req = SequenceInput::from_sequence(&seq)
             .to_proto(ModelChoice::OfflineBiGru)

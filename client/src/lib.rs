@@ -52,5 +52,5 @@ pub use session::{EventReceiver, FrameRejection, FrameSender, Session, SessionEv
 pub use types::{
     AdjustedFrame, CameraCalibration, CameraError, Coordinates, FrameInput, InputFormat,
     KeypointLayout, LiftedPose, LifterDescription, ModelChoice, ModelDescription, ModelInfo,
-    SessionInfo, SessionSummary, SessionToken, MAX_CAMERA_HEIGHT, MIN_CAMERA_HEIGHT,
+    SessionInfo, SessionSummary, SessionToken, Sex, Subject, MAX_CAMERA_HEIGHT, MIN_CAMERA_HEIGHT,
 };

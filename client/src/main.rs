@@ -10,7 +10,7 @@ use std::time::Duration;
 use anyhow::{Context, Result};
 use blapose_client::{
     adjust_offline, evaluate, replay_across, Adjusted, Client, ClientConfig, KeypointLayout,
-    ModelChoice, ReplayOptions, ReportData, Sequence, TlsOptions, DEFAULT_SERVER,
+    ModelChoice, ReplayOptions, ReportData, Sequence, Sex, Subject, TlsOptions, DEFAULT_SERVER,
 };
 use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -160,6 +160,15 @@ struct IoArgs {
     /// Human3.6M's own (models/README.md).
     #[arg(long)]
     camera: bool,
+    /// The person's stature in metres (1.0 to 2.3), overriding the file's
+    /// subject_height: the server then answers with the stature
+    /// regression's lengths for it, which read people better than any
+    /// model without it (models/README.md).
+    #[arg(long, value_name = "METRES")]
+    height: Option<f32>,
+    /// The person's sex, with --height (or the file's subject_height).
+    #[arg(long, value_enum)]
+    sex: Option<Sex>,
 }
 
 impl IoArgs {
@@ -171,6 +180,17 @@ impl IoArgs {
         let up = seq.camera.map(|c| c.up);
         if !self.camera {
             seq.camera = None;
+        }
+        if let Some(height_m) = self.height {
+            seq.subject = Some(Subject {
+                height_m,
+                sex: self.sex,
+            });
+        } else if let Some(sex) = self.sex {
+            let subject = seq.subject.as_mut().context(
+                "--sex needs the person's stature: --height, or subject_height in the file",
+            )?;
+            subject.sex = Some(sex);
         }
         Ok((seq, up))
     }
@@ -279,6 +299,9 @@ fn finish(io: &IoArgs, seq: &Sequence, result: &Adjusted) -> Result<()> {
         result.elapsed.as_secs_f64(),
         result.frames_per_second()
     );
+    if let Some(subject) = &seq.subject {
+        println!("subject {subject}: answered with the stature regression's lengths");
+    }
     match &result.camera {
         Some(camera) => println!("served by the camera-aware model (camera calibration: {camera})"),
         None if io.camera => {
@@ -497,6 +520,43 @@ mod tests {
             Cli::try_parse_from(["blapose-client", "adjust", "x.npz", "--server-lifter"]).is_err(),
             "the offline call has no server lifter"
         );
+    }
+
+    #[test]
+    fn height_and_sex_become_the_subject() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/cmu_02_02_walk.npz");
+        let file = path.to_str().unwrap();
+        let io = |args: &[&str]| match Cli::try_parse_from(args).unwrap().command {
+            Command::Replay { io, .. } | Command::Adjust { io, .. } => io,
+            other => panic!("{other:?}"),
+        };
+        let (seq, _) = io(&["blapose-client", "adjust", file]).load().unwrap();
+        assert_eq!(seq.subject, None);
+        let (seq, _) = io(&[
+            "blapose-client",
+            "replay",
+            file,
+            "--height",
+            "1.68",
+            "--sex",
+            "female",
+        ])
+        .load()
+        .unwrap();
+        assert_eq!(
+            seq.subject,
+            Some(Subject {
+                height_m: 1.68,
+                sex: Some(Sex::Female)
+            })
+        );
+        assert!(
+            io(&["blapose-client", "adjust", file, "--sex", "male"])
+                .load()
+                .is_err(),
+            "--sex without a stature"
+        );
+        assert!(Cli::try_parse_from(["blapose-client", "adjust", file, "--sex", "x"]).is_err());
     }
 
     #[test]

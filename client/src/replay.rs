@@ -101,7 +101,7 @@ impl Adjusted {
     }
 }
 
-/// Stream `seq` frame by frame on a new session (with `seq.camera`, if
+/// Stream `seq` frame by frame on a new session (with `seq.camera` and `seq.subject`, if
 /// any), pipelined, then close the session. `progress` is called with the
 /// number of frames answered so far.
 ///
@@ -170,6 +170,7 @@ pub async fn replay_across(
         label: options.label.as_deref(),
         server_lifter: options.server_lifter,
         camera: seq.camera,
+        subject: seq.subject,
     };
     let session = first_client
         .open_session_with(seq.input_format, &session_options)
@@ -530,7 +531,8 @@ fn pacer(fps: Option<f64>) -> Option<tokio::time::Interval> {
         .map(tokio::time::interval)
 }
 
-/// Adjust `seq` with one `AdjustSequence` call (with `seq.camera`, if any).
+/// Adjust `seq` with one `AdjustSequence` call (with `seq.camera` and
+/// `seq.subject`, if any).
 pub async fn adjust_offline(
     client: &Client,
     seq: &Sequence,

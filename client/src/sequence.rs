@@ -52,7 +52,7 @@ use blapose_data::npz::{read_npz, write_npz, Array, Npz, NpzError};
 
 use crate::types::{
     layout_code, layout_from_code, CameraCalibration, CameraError, Coordinates, FrameInput,
-    InputFormat, KeypointLayout,
+    InputFormat, KeypointLayout, Sex, Subject,
 };
 
 /// Key of the 2D keypoints.
@@ -162,6 +162,9 @@ pub enum SequenceError {
         /// comma-separated.
         found: String,
     },
+    /// The subject keys have a bad value.
+    #[error("{0}")]
+    Subject(String),
     /// The camera calibration has a bad value.
     #[error("{key}: {error}")]
     Camera {
@@ -221,6 +224,44 @@ pub struct Sequence {
     /// serves the sequence with its camera-aware models). Its image size is
     /// the keypoints' (`None` or equal for pixel keypoints).
     pub camera: Option<CameraCalibration>,
+    /// The person's stature (and sex), if known (`subject_height`,
+    /// `subject_sex`; sent to the server, which then answers with the
+    /// stature regression's lengths).
+    pub subject: Option<Subject>,
+}
+
+/// Key of the optional stature `()` or `(1,)`, metres.
+pub const KEY_SUBJECT_HEIGHT: &str = "subject_height";
+/// Key of the optional sex `()` or `(1,)`: 1 female, 2 male (needs
+/// [`KEY_SUBJECT_HEIGHT`]).
+pub const KEY_SUBJECT_SEX: &str = "subject_sex";
+
+/// The file's subject, if any.
+fn subject_from_npz(npz: &Npz) -> Result<Option<Subject>, SequenceError> {
+    let bad = |what: String| SequenceError::Subject(what);
+    if !npz.contains(KEY_SUBJECT_HEIGHT) {
+        if npz.contains(KEY_SUBJECT_SEX) {
+            return Err(bad(format!("{KEY_SUBJECT_SEX} needs {KEY_SUBJECT_HEIGHT}")));
+        }
+        return Ok(None);
+    }
+    let scalar = |key: &'static str| npz.scalar(key).map_err(npz_err);
+    let height_m = scalar(KEY_SUBJECT_HEIGHT)?;
+    if !(height_m.is_finite() && height_m > 0.0) {
+        return Err(bad(format!(
+            "{KEY_SUBJECT_HEIGHT} is {height_m}; a stature in metres"
+        )));
+    }
+    let sex = if npz.contains(KEY_SUBJECT_SEX) {
+        match scalar(KEY_SUBJECT_SEX)? {
+            1.0 => Some(Sex::Female),
+            2.0 => Some(Sex::Male),
+            v => return Err(bad(format!("{KEY_SUBJECT_SEX} is {v}; 1 female or 2 male"))),
+        }
+    } else {
+        None
+    };
+    Ok(Some(Subject { height_m, sex }))
 }
 
 /// The replay-file key of a calibration field.
@@ -452,6 +493,7 @@ impl Sequence {
             None
         };
         let camera = camera_from_npz(npz, (size[0] as u32, size[1] as u32))?;
+        let subject = subject_from_npz(npz)?;
         let seq = Sequence {
             input_format,
             keypoints_2d: kp.data().to_vec(),
@@ -460,6 +502,7 @@ impl Sequence {
             gt_3d,
             fps,
             camera,
+            subject,
         };
         seq.validate()?;
         Ok(seq)
@@ -538,6 +581,22 @@ impl Sequence {
                 npz.insert(
                     KEY_CAMERA_HEIGHT,
                     Array::new(vec![1], vec![height]).map_err(npz_err)?,
+                );
+            }
+        }
+        if let Some(subject) = &self.subject {
+            npz.insert(
+                KEY_SUBJECT_HEIGHT,
+                Array::new(vec![1], vec![subject.height_m]).map_err(npz_err)?,
+            );
+            if let Some(sex) = subject.sex {
+                let code = match sex {
+                    Sex::Female => 1.0,
+                    Sex::Male => 2.0,
+                };
+                npz.insert(
+                    KEY_SUBJECT_SEX,
+                    Array::new(vec![1], vec![code]).map_err(npz_err)?,
                 );
             }
         }
@@ -806,6 +865,31 @@ mod tests {
             Sequence::from_npz(&n, None),
             Err(SequenceError::Empty)
         ));
+    }
+
+    #[test]
+    fn a_subject_round_trips_and_bad_ones_are_refused() {
+        let mut n = npz(2, 17);
+        assert_eq!(Sequence::from_npz(&n, None).unwrap().subject, None);
+        n.insert(KEY_SUBJECT_HEIGHT, Array::new(vec![1], vec![1.74]).unwrap());
+        n.insert(KEY_SUBJECT_SEX, Array::new(vec![1], vec![1.0]).unwrap());
+        let s = Sequence::from_npz(&n, None).unwrap();
+        let want = Subject {
+            height_m: 1.74,
+            sex: Some(Sex::Female),
+        };
+        assert_eq!(s.subject, Some(want));
+        let back = Sequence::from_npz(&s.to_npz().unwrap(), None).unwrap();
+        assert_eq!(back.subject, Some(want));
+        n.insert(KEY_SUBJECT_SEX, Array::new(vec![1], vec![3.0]).unwrap());
+        assert!(matches!(
+            Sequence::from_npz(&n, None),
+            Err(SequenceError::Subject(_))
+        ));
+        let mut n = npz(2, 17);
+        n.insert(KEY_SUBJECT_SEX, Array::new(vec![1], vec![2.0]).unwrap());
+        let e = Sequence::from_npz(&n, None).unwrap_err();
+        assert!(e.to_string().contains(KEY_SUBJECT_HEIGHT), "{e}");
     }
 
     #[test]

@@ -429,6 +429,64 @@ impl AdjustedFrame {
     }
 }
 
+/// A person's sex, when the client knows it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Sex {
+    /// Female.
+    Female,
+    /// Male.
+    Male,
+}
+
+/// The person's body as far as the client knows it (`OpenSession.subject`,
+/// `AdjustSequenceRequest.subject`): with it the server answers with the
+/// stature regression's lengths for that height (and sex). The server
+/// accepts statures of 1.0 to 2.3 m and refuses others, naming the field.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Subject {
+    /// Stature, metres.
+    pub height_m: f32,
+    /// Sex, if known.
+    pub sex: Option<Sex>,
+}
+
+impl Subject {
+    /// As the proto message.
+    pub fn to_proto(&self) -> pb::Subject {
+        pb::Subject {
+            height_m: self.height_m,
+            sex: match self.sex {
+                None => pb::Sex::Unspecified,
+                Some(Sex::Female) => pb::Sex::Female,
+                Some(Sex::Male) => pb::Sex::Male,
+            } as i32,
+        }
+    }
+
+    /// From the proto message (an unknown sex reads as unknown).
+    pub fn from_proto(msg: &pb::Subject) -> Self {
+        Subject {
+            height_m: msg.height_m,
+            sex: match pb::Sex::try_from(msg.sex) {
+                Ok(pb::Sex::Female) => Some(Sex::Female),
+                Ok(pb::Sex::Male) => Some(Sex::Male),
+                _ => None,
+            },
+        }
+    }
+}
+
+impl std::fmt::Display for Subject {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{:.2} m", self.height_m)?;
+        match self.sex {
+            Some(Sex::Female) => write!(f, ", female"),
+            Some(Sex::Male) => write!(f, ", male"),
+            None => Ok(()),
+        }
+    }
+}
+
 /// What the server said when a session was opened or resumed.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SessionInfo {
@@ -455,6 +513,9 @@ pub struct SessionInfo {
     /// A session token for the state at this answer (`frames_seen`):
     /// `Some` when the server has a session key, `None` otherwise.
     pub token: Option<SessionToken>,
+    /// The session's subject as opened (its lengths are the stature
+    /// regression's); `None` when it has none.
+    pub subject: Option<Subject>,
 }
 
 /// A session token: the session's whole state, opaque and authenticated by
@@ -508,6 +569,7 @@ impl SessionInfo {
                 token: msg.session_token,
                 frames_seen: msg.frames_seen,
             }),
+            subject: msg.subject.as_ref().map(Subject::from_proto),
         })
     }
 }

@@ -291,6 +291,7 @@ pub fn synthetic_sequence(seed: u64, frames: usize, layout: KeypointLayout) -> S
         pose_3d,
         fps: Some(50.0),
         camera: None,
+        subject: None,
     }
 }
 

@@ -409,6 +409,7 @@ pub fn make_example(
         gt_3d: Some(gt_cam),
         fps: Some(50.0),
         camera: Some(CameraCalibration::from_camera(&camera)),
+        subject: None,
     };
     sequence.validate()?;
     Ok(Example {
