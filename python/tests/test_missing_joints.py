@@ -1,6 +1,6 @@
 """Detector confidences: a joint below ``blapose.MISSING_CONFIDENCE`` is missing,
 its keypoint is not read (NaN is fine), and a frame without a detected joint
-leaves the estimate as it stood."""
+leaves the estimate as it stood; and a known height."""
 
 from __future__ import annotations
 
@@ -53,3 +53,31 @@ def test_missing_keypoints_are_not_read(server: Server) -> None:
     # The frame without a detected joint: the estimate as it stood, counted.
     np.testing.assert_array_equal(nan[9].bone_lengths, nan[8].bone_lengths)
     assert nan[9].frames_seen == 10
+
+
+def test_a_known_height_gives_the_stature_regressions_lengths(server: Server) -> None:
+    """With the person's height (and sex), sessions and AdjustSequence answer
+    with the stature regression's lengths; a height out of range is refused."""
+    import json
+    from pathlib import Path
+
+    model = json.loads((Path(__file__).resolve().parents[2] / "models" / "stature_regression.json").read_text())
+    line = model["female"]
+    want = np.array([a + s * np.float32(1.62) for a, s in zip(line["intercept"], line["slope"])], np.float32)
+    seq = blapose.load_replay(EXAMPLES[0])
+    with blapose.Client(server.url) as client:
+        with client.session(layout=seq.layout, image_size=seq.image_size, height=1.62, sex="female") as s:
+            results = list(s.stream(seq.frames()))
+            s.close()
+        offline = client.adjust_sequence(
+            seq.keypoints_2d, seq.pose_3d, layout=seq.layout, image_size=seq.image_size, height=1.62, sex="female"
+        )
+        for r in results:
+            np.testing.assert_allclose(r.bone_lengths, want, atol=1e-6)
+        np.testing.assert_allclose(offline.bone_lengths, np.tile(want, (seq.num_frames, 1)), atol=1e-6)
+        try:
+            client.adjust_sequence(seq.keypoints_2d, seq.pose_3d, layout=seq.layout, image_size=seq.image_size, height=0.5)
+        except blapose.InvalidArgument as e:
+            assert "subject.height_m" in str(e)
+        else:
+            raise AssertionError("a height of 0.5 m was accepted")

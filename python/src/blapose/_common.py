@@ -334,6 +334,19 @@ def resume_request(session_id: str, token: Optional[SessionToken]) -> pb.StreamR
     return pb.StreamRequest(resume=req)
 
 
+def subject_proto(height: Optional[float], sex: Optional[str]) -> Optional[pb.Subject]:
+    """The ``Subject`` message for a stature in metres and an optional sex
+    (``"female"``/``"male"``); None without a stature."""
+    if height is None:
+        if sex is not None:
+            raise ValueError("sex needs the person's height")
+        return None
+    sexes = {None: pb.SEX_UNSPECIFIED, "female": pb.SEX_FEMALE, "male": pb.SEX_MALE}
+    if sex not in sexes:
+        raise ValueError(f"sex must be 'female', 'male' or None, got {sex!r}")
+    return pb.Subject(height_m=float(height), sex=sexes[sex])
+
+
 def open_request(
     layout: Layout,
     image_size: Optional[Tuple[int, int]],
@@ -341,6 +354,7 @@ def open_request(
     camera: Optional[Camera],
     server_lifter: bool,
     label: Optional[str],
+    subject: Optional[pb.Subject] = None,
 ) -> Tuple[pb.StreamRequest, int]:
     value, joints = layout_value(layout)
     fmt = input_format(value, image_size)
@@ -353,6 +367,8 @@ def open_request(
     )
     if camera is not None:
         req.camera.CopyFrom(camera.to_proto())
+    if subject is not None:
+        req.subject.CopyFrom(subject)
     return pb.StreamRequest(open=req), joints
 
 
@@ -364,6 +380,7 @@ def sequence_request(
     model: Optional[Union[str, int]],
     camera: Optional[Camera],
     confidence,
+    subject: Optional[pb.Subject] = None,
 ) -> Tuple[pb.AdjustSequenceRequest, int]:
     value, joints = layout_value(layout)
     kp = np.asarray(keypoints, dtype=np.float32)
@@ -383,6 +400,8 @@ def sequence_request(
         req.confidence.extend(np.asarray(confidence, dtype=np.float32).ravel().tolist())
     if camera is not None:
         req.camera.CopyFrom(camera.to_proto())
+    if subject is not None:
+        req.subject.CopyFrom(subject)
     return req, t
 
 

@@ -101,6 +101,8 @@ class Client:
         model: Optional[str] = "bigru",
         camera: Optional[Camera] = None,
         confidence: Optional[ArrayLike] = None,
+        height: Optional[float] = None,
+        sex: Optional[str] = None,
     ) -> SequenceResult:
         """Adjust a whole sequence in one call (see :meth:`blapose.Client.adjust_sequence`)."""
         return await self._run(
@@ -112,6 +114,8 @@ class Client:
             model=model,
             camera=camera,
             confidence=confidence,
+            height=height,
+            sex=sex,
         )
 
     async def close_session(self, session_id: str, *, affinity: Optional[str] = None) -> ClosedSession:
@@ -130,6 +134,8 @@ class Client:
         auto_resume: bool = True,
         resume_timeout: float = 30.0,
         max_resumes: int = c.MAX_RESUMES,
+        height: Optional[float] = None,
+        sex: Optional[str] = None,
     ) -> "Session":
         """Open an online session (see :meth:`blapose.Client.session`)."""
         s = await self._run(
@@ -143,6 +149,8 @@ class Client:
             auto_resume=auto_resume,
             resume_timeout=resume_timeout,
             max_resumes=max_resumes,
+            height=height,
+            sex=sex,
         )
         return Session(self, s)
 

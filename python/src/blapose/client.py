@@ -184,6 +184,8 @@ class Client:
         model: Optional[str] = "bigru",
         camera: Optional[Camera] = None,
         confidence: Optional[ArrayLike] = None,
+        height: Optional[float] = None,
+        sex: Optional[str] = None,
     ) -> SequenceResult:
         """Adjust a whole sequence in one call (``AdjustSequence``).
 
@@ -194,12 +196,18 @@ class Client:
             image_size: ``(width, height)`` in pixels, or None for normalized keypoints.
             model: ``"bigru"`` (offline, default) or ``"gru"`` (what a stream gives).
             camera: a calibration, to be served by the camera-aware models.
-            confidence: optional ``(T, J)`` detector confidences.
+            confidence: optional ``(T, J)`` detector confidences (below
+                :data:`blapose.MISSING_CONFIDENCE` a joint is missing).
+            height: the person's stature in metres (1.0 to 2.3): every frame then
+                gets the stature regression's lengths for it.
+            sex: ``"female"`` or ``"male"``, with ``height``.
 
         Returns:
             :class:`SequenceResult` with ``adjusted`` (T, 17, 3) and ``bone_lengths`` (T, 16).
         """
-        req, t = c.sequence_request(keypoints, poses, layout, image_size, model, camera, confidence)
+        req, t = c.sequence_request(
+            keypoints, poses, layout, image_size, model, camera, confidence, c.subject_proto(height, sex)
+        )
         return c.sequence_result(self._unary("AdjustSequence", req), t)
 
     def _close_session(self, session_id: str, metadata: Metadata, first: Optional[int] = None) -> ClosedSession:
@@ -247,6 +255,8 @@ class Client:
         auto_resume: bool = True,
         resume_timeout: float = 30.0,
         max_resumes: int = c.MAX_RESUMES,
+        height: Optional[float] = None,
+        sex: Optional[str] = None,
     ) -> "Session":
         """Open an online session (a ``Stream`` with ``open``); use it as a context manager.
 
@@ -265,12 +275,17 @@ class Client:
             resume_timeout: how long to keep trying to resume before giving up.
             max_resumes: give up after this many resumes in a row with no new
                 answer in between (the stream's error is raised).
+            height: the person's stature in metres (1.0 to 2.3): the session then
+                answers with the stature regression's lengths for it.
+            sex: ``"female"`` or ``"male"``, with ``height``.
 
         Raises:
             InvalidArgument: bad layout/image size/model/camera; ResourceExhausted: too
             many sessions; Unauthenticated; Unavailable; DeadlineExceeded.
         """
-        req, joints = c.open_request(layout, image_size, model, camera, server_lifter, label)
+        req, joints = c.open_request(
+            layout, image_size, model, camera, server_lifter, label, c.subject_proto(height, sex)
+        )
         return Session(self, req, joints, server_lifter, auto_resume, resume_timeout, None, max_resumes)
 
     def resume(
