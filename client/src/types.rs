@@ -673,6 +673,9 @@ pub struct ModelInfo {
     pub max_message_bytes: u64,
     /// The server lifter, if the server runs one.
     pub lifter: Option<LifterDescription>,
+    /// What frames and sessions may carry besides keypoints and poses, in
+    /// words (empty from servers that predate it).
+    pub accepts: Vec<String>,
 }
 
 impl ModelInfo {
@@ -714,6 +717,7 @@ impl ModelInfo {
                 weights_sha256: l.weights_sha256,
                 metadata: l.metadata.into_iter().collect(),
             }),
+            accepts: msg.accepts,
         }
     }
 }
@@ -727,6 +731,10 @@ impl fmt::Display for ModelInfo {
         )?;
         let layouts: Vec<&str> = self.layouts.iter().map(|l| l.name()).collect();
         writeln!(f, "layouts:      {}", layouts.join(", "))?;
+        for (i, line) in self.accepts.iter().enumerate() {
+            let head = if i == 0 { "accepts:" } else { "" };
+            writeln!(f, "{head:<14}{line}")?;
+        }
         writeln!(
             f,
             "limits:       {} sessions, session TTL {:.1} s, batch {}, message {} bytes",

@@ -146,6 +146,36 @@ fn fail<T>(status: Status, rpc: &'static str) -> Result<T, Status> {
     Err(status)
 }
 
+impl PoseService {
+    /// `ModelInfo.accepts`: what this server does with the optional inputs.
+    fn accepts(&self) -> Vec<String> {
+        let mut out = vec![
+            format!(
+                "confidence: a joint below {} is missing (not read; held at its last detection)",
+                validate::MISSING_CONFIDENCE
+            ),
+            format!(
+                "subject: stature {}-{} m (and sex), answered with the stature regression's \
+                 lengths ({} ANSUR II people)",
+                blapose_model::stature::MIN_STATURE_M,
+                blapose_model::stature::MAX_STATURE_M,
+                self.state.stature.pooled.people
+            ),
+        ];
+        if self.state.camera_models().is_some() {
+            out.push(
+                "camera: a calibration with the camera's height, served by the camera-aware \
+                 models within their trained range"
+                    .into(),
+            );
+        }
+        if self.state.lifter.is_some() {
+            out.push("server_lifter: 2D keypoints only; the server lifts the poses".into());
+        }
+        out
+    }
+}
+
 /// A stream's responses, unboxed from the channel ([`stream::Outbound`]).
 pub type ResponseStream =
     std::pin::Pin<Box<dyn Stream<Item = Result<pb::StreamResponse, Status>> + Send>>;
@@ -260,6 +290,7 @@ impl pb::pose_adjustment_server::PoseAdjustment for PoseService {
             max_batch: u32::try_from(config.max_batch).unwrap_or(u32::MAX),
             max_message_bytes: self.state.max_message_bytes as u64,
             lifter: self.state.lifter.as_ref().map(|l| l.describe()),
+            accepts: self.accepts(),
         }))
     }
 }

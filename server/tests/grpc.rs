@@ -1353,6 +1353,17 @@ async fn a_subject_is_answered_with_the_stature_models_lengths() {
     let server = start(config(), Duration::ZERO).await;
     let mut c = client(server.local_addr()).await;
     let stature = blapose_server::models::embedded_stature_model().unwrap();
+    let info = c
+        .model_info(pb::ModelInfoRequest {})
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(
+        info.accepts.iter().any(|a| a.starts_with("subject: stature 1-2.3 m")),
+        "{:?}",
+        info.accepts
+    );
+    assert!(info.accepts.iter().any(|a| a.starts_with("confidence:")));
     let subject = pb::Subject {
         height_m: 1.64,
         sex: pb::Sex::Female as i32,

@@ -327,7 +327,7 @@ class LifterDescription(_message.Message):
     def __init__(self, name: _Optional[str] = ..., receptive_field: _Optional[int] = ..., parameter_count: _Optional[int] = ..., causal: _Optional[bool] = ..., weights_source: _Optional[str] = ..., weights_sha256: _Optional[str] = ..., metadata: _Optional[_Mapping[str, str]] = ...) -> None: ...
 
 class ModelInfoResponse(_message.Message):
-    __slots__ = ("models", "layouts", "server_version", "protocol", "joint_names", "bone_names", "max_sessions", "session_ttl_ms", "max_batch", "max_message_bytes", "lifter")
+    __slots__ = ("models", "layouts", "server_version", "protocol", "joint_names", "bone_names", "max_sessions", "session_ttl_ms", "max_batch", "max_message_bytes", "lifter", "accepts")
     MODELS_FIELD_NUMBER: _ClassVar[int]
     LAYOUTS_FIELD_NUMBER: _ClassVar[int]
     SERVER_VERSION_FIELD_NUMBER: _ClassVar[int]
@@ -339,6 +339,7 @@ class ModelInfoResponse(_message.Message):
     MAX_BATCH_FIELD_NUMBER: _ClassVar[int]
     MAX_MESSAGE_BYTES_FIELD_NUMBER: _ClassVar[int]
     LIFTER_FIELD_NUMBER: _ClassVar[int]
+    ACCEPTS_FIELD_NUMBER: _ClassVar[int]
     models: _containers.RepeatedCompositeFieldContainer[ModelDescription]
     layouts: _containers.RepeatedScalarFieldContainer[KeypointLayout]
     server_version: str
@@ -350,4 +351,5 @@ class ModelInfoResponse(_message.Message):
     max_batch: int
     max_message_bytes: int
     lifter: LifterDescription
-    def __init__(self, models: _Optional[_Iterable[_Union[ModelDescription, _Mapping]]] = ..., layouts: _Optional[_Iterable[_Union[KeypointLayout, str]]] = ..., server_version: _Optional[str] = ..., protocol: _Optional[str] = ..., joint_names: _Optional[_Iterable[str]] = ..., bone_names: _Optional[_Iterable[str]] = ..., max_sessions: _Optional[int] = ..., session_ttl_ms: _Optional[int] = ..., max_batch: _Optional[int] = ..., max_message_bytes: _Optional[int] = ..., lifter: _Optional[_Union[LifterDescription, _Mapping]] = ...) -> None: ...
+    accepts: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, models: _Optional[_Iterable[_Union[ModelDescription, _Mapping]]] = ..., layouts: _Optional[_Iterable[_Union[KeypointLayout, str]]] = ..., server_version: _Optional[str] = ..., protocol: _Optional[str] = ..., joint_names: _Optional[_Iterable[str]] = ..., bone_names: _Optional[_Iterable[str]] = ..., max_sessions: _Optional[int] = ..., session_ttl_ms: _Optional[int] = ..., max_batch: _Optional[int] = ..., max_message_bytes: _Optional[int] = ..., lifter: _Optional[_Union[LifterDescription, _Mapping]] = ..., accepts: _Optional[_Iterable[str]] = ...) -> None: ...
