@@ -1359,7 +1359,9 @@ async fn a_subject_is_answered_with_the_stature_models_lengths() {
         .unwrap()
         .into_inner();
     assert!(
-        info.accepts.iter().any(|a| a.starts_with("subject: stature 1-2.3 m")),
+        info.accepts
+            .iter()
+            .any(|a| a.starts_with("subject: stature 1-2.3 m")),
         "{:?}",
         info.accepts
     );
