@@ -8,7 +8,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use blapose_core::BoneLengths;
 use blapose_data::h36m::{H36m, Parts, ALL_SUBJECTS, TRAIN_SUBJECTS};
 use blapose_model::{LoadedWeights, ModelKind};
@@ -31,14 +31,14 @@ pub struct EvalArgs {
         long,
         value_enum,
         ignore_case = true,
-        required_unless_present = "benchmark"
+        required_unless_present_any = ["benchmark", "stature_proxy"]
     )]
     model: Option<ModelArg>,
     /// 2D input: sh (real Stacked Hourglass detections) or gt (projected ground truth).
     #[arg(long, value_enum, default_value_t = InputKind::Sh)]
     input: InputKind,
     /// Weights file (safetensors written by `blapose train`).
-    #[arg(long, required_unless_present = "benchmark")]
+    #[arg(long, required_unless_present_any = ["benchmark", "stature_proxy"])]
     weights: Option<PathBuf>,
     /// Run a benchmark instead of the Human3.6M protocol: `bodies`, the
     /// many-bodies cross-camera benchmark (held-out ANSUR II people on
@@ -104,6 +104,15 @@ pub struct EvalArgs {
     /// Seed of --drop-joints.
     #[arg(long, default_value_t = 0, requires = "drop_joints")]
     drop_seed: u64,
+    /// Score the stature model the server answers subjects with
+    /// (--stature-model) instead of a network: each subject's lengths from
+    /// its stature proxy (Human3.6M publishes no statures;
+    /// blapose_train::stature::stature_proxy says how it is made).
+    #[arg(long, conflicts_with_all = ["model", "weights", "benchmark", "drop_joints"])]
+    stature_proxy: bool,
+    /// The stature model file, for --stature-proxy.
+    #[arg(long, default_value = "models/stature_regression.json")]
+    stature_model: PathBuf,
     /// Data root (default: $BLAPOSE_DATA or ../shared/data).
     #[arg(long)]
     data: Option<PathBuf>,
@@ -115,8 +124,11 @@ pub fn run(a: EvalArgs) -> Result<()> {
     if let Some(Benchmark::Bodies) = a.benchmark {
         return crate::bodies::run(&root, &a.bodies, a.json.as_deref());
     }
+    if a.stature_proxy {
+        return stature_proxy_eval(&a, &root);
+    }
     let (Some(model), Some(weights_path)) = (a.model, a.weights.clone()) else {
-        anyhow::bail!("--model and --weights are required without --benchmark");
+        anyhow::bail!("--model and --weights are required without --benchmark or --stature-proxy");
     };
     let kind = ModelKind::from(model);
     let weights = blapose_model::weights::load(&weights_path, kind)?;
@@ -279,4 +291,65 @@ fn score_trials(
         &weights_path.display().to_string(),
         &a.subjects,
     )?)
+}
+
+/// `--stature-proxy`: the stature model on each evaluated subject's
+/// stature proxy, scored by the same protocol beside the same baselines.
+fn stature_proxy_eval(a: &EvalArgs, root: &Path) -> Result<()> {
+    use blapose_model::stature::StatureModel;
+    use blapose_train::eval::PerSubject;
+    use blapose_train::stature::stature_proxy;
+    let text = std::fs::read_to_string(&a.stature_model)
+        .with_context(|| format!("reading {}", a.stature_model.display()))?;
+    let model = StatureModel::from_json(&text)?;
+    let subjects = known_subjects(&a.subjects)?;
+    let all = H36m::load(root, &ALL_SUBJECTS, Parts::POSES)?;
+    let lengths = subject_lengths(&all);
+    let parts = if a.input == InputKind::Sh {
+        Parts::ALL
+    } else {
+        Parts::POSES
+    };
+    let h36m = H36m::load(root, &subjects, parts)?;
+    let trials = eval_sequences(&h36m, &subjects, a.input, &lengths)?;
+    let mut answers = std::collections::BTreeMap::new();
+    for s in &subjects {
+        let poses: Vec<_> = all
+            .sequences()
+            .filter(|(subject, _, _)| subject == s)
+            .flat_map(|(_, _, p)| p.iter().copied())
+            .collect();
+        let proxy = stature_proxy(&poses)
+            .with_context(|| format!("no poses of {s} for its stature proxy"))?;
+        let predicted = model.predict(proxy, None);
+        let truth = lengths.get(*s).copied().unwrap_or_default();
+        println!(
+            "{s}: stature proxy {proxy:.3} m -> total length {:.3} m (true {:.3})",
+            predicted.iter().sum::<f32>(),
+            truth.iter().sum::<f32>()
+        );
+        answers.insert(s.to_string(), predicted);
+    }
+    let mean_of = |names: &[&str]| -> Result<BoneLengths> {
+        mean_subject_lengths(&lengths, names)
+            .ok_or_else(|| anyhow::anyhow!("missing subject lengths"))
+    };
+    let baselines = [
+        ("training_mean", mean_of(&TRAIN_SUBJECTS)?),
+        ("all_subjects_mean", mean_of(&ALL_SUBJECTS)?),
+    ];
+    let report = evaluate(
+        &PerSubject(answers),
+        &trials,
+        &baselines,
+        "stature-regression+proxy",
+        a.input.name(),
+        &a.stature_model.display().to_string(),
+        &a.subjects,
+    )?;
+    println!("{}", markdown(&report));
+    if let Some(p) = &a.json {
+        std::fs::write(p, serde_json::to_string_pretty(&report)?)?;
+    }
+    Ok(())
 }
