@@ -522,14 +522,23 @@ mod tests {
         );
     }
 
-    #[test]
-    fn height_and_sex_become_the_subject() {
+    /// The shipped walk example's path.
+    fn example() -> String {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/cmu_02_02_walk.npz");
-        let file = path.to_str().unwrap();
-        let io = |args: &[&str]| match Cli::try_parse_from(args).unwrap().command {
+        path.to_str().unwrap().to_string()
+    }
+
+    /// The file arguments of a `replay` or `adjust` command line.
+    fn io(args: &[&str]) -> IoArgs {
+        match Cli::try_parse_from(args).unwrap().command {
             Command::Replay { io, .. } | Command::Adjust { io, .. } => io,
             other => panic!("{other:?}"),
-        };
+        }
+    }
+
+    #[test]
+    fn height_and_sex_become_the_subject() {
+        let file = &example();
         let (seq, _) = io(&["blapose-client", "adjust", file]).load().unwrap();
         assert_eq!(seq.subject, None);
         let (seq, _) = io(&[
@@ -580,12 +589,7 @@ mod tests {
 
     #[test]
     fn only_camera_sends_the_files_calibration() {
-        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/cmu_02_02_walk.npz");
-        let file = path.to_str().unwrap();
-        let io = |args: &[&str]| match Cli::try_parse_from(args).unwrap().command {
-            Command::Replay { io, .. } | Command::Adjust { io, .. } => io,
-            other => panic!("{other:?}"),
-        };
+        let file = &example();
         let (with, up) = io(&["blapose-client", "replay", file, "--camera"])
             .load()
             .unwrap();

@@ -22,7 +22,7 @@ use std::time::Instant;
 
 use anyhow::{bail, ensure, Context, Result};
 use blapose_bench::failover::{compare, frames_per_second, run_sessions};
-use blapose_bench::loadtest::workload::default_examples_dir;
+use blapose_bench::loadtest::workload::{default_examples_dir, replay_files};
 use blapose_client::{Client, ClientConfig, ReplayOptions, Sequence};
 use clap::{Parser, ValueEnum};
 
@@ -86,18 +86,7 @@ impl Signal {
 }
 
 fn load_sequences(dir: &std::path::Path) -> Result<Vec<Arc<Sequence>>> {
-    let mut paths: Vec<PathBuf> = std::fs::read_dir(dir)
-        .with_context(|| format!("reading {}", dir.display()))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.extension().is_some_and(|x| x == "npz"))
-        .collect();
-    paths.sort();
-    ensure!(
-        !paths.is_empty(),
-        "no .npz replay files in {}",
-        dir.display()
-    );
-    paths
+    replay_files(dir)?
         .iter()
         .map(|p| {
             let mut seq = Sequence::load(p, None)?;

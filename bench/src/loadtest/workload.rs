@@ -73,15 +73,7 @@ pub struct Workload {
 impl Workload {
     /// Every `*.npz` in `dir`, in file-name order.
     pub fn from_dir(dir: &Path) -> Result<Self, WorkloadError> {
-        let entries = std::fs::read_dir(dir).map_err(|source| WorkloadError::Dir {
-            path: dir.to_owned(),
-            source,
-        })?;
-        let mut paths: Vec<PathBuf> = entries
-            .filter_map(|e| e.ok().map(|e| e.path()))
-            .filter(|p| p.extension().is_some_and(|x| x == "npz"))
-            .collect();
-        paths.sort();
+        let paths = replay_files(dir)?;
         let mut clips = Vec::with_capacity(paths.len());
         for path in paths {
             let seq = Sequence::load(&path, None)?;
@@ -90,9 +82,6 @@ impl Workload {
                 .map(|n| n.to_string_lossy().into_owned())
                 .unwrap_or_default();
             clips.push(Clip::from_sequence(name, &seq));
-        }
-        if clips.is_empty() {
-            return Err(WorkloadError::Empty(dir.to_owned()));
         }
         Ok(Workload { clips })
     }
@@ -106,6 +95,23 @@ impl Workload {
     pub fn total_frames(&self) -> usize {
         self.clips.iter().map(|c| c.frames.len()).sum()
     }
+}
+
+/// Every `*.npz` in `dir`, in file-name order; at least one.
+pub fn replay_files(dir: &Path) -> Result<Vec<PathBuf>, WorkloadError> {
+    let entries = std::fs::read_dir(dir).map_err(|source| WorkloadError::Dir {
+        path: dir.to_owned(),
+        source,
+    })?;
+    let mut paths: Vec<PathBuf> = entries
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "npz"))
+        .collect();
+    if paths.is_empty() {
+        return Err(WorkloadError::Empty(dir.to_owned()));
+    }
+    paths.sort();
+    Ok(paths)
 }
 
 /// The workspace's `examples/` directory (where `cargo run` finds it).

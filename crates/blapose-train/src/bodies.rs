@@ -618,15 +618,26 @@ fn with_height(input: BenchInput) -> &'static str {
     }
 }
 
-/// Each individual's stature, in trial order (`people` as in
-/// [`stature_rows`]).
-fn statures(people: &[&Person], trials: &[Trial]) -> Result<Vec<f64>, TrainError> {
+/// The person of each trial, in trial order: `people` and `trials` are in
+/// the same order (the trials of `people[..trials.len()]`); a shorter or
+/// misaligned `people` is an error.
+fn trial_people<'a>(
+    people: &[&'a Person],
+    trials: &[Trial],
+) -> Result<Vec<&'a Person>, TrainError> {
+    if people.len() < trials.len() {
+        return Err(TrainError::InvalidArgument(format!(
+            "{} people for {} trials",
+            people.len(),
+            trials.len()
+        )));
+    }
     trials
         .iter()
         .zip(people)
-        .map(|(t, p)| {
+        .map(|(t, &p)| {
             if p.subject_id == t.subject_id {
-                Ok(f64::from(p.stature_m))
+                Ok(p)
             } else {
                 Err(TrainError::InvalidArgument(format!(
                     "person {} is not the individual of trial {}",
@@ -635,6 +646,14 @@ fn statures(people: &[&Person], trials: &[Trial]) -> Result<Vec<f64>, TrainError
             }
         })
         .collect()
+}
+
+/// Each individual's stature, in trial order ([`trial_people`]).
+fn statures(people: &[&Person], trials: &[Trial]) -> Result<Vec<f64>, TrainError> {
+    Ok(trial_people(people, trials)?
+        .iter()
+        .map(|p| f64::from(p.stature_m))
+        .collect())
 }
 
 /// The stature regression's rows: each individual's lengths predicted
@@ -646,30 +665,15 @@ pub fn stature_rows(
     trials: &[Trial],
     prior: &BoneLengths,
 ) -> Result<Vec<Row>, TrainError> {
-    if people.len() < trials.len() {
-        return Err(TrainError::InvalidArgument(format!(
-            "{} people for {} trials",
-            people.len(),
-            trials.len()
-        )));
-    }
+    let people = trial_people(people, trials)?;
     let truth: Vec<BoneLengths> = trials.iter().map(|t| t.lengths).collect();
     let mut rows = Vec::with_capacity(StatureInput::ALL.len());
     for input in StatureInput::ALL {
         let t = Instant::now();
         let pred = people
             .iter()
-            .zip(trials)
-            .map(|(p, t)| {
-                if p.subject_id != t.subject_id {
-                    return Err(TrainError::InvalidArgument(format!(
-                        "person {} is not the individual of trial {}",
-                        p.subject_id, t.subject_id
-                    )));
-                }
-                Ok(regression.predict(input, f64::from(p.stature_m), p.sex)?)
-            })
-            .collect::<Result<Vec<_>, TrainError>>()?;
+            .map(|p| regression.predict(input, f64::from(p.stature_m), p.sex))
+            .collect::<Result<Vec<_>, _>>()?;
         let mut r = named_row(
             crate::stature::MODEL_NAME,
             input.name(),

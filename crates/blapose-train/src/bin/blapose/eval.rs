@@ -124,14 +124,6 @@ pub fn run(a: EvalArgs) -> Result<()> {
     if let Some(Benchmark::Bodies) = a.benchmark {
         return crate::bodies::run(&root, &a.bodies, a.json.as_deref());
     }
-    if a.stature_proxy {
-        return stature_proxy_eval(&a, &root);
-    }
-    let (Some(model), Some(weights_path)) = (a.model, a.weights.clone()) else {
-        anyhow::bail!("--model and --weights are required without --benchmark or --stature-proxy");
-    };
-    let kind = ModelKind::from(model);
-    let weights = blapose_model::weights::load(&weights_path, kind)?;
     let subjects = known_subjects(&a.subjects)?;
     let t0 = Instant::now();
     let all = H36m::load(&root, &ALL_SUBJECTS, Parts::POSES)?;
@@ -185,6 +177,19 @@ pub fn run(a: EvalArgs) -> Result<()> {
         ("training_mean", mean_of(&TRAIN_SUBJECTS)?),
         ("all_subjects_mean", mean_of(&ALL_SUBJECTS)?),
     ];
+    if a.stature_proxy {
+        let report = stature_proxy_report(&a, &all, &lengths, &subjects, &trials, &baselines)?;
+        println!("{}", markdown(&report));
+        if let Some(p) = &a.json {
+            std::fs::write(p, serde_json::to_string_pretty(&report)?)?;
+        }
+        return Ok(());
+    }
+    let (Some(model), Some(weights_path)) = (a.model, a.weights.clone()) else {
+        anyhow::bail!("--model and --weights are required without --benchmark or --stature-proxy");
+    };
+    let kind = ModelKind::from(model);
+    let weights = blapose_model::weights::load(&weights_path, kind)?;
     let score = |trials: Vec<EvalSequence>| {
         score_trials(&a, kind, &weights, &weights_path, &h36m, trials, &baselines)
     };
@@ -294,26 +299,24 @@ fn score_trials(
 }
 
 /// `--stature-proxy`: the stature model on each evaluated subject's
-/// stature proxy, scored by the same protocol beside the same baselines.
-fn stature_proxy_eval(a: &EvalArgs, root: &Path) -> Result<()> {
+/// stature proxy (from all of its recordings in `all`), scored on
+/// `trials` by the same protocol beside the same baselines.
+fn stature_proxy_report(
+    a: &EvalArgs,
+    all: &H36m,
+    lengths: &std::collections::BTreeMap<String, BoneLengths>,
+    subjects: &[&str],
+    trials: &[EvalSequence],
+    baselines: &[(&str, BoneLengths)],
+) -> Result<EvalReport> {
     use blapose_model::stature::StatureModel;
     use blapose_train::eval::PerSubject;
     use blapose_train::stature::stature_proxy;
     let text = std::fs::read_to_string(&a.stature_model)
         .with_context(|| format!("reading {}", a.stature_model.display()))?;
     let model = StatureModel::from_json(&text)?;
-    let subjects = known_subjects(&a.subjects)?;
-    let all = H36m::load(root, &ALL_SUBJECTS, Parts::POSES)?;
-    let lengths = subject_lengths(&all);
-    let parts = if a.input == InputKind::Sh {
-        Parts::ALL
-    } else {
-        Parts::POSES
-    };
-    let h36m = H36m::load(root, &subjects, parts)?;
-    let trials = eval_sequences(&h36m, &subjects, a.input, &lengths)?;
     let mut answers = std::collections::BTreeMap::new();
-    for s in &subjects {
+    for s in subjects {
         let poses: Vec<_> = all
             .sequences()
             .filter(|(subject, _, _)| subject == s)
@@ -330,26 +333,13 @@ fn stature_proxy_eval(a: &EvalArgs, root: &Path) -> Result<()> {
         );
         answers.insert(s.to_string(), predicted);
     }
-    let mean_of = |names: &[&str]| -> Result<BoneLengths> {
-        mean_subject_lengths(&lengths, names)
-            .ok_or_else(|| anyhow::anyhow!("missing subject lengths"))
-    };
-    let baselines = [
-        ("training_mean", mean_of(&TRAIN_SUBJECTS)?),
-        ("all_subjects_mean", mean_of(&ALL_SUBJECTS)?),
-    ];
-    let report = evaluate(
+    Ok(evaluate(
         &PerSubject(answers),
-        &trials,
-        &baselines,
+        trials,
+        baselines,
         "stature-regression+proxy",
         a.input.name(),
         &a.stature_model.display().to_string(),
         &a.subjects,
-    )?;
-    println!("{}", markdown(&report));
-    if let Some(p) = &a.json {
-        std::fs::write(p, serde_json::to_string_pretty(&report)?)?;
-    }
-    Ok(())
+    )?)
 }
