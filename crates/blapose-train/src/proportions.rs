@@ -29,7 +29,9 @@ use nalgebra::{DMatrix, DVector};
 
 use crate::ansur_split::Person;
 use crate::bodies::{build_trials, BodiesConfig, Trial};
+use crate::dataset::EvalSequence;
 use crate::error::TrainError;
+use crate::eval::{Estimate, LengthEstimator};
 use crate::noise::ResidualBank;
 use crate::synth::MotionSequence;
 
@@ -187,6 +189,37 @@ pub fn fit(samples: &[FitSample], source: String) -> Result<ProportionModel, Tra
     })
 }
 
+/// The reader as an evaluation estimator: each trial's lengths from its
+/// subject's stature and the statistics of the trial's keypoints (every
+/// frame, as a session that sent the whole trial would have them).
+pub struct ReaderEstimator {
+    /// The reader.
+    pub model: ProportionModel,
+    /// Each subject's stature (metres).
+    pub statures: std::collections::BTreeMap<String, f32>,
+}
+
+impl LengthEstimator for ReaderEstimator {
+    fn estimate(&self, trials: &[EvalSequence]) -> Result<Vec<Estimate>, TrainError> {
+        trials
+            .iter()
+            .map(|t| {
+                let stature = *self.statures.get(&t.subject).ok_or_else(|| {
+                    TrainError::Data(format!("no stature for subject {}", t.subject))
+                })?;
+                Ok(Estimate {
+                    lengths: self.model.predict(
+                        stature,
+                        None,
+                        &ProportionStats::of_frames(&t.input),
+                    ),
+                    curve: Vec::new(),
+                })
+            })
+            .collect()
+    }
+}
+
 /// What [`fit_training`] fits on: training data only.
 pub struct TrainingBodies<'a> {
     /// ANSUR II training-split people ([`crate::bodies::fit_people`]).
@@ -317,6 +350,36 @@ mod tests {
             reader < 0.3 * stature_only,
             "thigh error {reader} with the video, {stature_only} without"
         );
+    }
+
+    #[test]
+    fn the_estimator_reads_each_trial_with_its_subjects_stature() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(9);
+        let train: Vec<FitSample> = (0..200)
+            .map(|i| FitSample {
+                stature_m: 1.5 + 0.002 * f64::from(i),
+                sex: if i % 2 == 0 { Sex::Female } else { Sex::Male },
+                stats: clip(rng.random_range(0.2f32..0.4), &mut rng),
+                lengths: [0.1 + 0.001 * i as f32; NUM_BONES],
+            })
+            .collect();
+        let model = fit(&train, "test".into()).unwrap();
+        let frames: Vec<f32> = (0..3 * 34).map(|v| (v as f32 * 0.37).sin()).collect();
+        let trial = |subject: &str| EvalSequence {
+            subject: subject.into(),
+            sequence: "Walking".into(),
+            camera: "c".into(),
+            input: frames.clone(),
+            gt: [0.2; NUM_BONES],
+        };
+        let estimator = ReaderEstimator {
+            model: model.clone(),
+            statures: [("S9".to_string(), 1.8f32)].into_iter().collect(),
+        };
+        let out = estimator.estimate(&[trial("S9")]).unwrap();
+        let expected = model.predict(1.8, None, &ProportionStats::of_frames(&frames));
+        assert_eq!(out[0].lengths, expected);
+        assert!(estimator.estimate(&[trial("S11")]).is_err());
     }
 
     #[test]

@@ -104,18 +104,35 @@ pub struct EvalArgs {
     /// Seed of --drop-joints.
     #[arg(long, default_value_t = 0, requires = "drop_joints")]
     drop_seed: u64,
-    /// Score the stature model the server answers subjects with
-    /// (--stature-model) instead of a network: each subject's lengths from
-    /// its stature proxy (Human3.6M publishes no statures;
-    /// blapose_train::stature::stature_proxy says how it is made).
+    /// Score what the server answers subjects with instead of a network,
+    /// given each subject's stature proxy (Human3.6M publishes no statures;
+    /// blapose_train::stature::stature_proxy says how it is made): the
+    /// proportion reader (--subject-model reader, what Human3.6M-17
+    /// sessions get; it also reads each trial's keypoints) or the stature
+    /// regression (--subject-model regression).
     #[arg(long, conflicts_with_all = ["model", "weights", "benchmark", "drop_joints"])]
     stature_proxy: bool,
-    /// The stature model file, for --stature-proxy.
+    /// Which subject model --stature-proxy scores.
+    #[arg(long, value_enum, default_value_t = SubjectModel::Reader)]
+    subject_model: SubjectModel,
+    /// The stature regression file, for --stature-proxy.
     #[arg(long, default_value = "models/stature_regression.json")]
     stature_model: PathBuf,
+    /// The proportion reader file, for --stature-proxy.
+    #[arg(long, default_value = "models/proportion_reader.json")]
+    proportion_reader: PathBuf,
     /// Data root (default: $BLAPOSE_DATA or ../shared/data).
     #[arg(long)]
     data: Option<PathBuf>,
+}
+
+/// The model a session with a known stature is answered with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum SubjectModel {
+    /// The proportion reader (stature + the trial's 2D proportions).
+    Reader,
+    /// The stature regression (stature only).
+    Regression,
 }
 
 /// `blapose eval`.
@@ -309,12 +326,16 @@ fn stature_proxy_report(
     trials: &[EvalSequence],
     baselines: &[(&str, BoneLengths)],
 ) -> Result<EvalReport> {
+    use blapose_model::proportions::ProportionModel;
     use blapose_model::stature::StatureModel;
-    use blapose_train::eval::PerSubject;
+    use blapose_train::eval::{LengthEstimator, PerSubject};
+    use blapose_train::proportions::ReaderEstimator;
     use blapose_train::stature::stature_proxy;
-    let text = std::fs::read_to_string(&a.stature_model)
-        .with_context(|| format!("reading {}", a.stature_model.display()))?;
-    let model = StatureModel::from_json(&text)?;
+    let read = |path: &std::path::Path| {
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))
+    };
+    let regression = StatureModel::from_json(&read(&a.stature_model)?)?;
+    let mut statures = std::collections::BTreeMap::new();
     let mut answers = std::collections::BTreeMap::new();
     for s in subjects {
         let poses: Vec<_> = all
@@ -324,22 +345,38 @@ fn stature_proxy_report(
             .collect();
         let proxy = stature_proxy(&poses)
             .with_context(|| format!("no poses of {s} for its stature proxy"))?;
-        let predicted = model.predict(proxy, None);
+        let predicted = regression.predict(proxy, None);
         let truth = lengths.get(*s).copied().unwrap_or_default();
         println!(
-            "{s}: stature proxy {proxy:.3} m -> total length {:.3} m (true {:.3})",
+            "{s}: stature proxy {proxy:.3} m -> regression total length {:.3} m (true {:.3})",
             predicted.iter().sum::<f32>(),
             truth.iter().sum::<f32>()
         );
+        statures.insert(s.to_string(), proxy);
         answers.insert(s.to_string(), predicted);
     }
+    let (estimator, name, path): (Box<dyn LengthEstimator>, _, _) = match a.subject_model {
+        SubjectModel::Regression => (
+            Box::new(PerSubject(answers)),
+            "stature-regression+proxy",
+            &a.stature_model,
+        ),
+        SubjectModel::Reader => (
+            Box::new(ReaderEstimator {
+                model: ProportionModel::from_json(&read(&a.proportion_reader)?)?,
+                statures,
+            }),
+            "proportion-reader+proxy",
+            &a.proportion_reader,
+        ),
+    };
     Ok(evaluate(
-        &PerSubject(answers),
+        &estimator,
         trials,
         baselines,
-        "stature-regression+proxy",
+        name,
         a.input.name(),
-        &a.stature_model.display().to_string(),
+        &path.display().to_string(),
         &a.subjects,
     )?)
 }
