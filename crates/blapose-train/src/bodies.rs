@@ -62,7 +62,6 @@ use crate::noise::{apply_residual, residual_at, ResidualBank};
 use crate::stature::{StatureInput, StatureRegression};
 use crate::synth::{rebuild_on_floor, sample_rng, MotionSequence};
 use crate::train::trained_config;
-use blapose_model::proportions::{ProportionModel, ProportionStats};
 
 /// Default seed of `--benchmark bodies`.
 pub const DEFAULT_SEED: u64 = 2026;
@@ -582,10 +581,6 @@ pub struct BodiesInput<'a> {
     /// ([`StatureRegression::fit_training`]): rows `stature-regression`
     /// (`height`, `height+sex`) after the models' (`None`: no such rows).
     pub stature: Option<&'a StatureRegression>,
-    /// The proportion reader to score (the served file): rows
-    /// `proportion-reader` (`height`, `height+sex`) after the stature
-    /// regression's (`None`: no such rows).
-    pub proportions: Option<&'a ProportionModel>,
     /// Training data to fit each model's [`HeightFusion`] on: rows
     /// `height` and `calibration+height` (`None`: no such rows).
     pub fit_set: Option<FitSet<'a>>,
@@ -696,50 +691,6 @@ pub fn stature_rows(
     Ok(rows)
 }
 
-/// The proportion reader's rows: each individual's lengths from its
-/// measured stature (and sex) and the bone-fraction statistics of its
-/// clip's keypoints (every frame, normalized, as a session pushes them).
-/// `people` and `trials` in the same order, as [`stature_rows`].
-pub fn proportion_rows(
-    model: &ProportionModel,
-    people: &[&Person],
-    trials: &[Trial],
-    prior: &BoneLengths,
-) -> Result<Vec<Row>, TrainError> {
-    let people = trial_people(people, trials)?;
-    let truth: Vec<BoneLengths> = trials.iter().map(|t| t.lengths).collect();
-    let mut rows = Vec::with_capacity(StatureInput::ALL.len());
-    for input in StatureInput::ALL {
-        let t = Instant::now();
-        let pred: Vec<BoneLengths> = people
-            .iter()
-            .zip(trials)
-            .map(|(p, tr)| {
-                let sex = match input {
-                    StatureInput::Height => None,
-                    StatureInput::HeightSex => Some(crate::proportions::model_sex(p.sex)),
-                };
-                model.predict(p.stature_m, sex, &ProportionStats::of_frames(&tr.plain))
-            })
-            .collect();
-        let mut r = named_row(
-            crate::proportions::MODEL_NAME,
-            input.name(),
-            &pred,
-            &truth,
-            prior,
-        )?;
-        r.weights = format!(
-            "ridge on stature and 2D bone-fraction statistics, fitted on {} training-split bodies \
-             on training-subject motion",
-            model.pooled.people
-        );
-        r.seconds = t.elapsed().as_secs_f64();
-        rows.push(r);
-    }
-    Ok(rows)
-}
-
 /// Run the benchmark: build the trials, score every model and the
 /// baselines.
 pub fn run(
@@ -808,14 +759,6 @@ pub fn run(
     rows.extend(fused_rows);
     if let Some(reg) = input.stature {
         rows.extend(stature_rows(reg, &input.people, &trials, &input.prior)?);
-    }
-    if let Some(model) = input.proportions {
-        rows.extend(proportion_rows(
-            model,
-            &input.people,
-            &trials,
-            &input.prior,
-        )?);
     }
     let baselines = vec![
         baseline(

@@ -38,7 +38,6 @@ pub mod lifter;
 pub mod loader;
 pub mod noise;
 pub mod plot;
-pub mod proportions;
 pub mod run;
 pub mod stature;
 pub mod synth;

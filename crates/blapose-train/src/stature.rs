@@ -36,6 +36,31 @@ use crate::ansur_split::{is_held_out, Person};
 /// (69.6 mm over its 6,068 people), added by [`stature_proxy`].
 pub const ANKLE_HEIGHT_M: f32 = 0.0696;
 
+/// The stature whose pooled regression lengths (`model`) sum to `truth`'s
+/// summed length: a diagnostic stature that reads the truth, so the
+/// regression gets the overall size exactly and what is left of its error
+/// is proportion. `None` when the regression's summed slope is not
+/// positive.
+pub fn matched_stature(model: &StatureModel, truth: &BoneLengths) -> Option<f32> {
+    let intercept: f64 = model.pooled.intercept.iter().sum();
+    let slope: f64 = model.pooled.slope.iter().sum();
+    let total: f64 = truth.iter().map(|&v| f64::from(v)).sum();
+    (slope > 0.0).then(|| ((total - intercept) / slope) as f32)
+}
+
+/// The mean over `subjects` (each one's stature proxy and true lengths:
+/// training subjects only) of its matched stature ([`matched_stature`])
+/// minus its proxy: what [`stature_proxy`] reads short by, on average,
+/// through `model`. Added to a test subject's proxy it gives the
+/// calibrated proxy. `None` without subjects.
+pub fn proxy_offset(model: &StatureModel, subjects: &[(f32, BoneLengths)]) -> Option<f32> {
+    let diffs: Vec<f32> = subjects
+        .iter()
+        .map(|(proxy, truth)| matched_stature(model, truth).map(|m| m - proxy))
+        .collect::<Option<_>>()?;
+    (!diffs.is_empty()).then(|| diffs.iter().sum::<f32>() / diffs.len() as f32)
+}
+
 /// A stature proxy for a motion-capture subject, whose stature is not
 /// published (Human3.6M): the 99th percentile over `poses` (world
 /// coordinates, metres, z up) of the vertical span from the lower ankle to
@@ -283,6 +308,39 @@ impl StatureRegression {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn matched_statures_reproduce_the_true_total_and_offsets_average_them() {
+        let model = StatureModel {
+            format: STATURE_FORMAT.into(),
+            source: "test".into(),
+            pooled: StatureLines {
+                intercept: vec![0.01; NUM_BONES],
+                slope: vec![0.15; NUM_BONES],
+                people: 3,
+            },
+            female: StatureLines {
+                intercept: vec![0.0; NUM_BONES],
+                slope: vec![0.1; NUM_BONES],
+                people: 1,
+            },
+            male: StatureLines {
+                intercept: vec![0.0; NUM_BONES],
+                slope: vec![0.1; NUM_BONES],
+                people: 1,
+            },
+        };
+        let truth = model.predict(1.8, None);
+        let m = matched_stature(&model, &truth).unwrap();
+        assert!((m - 1.8).abs() < 1e-5, "{m}");
+        let other = model.predict(1.6, None);
+        let offset = proxy_offset(&model, &[(1.7, truth), (1.5, other)]).unwrap();
+        assert!((offset - 0.1).abs() < 1e-5, "{offset}");
+        assert_eq!(proxy_offset(&model, &[]), None);
+        let mut flat = model.clone();
+        flat.pooled.slope = vec![0.0; NUM_BONES];
+        assert_eq!(matched_stature(&flat, &truth), None);
+    }
 
     #[test]
     fn the_stature_proxy_is_the_upright_span_plus_the_ankle() {

@@ -12,7 +12,6 @@ use blapose_core::BoneLengths;
 use blapose_data::ansur::Sex;
 use blapose_data::h36m::{H36m, Parts, TRAIN_SUBJECTS};
 use blapose_data::test_data_root;
-use blapose_model::proportions::ProportionModel;
 use blapose_train::ansur::load_population;
 use blapose_train::ansur_split::{is_held_out, AnsurPeople, AnsurSplit};
 use blapose_train::bodies::{
@@ -20,7 +19,6 @@ use blapose_train::bodies::{
 };
 use blapose_train::dataset::{mean_subject_lengths, TrainingSet};
 use blapose_train::lengths::{LengthSampler, LengthStrategy, TrainingLengthStats};
-use blapose_train::proportions::TrainingBodies;
 use blapose_train::stature::StatureRegression;
 use blapose_train::synth::MotionSequence;
 use rand::SeedableRng;
@@ -186,10 +184,6 @@ fn a_tiny_benchmark_run_gives_well_formed_deterministic_rows() {
     let people = f.split.held_out();
     let train = f.split.training_population(AnsurPeople::Train).unwrap();
     let stature = StatureRegression::fit_training(&f.split.everyone).unwrap();
-    let reader = ProportionModel::from_json(
-        &std::fs::read_to_string(models_dir().join("proportion_reader.json")).unwrap(),
-    )
-    .unwrap();
     let input = BodiesInput {
         people: people.clone(),
         motions: f.motions.clone(),
@@ -197,7 +191,6 @@ fn a_tiny_benchmark_run_gives_well_formed_deterministic_rows() {
         prior: mean_body(train.people()).unwrap(),
         training_mean: mean_subject_lengths(&f.set.subject_lengths, &TRAIN_SUBJECTS).unwrap(),
         stature: Some(&stature),
-        proportions: Some(&reader),
         fit_set: None,
     };
     let specs = SHIPPED_MODELS;
@@ -237,16 +230,12 @@ fn a_tiny_benchmark_run_gives_well_formed_deterministic_rows() {
         ("bigru", "calibration"),
         ("stature-regression", "height"),
         ("stature-regression", "height+sex"),
-        ("proportion-reader", "height"),
-        ("proportion-reader", "height+sex"),
     ] {
         assert!(combos.contains(&(want.0.into(), want.1.into())), "{want:?}");
     }
-    // The models' rows first, in their order; the regression's and the
-    // reader's after.
-    assert_eq!(combos.len(), 8);
-    assert!(combos[4..6].iter().all(|(m, _)| m == "stature-regression"));
-    assert!(combos[6..].iter().all(|(m, _)| m == "proportion-reader"));
+    // The models' rows first, in their order; the regression's after.
+    assert_eq!(combos.len(), 6);
+    assert!(combos[4..].iter().all(|(m, _)| m == "stature-regression"));
     let prior = report.rows[0].prior_mean_bone_error_mm;
     for r in rows {
         for k in [
@@ -279,16 +268,13 @@ fn a_tiny_benchmark_run_gives_well_formed_deterministic_rows() {
     let md = blapose_train::bodies::markdown(&report);
     assert!(md.contains("| bigru | calibration |") && md.contains("baseline: prior"));
     assert!(md.contains("| stature-regression | height+sex |"));
-    assert!(md.contains("| proportion-reader | height |"));
     // The regression reads sizes: taller individuals get longer bones.
     for r in &report.rows[4..] {
         assert!(r.size_slope > 0.3, "{}: {}", r.input, r.size_slope);
     }
-    // Without the regression and the reader the model rows are exactly
-    // the same.
+    // Without the regression the model rows are exactly the same.
     let bare = BodiesInput {
         stature: None,
-        proportions: None,
         fit_set: None,
         ..input
     };
@@ -313,53 +299,4 @@ fn a_tiny_benchmark_run_gives_well_formed_deterministic_rows() {
     assert!(a.iter().zip(&c).any(|(x, y)| x.camera != y.camera));
     // The rectified input differs from the plain one (tilted cameras).
     assert!(a.iter().any(|t| t.plain != t.rectified));
-}
-
-#[test]
-fn the_shipped_proportion_reader_is_what_fit_proportions_writes() {
-    let Some(f) = fixture() else { return };
-    let h36m = H36m::load(&f.root, &TRAIN_SUBJECTS, Parts::POSES).unwrap();
-    let motions = test_motions(&h36m, &TRAIN_SUBJECTS).unwrap();
-    let people = blapose_train::bodies::fit_people(&f.split.everyone, usize::MAX);
-    assert!(people.iter().all(|p| !is_held_out(p.subject_id, p.sex)));
-    let fitted = blapose_train::proportions::fit_training(&TrainingBodies {
-        people: people.clone(),
-        motions: &motions,
-        residuals: &f.set.residuals,
-        seed: blapose_train::proportions::FIT_SEED,
-        frames: blapose_train::bodies::DEFAULT_FRAMES,
-    })
-    .unwrap();
-    let shipped = ProportionModel::from_json(
-        &std::fs::read_to_string(models_dir().join("proportion_reader.json")).unwrap(),
-    )
-    .unwrap();
-    assert_eq!(shipped.source, fitted.source);
-    assert_eq!(shipped.pooled.people, people.len());
-    let close = |a: &[f64], b: &[f64]| {
-        a.iter()
-            .zip(b)
-            .all(|(x, y)| (x - y).abs() <= 1e-9 * (1.0 + x.abs()))
-    };
-    assert!(close(&shipped.prior.mean, &fitted.prior.mean));
-    for (s, g) in [
-        (&shipped.pooled, &fitted.pooled),
-        (&shipped.female, &fitted.female),
-        (&shipped.male, &fitted.male),
-    ] {
-        assert!(close(&s.intercept, &g.intercept));
-        for (a, b) in s.weights.iter().zip(&g.weights) {
-            assert!(close(a, b));
-        }
-    }
-    // A held-out person is refused.
-    let held = f.split.held_out();
-    assert!(blapose_train::proportions::fit_training(&TrainingBodies {
-        people: held[..40].to_vec(),
-        motions: &motions,
-        residuals: &f.set.residuals,
-        seed: 1,
-        frames: 20,
-    })
-    .is_err());
 }

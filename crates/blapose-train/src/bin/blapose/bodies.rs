@@ -7,9 +7,8 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use blapose_data::h36m::{H36m, Parts, TRAIN_SUBJECTS};
-use blapose_model::proportions::ProportionModel;
 use blapose_train::ansur_split::{AnsurPeople, AnsurSplit};
 use blapose_train::bodies::{
     fit_people, markdown, mean_body, test_motions, BenchModel, BodiesConfig, BodiesInput, FitSet,
@@ -48,9 +47,6 @@ pub struct BodiesArgs {
     fit_individuals: usize,
 }
 
-/// The proportion reader's file under `--models-dir`.
-const PROPORTION_READER_FILE: &str = "proportion_reader.json";
-
 /// Seed of the height-fusion fit trials (never the benchmark's).
 const FIT_SEED: u64 = 7;
 
@@ -82,11 +78,6 @@ pub fn run(root: &Path, a: &BodiesArgs, json: Option<&Path>) -> Result<()> {
     } else {
         None
     };
-    let reader_path = a.models_dir.join(PROPORTION_READER_FILE);
-    let reader = ProportionModel::from_json(
-        &std::fs::read_to_string(&reader_path)
-            .with_context(|| format!("reading {}", reader_path.display()))?,
-    )?;
     let input = BodiesInput {
         people: split.held_out(),
         motions,
@@ -94,7 +85,6 @@ pub fn run(root: &Path, a: &BodiesArgs, json: Option<&Path>) -> Result<()> {
         prior,
         training_mean,
         stature: Some(&stature),
-        proportions: Some(&reader),
         fit_set,
     };
     eprintln!(

@@ -104,35 +104,38 @@ pub struct EvalArgs {
     /// Seed of --drop-joints.
     #[arg(long, default_value_t = 0, requires = "drop_joints")]
     drop_seed: u64,
-    /// Score what the server answers subjects with instead of a network,
-    /// given each subject's stature proxy (Human3.6M publishes no statures;
-    /// blapose_train::stature::stature_proxy says how it is made): the
-    /// proportion reader (--subject-model reader, what Human3.6M-17
-    /// sessions get; it also reads each trial's keypoints) or the stature
-    /// regression (--subject-model regression).
+    /// Score the stature model the server answers subjects with
+    /// (--stature-model) instead of a network: each subject's lengths from
+    /// its stature proxy (Human3.6M publishes no statures;
+    /// blapose_train::stature::stature_proxy says how it is made).
     #[arg(long, conflicts_with_all = ["model", "weights", "benchmark", "drop_joints"])]
     stature_proxy: bool,
-    /// Which subject model --stature-proxy scores.
-    #[arg(long, value_enum, default_value_t = SubjectModel::Reader)]
-    subject_model: SubjectModel,
-    /// The stature regression file, for --stature-proxy.
+    /// Where --stature-proxy takes each subject's stature from: `proxy`
+    /// (blapose_train::stature::stature_proxy), `calibrated-proxy` (the
+    /// proxy plus what it reads short by on the training subjects, through
+    /// the regression: blapose_train::stature::proxy_offset) or `matched`
+    /// (a diagnostic that reads the truth: the stature whose regression
+    /// lengths sum to the subject's true summed length, so what is left is
+    /// proportion).
+    #[arg(long, value_enum, default_value_t = StatureSource::CalibratedProxy)]
+    stature_source: StatureSource,
+    /// The stature model file, for --stature-proxy.
     #[arg(long, default_value = "models/stature_regression.json")]
     stature_model: PathBuf,
-    /// The proportion reader file, for --stature-proxy.
-    #[arg(long, default_value = "models/proportion_reader.json")]
-    proportion_reader: PathBuf,
     /// Data root (default: $BLAPOSE_DATA or ../shared/data).
     #[arg(long)]
     data: Option<PathBuf>,
 }
 
-/// The model a session with a known stature is answered with.
+/// Where `--stature-proxy` takes each subject's stature from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum SubjectModel {
-    /// The proportion reader (stature + the trial's 2D proportions).
-    Reader,
-    /// The stature regression (stature only).
-    Regression,
+pub enum StatureSource {
+    /// The documented proxy.
+    Proxy,
+    /// The proxy plus its mean shortfall on the training subjects.
+    CalibratedProxy,
+    /// Matched to the subject's true summed length (reads the truth).
+    Matched,
 }
 
 /// `blapose eval`.
@@ -326,57 +329,71 @@ fn stature_proxy_report(
     trials: &[EvalSequence],
     baselines: &[(&str, BoneLengths)],
 ) -> Result<EvalReport> {
-    use blapose_model::proportions::ProportionModel;
     use blapose_model::stature::StatureModel;
-    use blapose_train::eval::{LengthEstimator, PerSubject};
-    use blapose_train::proportions::ReaderEstimator;
-    use blapose_train::stature::stature_proxy;
-    let read = |path: &std::path::Path| {
-        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))
-    };
-    let regression = StatureModel::from_json(&read(&a.stature_model)?)?;
-    let mut statures = std::collections::BTreeMap::new();
-    let mut answers = std::collections::BTreeMap::new();
-    for s in subjects {
+    use blapose_train::eval::PerSubject;
+    use blapose_train::stature::{matched_stature, proxy_offset, stature_proxy};
+    let text = std::fs::read_to_string(&a.stature_model)
+        .with_context(|| format!("reading {}", a.stature_model.display()))?;
+    let model = StatureModel::from_json(&text)?;
+    let proxy_of = |s: &str| -> Result<f32> {
         let poses: Vec<_> = all
             .sequences()
-            .filter(|(subject, _, _)| subject == s)
+            .filter(|(subject, _, _)| *subject == s)
             .flat_map(|(_, _, p)| p.iter().copied())
             .collect();
-        let proxy = stature_proxy(&poses)
-            .with_context(|| format!("no poses of {s} for its stature proxy"))?;
-        let predicted = regression.predict(proxy, None);
-        let truth = lengths.get(*s).copied().unwrap_or_default();
+        stature_proxy(&poses).with_context(|| format!("no poses of {s} for its stature proxy"))
+    };
+    let truth_of = |s: &str| -> Result<BoneLengths> {
+        lengths
+            .get(s)
+            .copied()
+            .with_context(|| format!("no true lengths for {s}"))
+    };
+    let offset = match a.stature_source {
+        StatureSource::CalibratedProxy => {
+            let training = TRAIN_SUBJECTS
+                .iter()
+                .map(|s| Ok((proxy_of(s)?, truth_of(s)?)))
+                .collect::<Result<Vec<_>>>()?;
+            let offset = proxy_offset(&model, &training)
+                .context("no training subject to calibrate the proxy on")?;
+            println!(
+                "calibrated proxy: the proxy reads {:.1} mm short on the training subjects",
+                offset * 1000.0
+            );
+            offset
+        }
+        StatureSource::Proxy | StatureSource::Matched => 0.0,
+    };
+    let mut answers = std::collections::BTreeMap::new();
+    for s in subjects {
+        let truth = truth_of(s)?;
+        let stature = match a.stature_source {
+            StatureSource::Matched => matched_stature(&model, &truth)
+                .context("the stature regression's summed slope is not positive")?,
+            StatureSource::Proxy | StatureSource::CalibratedProxy => proxy_of(s)? + offset,
+        };
+        let predicted = model.predict(stature, None);
         println!(
-            "{s}: stature proxy {proxy:.3} m -> regression total length {:.3} m (true {:.3})",
+            "{s}: stature {stature:.3} m ({:?}) -> total length {:.3} m (true {:.3})",
+            a.stature_source,
             predicted.iter().sum::<f32>(),
             truth.iter().sum::<f32>()
         );
-        statures.insert(s.to_string(), proxy);
         answers.insert(s.to_string(), predicted);
     }
-    let (estimator, name, path): (Box<dyn LengthEstimator>, _, _) = match a.subject_model {
-        SubjectModel::Regression => (
-            Box::new(PerSubject(answers)),
-            "stature-regression+proxy",
-            &a.stature_model,
-        ),
-        SubjectModel::Reader => (
-            Box::new(ReaderEstimator {
-                model: ProportionModel::from_json(&read(&a.proportion_reader)?)?,
-                statures,
-            }),
-            "proportion-reader+proxy",
-            &a.proportion_reader,
-        ),
+    let label = match a.stature_source {
+        StatureSource::Proxy => "stature-regression+proxy",
+        StatureSource::CalibratedProxy => "stature-regression+calibrated-proxy",
+        StatureSource::Matched => "stature-regression+matched-stature",
     };
     Ok(evaluate(
-        &estimator,
+        &PerSubject(answers),
         trials,
         baselines,
-        name,
+        label,
         a.input.name(),
-        &path.display().to_string(),
+        &a.stature_model.display().to_string(),
         &a.subjects,
     )?)
 }

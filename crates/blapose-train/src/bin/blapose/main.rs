@@ -68,10 +68,6 @@ enum Command {
     /// Fit the stature regression (bone lengths from height and sex) on
     /// the ANSUR II training split and write the file the server embeds.
     FitStature(stature::FitStatureArgs),
-    /// Fit the proportion reader (bone lengths from height, sex and the 2D
-    /// proportions a video shows) on ANSUR II training-split bodies on the
-    /// training subjects' motion, and write the file the server embeds.
-    FitProportions(stature::FitProportionsArgs),
 }
 
 fn main() -> Result<()> {
@@ -84,7 +80,6 @@ fn main() -> Result<()> {
         Command::EvalAdjust(args) => eval_adjust::run(*args),
         Command::BenchTrain(args) => report::bench_train(args),
         Command::FitStature(args) => stature::run(args),
-        Command::FitProportions(args) => stature::fit_proportions(args),
     }
 }
 
