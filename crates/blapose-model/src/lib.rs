@@ -19,7 +19,6 @@ pub mod error;
 pub mod fast;
 pub mod init;
 pub mod names;
-pub mod proportions;
 pub mod reference;
 pub mod stature;
 pub mod symmetry;
