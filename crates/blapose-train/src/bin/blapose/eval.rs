@@ -138,6 +138,13 @@ pub enum StatureSource {
     Matched,
 }
 
+impl EvalArgs {
+    /// Where `--stature-proxy` takes each subject's stature from.
+    pub fn stature_source(&self) -> StatureSource {
+        self.stature_source
+    }
+}
+
 /// `blapose eval`.
 pub fn run(a: EvalArgs) -> Result<()> {
     let root = blapose_data::data_root(a.data.clone());

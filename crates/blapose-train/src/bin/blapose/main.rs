@@ -217,4 +217,29 @@ mod tests {
         .is_err());
         assert!(Cli::try_parse_from(["blapose", "eval", "--benchmark", "people"]).is_err());
     }
+
+    #[test]
+    fn the_stature_proxy_takes_its_source_and_defaults_to_the_calibrated_proxy() {
+        let source = |args: &[&str]| {
+            let mut all = vec!["blapose", "eval", "--stature-proxy"];
+            all.extend_from_slice(args);
+            let cli = Cli::try_parse_from(all).ok()?;
+            match cli.command {
+                Command::Eval(a) => Some(a.stature_source()),
+                _ => None,
+            }
+        };
+        assert_eq!(source(&[]), Some(eval::StatureSource::CalibratedProxy));
+        assert_eq!(
+            source(&["--stature-source", "matched"]),
+            Some(eval::StatureSource::Matched)
+        );
+        assert_eq!(
+            source(&["--stature-source", "proxy"]),
+            Some(eval::StatureSource::Proxy)
+        );
+        assert_eq!(source(&["--stature-source", "tape"]), None);
+        // Not with a model.
+        assert_eq!(source(&["--model", "gru", "--weights", "w"]), None);
+    }
 }
