@@ -118,7 +118,7 @@ pub struct EvalArgs {
     /// lengths sum to the subject's true summed length, so what is left is
     /// proportion).
     #[arg(long, value_enum, default_value_t = StatureSource::CalibratedProxy)]
-    stature_source: StatureSource,
+    pub(crate) stature_source: StatureSource,
     /// The stature model file, for --stature-proxy.
     #[arg(long, default_value = "models/stature_regression.json")]
     stature_model: PathBuf,
@@ -136,13 +136,6 @@ pub enum StatureSource {
     CalibratedProxy,
     /// Matched to the subject's true summed length (reads the truth).
     Matched,
-}
-
-impl EvalArgs {
-    /// Where `--stature-proxy` takes each subject's stature from.
-    pub fn stature_source(&self) -> StatureSource {
-        self.stature_source
-    }
 }
 
 /// `blapose eval`.

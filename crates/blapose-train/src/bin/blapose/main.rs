@@ -225,7 +225,7 @@ mod tests {
             all.extend_from_slice(args);
             let cli = Cli::try_parse_from(all).ok()?;
             match cli.command {
-                Command::Eval(a) => Some(a.stature_source()),
+                Command::Eval(a) => Some(a.stature_source),
                 _ => None,
             }
         };
