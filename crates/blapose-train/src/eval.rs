@@ -246,6 +246,9 @@ pub fn height_corrected<'a>(
 /// The online GRU's running mean of per-frame predictions.
 pub struct GruEstimator {
     engine: OnlineGruEngine,
+    /// Restart the hidden state every this many frames (the running mean
+    /// of predictions carries on); `None`: never.
+    state_frames: Option<usize>,
 }
 
 impl GruEstimator {
@@ -253,7 +256,15 @@ impl GruEstimator {
     pub fn new(weights: &LoadedWeights) -> Result<Self, TrainError> {
         Ok(Self {
             engine: OnlineGruEngine::new(weights, 1)?,
+            state_frames: None,
         })
+    }
+
+    /// The same estimator restarting its hidden state every `frames`
+    /// frames (`None` or 0: never).
+    pub fn with_state_frames(mut self, frames: Option<usize>) -> Self {
+        self.state_frames = frames.filter(|&f| f > 0);
+        self
     }
 
     /// Step a group of trials in lockstep; finished trials are fed their
@@ -279,6 +290,9 @@ impl GruEstimator {
             .collect();
         let mut scratch = self.engine.scratch(b);
         for t in 0..longest {
+            if self.state_frames.is_some_and(|k| t > 0 && t % k == 0) {
+                hidden.fill(0.0);
+            }
             for (i, tr) in group.iter().enumerate() {
                 let f = t.min(tr.frames() - 1);
                 input[i * FRAME_DIM..(i + 1) * FRAME_DIM]

@@ -70,6 +70,10 @@ pub struct EvalArgs {
     /// how the recordings begin).
     #[arg(long, default_value_t = 0)]
     skip_frames: usize,
+    /// Online GRU: restart its hidden state every this many frames (the
+    /// running mean of its predictions carries on).
+    #[arg(long)]
+    state_frames: Option<usize>,
     /// With --rectify: scale each view's estimate by its camera's height
     /// over the reference height 1.56 m (blapose_core::level::height_scale),
     /// for models trained with `--height-normalized` (a rectified model
@@ -288,7 +292,7 @@ fn score_trials(
 ) -> Result<EvalReport> {
     let mut estimator: Box<dyn LengthEstimator> = match kind {
         ModelKind::BiGru => Box::new(BiGruEstimator::new(weights)?),
-        ModelKind::Gru => Box::new(GruEstimator::new(weights)?),
+        ModelKind::Gru => Box::new(GruEstimator::new(weights)?.with_state_frames(a.state_frames)),
     };
     let mut model_label = kind.as_str().to_string();
     if a.flip_average {
