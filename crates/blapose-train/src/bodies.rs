@@ -59,6 +59,7 @@ use crate::error::TrainError;
 use crate::eval::{trial_error_mm, BiGruEstimator, GruEstimator, LengthEstimator};
 use crate::height_fusion::HeightFusion;
 use crate::noise::{apply_residual, residual_at, ResidualBank};
+use crate::real_check::{RealCheck, RealCheckInfo};
 use crate::stature::{StatureInput, StatureRegression};
 use crate::synth::{rebuild_on_floor, sample_rng, MotionSequence};
 use crate::train::trained_config;
@@ -409,6 +410,10 @@ pub struct Row {
     pub weights: String,
     /// Seconds of the model pass.
     pub seconds: f64,
+    /// The same answer's error on the training subjects' own real
+    /// detections, mm ([`crate::real_check`]; absent where not measured).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub real_check_mm: Option<f64>,
 }
 
 /// A constant answer scored like a model.
@@ -469,6 +474,7 @@ pub fn named_row(
         per_bone_mm: s.per_bone_mm,
         weights: String::new(),
         seconds: 0.0,
+        real_check_mm: None,
     })
 }
 
@@ -563,6 +569,9 @@ pub struct BodiesReport {
     pub seconds: f64,
     /// Per individual: motion, camera, true size.
     pub trials: Vec<TrialInfo>,
+    /// What the real-detection check ran on (`None`: not run).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub real_check: Option<RealCheckInfo>,
 }
 
 /// Everything the benchmark needs besides the models.
@@ -584,6 +593,10 @@ pub struct BodiesInput<'a> {
     /// Training data to fit each model's [`HeightFusion`] on: rows
     /// `height` and `calibration+height` (`None`: no such rows).
     pub fit_set: Option<FitSet<'a>>,
+    /// The training subjects' own real detections, to score the models and
+    /// the stature regression on beside their synthetic rows (`None`: not
+    /// checked).
+    pub real_check: Option<RealCheck<'a>>,
 }
 
 /// What the height-fusion rows are fitted on: built like the benchmark,
@@ -722,6 +735,9 @@ pub fn run(
         let mut r = row(m.kind.as_str(), m.input, &pred, &truth, &input.prior)?;
         r.weights = m.path.clone();
         r.seconds = t.elapsed().as_secs_f64();
+        if let Some(check) = &input.real_check {
+            r.real_check_mm = Some(check.model_error(m)?);
+        }
         rows.push(r);
         if let Some((fit_trials, fit_statures, test_statures)) = &fit_trials {
             let t = Instant::now();
@@ -758,7 +774,20 @@ pub fn run(
     }
     rows.extend(fused_rows);
     if let Some(reg) = input.stature {
-        rows.extend(stature_rows(reg, &input.people, &trials, &input.prior)?);
+        let mut stature = stature_rows(reg, &input.people, &trials, &input.prior)?;
+        if let Some(check) = &input.real_check {
+            let model = reg
+                .to_model("the benchmark's fit")
+                .map_err(|e| TrainError::Data(e.to_string()))?;
+            let error = check.matched_stature_error(&model)?;
+            for r in stature
+                .iter_mut()
+                .filter(|r| r.input == StatureInput::Height.name())
+            {
+                r.real_check_mm = Some(error);
+            }
+        }
+        rows.extend(stature);
     }
     let baselines = vec![
         baseline(
@@ -800,6 +829,11 @@ pub fn run(
                    least squares of predicted vs true sum of the 16 lengths"
             .into(),
         seconds: t0.elapsed().as_secs_f64(),
+        real_check: input
+            .real_check
+            .as_ref()
+            .map(|c| c.info(&input.training_mean))
+            .transpose()?,
         trials: trials
             .iter()
             .map(|t| TrialInfo {
@@ -845,29 +879,61 @@ pub fn markdown(r: &BodiesReport) -> String {
          {} frames each on S9/S11 motion, wide cameras, seed {}\n\n",
         r.individuals, r.male, r.female, r.frames_per_individual, r.seed
     );
+    let check = r.real_check.is_some();
     s.push_str(
-        "| model | input | mean bone error (mm) | prior (mm) | ratio to prior | size slope |\n",
+        "| model | input | mean bone error (mm) | prior (mm) | ratio to prior | size slope |",
     );
-    s.push_str("|---|---|---:|---:|---:|---:|\n");
+    s.push_str(if check {
+        " training subjects' real SH (mm) |\n|---|---|---:|---:|---:|---:|---:|\n"
+    } else {
+        "\n|---|---|---:|---:|---:|---:|\n"
+    });
+    let real = |v: Option<f64>| match (check, v) {
+        (false, _) => String::new(),
+        (true, Some(v)) => format!(" {v:.2} |"),
+        (true, None) => " - |".into(),
+    };
     for row in &r.rows {
         s.push_str(&format!(
-            "| {} | {} | {:.2} | {:.2} | {:.3} | {:.3} |\n",
+            "| {} | {} | {:.2} | {:.2} | {:.3} | {:.3} |{}\n",
             row.model,
             row.input,
             row.mean_bone_error_mm,
             row.prior_mean_bone_error_mm,
             row.ratio_to_prior,
-            row.size_slope
+            row.size_slope,
+            real(row.real_check_mm)
         ));
     }
     let prior_mm = r
         .baselines
         .first()
         .map_or(f64::NAN, |b| b.mean_bone_error_mm);
+    let training_mean_real = r.real_check.as_ref().map(|c| c.training_mean_mm);
     for b in &r.baselines {
+        let real_mm = if b.name.starts_with("training subjects") {
+            training_mean_real
+        } else {
+            None
+        };
         s.push_str(&format!(
-            "| baseline: {} | - | {:.2} | {:.2} | {:.3} | 0 |\n",
-            b.name, b.mean_bone_error_mm, prior_mm, b.ratio_to_prior
+            "| baseline: {} | - | {:.2} | {:.2} | {:.3} | 0 |{}\n",
+            b.name,
+            b.mean_bone_error_mm,
+            prior_mm,
+            b.ratio_to_prior,
+            real(real_mm)
+        ));
+    }
+    if let Some(c) = &r.real_check {
+        s.push_str(&format!(
+            "\nReal-detection check: {} trials ({} frames) of {}'s Stacked Hourglass detections \
+             with their true lengths (training data; camera-aware models read them with each \
+             view's calibration; the stature regression with each subject's matched stature, \
+             which reads the truth).\n",
+            c.trials,
+            c.frames,
+            c.subjects.join(", ")
         ));
     }
     s

@@ -38,6 +38,7 @@ pub mod lifter;
 pub mod loader;
 pub mod noise;
 pub mod plot;
+pub mod real_check;
 pub mod run;
 pub mod stature;
 pub mod synth;

@@ -17,8 +17,11 @@ use blapose_train::ansur_split::{is_held_out, AnsurPeople, AnsurSplit};
 use blapose_train::bodies::{
     build_trials, mean_body, test_motions, BenchModel, BodiesConfig, BodiesInput, SHIPPED_MODELS,
 };
-use blapose_train::dataset::{mean_subject_lengths, TrainingSet};
+use blapose_train::dataset::{
+    eval_sequences, mean_subject_lengths, EvalSequence, InputKind, TrainingSet,
+};
 use blapose_train::lengths::{LengthSampler, LengthStrategy, TrainingLengthStats};
+use blapose_train::real_check::RealCheck;
 use blapose_train::stature::StatureRegression;
 use blapose_train::synth::MotionSequence;
 use rand::SeedableRng;
@@ -192,6 +195,7 @@ fn a_tiny_benchmark_run_gives_well_formed_deterministic_rows() {
         training_mean: mean_subject_lengths(&f.set.subject_lengths, &TRAIN_SUBJECTS).unwrap(),
         stature: Some(&stature),
         fit_set: None,
+        real_check: None,
     };
     let specs = SHIPPED_MODELS;
     let weights: Vec<_> = specs
@@ -276,6 +280,7 @@ fn a_tiny_benchmark_run_gives_well_formed_deterministic_rows() {
     let bare = BodiesInput {
         stature: None,
         fit_set: None,
+        real_check: None,
         ..input
     };
     let without = blapose_train::bodies::run(&bare, &models, &cfg).unwrap();
@@ -299,4 +304,75 @@ fn a_tiny_benchmark_run_gives_well_formed_deterministic_rows() {
     assert!(a.iter().zip(&c).any(|(x, y)| x.camera != y.camera));
     // The rectified input differs from the plain one (tilted cameras).
     assert!(a.iter().any(|t| t.plain != t.rectified));
+}
+
+#[test]
+fn the_real_detection_check_scores_models_beside_their_rows() {
+    let Some(f) = fixture() else { return };
+    let real = H36m::load(&f.root, &["S1"], Parts::ALL).unwrap();
+    let lengths = f.set.subject_lengths.clone();
+    let trials: Vec<EvalSequence> = eval_sequences(&real, &["S1"], InputKind::Sh, &lengths)
+        .unwrap()
+        .into_iter()
+        .step_by(40)
+        .collect();
+    assert!(trials.len() >= 2);
+    let camera = |s: &str, id: &str| real.cameras.get(s, id);
+    let stature = StatureRegression::fit_training(&f.split.everyone).unwrap();
+    let train = f.split.training_population(AnsurPeople::Train).unwrap();
+    let training_mean = mean_subject_lengths(&f.set.subject_lengths, &TRAIN_SUBJECTS).unwrap();
+    let input = BodiesInput {
+        people: f.split.held_out(),
+        motions: f.motions.clone(),
+        residuals: &f.set.residuals,
+        prior: mean_body(train.people()).unwrap(),
+        training_mean,
+        stature: Some(&stature),
+        fit_set: None,
+        real_check: Some(RealCheck {
+            trials: trials.clone(),
+            camera: &camera,
+        }),
+    };
+    let (kind, bench_input, file) = SHIPPED_MODELS[3];
+    let w = blapose_model::weights::load(models_dir().join(file), kind).unwrap();
+    let models = [BenchModel {
+        kind,
+        input: bench_input,
+        weights: &w,
+        path: file.to_string(),
+    }];
+    let cfg = BodiesConfig {
+        frames: 20,
+        limit: Some(3),
+        ..BodiesConfig::default()
+    };
+    let report = blapose_train::bodies::run(&input, &models, &cfg).unwrap();
+    let info = report.real_check.as_ref().expect("the check ran");
+    assert_eq!(info.subjects, vec!["S1"]);
+    assert_eq!(info.trials, trials.len());
+    // The camera-aware Bi-GRU, the regression with height: checked; with
+    // sex: not.
+    let checked: Vec<(&str, Option<f64>)> = report
+        .rows
+        .iter()
+        .map(|r| (r.input.as_str(), r.real_check_mm))
+        .collect();
+    assert_eq!(checked.len(), 3);
+    let e = checked[0].1.expect("the model row is checked");
+    assert!(e > 0.0 && e < 60.0, "{e}");
+    assert!(checked[1].1.is_some() && checked[2].1.is_none());
+    // The same trials scored directly give the same number.
+    let direct = RealCheck {
+        trials,
+        camera: &camera,
+    }
+    .model_error(&models[0])
+    .unwrap();
+    assert_eq!(direct, e);
+    let md = blapose_train::bodies::markdown(&report);
+    assert!(md.contains("training subjects' real SH (mm)") && md.contains("Real-detection check"));
+    let json = serde_json::to_value(&report).unwrap();
+    assert!(json["rows"][0]["real_check_mm"].is_f64());
+    assert!(json["rows"][2].get("real_check_mm").is_none());
 }

@@ -14,8 +14,9 @@ use blapose_train::bodies::{
     fit_people, markdown, mean_body, test_motions, BenchModel, BodiesConfig, BodiesInput, FitSet,
     DEFAULT_FRAMES, DEFAULT_SEED, SHIPPED_MODELS,
 };
-use blapose_train::dataset::{mean_subject_lengths, TrainingSet};
+use blapose_train::dataset::{eval_sequences, mean_subject_lengths, InputKind, TrainingSet};
 use blapose_train::lengths::TrainingLengthStats;
+use blapose_train::real_check::RealCheck;
 use blapose_train::stature::StatureRegression;
 
 /// `--benchmark`.
@@ -45,6 +46,11 @@ pub struct BodiesArgs {
     /// rows.
     #[arg(long, default_value_t = 630)]
     fit_individuals: usize,
+    /// Score every model beside its row on every N-th trial of the training
+    /// subjects' own Stacked Hourglass detections (real data selection may
+    /// use; blapose_train::real_check); 0: no such check.
+    #[arg(long, default_value_t = 4)]
+    real_check_every: usize,
 }
 
 /// Seed of the height-fusion fit trials (never the benchmark's).
@@ -78,6 +84,22 @@ pub fn run(root: &Path, a: &BodiesArgs, json: Option<&Path>) -> Result<()> {
     } else {
         None
     };
+    let real_h36m = if a.real_check_every > 0 {
+        Some(H36m::load(root, &TRAIN_SUBJECTS, Parts::ALL)?)
+    } else {
+        None
+    };
+    let real_camera = |s: &str, id: &str| real_h36m.as_ref().and_then(|h| h.cameras.get(s, id));
+    let real_check = match &real_h36m {
+        Some(h) => Some(RealCheck {
+            trials: eval_sequences(h, &TRAIN_SUBJECTS, InputKind::Sh, &set.subject_lengths)?
+                .into_iter()
+                .step_by(a.real_check_every)
+                .collect(),
+            camera: &real_camera,
+        }),
+        None => None,
+    };
     let input = BodiesInput {
         people: split.held_out(),
         motions,
@@ -86,6 +108,7 @@ pub fn run(root: &Path, a: &BodiesArgs, json: Option<&Path>) -> Result<()> {
         training_mean,
         stature: Some(&stature),
         fit_set,
+        real_check,
     };
     eprintln!(
         "loaded {} held-out individuals, {} test sequences in {:.1}s",
