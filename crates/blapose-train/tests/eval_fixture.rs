@@ -94,15 +94,10 @@ fn aggregation_matches_hand_computation() {
     );
 }
 
-#[test]
-fn online_estimate_is_the_running_mean_of_the_reference_network() {
-    let w = LoadedWeights::random(ModelKind::Gru, 3).unwrap();
-    let net = FastNet::from_tensors(ModelKind::Gru, w.tensors()).unwrap();
-    let est = GruEstimator::new(&w).unwrap();
-    let mut rng = rand::rngs::StdRng::seed_from_u64(1);
-    let lens = [7usize, 3, 12];
-    let trials: Vec<EvalSequence> = lens
-        .iter()
+/// Trials of random keypoints, `lens` frames each.
+fn random_trials(seed: u64, lens: &[usize]) -> Vec<EvalSequence> {
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    lens.iter()
         .map(|&n| EvalSequence {
             subject: "S9".into(),
             sequence: "Walking 1".into(),
@@ -112,7 +107,15 @@ fn online_estimate_is_the_running_mean_of_the_reference_network() {
                 .collect(),
             gt: [0.2; 16],
         })
-        .collect();
+        .collect()
+}
+
+#[test]
+fn online_estimate_is_the_running_mean_of_the_reference_network() {
+    let w = LoadedWeights::random(ModelKind::Gru, 3).unwrap();
+    let net = FastNet::from_tensors(ModelKind::Gru, w.tensors()).unwrap();
+    let est = GruEstimator::new(&w).unwrap();
+    let trials = random_trials(1, &[7, 3, 12]);
     let out = est.estimate(&trials).unwrap();
     for (t, e) in trials.iter().zip(&out) {
         let n = t.frames();
@@ -144,20 +147,7 @@ fn restarting_the_state_averages_the_predictions_of_fresh_segments() {
     let w = LoadedWeights::random(ModelKind::Gru, 5).unwrap();
     let net = FastNet::from_tensors(ModelKind::Gru, w.tensors()).unwrap();
     let est = GruEstimator::new(&w).unwrap().with_state_frames(Some(4));
-    let mut rng = rand::rngs::StdRng::seed_from_u64(2);
-    let lens = [10usize, 4, 3];
-    let trials: Vec<EvalSequence> = lens
-        .iter()
-        .map(|&n| EvalSequence {
-            subject: "S9".into(),
-            sequence: "Walking 1".into(),
-            camera: "c".into(),
-            input: (0..n * 34)
-                .map(|_| rng.random_range(-0.8f32..0.8))
-                .collect(),
-            gt: [0.2; 16],
-        })
-        .collect();
+    let trials = random_trials(2, &[10, 4, 3]);
     let out = est.estimate(&trials).unwrap();
     let plain = GruEstimator::new(&w).unwrap().estimate(&trials).unwrap();
     for ((t, e), p) in trials.iter().zip(&out).zip(&plain) {
