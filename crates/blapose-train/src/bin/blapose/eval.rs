@@ -213,6 +213,9 @@ pub fn run(a: EvalArgs) -> Result<()> {
         anyhow::bail!("--model and --weights are required without --benchmark or --stature-proxy");
     };
     let kind = ModelKind::from(model);
+    if a.state_frames.is_some() && kind != ModelKind::Gru {
+        anyhow::bail!("--state-frames restarts the online GRU's state; the Bi-GRU has none");
+    }
     let weights = blapose_model::weights::load(&weights_path, kind)?;
     let score = |trials: Vec<EvalSequence>| {
         score_trials(&a, kind, &weights, &weights_path, &h36m, trials, &baselines)
