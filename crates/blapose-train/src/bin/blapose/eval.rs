@@ -145,6 +145,9 @@ pub enum StatureSource {
 /// `blapose eval`.
 pub fn run(a: EvalArgs) -> Result<()> {
     let root = blapose_data::data_root(a.data.clone());
+    if a.state_frames.is_some() && a.model.map(ModelKind::from) != Some(ModelKind::Gru) {
+        anyhow::bail!("--state-frames restarts the online GRU's state: it needs --model gru");
+    }
     if let Some(Benchmark::Bodies) = a.benchmark {
         return crate::bodies::run(&root, &a.bodies, a.json.as_deref());
     }
@@ -213,9 +216,6 @@ pub fn run(a: EvalArgs) -> Result<()> {
         anyhow::bail!("--model and --weights are required without --benchmark or --stature-proxy");
     };
     let kind = ModelKind::from(model);
-    if a.state_frames.is_some() && kind != ModelKind::Gru {
-        anyhow::bail!("--state-frames restarts the online GRU's state; the Bi-GRU has none");
-    }
     let weights = blapose_model::weights::load(&weights_path, kind)?;
     let score = |trials: Vec<EvalSequence>| {
         score_trials(&a, kind, &weights, &weights_path, &h36m, trials, &baselines)
