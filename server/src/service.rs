@@ -242,18 +242,15 @@ impl pb::pose_adjustment_server::PoseAdjustment for PoseService {
         };
         if let Some(subject) = subject {
             // Every frame gets the subject's lengths; no model needs to run.
-            let mut poses = Vec::with_capacity(seq.poses.len());
-            for pose in &seq.poses {
-                match bones::adjust_pose(pose, &subject.lengths) {
-                    Ok(p) => poses.push(p),
-                    Err(e) => {
-                        return fail(
-                            Status::internal(format!("adjustment failed: {e}")),
-                            "AdjustSequence",
-                        )
-                    }
+            let poses = match bones::adjust_sequence(&seq.poses, &subject.lengths) {
+                Ok(poses) => poses,
+                Err(e) => {
+                    return fail(
+                        Status::internal(format!("adjustment failed: {e}")),
+                        "AdjustSequence",
+                    )
                 }
-            }
+            };
             return Ok(Response::new(pb::AdjustSequenceResponse {
                 model: model as i32,
                 adjusted_poses_3d: poses.iter().flatten().flatten().copied().collect(),

@@ -419,7 +419,7 @@ fn detected_input(
     let joints = spec.layout.num_joints();
     check_confidence(joints, confidence)?;
     if confidence.is_empty() || keypoints.len() != joints * 2 {
-        return Ok((model_input(spec, keypoints, &[])?, [true; NUM_JOINTS]));
+        return Ok((model_input(spec, keypoints)?, [true; NUM_JOINTS]));
     }
     let detected: Vec<bool> = confidence
         .iter()
@@ -430,7 +430,7 @@ fn detected_input(
         read[2 * j] = 0.0;
         read[2 * j + 1] = 0.0;
     }
-    let input = model_input(spec, &read, &[])?;
+    let input = model_input(spec, &read)?;
     let present =
         spec.layout
             .present_h36m17(&detected)
@@ -459,14 +459,10 @@ fn check_confidence(joints: usize, confidence: &[f32]) -> Result<(), InvalidInpu
     Ok(())
 }
 
-/// Validate one frame's keypoints (and confidences) and turn them into the
-/// model's input: Human3.6M-17 order, normalized screen coordinates,
-/// joint-major `(x, y)`.
-pub fn model_input(
-    spec: &InputSpec,
-    keypoints: &[f32],
-    confidence: &[f32],
-) -> Result<[f32; INPUT_DIM], InvalidInput> {
+/// Validate one frame's keypoints (every joint detected; confidences are
+/// [`detected_input`]'s) and turn them into the model's input: Human3.6M-17
+/// order, normalized screen coordinates, joint-major `(x, y)`.
+pub fn model_input(spec: &InputSpec, keypoints: &[f32]) -> Result<[f32; INPUT_DIM], InvalidInput> {
     let layout = spec.layout;
     let joints = layout.num_joints();
     if keypoints.len() != joints * 2 {
@@ -477,7 +473,6 @@ pub fn model_input(
             layout: pb_layout_name(layout),
         });
     }
-    check_confidence(joints, confidence)?;
     let names = layout.joint_names();
     let mut points = [[0.0f32; 2]; NUM_JOINTS];
     for (j, pair) in keypoints.chunks_exact(2).enumerate() {
@@ -798,20 +793,20 @@ mod tests {
             },
         );
         let kp: Vec<f32> = (0..34).map(|i| i as f32 * 10.0).collect();
-        let input = model_input(&s, &kp, &[]).unwrap();
+        let input = model_input(&s, &kp).unwrap();
         for j in 0..17 {
             let want = normalize_screen([kp[2 * j], kp[2 * j + 1]], 1000, 1002);
             assert_eq!([input[2 * j], input[2 * j + 1]], want);
         }
         // Normalized input passes through unchanged.
         let n = spec(KeypointLayout::H36m17, Coordinates::Normalized);
-        assert_eq!(&model_input(&n, &kp, &[]).unwrap()[..], &kp[..]);
+        assert_eq!(&model_input(&n, &kp).unwrap()[..], &kp[..]);
         // COCO goes through blapose-core's conversion.
         let c = spec(KeypointLayout::Coco17, Coordinates::Normalized);
         let coco: Vec<f32> = (0..34).map(|i| (i as f32).sin()).collect();
         let points: Vec<[f32; 2]> = coco.chunks(2).map(|p| [p[0], p[1]]).collect();
         let want = KeypointLayout::Coco17.to_h36m17(&points).unwrap();
-        let got = model_input(&c, &coco, &[]).unwrap();
+        let got = model_input(&c, &coco).unwrap();
         for j in 0..17 {
             assert_eq!([got[2 * j], got[2 * j + 1]], want[j]);
         }
@@ -820,7 +815,7 @@ mod tests {
     #[test]
     fn bad_keypoints_are_refused_with_a_precise_message() {
         let s = spec(KeypointLayout::Sh16, Coordinates::Normalized);
-        let err = model_input(&s, &[0.0; 34], &[]).unwrap_err();
+        let err = model_input(&s, &[0.0; 34]).unwrap_err();
         assert_eq!(
             err.to_string(),
             "keypoints_2d has 34 values, expected 32 (16 joints x 2) for KEYPOINT_LAYOUT_SH_16"
@@ -828,23 +823,23 @@ mod tests {
         let mut kp = vec![0.1; 32];
         kp[5] = f32::NAN;
         assert!(matches!(
-            model_input(&s, &kp, &[]),
+            model_input(&s, &kp),
             Err(InvalidInput::NonFiniteKeypoint { joint: 2, .. })
         ));
         kp[5] = f32::NEG_INFINITY;
         assert!(matches!(
-            model_input(&s, &kp, &[]),
+            model_input(&s, &kp),
             Err(InvalidInput::NonFiniteKeypoint { joint: 2, .. })
         ));
         kp[5] = 3e7;
         assert!(matches!(
-            model_input(&s, &kp, &[]),
+            model_input(&s, &kp),
             Err(InvalidInput::KeypointOutOfRange { joint: 2, .. })
         ));
         kp[5] = 0.1;
-        assert!(model_input(&s, &kp, &[]).is_ok());
+        assert!(model_input(&s, &kp).is_ok());
         assert!(matches!(
-            model_input(&s, &kp, &[1.0; 17]),
+            detected_input(&s, &kp, &[1.0; 17]),
             Err(InvalidInput::ConfidenceCount {
                 got: 17,
                 expected: 16
@@ -853,16 +848,16 @@ mod tests {
         let mut conf = vec![0.9; 16];
         conf[3] = -0.5;
         assert!(matches!(
-            model_input(&s, &kp, &conf),
+            detected_input(&s, &kp, &conf),
             Err(InvalidInput::BadConfidence { joint: 3, .. })
         ));
         conf[3] = f32::NAN;
         assert!(matches!(
-            model_input(&s, &kp, &conf),
+            detected_input(&s, &kp, &conf),
             Err(InvalidInput::BadConfidence { joint: 3, .. })
         ));
         conf[3] = 0.0;
-        assert!(model_input(&s, &kp, &conf).is_ok());
+        assert!(detected_input(&s, &kp, &conf).is_ok());
         assert_eq!(err.to_status().code(), tonic::Code::InvalidArgument);
     }
 
@@ -921,7 +916,7 @@ mod tests {
         };
         assert_eq!(
             keypoints_frame(&s, &f),
-            model_input(&s, &kp, &[]).map(|input| (input, [true; NUM_JOINTS])),
+            model_input(&s, &kp).map(|input| (input, [true; NUM_JOINTS])),
             "the same input as a client-pose frame"
         );
         // Nothing detected: nothing to lift (the session is unchanged).

@@ -84,7 +84,8 @@ impl StatureLines {
         }
     }
 
-    fn predict(&self, stature_m: f32) -> BoneLengths {
+    /// The lengths of someone `stature_m` tall.
+    pub fn predict(&self, stature_m: f32) -> BoneLengths {
         std::array::from_fn(|b| (self.intercept[b] + self.slope[b] * f64::from(stature_m)) as f32)
     }
 }

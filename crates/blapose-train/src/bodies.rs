@@ -63,6 +63,7 @@ use crate::real_check::{RealCheck, RealCheckInfo};
 use crate::stature::{StatureInput, StatureRegression};
 use crate::synth::{rebuild_on_floor, sample_rng, MotionSequence};
 use crate::train::trained_config;
+use blapose_model::stature::StatureLines;
 
 /// Default seed of `--benchmark bodies`.
 pub const DEFAULT_SEED: u64 = 2026;
@@ -429,6 +430,10 @@ pub struct Baseline {
     pub ratio_to_prior: f64,
     /// Per bone, mm.
     pub per_bone_mm: Vec<f64>,
+    /// Its error on the training subjects' own real detections, mm
+    /// ([`crate::real_check`]; absent where not measured).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub real_check_mm: Option<f64>,
 }
 
 /// The mean body of a population (the prior).
@@ -520,6 +525,7 @@ pub fn baseline(
                     / n
             })
             .collect(),
+        real_check_mm: None,
     })
 }
 
@@ -776,10 +782,7 @@ pub fn run(
     if let Some(reg) = input.stature {
         let mut stature = stature_rows(reg, &input.people, &trials, &input.prior)?;
         if let Some(check) = &input.real_check {
-            let model = reg
-                .to_model("the benchmark's fit")
-                .map_err(|e| TrainError::Data(e.to_string()))?;
-            let error = check.matched_stature_error(&model)?;
+            let error = check.matched_stature_error(&StatureLines::from(&reg.pooled))?;
             for r in stature
                 .iter_mut()
                 .filter(|r| r.input == StatureInput::Height.name())
@@ -789,6 +792,16 @@ pub fn run(
         }
         rows.extend(stature);
     }
+    let mut training_mean = baseline(
+        "training subjects' mean lengths",
+        &input.training_mean,
+        &truth,
+        &input.prior,
+    )?;
+    if let Some(check) = &input.real_check {
+        // In-sample there: these are the checked subjects' own mean.
+        training_mean.real_check_mm = Some(check.constant_error(&input.training_mean)?);
+    }
     let baselines = vec![
         baseline(
             "prior (training population mean)",
@@ -796,12 +809,7 @@ pub fn run(
             &truth,
             &input.prior,
         )?,
-        baseline(
-            "training subjects' mean lengths",
-            &input.training_mean,
-            &truth,
-            &input.prior,
-        )?,
+        training_mean,
     ];
     let used: Vec<&&Person> = input.people.iter().take(trials.len()).collect();
     let male = used
@@ -829,11 +837,7 @@ pub fn run(
                    least squares of predicted vs true sum of the 16 lengths"
             .into(),
         seconds: t0.elapsed().as_secs_f64(),
-        real_check: input
-            .real_check
-            .as_ref()
-            .map(|c| c.info(&input.training_mean))
-            .transpose()?,
+        real_check: input.real_check.as_ref().map(RealCheck::info),
         trials: trials
             .iter()
             .map(|t| TrialInfo {
@@ -909,20 +913,14 @@ pub fn markdown(r: &BodiesReport) -> String {
         .baselines
         .first()
         .map_or(f64::NAN, |b| b.mean_bone_error_mm);
-    let training_mean_real = r.real_check.as_ref().map(|c| c.training_mean_mm);
     for b in &r.baselines {
-        let real_mm = if b.name.starts_with("training subjects") {
-            training_mean_real
-        } else {
-            None
-        };
         s.push_str(&format!(
             "| baseline: {} | - | {:.2} | {:.2} | {:.3} | 0 |{}\n",
             b.name,
             b.mean_bone_error_mm,
             prior_mm,
             b.ratio_to_prior,
-            real(real_mm)
+            real(b.real_check_mm)
         ));
     }
     if let Some(c) = &r.real_check {

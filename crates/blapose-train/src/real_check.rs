@@ -21,11 +21,9 @@
 //! lengths sum to the subject's true summed length), which reads the truth
 //! and so scores the regression's proportions alone.
 
-use std::collections::BTreeMap;
-
 use blapose_core::camera::Camera;
 use blapose_core::BoneLengths;
-use blapose_model::stature::StatureModel;
+use blapose_model::stature::StatureLines;
 use serde::Serialize;
 
 use crate::bodies::{BenchInput, BenchModel};
@@ -50,9 +48,6 @@ pub struct RealCheckInfo {
     pub trials: usize,
     /// Frames over all trials.
     pub frames: usize,
-    /// The training subjects' mean lengths scored on the same trials, mm
-    /// (in-sample: they are these subjects' own mean).
-    pub training_mean_mm: f64,
 }
 
 /// Mean over trials of the mean absolute bone error, mm.
@@ -91,38 +86,36 @@ impl RealCheck<'_> {
         mean_error(&pred, &self.trials)
     }
 
-    /// The stature regression's error with each subject's matched stature,
-    /// mm.
-    pub fn matched_stature_error(&self, model: &StatureModel) -> Result<f64, TrainError> {
-        let mut answers: BTreeMap<&str, BoneLengths> = BTreeMap::new();
+    /// The stature regression's error with each subject's matched stature
+    /// on its pooled `lines`, mm.
+    pub fn matched_stature_error(&self, lines: &StatureLines) -> Result<f64, TrainError> {
         let pred = self
             .trials
             .iter()
             .map(|t| {
-                if let Some(a) = answers.get(t.subject.as_str()) {
-                    return Ok(*a);
-                }
-                let stature = crate::stature::matched_stature(model, &t.gt).ok_or_else(|| {
+                let stature = crate::stature::matched_stature(lines, &t.gt).ok_or_else(|| {
                     TrainError::Data("the stature regression's summed slope is not positive".into())
                 })?;
-                let a = model.predict(stature, None);
-                answers.insert(&t.subject, a);
-                Ok(a)
+                Ok(lines.predict(stature))
             })
             .collect::<Result<Vec<_>, TrainError>>()?;
         mean_error(&pred, &self.trials)
     }
 
-    /// What the check ran on, with `training_mean` scored on it.
-    pub fn info(&self, training_mean: &BoneLengths) -> Result<RealCheckInfo, TrainError> {
+    /// A constant answer's error on the trials, mm.
+    pub fn constant_error(&self, lengths: &BoneLengths) -> Result<f64, TrainError> {
+        mean_error(&vec![*lengths; self.trials.len()], &self.trials)
+    }
+
+    /// What the check ran on.
+    pub fn info(&self) -> RealCheckInfo {
         let mut subjects: Vec<String> = self.trials.iter().map(|t| t.subject.clone()).collect();
         subjects.dedup();
-        Ok(RealCheckInfo {
+        RealCheckInfo {
             subjects,
             trials: self.trials.len(),
             frames: self.trials.iter().map(EvalSequence::frames).sum(),
-            training_mean_mm: mean_error(&vec![*training_mean; self.trials.len()], &self.trials)?,
-        })
+        }
     }
 }
 
@@ -130,7 +123,6 @@ impl RealCheck<'_> {
 mod tests {
     use super::*;
     use blapose_core::skeleton::NUM_BONES;
-    use blapose_model::stature::{StatureLines, STATURE_FORMAT};
 
     fn trial(subject: &str, gt: f32) -> EvalSequence {
         EvalSequence {
@@ -149,13 +141,7 @@ mod tests {
             slope: vec![slope; NUM_BONES],
             people: 2,
         };
-        let model = StatureModel {
-            format: STATURE_FORMAT.into(),
-            source: "test".into(),
-            pooled: lines(0.15),
-            female: lines(0.1),
-            male: lines(0.1),
-        };
+        let pooled = lines(0.15);
         let no_camera = |_: &str, _: &str| -> Option<&Camera> { None };
         let check = RealCheck {
             trials: vec![trial("S1", 0.25), trial("S1", 0.25), trial("S5", 0.2)],
@@ -163,12 +149,13 @@ mod tests {
         };
         // Equal bones: the regression's proportions are exact once the
         // summed length is matched.
-        assert!(check.matched_stature_error(&model).unwrap() < 1e-3);
-        let info = check.info(&[0.25; NUM_BONES]).unwrap();
+        assert!(check.matched_stature_error(&pooled).unwrap() < 1e-3);
+        let info = check.info();
         assert_eq!(info.subjects, vec!["S1", "S5"]);
         assert_eq!((info.trials, info.frames), (3, 6));
         // 0, 0 and 50 mm.
-        assert!((info.training_mean_mm - 50.0 / 3.0).abs() < 1e-3);
+        let training_mean_mm = check.constant_error(&[0.25; NUM_BONES]).unwrap();
+        assert!((training_mean_mm - 50.0 / 3.0).abs() < 1e-3);
         assert!(mean_error(&[], &check.trials).is_err());
     }
 }

@@ -36,14 +36,14 @@ use crate::ansur_split::{is_held_out, Person};
 /// (69.6 mm over its 6,068 people), added by [`stature_proxy`].
 pub const ANKLE_HEIGHT_M: f32 = 0.0696;
 
-/// The stature whose pooled regression lengths (`model`) sum to `truth`'s
-/// summed length: a diagnostic stature that reads the truth, so the
-/// regression gets the overall size exactly and what is left of its error
-/// is proportion. `None` when the regression's summed slope is not
+/// The stature whose lengths on `lines` (a regression's pooled lines) sum
+/// to `truth`'s summed length: a diagnostic stature that reads the truth,
+/// so the regression gets the overall size exactly and what is left of its
+/// error is proportion. `None` when the lines' summed slope is not
 /// positive.
-pub fn matched_stature(model: &StatureModel, truth: &BoneLengths) -> Option<f32> {
-    let intercept: f64 = model.pooled.intercept.iter().sum();
-    let slope: f64 = model.pooled.slope.iter().sum();
+pub fn matched_stature(lines: &StatureLines, truth: &BoneLengths) -> Option<f32> {
+    let intercept: f64 = lines.intercept.iter().sum();
+    let slope: f64 = lines.slope.iter().sum();
     let total: f64 = truth.iter().map(|&v| f64::from(v)).sum();
     (slope > 0.0).then(|| ((total - intercept) / slope) as f32)
 }
@@ -51,12 +51,12 @@ pub fn matched_stature(model: &StatureModel, truth: &BoneLengths) -> Option<f32>
 /// The mean over `subjects` (each one's stature proxy and true lengths:
 /// training subjects only) of its matched stature ([`matched_stature`])
 /// minus its proxy: what [`stature_proxy`] reads short by, on average,
-/// through `model`. Added to a test subject's proxy it gives the
+/// through `lines`. Added to a test subject's proxy it gives the
 /// calibrated proxy. `None` without subjects.
-pub fn proxy_offset(model: &StatureModel, subjects: &[(f32, BoneLengths)]) -> Option<f32> {
+pub fn proxy_offset(lines: &StatureLines, subjects: &[(f32, BoneLengths)]) -> Option<f32> {
     let diffs: Vec<f32> = subjects
         .iter()
-        .map(|(proxy, truth)| matched_stature(model, truth).map(|m| m - proxy))
+        .map(|(proxy, truth)| matched_stature(lines, truth).map(|m| m - proxy))
         .collect::<Option<_>>()?;
     (!diffs.is_empty()).then(|| diffs.iter().sum::<f32>() / diffs.len() as f32)
 }
@@ -201,6 +201,17 @@ impl LinearFit {
     }
 }
 
+impl From<&LinearFit> for StatureLines {
+    /// The served form of a fitted line.
+    fn from(fit: &LinearFit) -> Self {
+        StatureLines {
+            intercept: fit.intercept.to_vec(),
+            slope: fit.slope.to_vec(),
+            people: fit.people,
+        }
+    }
+}
+
 /// The fitted regression: one line per bone over everyone, and one per
 /// bone and sex.
 #[derive(Debug, Clone, PartialEq)]
@@ -271,11 +282,7 @@ impl StatureRegression {
     /// The served form ([`blapose_model::stature::StatureModel`], written by
     /// `blapose fit-stature`); both sexes must have a fit.
     pub fn to_model(&self, source: &str) -> Result<StatureModel, StatureError> {
-        let lines = |fit: &LinearFit| StatureLines {
-            intercept: fit.intercept.to_vec(),
-            slope: fit.slope.to_vec(),
-            people: fit.people,
-        };
+        let lines = StatureLines::from;
         let female = self
             .female
             .as_ref()
@@ -331,15 +338,15 @@ mod tests {
             },
         };
         let truth = model.predict(1.8, None);
-        let m = matched_stature(&model, &truth).unwrap();
+        let m = matched_stature(&model.pooled, &truth).unwrap();
         assert!((m - 1.8).abs() < 1e-5, "{m}");
         let other = model.predict(1.6, None);
-        let offset = proxy_offset(&model, &[(1.7, truth), (1.5, other)]).unwrap();
+        let offset = proxy_offset(&model.pooled, &[(1.7, truth), (1.5, other)]).unwrap();
         assert!((offset - 0.1).abs() < 1e-5, "{offset}");
-        assert_eq!(proxy_offset(&model, &[]), None);
+        assert_eq!(proxy_offset(&model.pooled, &[]), None);
         let mut flat = model.clone();
         flat.pooled.slope = vec![0.0; NUM_BONES];
-        assert_eq!(matched_stature(&flat, &truth), None);
+        assert_eq!(matched_stature(&flat.pooled, &truth), None);
     }
 
     #[test]

@@ -74,31 +74,34 @@ pub fn run(root: &Path, a: &BodiesArgs, json: Option<&Path>) -> Result<()> {
     let motions = test_motions(&h36m, &MOTION_SUBJECTS)?;
     // The stature-regression baseline: fitted on the training split only.
     let stature = StatureRegression::fit_training(&split.everyone)?;
-    let fit_set = if a.fit_individuals > 0 {
-        let train_h36m = H36m::load(root, &TRAIN_SUBJECTS, Parts::POSES)?;
-        Some(FitSet {
+    // The training subjects, loaded once for the height-fusion fit (their
+    // motion) and the real-detection check (their detections too).
+    let train_h36m = match (a.fit_individuals > 0, a.real_check_every > 0) {
+        (false, false) => None,
+        (_, real) => Some(H36m::load(
+            root,
+            &TRAIN_SUBJECTS,
+            if real { Parts::ALL } else { Parts::POSES },
+        )?),
+    };
+    let fit_set = match &train_h36m {
+        Some(h) if a.fit_individuals > 0 => Some(FitSet {
             people: fit_people(&split.everyone, a.fit_individuals),
-            motions: test_motions(&train_h36m, &TRAIN_SUBJECTS)?,
+            motions: test_motions(h, &TRAIN_SUBJECTS)?,
             seed: FIT_SEED,
-        })
-    } else {
-        None
+        }),
+        _ => None,
     };
-    let real_h36m = if a.real_check_every > 0 {
-        Some(H36m::load(root, &TRAIN_SUBJECTS, Parts::ALL)?)
-    } else {
-        None
-    };
-    let real_camera = |s: &str, id: &str| real_h36m.as_ref().and_then(|h| h.cameras.get(s, id));
-    let real_check = match &real_h36m {
-        Some(h) => Some(RealCheck {
+    let real_camera = |s: &str, id: &str| train_h36m.as_ref().and_then(|h| h.cameras.get(s, id));
+    let real_check = match &train_h36m {
+        Some(h) if a.real_check_every > 0 => Some(RealCheck {
             trials: eval_sequences(h, &TRAIN_SUBJECTS, InputKind::Sh, &set.subject_lengths)?
                 .into_iter()
                 .step_by(a.real_check_every)
                 .collect(),
             camera: &real_camera,
         }),
-        None => None,
+        _ => None,
     };
     let input = BodiesInput {
         people: split.held_out(),

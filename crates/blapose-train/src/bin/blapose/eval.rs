@@ -362,7 +362,7 @@ fn stature_proxy_report(
                 .iter()
                 .map(|s| Ok((proxy_of(s)?, truth_of(s)?)))
                 .collect::<Result<Vec<_>>>()?;
-            let offset = proxy_offset(&model, &training)
+            let offset = proxy_offset(&model.pooled, &training)
                 .context("no training subject to calibrate the proxy on")?;
             println!(
                 "calibrated proxy: the proxy reads {:.1} mm short on the training subjects",
@@ -376,7 +376,7 @@ fn stature_proxy_report(
     for s in subjects {
         let truth = truth_of(s)?;
         let stature = match a.stature_source {
-            StatureSource::Matched => matched_stature(&model, &truth)
+            StatureSource::Matched => matched_stature(&model.pooled, &truth)
                 .context("the stature regression's summed slope is not positive")?,
             StatureSource::Proxy | StatureSource::CalibratedProxy => proxy_of(s)? + offset,
         };
