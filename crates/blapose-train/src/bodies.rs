@@ -38,7 +38,11 @@
 //! body for all). Beside the models, rows `stature-regression` with
 //! inputs `height` and `height+sex` ([`crate::stature`], fitted on the
 //! training split) answer from each individual's measured ANSUR stature
-//! (and sex) alone: the bar a height-conditioned model has to beat.
+//! (and sex) alone: the bar a height-conditioned model has to beat. Two
+//! *size oracles* ([`size_oracle_rows`], input `true size`) are given each
+//! individual's true summed length: what reading size perfectly, and
+//! proportion not at all, would score; a ratio below theirs needs
+//! proportions read from the 2D.
 //! Everything is seeded: the same seed gives the same
 //! individuals, clips, cameras and noise.
 
@@ -60,7 +64,7 @@ use crate::eval::{trial_error_mm, BiGruEstimator, GruEstimator, LengthEstimator}
 use crate::height_fusion::HeightFusion;
 use crate::noise::{apply_residual, residual_at, ResidualBank};
 use crate::real_check::{RealCheck, RealCheckInfo};
-use crate::stature::{StatureInput, StatureRegression};
+use crate::stature::{matched_stature, StatureInput, StatureRegression};
 use crate::synth::{rebuild_on_floor, sample_rng, MotionSequence};
 use crate::train::trained_config;
 use blapose_model::stature::StatureLines;
@@ -710,6 +714,59 @@ pub fn stature_rows(
     Ok(rows)
 }
 
+/// The size oracles' rows: each individual's lengths given its true
+/// summed length for free, with the prior's proportions (`prior
+/// proportions`) or the stature regression's at the matched stature
+/// (`stature regression`, [`crate::stature::matched_stature`]). They read
+/// the truth: they bound what a model that reads size perfectly and
+/// proportion not at all can score, so a target below them needs
+/// proportions read from the 2D.
+pub fn size_oracle_rows(
+    lines: &StatureLines,
+    truth: &[BoneLengths],
+    prior: &BoneLengths,
+) -> Result<Vec<Row>, TrainError> {
+    let summed = |l: &BoneLengths| l.iter().map(|&v| f64::from(v)).sum::<f64>();
+    let prior_total = summed(prior);
+    let scaled_prior: Vec<BoneLengths> = truth
+        .iter()
+        .map(|t| {
+            let k = summed(t) / prior_total;
+            std::array::from_fn(|b| (f64::from(prior[b]) * k) as f32)
+        })
+        .collect();
+    let regression = truth
+        .iter()
+        .map(|t| {
+            matched_stature(lines, t)
+                .map(|h| lines.predict(h))
+                .ok_or_else(|| {
+                    TrainError::InvalidArgument(
+                        "stature lines with no positive summed slope".into(),
+                    )
+                })
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    [
+        (ORACLE_PRIOR, scaled_prior),
+        (ORACLE_REGRESSION, regression),
+    ]
+    .into_iter()
+    .map(|(model, pred)| {
+        let mut r = named_row(model, ORACLE_INPUT, &pred, truth, prior)?;
+        r.weights = "reads the truth: each individual's summed length".into();
+        Ok(r)
+    })
+    .collect()
+}
+
+/// Names of the size oracles' rows ([`size_oracle_rows`]).
+pub const ORACLE_PRIOR: &str = "oracle: prior proportions";
+/// See [`ORACLE_PRIOR`].
+pub const ORACLE_REGRESSION: &str = "oracle: stature-regression proportions";
+/// The `input` of the size oracles' rows.
+pub const ORACLE_INPUT: &str = "true size";
+
 /// Run the benchmark: build the trials, score every model and the
 /// baselines.
 pub fn run(
@@ -791,6 +848,11 @@ pub fn run(
             }
         }
         rows.extend(stature);
+        rows.extend(size_oracle_rows(
+            &StatureLines::from(&reg.pooled),
+            &truth,
+            &input.prior,
+        )?);
     }
     let mut training_mean = baseline(
         "training subjects' mean lengths",
@@ -990,6 +1052,34 @@ mod tests {
         // The truth itself: slope 1, no error.
         let t = score(&truth, &truth).unwrap();
         assert!((t.size_slope - 1.0).abs() < 1e-9 && t.mean_bone_error_mm == 0.0);
+    }
+
+    #[test]
+    fn the_size_oracles_get_the_size_exactly_and_only_the_size() {
+        let prior: BoneLengths = std::array::from_fn(|b| 0.1 + 0.02 * b as f32);
+        // Two individuals with the prior's proportions, one without.
+        let mut odd = prior;
+        odd[0] += 0.05;
+        odd[1] -= 0.05;
+        let truth = vec![prior.map(|v| v * 0.9), prior.map(|v| v * 1.1), odd];
+        let lines = StatureLines {
+            intercept: vec![0.01; NUM_BONES],
+            slope: (0..NUM_BONES).map(|b| 0.05 + 0.002 * b as f64).collect(),
+            people: 3,
+        };
+        let rows = size_oracle_rows(&lines, &truth, &prior).unwrap();
+        assert_eq!(rows.len(), 2);
+        let scaled = &rows[0];
+        assert_eq!(scaled.model, ORACLE_PRIOR);
+        // Exact on the first two; on the third only the two changed bones
+        // (the sum is unchanged) miss, by 50 mm each.
+        assert!((scaled.mean_bone_error_mm - 100.0 / 16.0 / 3.0).abs() < 1e-3);
+        assert!((scaled.size_slope - 1.0).abs() < 1e-6);
+        assert!(
+            (rows[1].size_slope - 1.0).abs() < 1e-6,
+            "matched stature reads the size"
+        );
+        assert!(rows[1].mean_bone_error_mm > 0.0);
     }
 
     #[test]

@@ -15,7 +15,8 @@ use blapose_data::test_data_root;
 use blapose_train::ansur::load_population;
 use blapose_train::ansur_split::{is_held_out, AnsurPeople, AnsurSplit};
 use blapose_train::bodies::{
-    build_trials, mean_body, test_motions, BenchModel, BodiesConfig, BodiesInput, SHIPPED_MODELS,
+    build_trials, mean_body, test_motions, BenchModel, BodiesConfig, BodiesInput, ORACLE_INPUT,
+    SHIPPED_MODELS,
 };
 use blapose_train::dataset::{
     eval_sequences, mean_subject_lengths, EvalSequence, InputKind, TrainingSet,
@@ -237,9 +238,13 @@ fn a_tiny_benchmark_run_gives_well_formed_deterministic_rows() {
     ] {
         assert!(combos.contains(&(want.0.into(), want.1.into())), "{want:?}");
     }
-    // The models' rows first, in their order; the regression's after.
-    assert_eq!(combos.len(), 6);
-    assert!(combos[4..].iter().all(|(m, _)| m == "stature-regression"));
+    // The models' rows first, in their order; the regression's after,
+    // then the two size oracles.
+    assert_eq!(combos.len(), 8);
+    assert!(combos[4..6].iter().all(|(m, _)| m == "stature-regression"));
+    assert!(combos[6..]
+        .iter()
+        .all(|(m, i)| m.starts_with("oracle: ") && i == ORACLE_INPUT));
     let prior = report.rows[0].prior_mean_bone_error_mm;
     for r in rows {
         for k in [
@@ -273,8 +278,13 @@ fn a_tiny_benchmark_run_gives_well_formed_deterministic_rows() {
     assert!(md.contains("| bigru | calibration |") && md.contains("baseline: prior"));
     assert!(md.contains("| stature-regression | height+sex |"));
     // The regression reads sizes: taller individuals get longer bones.
-    for r in &report.rows[4..] {
+    for r in &report.rows[4..6] {
         assert!(r.size_slope > 0.3, "{}: {}", r.input, r.size_slope);
+    }
+    // The oracles are given the size: slope 1, and better than the prior.
+    for r in &report.rows[6..] {
+        assert!((r.size_slope - 1.0).abs() < 1e-4, "{}", r.model);
+        assert!(r.ratio_to_prior < 1.0, "{}", r.model);
     }
     // Without the regression the model rows are exactly the same.
     let bare = BodiesInput {
@@ -358,10 +368,10 @@ fn the_real_detection_check_scores_models_beside_their_rows() {
         .iter()
         .map(|r| (r.input.as_str(), r.real_check_mm))
         .collect();
-    assert_eq!(checked.len(), 3);
+    assert_eq!(checked.len(), 5);
     let e = checked[0].1.expect("the model row is checked");
     assert!(e > 0.0 && e < 60.0, "{e}");
-    assert!(checked[1].1.is_some() && checked[2].1.is_none());
+    assert!(checked[1].1.is_some() && checked[2..].iter().all(|c| c.1.is_none()));
     // The same trials scored directly give the same number.
     let direct = RealCheck {
         trials,
