@@ -35,7 +35,9 @@
 //! answer of a model that knows nothing about the person); their ratio; and
 //! the *size slope*, the least-squares slope of the predicted against the
 //! true sum of the 16 lengths over the individuals (1: reads sizes, 0: one
-//! body for all). Beside the models, rows `stature-regression` with
+//! body for all); and the error *at the prior's size*, every estimate
+//! rescaled to the prior's summed length, which scores its proportions
+//! alone. Beside the models, rows `stature-regression` with
 //! inputs `height` and `height+sex` ([`crate::stature`], fitted on the
 //! training split) answer from each individual's measured ANSUR stature
 //! (and sex) alone: the bar a height-conditioned model has to beat. Two
@@ -365,10 +367,9 @@ pub fn score(pred: &[BoneLengths], truth: &[BoneLengths]) -> Result<Score, Train
         )));
     }
     let n = pred.len() as f64;
-    let total = |l: &BoneLengths| l.iter().map(|&v| f64::from(v)).sum::<f64>();
     let size_slope = slope(
-        &truth.iter().map(total).collect::<Vec<_>>(),
-        &pred.iter().map(total).collect::<Vec<_>>(),
+        &truth.iter().map(summed_length).collect::<Vec<_>>(),
+        &pred.iter().map(summed_length).collect::<Vec<_>>(),
     )
     .ok_or_else(|| {
         TrainError::InvalidArgument("size slope needs individuals of different sizes".into())
@@ -409,6 +410,10 @@ pub struct Row {
     pub ratio_to_prior: f64,
     /// Predicted against true total length (1 reads sizes, 0 one body).
     pub size_slope: f64,
+    /// The error of every estimate rescaled to the prior's summed length,
+    /// mm: its proportions alone, to read beside the prior's error (the
+    /// prior's own proportions score exactly that).
+    pub at_prior_size_mm: f64,
     /// Per bone, mm ([`blapose_core::skeleton::BONE_NAMES`] order).
     pub per_bone_mm: Vec<f64>,
     /// Weights file.
@@ -473,6 +478,11 @@ pub fn named_row(
 ) -> Result<Row, TrainError> {
     let s = score(pred, truth)?;
     let prior_mm = prior_error(truth, prior)?;
+    let prior_total = summed_length(prior);
+    let at_prior_size = pred
+        .iter()
+        .map(|p| scaled_to(p, prior_total))
+        .collect::<Result<Vec<_>, _>>()?;
     Ok(Row {
         model: model.into(),
         input: input.into(),
@@ -480,6 +490,7 @@ pub fn named_row(
         prior_mean_bone_error_mm: prior_mm,
         ratio_to_prior: s.mean_bone_error_mm / prior_mm,
         size_slope: s.size_slope,
+        at_prior_size_mm: score(&at_prior_size, truth)?.mean_bone_error_mm,
         per_bone_mm: s.per_bone_mm,
         weights: String::new(),
         seconds: 0.0,
@@ -726,15 +737,10 @@ pub fn size_oracle_rows(
     truth: &[BoneLengths],
     prior: &BoneLengths,
 ) -> Result<Vec<Row>, TrainError> {
-    let summed = |l: &BoneLengths| l.iter().map(|&v| f64::from(v)).sum::<f64>();
-    let prior_total = summed(prior);
-    let scaled_prior: Vec<BoneLengths> = truth
+    let scaled_prior = truth
         .iter()
-        .map(|t| {
-            let k = summed(t) / prior_total;
-            std::array::from_fn(|b| (f64::from(prior[b]) * k) as f32)
-        })
-        .collect();
+        .map(|t| scaled_to(prior, summed_length(t)))
+        .collect::<Result<Vec<_>, _>>()?;
     let regression = truth
         .iter()
         .map(|t| {
@@ -758,6 +764,23 @@ pub fn size_oracle_rows(
         Ok(r)
     })
     .collect()
+}
+
+/// The summed length of the 16 bones, metres.
+fn summed_length(l: &BoneLengths) -> f64 {
+    l.iter().map(|&v| f64::from(v)).sum()
+}
+
+/// `l` with its proportions kept and its summed length set to `total`.
+fn scaled_to(l: &BoneLengths, total: f64) -> Result<BoneLengths, TrainError> {
+    let own = summed_length(l);
+    if !(own > 0.0 && own.is_finite()) {
+        return Err(TrainError::InvalidArgument(format!(
+            "lengths summing to {own} m have no proportions"
+        )));
+    }
+    let k = total / own;
+    Ok(std::array::from_fn(|b| (f64::from(l[b]) * k) as f32))
 }
 
 /// Names of the size oracles' rows ([`size_oracle_rows`]).
@@ -947,12 +970,13 @@ pub fn markdown(r: &BodiesReport) -> String {
     );
     let check = r.real_check.is_some();
     s.push_str(
-        "| model | input | mean bone error (mm) | prior (mm) | ratio to prior | size slope |",
+        "| model | input | mean bone error (mm) | prior (mm) | ratio to prior | size slope | \
+         at prior size (mm) |",
     );
     s.push_str(if check {
-        " training subjects' real SH (mm) |\n|---|---|---:|---:|---:|---:|---:|\n"
+        " training subjects' real SH (mm) |\n|---|---|---:|---:|---:|---:|---:|---:|\n"
     } else {
-        "\n|---|---|---:|---:|---:|---:|\n"
+        "\n|---|---|---:|---:|---:|---:|---:|\n"
     });
     let real = |v: Option<f64>| match (check, v) {
         (false, _) => String::new(),
@@ -961,13 +985,14 @@ pub fn markdown(r: &BodiesReport) -> String {
     };
     for row in &r.rows {
         s.push_str(&format!(
-            "| {} | {} | {:.2} | {:.2} | {:.3} | {:.3} |{}\n",
+            "| {} | {} | {:.2} | {:.2} | {:.3} | {:.3} | {:.2} |{}\n",
             row.model,
             row.input,
             row.mean_bone_error_mm,
             row.prior_mean_bone_error_mm,
             row.ratio_to_prior,
             row.size_slope,
+            row.at_prior_size_mm,
             real(row.real_check_mm)
         ));
     }
@@ -977,7 +1002,7 @@ pub fn markdown(r: &BodiesReport) -> String {
         .map_or(f64::NAN, |b| b.mean_bone_error_mm);
     for b in &r.baselines {
         s.push_str(&format!(
-            "| baseline: {} | - | {:.2} | {:.2} | {:.3} | 0 |{}\n",
+            "| baseline: {} | - | {:.2} | {:.2} | {:.3} | 0 | - |{}\n",
             b.name,
             b.mean_bone_error_mm,
             prior_mm,
@@ -1075,6 +1100,8 @@ mod tests {
         // (the sum is unchanged) miss, by 50 mm each.
         assert!((scaled.mean_bone_error_mm - 100.0 / 16.0 / 3.0).abs() < 1e-3);
         assert!((scaled.size_slope - 1.0).abs() < 1e-6);
+        // At the prior's size, the prior's proportions are the prior.
+        assert!((scaled.at_prior_size_mm - scaled.prior_mean_bone_error_mm).abs() < 1e-3);
         assert!(
             (rows[1].size_slope - 1.0).abs() < 1e-6,
             "matched stature reads the size"

@@ -252,6 +252,7 @@ fn a_tiny_benchmark_run_gives_well_formed_deterministic_rows() {
             "prior_mean_bone_error_mm",
             "ratio_to_prior",
             "size_slope",
+            "at_prior_size_mm",
         ] {
             assert!(r[k].as_f64().unwrap().is_finite(), "{k}");
         }
