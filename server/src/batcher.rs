@@ -878,7 +878,7 @@ fn scatter(job: &FrameJob, hidden: &[f32], lengths: &[f32], lifted: Option<Pose>
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::session::{Coordinates, InputSpec, SessionConfig, SessionStore};
+    use crate::session::{Coordinates, InputFormat, SessionConfig, SessionStore};
     use crate::testing::StepGate;
     use blapose_core::layouts::KeypointLayout;
     use std::sync::atomic::AtomicBool;
@@ -974,7 +974,7 @@ mod tests {
 
     fn session_config() -> SessionConfig {
         SessionConfig {
-            input: InputSpec {
+            input: InputFormat {
                 layout: KeypointLayout::H36m17,
                 coordinates: Coordinates::Normalized,
             },

@@ -18,7 +18,7 @@ use tonic::Status;
 use crate::backend::{Backend, BackendError, INPUT_DIM, OUTPUT_DIM, STATE_DIM};
 use crate::metrics;
 use crate::models::ModelProvider;
-use crate::session::{add_prediction, RunningLengths};
+use crate::session::{add_prediction, RunningMean};
 use crate::validate::{OfflineModel, ValidSequence};
 
 /// Result of an offline request.
@@ -173,7 +173,7 @@ pub fn online_lengths(
 ) -> Result<Vec<BoneLengths>, Status> {
     let mut hidden = vec![0.0f32; STATE_DIM];
     let mut prediction = [0.0f32; OUTPUT_DIM];
-    let mut running = RunningLengths::new();
+    let mut running = RunningMean::new();
     let mut out = Vec::with_capacity(frames);
     for (t, x) in inputs.chunks_exact(INPUT_DIM).take(frames).enumerate() {
         backend

@@ -114,9 +114,8 @@ impl fmt::Debug for SessionId {
 pub use blapose_core::layouts::Coordinates;
 
 /// What a session was opened with, fixed for its life: the keypoints'
-/// layout and units (blapose-core's `InputFormat`, under the name the server
-/// has always used for it).
-pub use blapose_core::layouts::InputFormat as InputSpec;
+/// layout and units (blapose-core's definition, shared with the client).
+pub use blapose_core::layouts::InputFormat;
 
 /// A session's camera: the calibration as the client sent it (echoed on
 /// open and resume) and its level twin, which rectifies the keypoints for
@@ -148,7 +147,7 @@ pub struct SessionSubject {
 #[derive(Debug, Clone)]
 pub struct SessionConfig {
     /// Input format of every frame.
-    pub input: InputSpec,
+    pub input: InputFormat,
     /// Free-form client label for logs (truncated).
     pub label: String,
     /// `Some(frames)`: the server lifts this session's poses with a lifter
@@ -184,7 +183,7 @@ pub const MAX_LABEL_BYTES: usize = 128;
 /// The online estimate: the mean of every per-frame length prediction so
 /// far (the BLAPose reference's online rule), blapose-model's one
 /// definition of it.
-pub use blapose_model::RunningMean as RunningLengths;
+pub use blapose_model::RunningMean;
 
 /// Add one frame's `prediction` to an online estimate and return the
 /// estimate after it. `scale` is what the model's lengths are multiplied by
@@ -193,7 +192,7 @@ pub use blapose_model::RunningMean as RunningLengths;
 /// averaged. Streams (the batcher) and `AdjustSequence` with the online GRU
 /// both go through here, so the two compute a frame's estimate the same way.
 pub fn add_prediction(
-    lengths: &mut RunningLengths,
+    lengths: &mut RunningMean,
     prediction: &BoneLengths,
     scale: f32,
 ) -> BoneLengths {
@@ -211,7 +210,7 @@ pub struct SessionState {
     /// GRU hidden states, `STATE_DIM` floats.
     pub hidden: Box<[f32]>,
     /// Running-mean length estimate and frames seen.
-    pub lengths: RunningLengths,
+    pub lengths: RunningMean,
     /// The server lifter's window of this session's accepted frames
     /// (normalized Human3.6M-17 keypoints); `None` unless the session lifts.
     /// Only the batcher pushes to it, together with `hidden` and `lengths`.
@@ -260,7 +259,7 @@ pub struct StateCopy {
     /// GRU hidden states, `STATE_DIM` floats.
     pub hidden: Box<[f32]>,
     /// Running mean and frames seen.
-    pub lengths: RunningLengths,
+    pub lengths: RunningMean,
     /// The lifter window's frames, oldest first (lifting sessions).
     pub window: Option<Vec<blapose_core::Keypoints2d>>,
     /// Each joint's last detected position.
@@ -302,7 +301,7 @@ impl Session {
             epoch: 1,
             closed: false,
             hidden: vec![0.0; STATE_DIM].into_boxed_slice(),
-            lengths: RunningLengths::new(),
+            lengths: RunningMean::new(),
             window: config
                 .lifter_frames
                 .map(|frames| Box::new(SlidingWindow::new(frames))),
@@ -744,7 +743,7 @@ mod tests {
 
     fn config() -> SessionConfig {
         SessionConfig {
-            input: InputSpec {
+            input: InputFormat {
                 layout: KeypointLayout::H36m17,
                 coordinates: Coordinates::Normalized,
             },
@@ -953,7 +952,7 @@ mod tests {
 
     #[test]
     fn predictions_are_scaled_before_they_are_averaged() {
-        let mut lengths = RunningLengths::new();
+        let mut lengths = RunningMean::new();
         assert_eq!(
             add_prediction(&mut lengths, &[0.5; NUM_BONES], 1.0),
             [0.5; NUM_BONES]

@@ -184,7 +184,7 @@ fn open_or_resume(
     match request.kind {
         Some(Req::Open(open)) => {
             let input =
-                validate::input_spec(open.input_format.as_ref()).map_err(|e| e.to_status())?;
+                validate::input_format(open.input_format.as_ref()).map_err(|e| e.to_status())?;
             validate::stream_model(open.model).map_err(|e| e.to_status())?;
             let lifter_frames = if open.server_lifter {
                 let lifter = state
@@ -407,7 +407,7 @@ fn opened_response(state: &AppState, a: &Attachment) -> pb::StreamResponse {
             resumed: a.epoch > 1,
             frames_seen: a.snapshot.frames_seen,
             bone_lengths: lengths_vec(&a.snapshot),
-            input_format: Some(validate::input_spec_to_proto(&a.session.config().input)),
+            input_format: Some(validate::input_format_to_proto(&a.session.config().input)),
             model: pb::Model::OnlineGru as i32,
             session_ttl_ms: u64::try_from(state.store.ttl().as_millis()).unwrap_or(u64::MAX),
             lifter: session_lifter(state, a).to_string(),

@@ -71,7 +71,7 @@ use hmac::Mac;
 use prost::Message;
 use sha2::{Digest, Sha256};
 
-use crate::session::{InputSpec, RunningLengths, SessionId, StateCopy, STATE_DIM};
+use crate::session::{InputFormat, RunningMean, SessionId, StateCopy, STATE_DIM};
 
 /// The token format this server writes and reads.
 pub const TOKEN_VERSION: u8 = 2;
@@ -251,7 +251,7 @@ pub struct PortableState {
     /// The online GRU weights of the session's family.
     pub weights_id: [u8; 32],
     /// Input format.
-    pub input: InputSpec,
+    pub input: InputFormat,
     /// Client label.
     pub label: String,
     /// The camera calibration as opened.
@@ -259,7 +259,7 @@ pub struct PortableState {
     /// The GRU state and running mean.
     pub hidden: Vec<f32>,
     /// The running mean.
-    pub lengths: RunningLengths,
+    pub lengths: RunningMean,
     /// The lifter's window, for a lifting session.
     pub window: Option<PortableWindow>,
     /// Each joint's last detected position.
@@ -280,7 +280,7 @@ impl PortableState {
     pub fn new(
         session_id: SessionId,
         weights_id: [u8; 32],
-        input: InputSpec,
+        input: InputFormat,
         label: &str,
         camera: Option<&pb::CameraCalibration>,
         lifter: Option<([u8; 32], usize)>,
@@ -565,14 +565,14 @@ fn decode_body(body: &[u8]) -> Result<PortableState, TokenError> {
     Ok(PortableState {
         session_id,
         weights_id,
-        input: InputSpec {
+        input: InputFormat {
             layout,
             coordinates,
         },
         label,
         camera,
         hidden,
-        lengths: RunningLengths::from_parts(sum, count),
+        lengths: RunningMean::from_parts(sum, count),
         window,
         held,
         skipped,
@@ -590,14 +590,14 @@ mod tests {
     }
 
     fn state(camera: bool, lifter: bool) -> PortableState {
-        let mut lengths = RunningLengths::new();
+        let mut lengths = RunningMean::new();
         for k in 0..7 {
             lengths.push(&std::array::from_fn(|b| 0.1 + 0.013 * (b + k) as f32));
         }
         PortableState {
             session_id: SessionId::from_bytes([7; 16]),
             weights_id: weights_id("ab"),
-            input: InputSpec {
+            input: InputFormat {
                 layout: KeypointLayout::Coco17,
                 coordinates: Coordinates::Pixels {
                     width: 1920,

@@ -25,7 +25,7 @@ use blapose_proto::v1 as pb;
 
 use crate::backend::INPUT_DIM;
 use crate::models::CameraReading;
-use crate::session::{InputSpec, SessionCamera, SessionSubject};
+use crate::session::{InputFormat, SessionCamera, SessionSubject};
 
 /// Largest accepted magnitude of a 2D keypoint value (pixels or normalized).
 pub const MAX_KEYPOINT_ABS: f32 = 1e6;
@@ -240,7 +240,7 @@ fn layout_from_proto(value: i32) -> Result<KeypointLayout, InvalidInput> {
 }
 
 /// Validate an `InputFormat`.
-pub fn input_spec(format: Option<&pb::InputFormat>) -> Result<InputSpec, InvalidInput> {
+pub fn input_format(format: Option<&pb::InputFormat>) -> Result<InputFormat, InvalidInput> {
     let format = format.ok_or(InvalidInput::MissingInputFormat)?;
     let layout = layout_from_proto(format.layout)?;
     let coordinates = match format.coordinates {
@@ -258,14 +258,14 @@ pub fn input_spec(format: Option<&pb::InputFormat>) -> Result<InputSpec, Invalid
         }
         Some(given) => Coordinates::from(given),
     };
-    Ok(InputSpec {
+    Ok(InputFormat {
         layout,
         coordinates,
     })
 }
 
 /// The `InputFormat` a spec was built from (echoed on open/resume).
-pub fn input_spec_to_proto(spec: &InputSpec) -> pb::InputFormat {
+pub fn input_format_to_proto(spec: &InputFormat) -> pb::InputFormat {
     (*spec).into()
 }
 
@@ -275,7 +275,7 @@ pub fn input_spec_to_proto(spec: &InputSpec) -> pb::InputFormat {
 /// ask of a calibration.
 pub fn camera(
     calibration: Option<&pb::CameraCalibration>,
-    spec: &InputSpec,
+    spec: &InputFormat,
     served: Option<CameraReading>,
 ) -> Result<Option<SessionCamera>, InvalidInput> {
     let Some(c) = calibration else {
@@ -412,7 +412,7 @@ pub use blapose_core::missing::MISSING_CONFIDENCE;
 /// Missing joints' coordinates are not validated; they are placeholders
 /// for the hold to replace.
 fn detected_input(
-    spec: &InputSpec,
+    spec: &InputFormat,
     keypoints: &[f32],
     confidence: &[f32],
 ) -> Result<([f32; INPUT_DIM], [bool; NUM_JOINTS]), InvalidInput> {
@@ -462,7 +462,10 @@ fn check_confidence(joints: usize, confidence: &[f32]) -> Result<(), InvalidInpu
 /// Validate one frame's keypoints (every joint detected; confidences are
 /// [`detected_input`]'s) and turn them into the model's input: Human3.6M-17
 /// order, normalized screen coordinates, joint-major `(x, y)`.
-pub fn model_input(spec: &InputSpec, keypoints: &[f32]) -> Result<[f32; INPUT_DIM], InvalidInput> {
+pub fn model_input(
+    spec: &InputFormat,
+    keypoints: &[f32],
+) -> Result<[f32; INPUT_DIM], InvalidInput> {
     let layout = spec.layout;
     let joints = layout.num_joints();
     if keypoints.len() != joints * 2 {
@@ -557,7 +560,7 @@ pub struct ValidFrame {
 }
 
 /// Validate a streamed frame.
-pub fn frame(spec: &InputSpec, frame: &pb::Frame) -> Result<ValidFrame, InvalidInput> {
+pub fn frame(spec: &InputFormat, frame: &pb::Frame) -> Result<ValidFrame, InvalidInput> {
     let (input, present) = detected_input(spec, &frame.keypoints_2d, &frame.confidence)?;
     Ok(ValidFrame {
         input,
@@ -571,7 +574,7 @@ pub fn frame(spec: &InputSpec, frame: &pb::Frame) -> Result<ValidFrame, InvalidI
 /// lift otherwise); the keypoints become the model's (and the lifter's)
 /// input, with which joints were detected.
 pub fn keypoints_frame(
-    spec: &InputSpec,
+    spec: &InputFormat,
     frame: &pb::Frame,
 ) -> Result<([f32; INPUT_DIM], [bool; NUM_JOINTS]), InvalidInput> {
     if !frame.pose_3d.is_empty() {
@@ -612,7 +615,7 @@ pub fn sequence(
     req: &pb::AdjustSequenceRequest,
     camera_aware: Option<CameraReading>,
 ) -> Result<ValidSequence, InvalidInput> {
-    let spec = input_spec(req.input_format.as_ref())?;
+    let spec = input_format(req.input_format.as_ref())?;
     let model = offline_model(req.model)?;
     let camera = camera(req.camera.as_ref(), &spec, camera_aware)?;
     let frames = req.num_frames as usize;
@@ -680,8 +683,8 @@ mod tests {
     use super::*;
     use blapose_core::camera::normalize_screen;
 
-    fn spec(layout: KeypointLayout, coordinates: Coordinates) -> InputSpec {
-        InputSpec {
+    fn spec(layout: KeypointLayout, coordinates: Coordinates) -> InputFormat {
+        InputFormat {
             layout,
             coordinates,
         }
@@ -727,35 +730,35 @@ mod tests {
                 height: h,
             }))
         };
-        assert_eq!(input_spec(None), Err(InvalidInput::MissingInputFormat));
+        assert_eq!(input_format(None), Err(InvalidInput::MissingInputFormat));
         assert_eq!(
-            input_spec(Some(&format(0, size(10, 10)))),
+            input_format(Some(&format(0, size(10, 10)))),
             Err(InvalidInput::UnspecifiedLayout)
         );
         assert_eq!(
-            input_spec(Some(&format(42, size(10, 10)))),
+            input_format(Some(&format(42, size(10, 10)))),
             Err(InvalidInput::UnknownLayout(42))
         );
         assert_eq!(
-            input_spec(Some(&format(-1, size(10, 10)))),
+            input_format(Some(&format(-1, size(10, 10)))),
             Err(InvalidInput::UnknownLayout(-1))
         );
         assert_eq!(
-            input_spec(Some(&format(1, None))),
+            input_format(Some(&format(1, None))),
             Err(InvalidInput::MissingCoordinates)
         );
         assert_eq!(
-            input_spec(Some(&format(1, size(0, 10)))),
+            input_format(Some(&format(1, size(0, 10)))),
             Err(InvalidInput::BadImageSize {
                 width: 0,
                 height: 10
             })
         );
         assert_eq!(
-            input_spec(Some(&format(2, Some(C::Normalized(false))))),
+            input_format(Some(&format(2, Some(C::Normalized(false))))),
             Err(InvalidInput::NormalizedFalse)
         );
-        let ok = input_spec(Some(&format(3, size(1920, 1080)))).unwrap();
+        let ok = input_format(Some(&format(3, size(1920, 1080)))).unwrap();
         assert_eq!(
             ok,
             spec(
@@ -766,10 +769,10 @@ mod tests {
                 }
             )
         );
-        assert_eq!(input_spec(Some(&input_spec_to_proto(&ok))), Ok(ok));
-        let n = input_spec(Some(&format(2, Some(C::Normalized(true))))).unwrap();
+        assert_eq!(input_format(Some(&input_format_to_proto(&ok))), Ok(ok));
+        let n = input_format(Some(&format(2, Some(C::Normalized(true))))).unwrap();
         assert_eq!(n, spec(KeypointLayout::Sh16, Coordinates::Normalized));
-        assert_eq!(input_spec(Some(&input_spec_to_proto(&n))), Ok(n));
+        assert_eq!(input_format(Some(&input_format_to_proto(&n))), Ok(n));
     }
 
     #[test]

@@ -5,7 +5,7 @@
 use std::time::Duration;
 
 use blapose_core::layouts::KeypointLayout;
-use blapose_server::session::{Coordinates, InputSpec, SessionConfig, SessionStore};
+use blapose_server::session::{Coordinates, InputFormat, SessionConfig, SessionStore};
 
 fn resident_bytes() -> Option<usize> {
     let statm = std::fs::read_to_string("/proc/self/statm").ok()?;
@@ -22,7 +22,7 @@ async fn an_idle_session_costs_well_under_16_kib() {
     let n = 20_000;
     let (store, _guard) = SessionStore::new(n, Duration::from_secs(600));
     let config = SessionConfig {
-        input: InputSpec {
+        input: InputFormat {
             layout: KeypointLayout::Coco17,
             coordinates: Coordinates::Pixels {
                 width: 1920,
