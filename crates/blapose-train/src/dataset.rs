@@ -83,6 +83,29 @@ pub fn rectify_streams<'a>(
     Ok(())
 }
 
+/// Undo each stream's lens distortion: its keypoints (normalized screen
+/// coordinates of the camera's image) become what a distortion-free
+/// camera with the same intrinsics shows, the pinhole picture the
+/// rectification and the served protocol assume.
+pub fn undistort_streams<'a>(
+    streams: &mut [EvalSequence],
+    camera: &impl Fn(&str, &str) -> Option<&'a Camera>,
+) -> Result<(), TrainError> {
+    use blapose_core::camera::{denormalize_screen, normalize_screen};
+    for t in streams {
+        let cam = camera(&t.subject, &t.camera)
+            .ok_or_else(|| TrainError::Data(format!("no camera {} for {}", t.camera, t.subject)))?;
+        let k = cam.pixel_intrinsics();
+        for xy in t.input.chunks_exact_mut(2) {
+            let px = denormalize_screen([xy[0], xy[1]], cam.width, cam.height);
+            let u = k.undistort([f64::from(px[0]), f64::from(px[1])]);
+            let n = normalize_screen([u[0] as f32, u[1] as f32], cam.width, cam.height);
+            xy.copy_from_slice(&n);
+        }
+    }
+    Ok(())
+}
+
 impl EvalSequence {
     /// Number of frames.
     pub fn frames(&self) -> usize {
@@ -405,6 +428,64 @@ pub fn eval_sequences(
 mod tests {
     use super::*;
     use crate::synth::FRAME_DIM;
+
+    #[test]
+    fn undistorted_streams_are_the_pinhole_projection() {
+        let cam = Camera {
+            id: "c".into(),
+            rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            center: [0.0; 3],
+            focal: [1145.0, 1143.8],
+            principal: [512.5, 515.5],
+            radial: [-0.207, 0.248, -0.003],
+            tangential: [-0.001, -0.0014],
+            width: 1000,
+            height: 1002,
+        };
+        let pinhole = Camera {
+            radial: [0.0; 3],
+            tangential: [0.0; 2],
+            ..cam.clone()
+        };
+        // Two frames of 17 camera-space points spread over the image.
+        let points: Vec<[f64; 3]> = (0..2 * 17)
+            .map(|i| [-1.5 + 0.09 * i as f64, 1.4 - 0.08 * i as f64, 4.0])
+            .collect();
+        let normalized = |c: &Camera| -> Vec<f32> {
+            points
+                .iter()
+                .flat_map(|&p| {
+                    let px = c.project_camera_to_pixels(p);
+                    blapose_core::camera::normalize_screen(
+                        [px[0] as f32, px[1] as f32],
+                        c.width,
+                        c.height,
+                    )
+                })
+                .collect()
+        };
+        let mut streams = vec![EvalSequence {
+            subject: "S1".into(),
+            sequence: "s".into(),
+            camera: "c".into(),
+            input: normalized(&cam),
+            gt: [0.3; 16],
+        }];
+        let want = normalized(&pinhole);
+        let moved = streams[0]
+            .input
+            .iter()
+            .zip(&want)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
+        assert!(moved > 0.01, "the lens moves the points: {moved}");
+        undistort_streams(&mut streams, &|_: &str, _: &str| Some(&cam)).unwrap();
+        for (a, b) in streams[0].input.iter().zip(&want) {
+            assert!((a - b).abs() < 1e-5, "{a} vs {b}");
+        }
+        // A stream without a calibration is an error, not a panic.
+        assert!(undistort_streams(&mut streams, &|_: &str, _: &str| None).is_err());
+    }
 
     fn ramp(frames: usize) -> EvalSequence {
         EvalSequence {

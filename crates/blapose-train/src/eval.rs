@@ -201,9 +201,13 @@ impl<E: LengthEstimator> LengthEstimator for HeightCorrected<E> {
 }
 
 /// Evaluate camera-aware weights as the server serves a calibrated
-/// session: every trial's keypoints rectified with its camera (scaled to
-/// the floor when the weights were trained so), and `estimator` scaled by
-/// each view's camera height when the weights are height-normalized.
+/// session: every trial's keypoints undistorted with its camera's lens
+/// model (the detections are pixels of the distorted video, and the
+/// served protocol takes undistorted pixels:
+/// [`crate::dataset::undistort_streams`]), then rectified with its camera
+/// (scaled to the floor when the weights were trained so), and
+/// `estimator` scaled by each view's camera height when the weights are
+/// height-normalized.
 /// `camera(subject, id)` finds each trial's calibration.
 pub fn calibrated<'a>(
     estimator: Box<dyn LengthEstimator>,
@@ -215,6 +219,7 @@ pub fn calibrated<'a>(
     let (floor_scaled, height_normalized) = config
         .as_ref()
         .map_or((false, false), |c| (c.floor_scaled, c.height_normalized));
+    crate::dataset::undistort_streams(trials, &camera)?;
     crate::dataset::rectify_streams(trials, &camera, floor_scaled)?;
     if height_normalized {
         height_corrected(estimator, trials, camera)

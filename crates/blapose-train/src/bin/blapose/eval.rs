@@ -89,7 +89,9 @@ pub struct EvalArgs {
     #[arg(long)]
     rectify: bool,
     /// Evaluate as the server serves a session that sends its camera's
-    /// calibration: every trial's keypoints rectified with its camera, and
+    /// calibration: every trial's keypoints undistorted (the detections
+    /// are pixels of the distorted video; the protocol takes undistorted
+    /// ones) and rectified with its camera, and
     /// the estimate scaled by the camera's height when the weights are
     /// height-normalized (their train_config says), the keypoints scaled
     /// to the floor when they were trained so. For camera-aware weights.
