@@ -652,6 +652,7 @@ mod tests {
             principal: [500.0, 500.0],
             image_size: None,
             height: Some(1.6),
+            distortion: None,
         }
     }
 

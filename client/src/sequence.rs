@@ -78,8 +78,12 @@ pub const KEY_CAMERA_PRINCIPAL: &str = "camera_principal";
 /// Key of the optional camera height above the floor `()` or `(1,)`,
 /// metres; only together with [`CAMERA_KEYS`].
 pub const KEY_CAMERA_HEIGHT: &str = "camera_height";
-/// The camera keys, all present or all absent ([`KEY_CAMERA_HEIGHT`] may
-/// join them).
+/// Key of the optional lens distortion `(4,)` or `(5,)`: OpenCV's `k1, k2,
+/// p1, p2[, k3]`, when the keypoints were detected in the raw image; only
+/// together with [`CAMERA_KEYS`].
+pub const KEY_CAMERA_DISTORTION: &str = "camera_distortion";
+/// The camera keys, all present or all absent ([`KEY_CAMERA_HEIGHT`] and
+/// [`KEY_CAMERA_DISTORTION`] may join them).
 pub const CAMERA_KEYS: [&str; 3] = [KEY_CAMERA_UP, KEY_CAMERA_FOCAL, KEY_CAMERA_PRINCIPAL];
 /// Output key: adjusted poses `(T, 17, 3)`.
 pub const KEY_ADJUSTED: &str = "adjusted_3d";
@@ -271,6 +275,7 @@ fn camera_key(error: &CameraError) -> &'static str {
         "focal" => KEY_CAMERA_FOCAL,
         "principal" => KEY_CAMERA_PRINCIPAL,
         "height" => KEY_CAMERA_HEIGHT,
+        "distortion" => KEY_CAMERA_DISTORTION,
         _ => KEY_IMAGE_SIZE,
     }
 }
@@ -583,6 +588,12 @@ impl Sequence {
                     Array::new(vec![1], vec![height]).map_err(npz_err)?,
                 );
             }
+            if let Some(distortion) = c.distortion {
+                npz.insert(
+                    KEY_CAMERA_DISTORTION,
+                    Array::new(vec![5], distortion.to_vec()).map_err(npz_err)?,
+                );
+            }
         }
         if let Some(subject) = &self.subject {
             npz.insert(
@@ -623,7 +634,7 @@ fn camera_from_npz(
 ) -> Result<Option<CameraCalibration>, SequenceError> {
     let present: Vec<&str> = CAMERA_KEYS
         .into_iter()
-        .chain([KEY_CAMERA_HEIGHT])
+        .chain([KEY_CAMERA_HEIGHT, KEY_CAMERA_DISTORTION])
         .filter(|k| npz.contains(k))
         .collect();
     if present.is_empty() {
@@ -645,7 +656,29 @@ fn camera_from_npz(
         } else {
             None
         },
+        distortion: if npz.contains(KEY_CAMERA_DISTORTION) {
+            Some(distortion_from_npz(npz)?)
+        } else {
+            None
+        },
     }))
+}
+
+/// [`KEY_CAMERA_DISTORTION`] as the five OpenCV coefficients (`k3 = 0` for
+/// a four-value array).
+fn distortion_from_npz(npz: &Npz) -> Result<[f32; 5], SequenceError> {
+    let array = npz
+        .get_shaped(KEY_CAMERA_DISTORTION, &[None])
+        .map_err(npz_err)?;
+    match *array.data() {
+        [k1, k2, p1, p2] => Ok([k1, k2, p1, p2, 0.0]),
+        [k1, k2, p1, p2, k3] => Ok([k1, k2, p1, p2, k3]),
+        _ => Err(npz_err(NpzError::Shape {
+            key: KEY_CAMERA_DISTORTION.to_owned(),
+            expected: "(4,) or (5,)".into(),
+            actual: array.shape().to_vec(),
+        })),
+    }
 }
 
 /// An npz error from arrays not (yet) tied to a file.
@@ -985,6 +1018,7 @@ mod tests {
             principal: [500.0, 501.0],
             image_size: Some((1000, 1002)),
             height: None,
+            distortion: None,
         };
         assert_eq!(s.camera, Some(expected));
         assert!(!s.to_npz().unwrap().contains(KEY_CAMERA_HEIGHT));
@@ -1065,6 +1099,41 @@ mod tests {
         assert!(!read_npz(&path).unwrap().contains(KEY_CAMERA_HEIGHT));
         assert_eq!(Sequence::load(&path, None).unwrap(), other);
         std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn camera_distortion_loads_pads_and_round_trips() {
+        let mut n = with_camera(npz(3, 17));
+        n.insert(
+            KEY_CAMERA_DISTORTION,
+            Array::new(vec![4], vec![-0.2, 0.05, 0.001, -0.002]).unwrap(),
+        );
+        let s = Sequence::from_npz(&n, None).unwrap();
+        let cal = s.camera.expect("a calibration");
+        assert_eq!(cal.distortion, Some([-0.2, 0.05, 0.001, -0.002, 0.0]));
+        let arrays = s.to_npz().unwrap();
+        assert_eq!(arrays.get(KEY_CAMERA_DISTORTION).unwrap().shape(), &[5]);
+        assert_eq!(Sequence::from_npz(&arrays, None).unwrap(), s);
+        // Three values are no OpenCV model: a shape error naming the key.
+        n.insert(
+            KEY_CAMERA_DISTORTION,
+            Array::new(vec![3], vec![-0.2, 0.05, 0.001]).unwrap(),
+        );
+        let e = Sequence::from_npz(&n, None).unwrap_err().to_string();
+        assert!(e.contains(KEY_CAMERA_DISTORTION), "{e}");
+        // Alone it needs the calibration, like the height.
+        let mut alone = npz(2, 17);
+        alone.insert(
+            KEY_CAMERA_DISTORTION,
+            Array::new(vec![4], vec![-0.2, 0.05, 0.0, 0.0]).unwrap(),
+        );
+        assert!(matches!(
+            Sequence::from_npz(&alone, None),
+            Err(SequenceError::PartialCamera {
+                missing: KEY_CAMERA_UP,
+                ..
+            })
+        ));
     }
 
     #[test]

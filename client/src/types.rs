@@ -20,6 +20,7 @@ use std::str::FromStr;
 use std::time::Duration;
 
 use blapose_core::camera::Camera;
+use blapose_core::lens::{LensDistortion, LensError};
 use blapose_core::level::{self, CalibrationError};
 use blapose_core::skeleton::NUM_BONES;
 use blapose_core::{BoneLengths, Pose};
@@ -60,8 +61,9 @@ pub(crate) fn input_format_from_proto(msg: &pb::InputFormat) -> Result<InputForm
 ///
 /// A session (or offline request) that sends one is served by the
 /// camera-aware models: the server turns its keypoints into what a level
-/// camera at the same place would see before the model reads them. Lens
-/// distortion is ignored (keypoints are taken as undistorted pixels).
+/// camera at the same place would see before the model reads them. With
+/// `distortion` the server first undoes the lens (keypoints detected in the
+/// raw image); without it keypoints are taken as undistorted pixels.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct CameraCalibration {
     /// Direction of world "up" (against gravity) in camera coordinates
@@ -84,6 +86,11 @@ pub struct CameraCalibration {
     /// the server scales them by `height / 1.56`, assuming 1.56 m when it is
     /// not given. Other models ignore it.
     pub height: Option<f32>,
+    /// The lens's distortion in OpenCV's model and order, `[k1, k2, p1,
+    /// p2, k3]` (what `cv2.calibrateCamera` reports; k3 = 0 for a
+    /// four-coefficient calibration), for keypoints detected in the raw
+    /// image; `None`: the keypoints are undistorted pixels.
+    pub distortion: Option<[f32; 5]>,
 }
 
 /// Why a [`CameraCalibration`] cannot be used.
@@ -115,6 +122,9 @@ pub enum CameraError {
     /// Normalized keypoints, but no image size to relate them to pixels.
     #[error("image_size is required with normalized keypoints (the calibration is in pixels)")]
     ImageSizeMissing,
+    /// The distortion is not a usable lens model.
+    #[error("distortion: {0}")]
+    Distortion(LensError),
     /// The calibration's image size differs from the pixel keypoints'.
     #[error("image_size {camera_width}x{camera_height} differs from the keypoints' image size {width}x{height}")]
     ImageSizeMismatch {
@@ -131,13 +141,14 @@ pub enum CameraError {
 
 impl CameraError {
     /// The calibration field at fault: `up`, `focal`, `principal`,
-    /// `image_size` or `height`.
+    /// `image_size`, `height` or `distortion`.
     pub const fn field(&self) -> &'static str {
         match self {
             CameraError::NonFinite { field } => field,
             CameraError::ZeroUp(_) => "up",
             CameraError::Focal(_) => "focal",
             CameraError::Height(_) => "height",
+            CameraError::Distortion(_) => "distortion",
             CameraError::ImageSize { .. }
             | CameraError::ImageSizeMissing
             | CameraError::ImageSizeMismatch { .. } => "image_size",
@@ -176,7 +187,7 @@ impl CameraCalibration {
     /// height its centre's z. This assumes world z up with the floor at
     /// z = 0 (as in Human3.6M and the CMU examples); for another world
     /// frame, set `up` and `height` yourself. Values are rounded to `f32`;
-    /// distortion is dropped.
+    /// the distortion is dropped (Human3.6M's lens model is not OpenCV's).
     pub fn from_camera(camera: &Camera) -> Self {
         let r = &camera.rotation;
         CameraCalibration {
@@ -185,6 +196,7 @@ impl CameraCalibration {
             principal: camera.principal.map(|v| v as f32),
             image_size: Some((camera.width, camera.height)),
             height: Some(camera.center[2] as f32),
+            distortion: None,
         }
     }
 
@@ -215,7 +227,29 @@ impl CameraCalibration {
                 return Err(CameraError::Height(height));
             }
         }
+        if let Some(lens) = self.lens()? {
+            if let Some((width, height)) = self.image_size {
+                lens.check_invertible(
+                    self.focal.map(f64::from),
+                    self.principal.map(f64::from),
+                    width,
+                    height,
+                )
+                .map_err(CameraError::Distortion)?;
+            }
+        }
         Ok(())
+    }
+
+    /// The lens model of `distortion`, checked for finite values.
+    fn lens(&self) -> Result<Option<LensDistortion>, CameraError> {
+        let coefficients: Vec<f64> = self
+            .distortion
+            .iter()
+            .flatten()
+            .map(|&v| f64::from(v))
+            .collect();
+        LensDistortion::from_coefficients(&coefficients).map_err(CameraError::Distortion)
     }
 
     /// [`validate`](Self::validate), and check that the image size fits
@@ -240,6 +274,7 @@ impl CameraCalibration {
                 .image_size
                 .map(|(width, height)| pb::ImageSize { width, height }),
             height: self.height.unwrap_or(0.0),
+            distortion: self.distortion.map_or_else(Vec::new, |d| d.to_vec()),
         }
     }
 
@@ -256,6 +291,17 @@ impl CameraCalibration {
             principal: [msg.principal_x, msg.principal_y],
             image_size: msg.image_size.map(|s| (s.width, s.height)),
             height: (msg.height != 0.0).then_some(msg.height),
+            distortion: match *msg.distortion.as_slice() {
+                [] => None,
+                [k1, k2, p1, p2] => Some([k1, k2, p1, p2, 0.0]),
+                [k1, k2, p1, p2, k3] => Some([k1, k2, p1, p2, k3]),
+                ref other => {
+                    return Err(ClientError::Protocol(format!(
+                        "camera.distortion has {} values, expected 0, 4 or 5",
+                        other.len()
+                    )))
+                }
+            },
         })
     }
 }
@@ -278,6 +324,9 @@ impl fmt::Display for CameraCalibration {
         }
         if let Some(height) = self.height {
             write!(f, ", height {height} m")?;
+        }
+        if let Some(d) = self.distortion {
+            write!(f, ", distortion {d:?}")?;
         }
         Ok(())
     }
@@ -944,6 +993,7 @@ mod tests {
             principal: [512.5, 515.0],
             image_size: Some((1000, 1002)),
             height: Some(1.75),
+            distortion: None,
         }
     }
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import signal
 import time
 
@@ -45,6 +46,21 @@ def test_bad_open_is_invalid_argument(server: Server, kwargs) -> None:
         client.session(**kwargs)
     assert e.value.code == grpc.StatusCode.INVALID_ARGUMENT
     assert e.value.details
+
+
+def test_a_bad_lens_distortion_is_named(server: Server, seq) -> None:
+    assert seq.camera is not None
+    good = dataclasses.replace(seq.camera, distortion=(-0.2, 0.05, 0.001, -0.001))
+    back = blapose.Camera.from_proto(good.to_proto())
+    assert back.distortion is not None and np.allclose(back.distortion, good.distortion)
+    with blapose.Client(server.url) as client:
+        s = open_session(client, seq, camera=good)
+        assert s.send(seq.keypoints_2d[0], seq.pose_3d[0]).frames_seen == 1
+        s.close()
+        bad = dataclasses.replace(seq.camera, distortion=(0.1, 0.2, 0.3))
+        with pytest.raises(blapose.InvalidArgument) as e:
+            open_session(client, seq, camera=bad)
+    assert "camera.distortion" in e.value.details
 
 
 def test_unknown_session_is_not_found(server: Server) -> None:

@@ -613,6 +613,7 @@ mod tests {
                 principal_y: 540.0,
                 image_size: None,
                 height: 1.7,
+                distortion: vec![-0.12, 0.03, 0.0005, -0.0002, 0.0],
             }),
             hidden: (0..STATE_DIM).map(|i| (i as f32 * 0.37).sin()).collect(),
             lengths,

@@ -11,6 +11,7 @@
 
 use blapose_core::bones::{self, BoneError};
 use blapose_core::layouts::{Coordinates, KeypointLayout};
+use blapose_core::lens::{LensDistortion, LensError};
 use blapose_core::level::{
     self, CalibrationError, LevelCamera, LevelError, OutsideEnvelope, MAX_CAMERA_HEIGHT,
     MIN_CAMERA_HEIGHT,
@@ -206,6 +207,9 @@ pub enum InvalidInput {
     /// Height-normalized models without the camera height.
     #[error("camera.height is required: the camera-aware models read a person's size relative to the camera's height above the floor (metres; measure it with a tape)")]
     CameraHeightRequired,
+    /// `camera.distortion` is not a usable lens model.
+    #[error("camera.distortion: {0}")]
+    CameraDistortion(LensError),
     /// A calibration the camera-aware models were not trained for.
     #[error("{0}")]
     OutsideTrainedCameras(OutsideEnvelope),
@@ -329,6 +333,22 @@ pub fn camera(
         level.scaled_to_floor(c.height)
     } else {
         level
+    };
+    let coefficients: Vec<f64> = c.distortion.iter().map(|&v| f64::from(v)).collect();
+    let level = match LensDistortion::from_coefficients(&coefficients)
+        .map_err(InvalidInput::CameraDistortion)?
+    {
+        None => level,
+        Some(lens) => {
+            lens.check_invertible(
+                [c.focal_x, c.focal_y].map(f64::from),
+                [c.principal_x, c.principal_y].map(f64::from),
+                width,
+                height,
+            )
+            .map_err(InvalidInput::CameraDistortion)?;
+            level.with_lens(lens)
+        }
     };
     if let Some(envelope) = served.trained_cameras {
         envelope
@@ -1068,6 +1088,7 @@ mod tests {
             principal_y: 500.0,
             image_size: None,
             height: 0.0,
+            distortion: vec![],
         }
     }
 
@@ -1233,6 +1254,57 @@ mod tests {
             ..c.clone()
         };
         assert!(camera(Some(&far), &pixels, Some(ANY_CAMERA)).is_ok());
+    }
+
+    #[test]
+    fn a_lens_distortion_is_undone_or_refused_by_name() {
+        let pixels = spec(
+            KeypointLayout::H36m17,
+            Coordinates::Pixels {
+                width: 1000,
+                height: 1000,
+            },
+        );
+        let with = |distortion: Vec<f32>| pb::CameraCalibration {
+            distortion,
+            ..calibration()
+        };
+        let plain = camera(Some(&calibration()), &pixels, Some(ANY_CAMERA))
+            .unwrap()
+            .unwrap();
+        for ok in [
+            vec![-0.2, 0.05, 0.001, -0.001],
+            vec![-0.2, 0.05, 0.001, -0.001, 0.01],
+        ] {
+            let lens = camera(Some(&with(ok.clone())), &pixels, Some(ANY_CAMERA))
+                .unwrap()
+                .unwrap();
+            // Echoed as sent; a corner keypoint lands elsewhere than without.
+            assert_eq!(lens.calibration.distortion, ok);
+            let mut corner = vec![0.9f32; 34];
+            let mut same = corner.clone();
+            lens.level.rectify_frames(&mut corner);
+            plain.level.rectify_frames(&mut same);
+            assert!(
+                (corner[0] - same[0]).abs() > 0.01,
+                "{} vs {}",
+                corner[0],
+                same[0]
+            );
+        }
+        for bad in [
+            vec![0.1, 0.2, 0.3],
+            vec![-0.2, f32::NAN, 0.0, 0.0],
+            // Folds over within the picture.
+            vec![-2.0, 0.0, 0.0, 0.0],
+        ] {
+            let err = camera(Some(&with(bad.clone())), &pixels, Some(ANY_CAMERA)).unwrap_err();
+            assert!(
+                matches!(err, InvalidInput::CameraDistortion(_)),
+                "{bad:?}: {err}"
+            );
+            assert!(err.to_string().starts_with("camera.distortion"), "{err}");
+        }
     }
 
     #[test]

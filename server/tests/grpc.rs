@@ -227,6 +227,7 @@ fn calibration() -> pb::CameraCalibration {
         principal_y: 500.0,
         image_size: None,
         height: 0.0,
+        distortion: vec![],
     }
 }
 

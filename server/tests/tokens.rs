@@ -145,6 +145,7 @@ fn calibration() -> pb::CameraCalibration {
         principal_y: 500.0,
         image_size: None,
         height: 1.6,
+        distortion: vec![],
     }
 }
 

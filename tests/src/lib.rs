@@ -305,6 +305,7 @@ pub fn test_camera() -> CameraCalibration {
         principal: [508.0, 497.0],
         image_size: None,
         height: Some(1.45),
+        distortion: None,
     }
 }
 

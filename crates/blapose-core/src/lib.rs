@@ -17,6 +17,7 @@ pub mod bones;
 pub mod camera;
 pub mod isa;
 pub mod layouts;
+pub mod lens;
 pub mod level;
 pub mod metrics;
 pub mod missing;

@@ -147,6 +147,10 @@ class Camera:
             camera-aware models require it: they were trained for cameras 0.5-3 m high,
             -35 to +15 degrees from level, 40-100 degrees across, and the server refuses
             other calibrations with ``InvalidArgument`` naming the value.
+        distortion: the lens's distortion in OpenCV's order, ``(k1, k2, p1, p2)`` or
+            ``(k1, k2, p1, p2, k3)`` (what ``cv2.calibrateCamera`` reports), for keypoints
+            detected in the raw image; the server undoes it first. None: the keypoints
+            are undistorted pixels.
     """
 
     up: Tuple[float, float, float]
@@ -154,6 +158,7 @@ class Camera:
     principal: Tuple[float, float]
     image_size: Optional[Tuple[int, int]] = None
     height: Optional[float] = None
+    distortion: Optional[Tuple[float, ...]] = None
 
     def to_proto(self) -> pb.CameraCalibration:
         cam = pb.CameraCalibration(
@@ -163,6 +168,7 @@ class Camera:
             principal_x=float(self.principal[0]),
             principal_y=float(self.principal[1]),
             height=float(self.height or 0.0),
+            distortion=[float(v) for v in self.distortion or ()],
         )
         if self.image_size is not None:
             cam.image_size.width = int(self.image_size[0])
@@ -177,6 +183,7 @@ class Camera:
             principal=(cam.principal_x, cam.principal_y),
             image_size=(cam.image_size.width, cam.image_size.height) if cam.HasField("image_size") else None,
             height=cam.height or None,
+            distortion=tuple(cam.distortion) or None,
         )
 
 
@@ -398,11 +405,13 @@ def load_replay(path: Union[str, Path]) -> ReplayFile:
         camera = None
         if "camera_up" in z:
             height = float(np.asarray(z["camera_height"]).reshape(-1)[0]) if "camera_height" in z else None
+            distortion = tuple(float(v) for v in z["camera_distortion"]) if "camera_distortion" in z else None
             camera = Camera(
                 up=tuple(float(v) for v in z["camera_up"]),  # type: ignore[arg-type]
                 focal=tuple(float(v) for v in z["camera_focal"]),  # type: ignore[arg-type]
                 principal=tuple(float(v) for v in z["camera_principal"]),  # type: ignore[arg-type]
                 height=height,
+                distortion=distortion,
             )
         return ReplayFile(
             keypoints_2d=kp,

@@ -45,7 +45,7 @@ class ImageSize(_message.Message):
     def __init__(self, width: _Optional[int] = ..., height: _Optional[int] = ...) -> None: ...
 
 class CameraCalibration(_message.Message):
-    __slots__ = ("up", "focal_x", "focal_y", "principal_x", "principal_y", "image_size", "height")
+    __slots__ = ("up", "focal_x", "focal_y", "principal_x", "principal_y", "image_size", "height", "distortion")
     UP_FIELD_NUMBER: _ClassVar[int]
     FOCAL_X_FIELD_NUMBER: _ClassVar[int]
     FOCAL_Y_FIELD_NUMBER: _ClassVar[int]
@@ -53,6 +53,7 @@ class CameraCalibration(_message.Message):
     PRINCIPAL_Y_FIELD_NUMBER: _ClassVar[int]
     IMAGE_SIZE_FIELD_NUMBER: _ClassVar[int]
     HEIGHT_FIELD_NUMBER: _ClassVar[int]
+    DISTORTION_FIELD_NUMBER: _ClassVar[int]
     up: _containers.RepeatedScalarFieldContainer[float]
     focal_x: float
     focal_y: float
@@ -60,7 +61,8 @@ class CameraCalibration(_message.Message):
     principal_y: float
     image_size: ImageSize
     height: float
-    def __init__(self, up: _Optional[_Iterable[float]] = ..., focal_x: _Optional[float] = ..., focal_y: _Optional[float] = ..., principal_x: _Optional[float] = ..., principal_y: _Optional[float] = ..., image_size: _Optional[_Union[ImageSize, _Mapping]] = ..., height: _Optional[float] = ...) -> None: ...
+    distortion: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, up: _Optional[_Iterable[float]] = ..., focal_x: _Optional[float] = ..., focal_y: _Optional[float] = ..., principal_x: _Optional[float] = ..., principal_y: _Optional[float] = ..., image_size: _Optional[_Union[ImageSize, _Mapping]] = ..., height: _Optional[float] = ..., distortion: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class InputFormat(_message.Message):
     __slots__ = ("layout", "image_size", "normalized")
