@@ -726,9 +726,9 @@ pub fn stature_rows(
 }
 
 /// The size oracles' rows: each individual's lengths given its true
-/// summed length for free, with the prior's proportions (`prior
-/// proportions`) or the stature regression's at the matched stature
-/// (`stature regression`, [`crate::stature::matched_stature`]). They read
+/// summed length for free, with the prior's proportions
+/// ([`ORACLE_PRIOR`]) or the stature regression's at the matched stature
+/// ([`ORACLE_REGRESSION`], [`crate::stature::matched_stature`]). They read
 /// the truth: they bound what a model that reads size perfectly and
 /// proportion not at all can score, so a target below them needs
 /// proportions read from the 2D.
