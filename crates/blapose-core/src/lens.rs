@@ -88,6 +88,9 @@ impl LensDistortion {
     }
 
     /// The ideal point the lens shows at `[xd, yd]` (focal-length units).
+    /// Far outside the image, where the model may not invert, a point
+    /// whose iteration leaves the finite numbers is returned as it is
+    /// rather than as NaN (a stray detection must not poison a session).
     pub fn undistort(&self, [xd, yd]: [f64; 2]) -> [f64; 2] {
         let [k1, k2, k3] = self.radial;
         let [p1, p2] = self.tangential;
@@ -100,7 +103,11 @@ impl LensDistortion {
             x = (xd - dx) / radial;
             y = (yd - dy) / radial;
         }
-        [x, y]
+        if x.is_finite() && y.is_finite() {
+            [x, y]
+        } else {
+            [xd, yd]
+        }
     }
 
     /// Check that undistortion recovers points over the whole image of a
@@ -167,6 +174,11 @@ mod tests {
         assert!(lens
             .check_invertible([1000.0, 1000.0], [960.0, 540.0], 1920, 1080)
             .is_ok());
+        // A stray point far outside the picture stays finite.
+        for far in [[40.0, -25.0], [1e6, 1e6], [-3e3, 0.5], [1e160, 1e160]] {
+            let u = lens.undistort(far);
+            assert!(u[0].is_finite() && u[1].is_finite(), "{far:?}: {u:?}");
+        }
     }
 
     #[test]
