@@ -10,7 +10,7 @@ use std::time::Instant;
 
 use anyhow::Result;
 use blapose_train::ansur_split::{AnsurPeople, AnsurSplit};
-use blapose_train::dataset::{rectify_streams, TrainingSet};
+use blapose_train::dataset::{rectify_streams, undistort_streams, TrainingSet};
 use blapose_train::lengths::{LengthSampler, LengthStrategy, TrainingLengthStats};
 use blapose_train::noise::NoiseKind;
 use blapose_train::synth::{ShiftPlane, SynthSource};
@@ -282,6 +282,12 @@ pub fn run(a: TrainArgs) -> Result<()> {
             .and_then(|s| s.cameras.iter().find(|c| c.id == id))
     };
     if cfg.rectify {
+        // A model trained through the wide (distortion-free) cameras only
+        // reads undistorted keypoints, as served; one trained through
+        // Human3.6M's cameras saw their distortion, as the detections have it.
+        if cfg.wide_cameras >= 1.0 {
+            undistort_streams(real_sh.to_mut(), &camera)?;
+        }
         rectify_streams(real_sh.to_mut(), &camera, cfg.floor_scaled)?;
     }
     if cfg.height_normalized {
