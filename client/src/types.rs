@@ -227,29 +227,14 @@ impl CameraCalibration {
                 return Err(CameraError::Height(height));
             }
         }
-        if let Some(lens) = self.lens()? {
-            if let Some((width, height)) = self.image_size {
-                lens.check_invertible(
-                    self.focal.map(f64::from),
-                    self.principal.map(f64::from),
-                    width,
-                    height,
-                )
-                .map_err(CameraError::Distortion)?;
-            }
-        }
+        LensDistortion::checked(
+            self.distortion.as_ref().map_or(&[][..], |d| &d[..]),
+            self.focal.map(f64::from),
+            self.principal.map(f64::from),
+            self.image_size,
+        )
+        .map_err(CameraError::Distortion)?;
         Ok(())
-    }
-
-    /// The lens model of `distortion`, checked for finite values.
-    fn lens(&self) -> Result<Option<LensDistortion>, CameraError> {
-        let coefficients: Vec<f64> = self
-            .distortion
-            .iter()
-            .flatten()
-            .map(|&v| f64::from(v))
-            .collect();
-        LensDistortion::from_coefficients(&coefficients).map_err(CameraError::Distortion)
     }
 
     /// [`validate`](Self::validate), and check that the image size fits

@@ -334,21 +334,16 @@ pub fn camera(
     } else {
         level
     };
-    let coefficients: Vec<f64> = c.distortion.iter().map(|&v| f64::from(v)).collect();
-    let level = match LensDistortion::from_coefficients(&coefficients)
-        .map_err(InvalidInput::CameraDistortion)?
+    let level = match LensDistortion::checked(
+        &c.distortion,
+        [c.focal_x, c.focal_y].map(f64::from),
+        [c.principal_x, c.principal_y].map(f64::from),
+        Some((width, height)),
+    )
+    .map_err(InvalidInput::CameraDistortion)?
     {
         None => level,
-        Some(lens) => {
-            lens.check_invertible(
-                [c.focal_x, c.focal_y].map(f64::from),
-                [c.principal_x, c.principal_y].map(f64::from),
-                width,
-                height,
-            )
-            .map_err(InvalidInput::CameraDistortion)?;
-            level.with_lens(lens)
-        }
+        Some(lens) => level.with_lens(lens),
     };
     if let Some(envelope) = served.trained_cameras {
         envelope

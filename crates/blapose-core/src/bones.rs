@@ -302,6 +302,12 @@ pub fn average_symmetric_pairs(lengths: &mut BoneLengths) {
     }
 }
 
+/// The summed length of the 16 bones, metres: a body's overall size
+/// (what the benchmarks' size slope and the matched stature read).
+pub fn summed_length(lengths: &BoneLengths) -> f64 {
+    lengths.iter().map(|&v| f64::from(v)).sum()
+}
+
 /// Mean of each bone's length over a sequence (frames whose lengths are not
 /// all finite are skipped); `None` when no frame is usable.
 pub fn mean_bone_lengths(poses: &[Pose]) -> Option<BoneLengths> {

@@ -75,6 +75,24 @@ impl LensDistortion {
         Ok(Some(Self { radial, tangential }))
     }
 
+    /// A calibration's lens (`f32` coefficients, as sent), checked as the
+    /// server checks it: [`Self::from_coefficients`], then, when the image
+    /// it refers to is known, [`Self::check_invertible`] with its pixel
+    /// intrinsics.
+    pub fn checked(
+        coefficients: &[f32],
+        focal: [f64; 2],
+        principal: [f64; 2],
+        image_size: Option<(u32, u32)>,
+    ) -> Result<Option<Self>, LensError> {
+        let wide: Vec<f64> = coefficients.iter().map(|&v| f64::from(v)).collect();
+        let lens = Self::from_coefficients(&wide)?;
+        if let (Some(lens), Some((width, height))) = (&lens, image_size) {
+            lens.check_invertible(focal, principal, width, height)?;
+        }
+        Ok(lens)
+    }
+
     /// Where the lens shows the ideal point `[x, y]` (focal-length units).
     pub fn distort(&self, [x, y]: [f64; 2]) -> [f64; 2] {
         let [k1, k2, k3] = self.radial;

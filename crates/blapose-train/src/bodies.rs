@@ -51,6 +51,7 @@
 use std::sync::Arc;
 use std::time::Instant;
 
+use blapose_core::bones::summed_length;
 use blapose_core::level::{height_scale, LevelCamera};
 use blapose_core::skeleton::NUM_BONES;
 use blapose_core::{BoneLengths, Keypoints2d, Pose};
@@ -66,7 +67,7 @@ use crate::eval::{trial_error_mm, BiGruEstimator, GruEstimator, LengthEstimator}
 use crate::height_fusion::HeightFusion;
 use crate::noise::{apply_residual, residual_at, ResidualBank};
 use crate::real_check::{RealCheck, RealCheckInfo};
-use crate::stature::{matched_stature, StatureInput, StatureRegression};
+use crate::stature::{matched_lengths, StatureInput, StatureRegression};
 use crate::synth::{rebuild_on_floor, sample_rng, MotionSequence};
 use crate::train::trained_config;
 use blapose_model::stature::StatureLines;
@@ -728,7 +729,7 @@ pub fn stature_rows(
 /// The size oracles' rows: each individual's lengths given its true
 /// summed length for free, with the prior's proportions
 /// ([`ORACLE_PRIOR`]) or the stature regression's at the matched stature
-/// ([`ORACLE_REGRESSION`], [`crate::stature::matched_stature`]). They read
+/// ([`ORACLE_REGRESSION`], [`crate::stature::matched_lengths`]). They read
 /// the truth: they bound what a model that reads size perfectly and
 /// proportion not at all can score, so a target below them needs
 /// proportions read from the 2D.
@@ -744,13 +745,9 @@ pub fn size_oracle_rows(
     let regression = truth
         .iter()
         .map(|t| {
-            matched_stature(lines, t)
-                .map(|h| lines.predict(h))
-                .ok_or_else(|| {
-                    TrainError::InvalidArgument(
-                        "stature lines with no positive summed slope".into(),
-                    )
-                })
+            matched_lengths(lines, t).ok_or_else(|| {
+                TrainError::InvalidArgument("stature lines with no positive summed slope".into())
+            })
         })
         .collect::<Result<Vec<_>, _>>()?;
     [
@@ -764,11 +761,6 @@ pub fn size_oracle_rows(
         Ok(r)
     })
     .collect()
-}
-
-/// The summed length of the 16 bones, metres.
-fn summed_length(l: &BoneLengths) -> f64 {
-    l.iter().map(|&v| f64::from(v)).sum()
 }
 
 /// `l` with its proportions kept and its summed length set to `total`.
@@ -860,9 +852,10 @@ pub fn run(
     }
     rows.extend(fused_rows);
     if let Some(reg) = input.stature {
+        let pooled = StatureLines::from(&reg.pooled);
         let mut stature = stature_rows(reg, &input.people, &trials, &input.prior)?;
         if let Some(check) = &input.real_check {
-            let error = check.matched_stature_error(&StatureLines::from(&reg.pooled))?;
+            let error = check.matched_stature_error(&pooled)?;
             for r in stature
                 .iter_mut()
                 .filter(|r| r.input == StatureInput::Height.name())
@@ -871,11 +864,7 @@ pub fn run(
             }
         }
         rows.extend(stature);
-        rows.extend(size_oracle_rows(
-            &StatureLines::from(&reg.pooled),
-            &truth,
-            &input.prior,
-        )?);
+        rows.extend(size_oracle_rows(&pooled, &truth, &input.prior)?);
     }
     let mut training_mean = baseline(
         "training subjects' mean lengths",
@@ -929,7 +918,7 @@ pub fn run(
                 subject_id: t.subject_id,
                 motion: t.motion.clone(),
                 start: t.start,
-                true_total_m: t.lengths.iter().map(|&v| f64::from(v)).sum(),
+                true_total_m: summed_length(&t.lengths),
                 camera: t.camera.clone(),
             })
             .collect(),

@@ -93,10 +93,9 @@ impl RealCheck<'_> {
             .trials
             .iter()
             .map(|t| {
-                let stature = crate::stature::matched_stature(lines, &t.gt).ok_or_else(|| {
+                crate::stature::matched_lengths(lines, &t.gt).ok_or_else(|| {
                     TrainError::Data("the stature regression's summed slope is not positive".into())
-                })?;
-                Ok(lines.predict(stature))
+                })
             })
             .collect::<Result<Vec<_>, TrainError>>()?;
         mean_error(&pred, &self.trials)

@@ -44,8 +44,15 @@ pub const ANKLE_HEIGHT_M: f32 = 0.0696;
 pub fn matched_stature(lines: &StatureLines, truth: &BoneLengths) -> Option<f32> {
     let intercept: f64 = lines.intercept.iter().sum();
     let slope: f64 = lines.slope.iter().sum();
-    let total: f64 = truth.iter().map(|&v| f64::from(v)).sum();
+    let total = blapose_core::bones::summed_length(truth);
     (slope > 0.0).then(|| ((total - intercept) / slope) as f32)
+}
+
+/// The lengths `lines` give at `truth`'s matched stature
+/// ([`matched_stature`]): the truth's overall size with the lines'
+/// proportions. `None` when the lines' summed slope is not positive.
+pub fn matched_lengths(lines: &StatureLines, truth: &BoneLengths) -> Option<BoneLengths> {
+    matched_stature(lines, truth).map(|stature| lines.predict(stature))
 }
 
 /// The mean over `subjects` (each one's stature proxy and true lengths:
