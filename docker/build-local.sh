@@ -12,6 +12,11 @@
 #                            (apt) + this machine's CA bundle, so cargo
 #                            reaches the crate registry from the build
 #
+# debootstrap fetches from the Debian mirror this machine's apt already uses
+# (the first http(s) URI of a Debian release with the main component in
+# /etc/apt/sources.list, then /etc/apt/sources.list.d/*.list and *.sources),
+# unless --mirror or BLAPOSE_DEBIAN_MIRROR names one.
+#
 # then builds docker/Dockerfile with them as --build-args and prints the
 # image size and the build time. The build uses the host network (cargo and
 # apt fetch from inside it).
@@ -39,7 +44,12 @@ Options:
   --runtime-image NAME  runtime base passed as RUNTIME_IMAGE (default: the
                         Dockerfile's, scratch)
   --suite NAME          Debian release for debootstrap (default: bookworm)
-  --mirror URL          Debian mirror (default: http://deb.debian.org/debian)
+  --mirror URL          Debian mirror for debootstrap (default:
+                        $BLAPOSE_DEBIAN_MIRROR, else the first http(s) URI
+                        of a Debian release with the main component in this
+                        machine's apt sources: /etc/apt/sources.list, then
+                        /etc/apt/sources.list.d/*.list and *.sources)
+  --print-mirror        print the mirror debootstrap would use and exit
   --no-bases            never create base images (the engine pulls missing
                         ones, e.g. from Docker Hub)
   --rebuild-bases       recreate both base images even if present
@@ -61,7 +71,8 @@ repo_root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 engine=""
 tag="blapose-server:latest"
 suite="bookworm"
-mirror="http://deb.debian.org/debian"
+mirror=${BLAPOSE_DEBIAN_MIRROR:-}
+print_mirror=0
 rust_image=""
 debian_image=""
 runtime_image=""
@@ -80,6 +91,7 @@ while [[ $# -gt 0 ]]; do
         --runtime-image) runtime_image=${2:?--runtime-image needs a value}; shift 2 ;;
         --suite) suite=${2:?--suite needs a value}; shift 2 ;;
         --mirror) mirror=${2:?--mirror needs a value}; shift 2 ;;
+        --print-mirror) print_mirror=1; shift ;;
         --no-bases) make_bases=0; shift ;;
         --rebuild-bases) rebuild_bases=1; shift ;;
         --no-install) may_install=0; shift ;;
@@ -104,6 +116,120 @@ apt_install() {
     DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends "$@" >/dev/null \
         || { apt-get update >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends "$@" >/dev/null; } \
         || die "apt-get install $* failed"
+}
+
+# The Debian mirror this machine's apt uses: candidates are enabled `deb`
+# sources (not deb-src) with the `main` component, an http(s) URI and a Debian
+# release as suite (a codename or stable/testing/unstable/oldstable, without a
+# -security/-updates/-backports suffix). Files are read in apt's order
+# (sources.list, then sources.list.d/ alphabetically; one-line *.list and
+# deb822 *.sources). Among the candidates the first wins whose suite is the
+# one being built and whose path ends in /debian, else the first with that
+# suite, else the first whose path ends in /debian, else the first at all.
+# Prints the URI without a trailing slash; fails when there is none.
+detect_debian_mirror() {
+    local etc=${1:-/etc/apt} want=${2:-$suite}
+    # apt's order: sources.list, then sources.list.d/ by name.
+    local files=() f
+    [[ -f $etc/sources.list ]] && files+=("$etc/sources.list")
+    for f in "$etc"/sources.list.d/*; do
+        [[ -f $f && ( $f == *.list || $f == *.sources ) ]] && files+=("$f")
+    done
+    [[ ${#files[@]} -gt 0 ]] || return 1
+    local best
+    best=$(
+        for f in "${files[@]}"; do
+            if [[ $f == *.sources ]]; then
+                awk -v want="$want" -f <(mirror_awk_common; cat <<'AWK'
+function flush() {
+    if (types != "" && enabled !~ /^[Nn][Oo]$/) consider(types, uris, suites, comps)
+    types = ""; uris = ""; suites = ""; comps = ""; enabled = ""; key = ""
+}
+/^[ \t]*#/ { next }
+/^[ \t]*$/ { flush(); next }
+/^[ \t]/ {
+    line = $0; sub(/^[ \t]+/, "", line)
+    if (key == "types") types = types " " line
+    else if (key == "uris") uris = uris " " line
+    else if (key == "suites") suites = suites " " line
+    else if (key == "components") comps = comps " " line
+    next
+}
+{
+    i = index($0, ":"); if (i == 0) next
+    key = tolower(substr($0, 1, i - 1)); val = substr($0, i + 1)
+    sub(/[ \t]+#.*$/, "", val)
+    if (key == "types") types = val
+    else if (key == "uris") uris = val
+    else if (key == "suites") suites = val
+    else if (key == "components") comps = val
+    else if (key == "enabled") { enabled = val; gsub(/[ \t]/, "", enabled) }
+}
+END { flush() }
+AWK
+                ) "$f"
+            else
+                awk -v want="$want" -f <(mirror_awk_common; cat <<'AWK'
+/^[ \t]*#/ { next }
+{
+    line = $0
+    sub(/#.*$/, "", line)
+    gsub(/\[[^]]*\]/, " ", line)
+    n = split(line, w, /[ \t]+/)
+    j = 1; while (j <= n && w[j] == "") j++
+    if (w[j] != "deb" || j + 3 > n) next
+    comps = ""
+    for (k = j + 3; k <= n; k++) comps = comps " " w[k]
+    consider("deb", w[j + 1], w[j + 2], comps)
+}
+AWK
+                ) "$f"
+            fi
+        done | LC_ALL=C sort -s -n -k1,1 | head -n 1
+    )
+    [[ -n $best ]] || return 1
+    printf '%s\n' "${best#* }"
+}
+
+# awk helpers shared by both source formats: consider() prints "RANK URI"
+# for each http(s) URI of an entry that is a Debian main repository.
+mirror_awk_common() {
+    cat <<'AWK'
+function has_word(list, word,    a, n, i) {
+    n = split(list, a, /[ \t]+/)
+    for (i = 1; i <= n; i++) if (a[i] == word) return 1
+    return 0
+}
+function consider(types, uris, suites, comps,    s, ns, i, u, nu, j, rank, r, uri) {
+    if (!has_word(types, "deb") || !has_word(comps, "main")) return
+    rank = -1
+    ns = split(suites, s, /[ \t]+/)
+    for (i = 1; i <= ns; i++) {
+        if (s[i] == "") continue
+        if (s[i] !~ /^(buzz|rex|bo|hamm|slink|potato|woody|sarge|etch|lenny|squeeze|wheezy|jessie|stretch|buster|bullseye|bookworm|trixie|forky|duke|sid|stable|testing|unstable|oldstable|oldoldstable)$/) continue
+        r = (s[i] == want) ? 0 : 1
+        if (rank < 0 || r < rank) rank = r
+    }
+    if (rank < 0) return
+    nu = split(uris, u, /[ \t]+/)
+    for (j = 1; j <= nu; j++) {
+        uri = u[j]
+        if (uri !~ /^https?:\/\/[^\/]/) continue
+        sub(/\/+$/, "", uri)
+        # 0: wanted suite, path .../debian; 1: wanted suite; 2: other
+        # release, path .../debian; 3: other release.
+        printf "%d %s\n", rank * 2 + (uri ~ /\/debian$/ ? 0 : 1), uri
+        return
+    }
+}
+AWK
+}
+
+# The mirror for debootstrap: --mirror, else $BLAPOSE_DEBIAN_MIRROR, else the
+# one this machine's apt uses.
+resolve_mirror() {
+    [[ -n $mirror ]] && return 0
+    mirror=$(detect_debian_mirror /etc/apt "$suite") || die "no Debian mirror found: none of /etc/apt/sources.list, /etc/apt/sources.list.d/*.list or *.sources names an http(s) Debian repository with the main component; pass --mirror URL or set BLAPOSE_DEBIAN_MIRROR"
 }
 
 docker_has_daemon() { have docker && docker info >/dev/null 2>&1; }
@@ -169,9 +295,10 @@ image_size_bytes() {
 make_debian_image() {
     have debootstrap || apt_install debootstrap
     local dir started
+    resolve_mirror
     dir=$(mktemp -d /tmp/blapose-rootfs.XXXXXX)
     started=$(date +%s)
-    log "debootstrap --variant=minbase $suite -> $debian_image (a few minutes)"
+    log "debootstrap --variant=minbase $suite $mirror -> $debian_image (a few minutes)"
     debootstrap --variant=minbase "$suite" "$dir" "$mirror" >/tmp/blapose-debootstrap.log 2>&1 \
         || { tail -20 /tmp/blapose-debootstrap.log >&2; rm -rf "$dir"; die "debootstrap failed (log: /tmp/blapose-debootstrap.log)"; }
     # What the official slim images drop: apt caches and package lists
@@ -190,7 +317,7 @@ make_rust_image() {
     sysroot=$(rustc --print sysroot)
     [[ -x $sysroot/bin/cargo ]] || die "no cargo next to rustc in $sysroot"
     local ca=/etc/ssl/certs/ca-certificates.crt
-    [[ -r $ca ]] || die "no CA bundle at $ca (cargo in the build needs it to reach crates.io)"
+    [[ -r $ca ]] || die "no CA bundle at $ca (cargo in the build needs it to reach the crate registry)"
     ctx=$(mktemp -d /tmp/blapose-rust-ctx.XXXXXX)
     started=$(date +%s)
     log "$rust_image: $debian_image + $(rustc --version) from $sysroot + gcc + CA bundle"
@@ -245,6 +372,12 @@ ensure_bases() {
 }
 
 # --- main --------------------------------------------------------------------
+
+if [[ $print_mirror -eq 1 ]]; then
+    resolve_mirror
+    printf '%s\n' "$mirror"
+    exit 0
+fi
 
 pick_engine
 log "engine: $("$engine" --version)"

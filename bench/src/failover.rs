@@ -199,12 +199,12 @@ pub fn frames_per_second(runs: &[SessionRun], elapsed: Duration) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use blapose_client::ModelChoice;
+    use blapose_client::ModelKind;
 
     fn adjusted(first: usize, lengths: &[f32], seen: u64, resumes: u32) -> Adjusted {
         let n = lengths.len();
         Adjusted {
-            model: ModelChoice::OnlineGru,
+            model: ModelKind::Gru,
             first_frame: first,
             adjusted: vec![[[0.0; 3]; 17]; n],
             bone_lengths: lengths.iter().map(|&l| [l; 16]).collect(),

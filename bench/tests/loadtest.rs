@@ -266,7 +266,7 @@ impl ModelProvider for Counted {
     fn camera_aware(&self) -> Option<Arc<dyn ModelProvider>> {
         self.inner.camera_aware()
     }
-    fn camera_reading(&self) -> blapose_server::CameraReading {
-        self.inner.camera_reading()
+    fn model_input(&self) -> blapose_server::ModelInput {
+        self.inner.model_input()
     }
 }

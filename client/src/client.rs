@@ -5,140 +5,18 @@
 //! exponential backoff because the usual failure is a server that is still
 //! loading its weights; every unary call has a deadline so a wedged server
 //! cannot hang a CLI forever. Authentication and TLS are connection
-//! settings, applied to every call.
+//! settings ([`crate::config`]), applied to every call.
 
-use std::time::Duration;
-
-use blapose_core::{BoneLengths, Pose};
+use blapose_core::{BoneLengths, ModelKind, Pose};
+use blapose_data::replay::{CameraCalibration, Sequence, Subject};
 use blapose_proto::v1 as pb;
-use blapose_proto::v1::pose_adjustment_client::PoseAdjustmentClient;
-use tonic::metadata::{AsciiMetadataValue, MetadataValue};
-use tonic::service::interceptor::InterceptedService;
-use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint};
+use tonic::transport::Channel;
 
+use crate::config::{build_endpoint, new_stub, next_backoff, CallMetadata, ClientConfig, Stub};
 use crate::error::ClientError;
 use crate::session::Session;
-use crate::types::{
-    lengths_from_flat, pose_from_flat, CameraCalibration, InputFormat, ModelChoice, ModelInfo,
-    SessionSummary, Subject,
-};
-
-/// Default server address (the server's own default `--addr`).
-pub const DEFAULT_SERVER: &str = "http://127.0.0.1:50051";
-
-/// TLS settings; TLS is used when the URL is `https://` or a CA is given.
-#[derive(Debug, Clone, Default)]
-pub struct TlsOptions {
-    /// PEM of the CA that signed the server's certificate. Without it the
-    /// operating system's trust store is used.
-    pub ca_cert_pem: Option<Vec<u8>>,
-    /// Name to verify the server certificate against (default: the URL host).
-    pub domain: Option<String>,
-}
-
-/// How to reach the server.
-#[derive(Debug, Clone)]
-pub struct ClientConfig {
-    /// Server URL, e.g. `http://127.0.0.1:50051` or `https://pose.example:443`.
-    pub endpoint: String,
-    /// Deadline for establishing one connection.
-    pub connect_timeout: Duration,
-    /// Connection attempts before giving up (at least 1).
-    pub connect_attempts: u32,
-    /// Pause after the first failed attempt; doubles after each further
-    /// failure, capped at 5 s.
-    pub retry_backoff: Duration,
-    /// Deadline for unary calls and for opening a session.
-    pub request_timeout: Duration,
-    /// Optional bearer token, sent as `authorization: Bearer <token>`.
-    pub token: Option<String>,
-    /// TLS settings.
-    pub tls: TlsOptions,
-    /// Largest message this client encodes or decodes (a whole offline
-    /// sequence travels in one message).
-    pub max_message_bytes: usize,
-    /// Frames a session may queue locally before `send` waits.
-    pub session_buffer: usize,
-}
-
-impl ClientConfig {
-    /// Defaults for `endpoint`: 5 s connect timeout, 5 attempts starting at
-    /// 200 ms backoff, 60 s request deadline, no token, 256 MiB messages.
-    pub fn new(endpoint: impl Into<String>) -> Self {
-        ClientConfig {
-            endpoint: endpoint.into(),
-            connect_timeout: Duration::from_secs(5),
-            connect_attempts: 5,
-            retry_backoff: Duration::from_millis(200),
-            request_timeout: Duration::from_secs(60),
-            token: None,
-            tls: TlsOptions::default(),
-            max_message_bytes: 256 * 1024 * 1024,
-            session_buffer: 256,
-        }
-    }
-
-    /// Builder-style setter for the bearer token.
-    pub fn with_token(mut self, token: impl Into<String>) -> Self {
-        self.token = Some(token.into());
-        self
-    }
-}
-
-impl Default for ClientConfig {
-    fn default() -> Self {
-        ClientConfig::new(DEFAULT_SERVER)
-    }
-}
-
-/// The gRPC metadata key that ties a session's streams and calls together
-/// for a load balancer: `deploy/haproxy.cfg` hashes on it (consistent
-/// hashing), so every stream of one session reaches the same replica while
-/// it is up.
-pub const AFFINITY_HEADER: &str = "blapose-affinity";
-
-/// A fresh affinity key (32 random hex digits) for one session.
-pub fn new_affinity_key() -> String {
-    format!("{:032x}", rand::random::<u128>())
-}
-
-/// Metadata added to every request: the bearer token, and the session's
-/// affinity key on a [`Client::with_affinity`] handle.
-#[derive(Debug, Clone)]
-pub struct CallMetadata {
-    authorization: Option<AsciiMetadataValue>,
-    affinity: Option<AsciiMetadataValue>,
-}
-
-impl CallMetadata {
-    fn new(token: Option<&str>) -> Result<Self, ClientError> {
-        let authorization = token
-            .map(|t| {
-                MetadataValue::try_from(format!("Bearer {t}"))
-                    .map_err(|_| ClientError::InvalidToken)
-            })
-            .transpose()?;
-        Ok(CallMetadata {
-            authorization,
-            affinity: None,
-        })
-    }
-}
-
-impl tonic::service::Interceptor for CallMetadata {
-    fn call(&mut self, mut req: tonic::Request<()>) -> Result<tonic::Request<()>, tonic::Status> {
-        if let Some(h) = &self.authorization {
-            req.metadata_mut().insert("authorization", h.clone());
-        }
-        if let Some(key) = &self.affinity {
-            req.metadata_mut().insert(AFFINITY_HEADER, key.clone());
-        }
-        Ok(req)
-    }
-}
-
-/// The generated stub with authentication applied.
-pub(crate) type Stub = PoseAdjustmentClient<InterceptedService<Channel, CallMetadata>>;
+use crate::types::wire::{lengths_from_flat, model_from_answer, pose_from_flat, ToProto};
+use crate::types::{InputFormat, ModelInfo, SessionSummary, SessionToken};
 
 /// How to open a session (see [`Client::open_session_with`]). Build it
 /// from `SessionOptions::default()` (`..Default::default()` in a literal)
@@ -173,10 +51,10 @@ impl<'a> SessionOptions<'a> {
             model: pb::Model::OnlineGru as i32,
             client_label: self.label.unwrap_or_default().to_string(),
             server_lifter: self.server_lifter,
-            camera: self.camera.as_ref().map(CameraCalibration::to_proto),
+            camera: self.camera.as_ref().map(ToProto::to_proto),
             // The library keeps them (EventReceiver::latest_token).
             session_tokens: true,
-            subject: self.subject.as_ref().map(Subject::to_proto),
+            subject: self.subject.as_ref().map(ToProto::to_proto),
         }
     }
 }
@@ -195,7 +73,7 @@ pub struct Client {
 #[derive(Debug, Clone, PartialEq)]
 pub struct OfflineAdjustment {
     /// The model that ran.
-    pub model: ModelChoice,
+    pub model: ModelKind,
     /// Adjusted poses, one per frame.
     pub adjusted: Vec<Pose>,
     /// Bone lengths applied to each frame.
@@ -223,7 +101,7 @@ pub struct SequenceInput<'a> {
 
 impl<'a> SequenceInput<'a> {
     /// A sequence's arrays, camera and subject (each sent when present).
-    pub fn from_sequence(seq: &'a crate::sequence::Sequence) -> Self {
+    pub fn from_sequence(seq: &'a Sequence) -> Self {
         SequenceInput {
             input_format: seq.input_format,
             keypoints_2d: &seq.keypoints_2d,
@@ -237,7 +115,7 @@ impl<'a> SequenceInput<'a> {
     /// The `AdjustSequence` request [`Client::adjust_sequence`] sends;
     /// `InvalidInput` when there are no frames or the keypoint count does
     /// not match them.
-    pub fn to_proto(&self, model: ModelChoice) -> Result<pb::AdjustSequenceRequest, ClientError> {
+    pub fn to_proto(&self, model: ModelKind) -> Result<pb::AdjustSequenceRequest, ClientError> {
         let t = self.poses_3d.len();
         let j = self.input_format.layout.num_joints();
         if t == 0 {
@@ -257,63 +135,15 @@ impl<'a> SequenceInput<'a> {
         })?;
         Ok(pb::AdjustSequenceRequest {
             input_format: Some(self.input_format.into()),
-            model: model.to_proto() as i32,
+            model: pb::Model::from(model) as i32,
             num_frames,
             keypoints_2d: self.keypoints_2d.to_vec(),
             confidence: self.confidence.to_vec(),
             poses_3d: self.poses_3d.as_flattened().as_flattened().to_vec(),
-            camera: self.camera.as_ref().map(CameraCalibration::to_proto),
-            subject: self.subject.as_ref().map(Subject::to_proto),
+            camera: self.camera.as_ref().map(ToProto::to_proto),
+            subject: self.subject.as_ref().map(ToProto::to_proto),
         })
     }
-}
-
-fn build_endpoint(config: &ClientConfig) -> Result<Endpoint, ClientError> {
-    let invalid = |reason: String| ClientError::InvalidEndpoint {
-        endpoint: config.endpoint.clone(),
-        reason,
-    };
-    let mut endpoint = Endpoint::from_shared(config.endpoint.clone())
-        .map_err(|e| invalid(e.to_string()))?
-        .connect_timeout(config.connect_timeout)
-        .tcp_nodelay(true)
-        .http2_keep_alive_interval(Duration::from_secs(30))
-        .keep_alive_while_idle(true);
-    let scheme = endpoint
-        .uri()
-        .scheme_str()
-        .unwrap_or("")
-        .to_ascii_lowercase();
-    match scheme.as_str() {
-        "http" | "https" => {}
-        other => {
-            return Err(invalid(format!(
-                "unsupported scheme {other:?} (use http:// or https://)"
-            )))
-        }
-    }
-    if scheme == "https" || config.tls.ca_cert_pem.is_some() {
-        let mut tls = ClientTlsConfig::new();
-        tls = match &config.tls.ca_cert_pem {
-            Some(pem) => tls.ca_certificate(Certificate::from_pem(pem)),
-            None => tls.with_native_roots(),
-        };
-        if let Some(domain) = &config.tls.domain {
-            tls = tls.domain_name(domain.clone());
-        }
-        endpoint = endpoint
-            .tls_config(tls)
-            .map_err(|e| invalid(e.to_string()))?;
-    }
-    Ok(endpoint)
-}
-
-/// Longest pause between connection attempts.
-const MAX_BACKOFF: Duration = Duration::from_secs(5);
-
-/// The pause after `backoff`: doubled, at most [`MAX_BACKOFF`].
-fn next_backoff(backoff: Duration) -> Duration {
-    (backoff * 2).min(MAX_BACKOFF)
 }
 
 impl Client {
@@ -353,9 +183,7 @@ impl Client {
     }
 
     fn from_channel(channel: Channel, auth: CallMetadata, config: ClientConfig) -> Client {
-        let stub = PoseAdjustmentClient::with_interceptor(channel.clone(), auth.clone())
-            .max_decoding_message_size(config.max_message_bytes)
-            .max_encoding_message_size(config.max_message_bytes);
+        let stub = new_stub(channel.clone(), auth.clone(), &config);
         Client {
             stub,
             metadata: auth,
@@ -374,18 +202,14 @@ impl Client {
         self.channel.clone()
     }
 
-    /// The same connection, sending `key` as the [`AFFINITY_HEADER`] on
-    /// every call: use it for every stream and call of one session (see
-    /// [`new_affinity_key`]) so that a load balancer hashing on it keeps
-    /// the session on one replica. [`replay_across`](crate::replay_across)
-    /// does this itself.
+    /// The same connection, sending `key` as the
+    /// [`AFFINITY_HEADER`](crate::AFFINITY_HEADER) on every call: use it for
+    /// every stream and call of one session (see
+    /// [`new_affinity_key`](crate::new_affinity_key)) so that a load
+    /// balancer hashing on it keeps the session on one replica.
+    /// [`replay_across`](crate::replay_across) does this itself.
     pub fn with_affinity(&self, key: &str) -> Result<Client, ClientError> {
-        let mut auth = self.metadata.clone();
-        auth.affinity = Some(MetadataValue::try_from(key).map_err(|_| {
-            ClientError::InvalidInput(format!(
-                "the affinity key {key:?} is not a valid gRPC metadata value"
-            ))
-        })?);
+        let auth = self.metadata.clone().with_affinity(key)?;
         Ok(Client::from_channel(
             self.channel.clone(),
             auth,
@@ -402,7 +226,7 @@ impl Client {
         Ok(Client::from_channel(self.channel.clone(), auth, config))
     }
 
-    pub(crate) fn stub(&self) -> Stub {
+    fn stub(&self) -> Stub {
         self.stub.clone()
     }
 
@@ -464,7 +288,12 @@ impl Client {
         options: &SessionOptions<'_>,
     ) -> Result<Session, ClientError> {
         let open = options.to_proto(input_format);
-        let session = Session::start(self, pb::stream_request::Kind::Open(open)).await?;
+        let session = Session::start(
+            self.stub(),
+            &self.config,
+            pb::stream_request::Kind::Open(open),
+        )
+        .await?;
         // A server that predates server lifters ignores the request; the
         // session would then expect poses the client does not send.
         if options.server_lifter && session.info().lifter.is_none() {
@@ -489,7 +318,7 @@ impl Client {
     }
 
     /// Re-attach to a session by id, sending `token` (the latest
-    /// [`SessionToken`](crate::SessionToken) received for it) along: a
+    /// [`SessionToken`] received for it) along: a
     /// server that holds the session resumes it as
     /// [`resume_session`](Client::resume_session) does and ignores the
     /// token; one that does not (another replica sharing the session key,
@@ -501,21 +330,26 @@ impl Client {
     pub async fn resume_session_with_token(
         &self,
         session_id: &str,
-        token: Option<&crate::types::SessionToken>,
+        token: Option<&SessionToken>,
     ) -> Result<Session, ClientError> {
         let resume = pb::ResumeSession {
             session_id: session_id.to_string(),
             session_token: token.map(|t| t.token.clone()).unwrap_or_default(),
             session_tokens: true,
         };
-        Session::start(self, pb::stream_request::Kind::Resume(resume)).await
+        Session::start(
+            self.stub(),
+            &self.config,
+            pb::stream_request::Kind::Resume(resume),
+        )
+        .await
     }
 
     /// Open a stream whose first message is `first`, exactly as given
     /// (tests of the server's input validation use it to send what the
     /// typed API would refuse to build).
     pub async fn open_raw(&self, first: pb::StreamRequest) -> Result<Session, ClientError> {
-        Session::start_raw(self, first).await
+        Session::start_raw(self.stub(), &self.config, first).await
     }
 
     /// Close a (detached) session by id.
@@ -535,7 +369,7 @@ impl Client {
     pub async fn adjust_sequence(
         &self,
         input: SequenceInput<'_>,
-        model: ModelChoice,
+        model: ModelKind,
     ) -> Result<OfflineAdjustment, ClientError> {
         let msg = input.to_proto(model)?;
         let t = input.poses_3d.len();
@@ -560,8 +394,7 @@ fn offline_from_proto(
     resp: pb::AdjustSequenceResponse,
     t: usize,
 ) -> Result<OfflineAdjustment, ClientError> {
-    let model = ModelChoice::from_proto(resp.model)
-        .ok_or_else(|| ClientError::Protocol(format!("unknown model {}", resp.model)))?;
+    let model = model_from_answer(resp.model)?;
     if resp.adjusted_poses_3d.len() != t * 51 || resp.bone_lengths.len() != t * 16 {
         return Err(ClientError::Protocol(format!(
             "AdjustSequence answered {} pose values and {} length values for {t} frames",
@@ -605,31 +438,8 @@ fn error_chain(e: &dyn std::error::Error) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn rejects_unknown_schemes_and_bad_urls() {
-        let err = build_endpoint(&ClientConfig::new("ftp://127.0.0.1:1")).unwrap_err();
-        assert!(err.to_string().contains("unsupported scheme"), "{err}");
-        assert!(build_endpoint(&ClientConfig::new("not a url")).is_err());
-        assert!(build_endpoint(&ClientConfig::new("http://127.0.0.1:50051")).is_ok());
-    }
-
-    #[test]
-    fn token_with_newline_is_refused() {
-        assert!(matches!(
-            CallMetadata::new(Some("a\nb")),
-            Err(ClientError::InvalidToken)
-        ));
-        assert!(CallMetadata::new(Some("secret"))
-            .unwrap()
-            .authorization
-            .is_some());
-        assert!(CallMetadata::new(None).unwrap().authorization.is_none());
-        let key = new_affinity_key();
-        assert_eq!(key.len(), 32);
-        assert!(key.chars().all(|c| c.is_ascii_hexdigit()));
-        assert_ne!(key, new_affinity_key());
-    }
+    use crate::config::AFFINITY_HEADER;
+    use std::time::Duration;
 
     #[tokio::test]
     async fn an_affinity_handle_sends_the_key_on_every_call() {
@@ -676,7 +486,6 @@ mod tests {
 
     #[test]
     fn adjust_sequence_sends_the_sequences_camera() {
-        use crate::sequence::Sequence;
         use blapose_core::layouts::KeypointLayout;
         let mut seq = Sequence {
             input_format: InputFormat::pixels(KeypointLayout::H36m17, 1000, 1000),
@@ -689,13 +498,13 @@ mod tests {
             subject: None,
         };
         let req = SequenceInput::from_sequence(&seq)
-            .to_proto(ModelChoice::OfflineBiGru)
+            .to_proto(ModelKind::BiGru)
             .unwrap();
         assert_eq!((req.camera, req.num_frames), (None, 2));
         seq.camera = Some(calibration());
         let input = SequenceInput::from_sequence(&seq);
         assert_eq!(input.camera, Some(calibration()));
-        let req = input.to_proto(ModelChoice::OnlineGru).unwrap();
+        let req = input.to_proto(ModelKind::Gru).unwrap();
         assert_eq!(req.camera, Some(calibration().to_proto()));
         assert_eq!(req.model, pb::Model::OnlineGru as i32);
         let short = SequenceInput {
@@ -703,7 +512,7 @@ mod tests {
             ..input
         };
         assert!(matches!(
-            short.to_proto(ModelChoice::OnlineGru),
+            short.to_proto(ModelKind::Gru),
             Err(ClientError::InvalidInput(_))
         ));
     }
@@ -723,17 +532,5 @@ mod tests {
             Err(ClientError::Connect { attempts, .. }) => assert_eq!(attempts, 3),
             other => panic!("expected a connect error, got {other:?}"),
         }
-    }
-
-    #[test]
-    fn backoff_doubles_up_to_its_cap() {
-        let mut b = Duration::from_millis(200);
-        let mut pauses = Vec::new();
-        for _ in 0..7 {
-            pauses.push(b);
-            b = next_backoff(b);
-        }
-        let ms: Vec<u128> = pauses.iter().map(Duration::as_millis).collect();
-        assert_eq!(ms, [200, 400, 800, 1600, 3200, 5000, 5000]);
     }
 }

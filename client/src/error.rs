@@ -70,10 +70,7 @@ pub enum ClientError {
     InvalidInput(String),
     /// A replay file could not be read or has the wrong content.
     #[error(transparent)]
-    Sequence(#[from] crate::sequence::SequenceError),
-    /// An HTML report could not be written.
-    #[error(transparent)]
-    Html(#[from] crate::html::HtmlError),
+    Sequence(#[from] blapose_data::replay::SequenceError),
     /// Metrics could not be computed (mismatched lengths).
     #[error("metrics: {0}")]
     Metric(#[from] blapose_core::metrics::MetricError),

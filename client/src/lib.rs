@@ -25,32 +25,34 @@
 //! # let _ = summary; Ok(()) }
 //! ```
 //!
-//! Modules: [`client`] (connection, unary calls), [`session`] (the
-//! bidirectional stream), [`types`] (typed messages), [`sequence`] (replay
-//! files), [`replay`](mod@replay) (whole-sequence drivers), [`report`] (before/after
-//! metrics), [`html`] (the self-contained HTML report of `--html`).
+//! Modules, each importing only those above it in this list: [`error`]
+//! (the one error type), [`types`] (typed messages), [`config`] (how to
+//! reach a server), [`session`] (the bidirectional stream), [`client`]
+//! (connection, unary calls), [`replay`](mod@replay) (whole-sequence
+//! drivers); [`sequence`] re-exports the replay-file format
+//! (`blapose_data::replay`). Accuracy before and after an adjustment is
+//! [`blapose_core::metrics`]' ([`evaluate`], re-exported). The command
+//! line and its HTML report are the `blapose-client` binary's, beside the
+//! library.
 
 pub mod client;
+pub mod config;
 pub mod error;
-pub mod html;
 pub mod replay;
-pub mod report;
 pub mod sequence;
 pub mod session;
 pub mod types;
 
-pub use client::{
-    new_affinity_key, Client, ClientConfig, OfflineAdjustment, SequenceInput, SessionOptions,
-    TlsOptions, AFFINITY_HEADER, DEFAULT_SERVER,
-};
+pub use blapose_core::metrics::{evaluate, Evaluation, PoseMetrics};
+pub use client::{Client, OfflineAdjustment, SequenceInput, SessionOptions};
+pub use config::{new_affinity_key, ClientConfig, TlsOptions, AFFINITY_HEADER, DEFAULT_SERVER};
 pub use error::ClientError;
-pub use html::{HtmlError, ReportData};
 pub use replay::{adjust_offline, replay, replay_across, replay_session, Adjusted, ReplayOptions};
-pub use report::{evaluate, Evaluation, PoseMetrics};
 pub use sequence::{Sequence, SequenceError};
 pub use session::{EventReceiver, FrameRejection, FrameSender, Session, SessionEvent};
 pub use types::{
     AdjustedFrame, CameraCalibration, CameraError, Coordinates, FrameInput, InputFormat,
-    KeypointLayout, LiftedPose, LifterDescription, ModelChoice, ModelDescription, ModelInfo,
-    SessionInfo, SessionSummary, SessionToken, Sex, Subject, MAX_CAMERA_HEIGHT, MIN_CAMERA_HEIGHT,
+    KeypointLayout, LiftedPose, LifterDescription, ModelDescription, ModelInfo, ModelKind,
+    SessionInfo, SessionSummary, SessionToken, Sex, Subject, ToProto, MAX_CAMERA_HEIGHT,
+    MIN_CAMERA_HEIGHT,
 };

@@ -21,11 +21,14 @@ use std::time::{Duration, Instant};
 use blapose_core::{BoneLengths, Pose};
 use tokio::sync::Semaphore;
 
-use crate::client::{new_affinity_key, Client, SequenceInput, SessionOptions};
+use blapose_core::ModelKind;
+use blapose_data::replay::{write_adjusted, CameraCalibration, Sequence, SequenceError};
+
+use crate::client::{Client, SequenceInput, SessionOptions};
+use crate::config::new_affinity_key;
 use crate::error::ClientError;
-use crate::sequence::{write_adjusted, Sequence, SequenceError};
-use crate::session::{Session, SessionEvent};
-use crate::types::{CameraCalibration, ModelChoice, SessionInfo, SessionSummary, SessionToken};
+use crate::session::{EventReceiver, Session, SessionEvent};
+use crate::types::{SessionInfo, SessionSummary, SessionToken};
 
 /// How to stream a sequence.
 #[derive(Debug, Clone)]
@@ -57,7 +60,7 @@ impl Default for ReplayOptions {
 #[derive(Debug, Clone, PartialEq)]
 pub struct Adjusted {
     /// The model that produced the lengths.
-    pub model: ModelChoice,
+    pub model: ModelKind,
     /// The sequence's frame that `adjusted[0]` answers: 0, except for a
     /// [`replay_session`] on a resumed session, which continues where the
     /// session's `frames_seen` says.
@@ -445,15 +448,14 @@ async fn stream_frames(
         }
         let _wake_sender = CloseOnDrop(&window);
         let mut received = 0usize;
-        let keep_token = |receiver: &mut crate::session::EventReceiver,
-                          token: &mut Option<SessionToken>,
-                          answered: usize| {
-            if let Some(t) = receiver.take_new_token() {
-                if t.frames_seen <= answered as u64 {
-                    *token = Some(t);
+        let keep_token =
+            |receiver: &mut EventReceiver, token: &mut Option<SessionToken>, answered: usize| {
+                if let Some(t) = receiver.take_new_token() {
+                    if t.frames_seen <= answered as u64 {
+                        *token = Some(t);
+                    }
                 }
-            }
-        };
+            };
         keep_token(&mut receiver, token, answers.end());
         while received < total {
             let expected = (first + received) as u64;
@@ -536,7 +538,7 @@ fn pacer(fps: Option<f64>) -> Option<tokio::time::Interval> {
 pub async fn adjust_offline(
     client: &Client,
     seq: &Sequence,
-    model: ModelChoice,
+    model: ModelKind,
 ) -> Result<Adjusted, ClientError> {
     let started = Instant::now();
     let input = SequenceInput::from_sequence(seq);

@@ -18,8 +18,9 @@ use blapose_proto::v1::stream_response::Kind as ResponseKind;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 
-use crate::client::Client;
+use crate::config::{ClientConfig, Stub};
 use crate::error::ClientError;
+use crate::types::wire::ToProto;
 use crate::types::{AdjustedFrame, FrameInput, SessionInfo, SessionSummary, SessionToken};
 
 /// A frame the server refused; the session is unchanged and later frames
@@ -194,21 +195,28 @@ pub struct Session {
 }
 
 impl Session {
-    pub(crate) async fn start(client: &Client, first: RequestKind) -> Result<Session, ClientError> {
-        Session::start_raw(client, pb::StreamRequest { kind: Some(first) }).await
+    /// Open a stream on `stub` whose first request is `first` (an open or
+    /// a resume) and wait, at most `config.request_timeout`, for the
+    /// server's `SessionOpened`.
+    pub(crate) async fn start(
+        stub: Stub,
+        config: &ClientConfig,
+        first: RequestKind,
+    ) -> Result<Session, ClientError> {
+        Session::start_raw(stub, config, pb::StreamRequest { kind: Some(first) }).await
     }
 
+    /// [`start`](Self::start) with the first message exactly as given.
     pub(crate) async fn start_raw(
-        client: &Client,
+        mut stub: Stub,
+        config: &ClientConfig,
         first: pb::StreamRequest,
     ) -> Result<Session, ClientError> {
-        let config = client.config();
         let (tx, rx) = mpsc::channel(config.session_buffer.max(1));
         tx.send(first)
             .await
             .map_err(|_| ClientError::Protocol("request channel closed".into()))?;
         let after = config.request_timeout;
-        let mut stub = client.stub();
         let open = async move {
             let mut inner = stub.stream(ReceiverStream::new(rx)).await?.into_inner();
             let first = inner.message().await?;

@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
-# The Bi-GRU sampling-strategy / detector-noise ablation of models/README.md.
+# The Bi-GRU sampling-strategy / detector-noise ablation (docs/research.md).
 #
 #   models/ablation/run.sh NAME STEPS --lengths L --noise N
 #
-# trains runs/ablation/NAME with the session-3 recipe (the shipped one without
-# --floor-contact; the extra flags are appended, and a flag given twice takes
+# trains runs/ablation/NAME with the length-sampling recipe (the shipped one
+# without --floor-contact; the extra flags are appended, and a flag given twice takes
 # its last value), resuming from its checkpoint when there is one, then evaluates it on
 # S9/S11 with SH and GT 2D input into runs/ablation/NAME/eval_{sh,gt}_STEPS.*.
 # Run from the repository root after `cargo build --release -p blapose-train`;
@@ -18,7 +18,7 @@
 # reached at step 2977; STEPS counts from the warm start):
 #   INIT=models/bone_length_bigru.safetensors LR=1.77e-4 \
 #     run.sh cont_scale1 4000 --lengths ansur --noise residual
-# Feet kept on the floor when the lengths are replaced (session 7; MODEL=gru
+# Feet kept on the floor when the lengths are replaced (MODEL=gru
 # trains the online GRU instead, add its --per-frame-weight 1.0); floor and
 # gru_floor are the shipped weights:
 #   run.sh floor 2977 --lengths ansur --noise residual --floor-contact
@@ -26,24 +26,22 @@
 #   run.sh floor_len128 2977 --lengths ansur --noise residual --floor-contact --seq-len 128 --batch 16
 #   run.sh floor_spread3 2977 --lengths ansur --noise residual --floor-contact --ansur-spread 3.0
 #   MODEL=gru run.sh gru_floor 2004 --lengths ansur --noise residual --floor-contact --per-frame-weight 1.0
-# Session 8 (one flag each on top of floor; yaw and gru_yaw are the shipped
-# weights):
+# One flag each on top of floor (yaw and gru_yaw are the shipped weights):
 #   run.sh gauss 2977 --lengths ansur --noise gaussian --floor-contact
 #   run.sh yaw 2977 --lengths ansur --noise residual --floor-contact --random-yaw
 #   MODEL=gru run.sh gru_yaw 2004 --lengths ansur --noise residual --floor-contact --per-frame-weight 1.0 --random-yaw
-# Session 9 (a second seed of the shipped recipe; one camera; rectified
-# keypoints):
+# A second seed of the shipped recipe; one camera; rectified keypoints:
 #   run.sh yaw_seed4 2977 --lengths ansur --noise residual --floor-contact --random-yaw --seed 4
 #   MODEL=gru run.sh gru_yaw_seed4 2004 --lengths ansur --noise residual --floor-contact --per-frame-weight 1.0 --random-yaw --seed 4
 #   run.sh cam54 2977 --lengths ansur --noise residual --floor-contact --random-yaw --cameras 54138969
-#   (then evaluate with `blapose eval ... --cameras 54138969`, see models/README.md)
+#   (then evaluate with `blapose eval ... --cameras 54138969`)
 #   run.sh rectify 2977 --lengths ansur --noise residual --floor-contact --random-yaw --rectify
 #   MODEL=gru run.sh gru_rectify 2004 --lengths ansur --noise residual --floor-contact --per-frame-weight 1.0 --random-yaw --rectify
-#   (evaluate both with `blapose eval ... --rectify`; the script's own evals are without it)
+#   (evaluate both with `blapose-lab diagnose ... --rectify`; the script's own evals are without it)
 # The runs with research options removed since (--detector-gain, camera
-# jitter, --precondition, --decouple-size, --noise-scale; models/README.md,
-# "Removed research options") need this script and the trainer as of
-# commit 237e820.
+# jitter, --precondition, --decouple-size, --noise-scale; docs/research.md,
+# "Options tried and removed") need this script and the trainer as of commit
+# 237e820; --height-normalized needs the trainer as of commit 46f5f1a.
 set -euo pipefail
 name=$1; steps=$2; shift 2
 bin=./target/release/blapose

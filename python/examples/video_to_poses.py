@@ -2,7 +2,7 @@
 """A video file -> 2D keypoints (MediaPipe Pose) -> 3D poses with adjusted bone lengths.
 
     python video_to_poses.py VIDEO --server http://127.0.0.1:50051 \\
-        --out poses.npz --html report.html [--max-frames N]
+        --out poses.npz --html report.html [--bvh motion.bvh] [--c3d motion.c3d] [--max-frames N]
 
 1. reads the video's frames with OpenCV;
 2. detects 2D keypoints with MediaPipe's legacy Pose solution
@@ -18,8 +18,11 @@
    Human3.6M joint order, where ``keypoints`` is the frame's ``(17, 2)`` COCO-17
    pixels and ``confidence`` its ``(17,)`` visibilities;
 5. writes the replay ``.npz`` (the format ``blapose-client replay`` and
-   ``blapose.load_replay`` read; ``pose_3d`` is the lifter's pose) and the HTML
-   report (lifted vs adjusted).
+   ``blapose.load_replay`` read; ``pose_3d`` is the lifter's pose), the HTML
+   report (lifted vs adjusted) and, with ``--bvh`` / ``--c3d``, the adjusted
+   motion for Blender and biomechanics tools (``blapose.write_bvh``,
+   ``blapose.write_c3d``: every frame re-posed with the final bone lengths,
+   camera axes made Y up / Z up).
 
 Frames in which MediaPipe finds nobody are skipped: they are not sent (every
 frame sent must hold finite keypoints), and the ``video_frame`` array of the
@@ -376,6 +379,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("--token", default=None, help="the server's --auth-token, if any")
     ap.add_argument("--out", default="poses.npz", help="replay .npz to write")
     ap.add_argument("--html", default=None, help="HTML report to write (lifted vs adjusted)")
+    ap.add_argument("--bvh", default=None, help="BVH to write (Blender, animation tools): the adjusted motion")
+    ap.add_argument("--c3d", default=None, help="C3D to write (biomechanics tools): the adjusted joints as markers")
     ap.add_argument("--max-frames", type=int, default=None, help="stop after this many video frames")
     ap.add_argument("--model", default=None, help="session model (default: the server's streaming default)")
     ap.add_argument(
@@ -391,6 +396,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     if not Path(args.video).is_file():
         print(f"error: no such video file: {args.video}", file=sys.stderr)
         return 2
+    for path in (args.out, args.html, args.bvh, args.c3d):
+        if path and not Path(path).resolve().parent.is_dir():
+            print(f"error: cannot write {path}: its directory does not exist", file=sys.stderr)
+            return 2
     tty = sys.stderr.isatty()
 
     def progress(read: int, count: int, found: int, secs: float) -> None:
@@ -423,6 +432,19 @@ def main(argv: Optional[List[str]] = None) -> int:
             before_label=f"lifted ({res.lifter})", after_label="adjusted",
             info={"lifter": res.lifter, "detector": "mediapipe pose (complexity 1)", "frames": res.stats["kept"]},
         )  # fmt: skip
+    exported = []
+    # A stream's lengths change as its estimate converges; a skeleton's cannot, so the
+    # files re-pose every frame with the final lengths (blapose.export).
+    try:
+        if args.bvh:
+            report = blapose.write_bvh(args.bvh, res.adjusted_3d, res.bone_lengths[-1], fps=res.fps)
+            exported.append(f"{args.bvh} (largest frame-to-frame joint rotation {report.max_step_deg:.1f} deg)")
+        if args.c3d:
+            blapose.write_c3d(args.c3d, res.adjusted_3d, res.bone_lengths[-1], fps=res.fps)
+            exported.append(args.c3d)
+    except (OSError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
     fps = res.frames_read / res.seconds if res.seconds > 0 else 0.0
     lengths = res.bone_lengths[-1]
     print(
@@ -431,6 +453,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         f"{1000 * res.seconds / max(res.frames_read, 1):.0f} ms/frame\n"
         "final bone lengths (m): " + " ".join(f"{n}={v:.3f}" for n, v in zip(blapose.BONE_NAMES, lengths)) + "\n"
         f"wrote {args.out}" + (f" and {args.html}" if args.html else "")
+        + (f"\nexported {', '.join(exported)}: every frame re-posed with the final bone lengths" if exported else "")
     )
     return 0
 

@@ -142,7 +142,7 @@ def test_python_and_cli_reports_carry_the_same_data(server: Server, tmp_path: Pa
     for key in ("before", "after", "gt"):
         # Both round to 0.1 mm; the answers agree to 1e-5 m, so a rounding may differ by one step.
         np.testing.assert_allclose(_flat(py, key), _flat(rust, key), rtol=0, atol=1e-4 + 1e-9, err_msg=key)
-    # The table: the CLI's (client/src/report.rs, also in --json) and Python's numpy twin.
+    # The table: the CLI's (blapose_core::metrics::evaluate, also in --json) and Python's numpy twin.
     cli_json = json.loads((tmp_path / "m.json").read_text())
     assert rust["metrics"] == cli_json
     for side in ("before", "after"):

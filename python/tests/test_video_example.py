@@ -61,10 +61,10 @@ def test_video_to_poses_end_to_end(start_server, tmp_path: Path) -> None:
     video = tmp_path / "astronaut.avi"
     make_video(video, cv2, data)
     srv = start_server("--lifter-weights", str(LIFTER))
-    npz, html = tmp_path / "poses.npz", tmp_path / "report.html"
+    npz, html, bvh = tmp_path / "poses.npz", tmp_path / "report.html", tmp_path / "motion.bvh"
     run = subprocess.run(
         [sys.executable, str(EXAMPLE), str(video), "--server", srv.url, "--out", str(npz), "--html", str(html),
-         "--max-frames", str(FRAMES - 2)],
+         "--bvh", str(bvh), "--max-frames", str(FRAMES - 2)],
         check=False, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert run.returncode == 0, run.stderr
@@ -90,6 +90,12 @@ def test_video_to_poses_end_to_end(start_server, tmp_path: Path) -> None:
     # adjusted = the lifted pose's bone directions with the estimated lengths (root kept).
     for k in (0, t - 1):
         np.testing.assert_allclose(adjusted[k], blapose.adjust_pose(replay.pose_3d[k], lengths[k]), atol=1e-4)
+
+    # The BVH: the adjusted motion re-posed with the final lengths (what tests/export/ checks
+    # in Blender); its text is what blapose.export writes for those arrays.
+    assert "every frame re-posed with the final bone lengths" in run.stdout
+    text, _ = blapose.export.bvh_text(adjusted, lengths, fps=25.0)
+    assert bvh.read_text() == text
 
     report = blapose.report.read_html_data(html)
     assert report["frames"] == t

@@ -12,42 +12,53 @@
 //! Optionally (`--lifter-weights`) the server also runs a trained causal
 //! lifter, so a client with only a 2D detector can open a session with
 //! `server_lifter` and send keypoints alone: each frame's pose is then lifted
-//! in the batcher from the session's window of recent keypoints (batched
-//! across sessions like the GRU step) and adjusted as a client's pose would
-//! be. Without the flag nothing about serving changes.
+//! from the session's window of recent keypoints (batched across sessions
+//! like the GRU step) and adjusted as a client's pose would be. Without the
+//! flag nothing about serving changes.
 //!
 //! Sessions and offline requests that send their camera's calibration
 //! (`CameraCalibration`) are served by a second, camera-aware model pair
-//! ([`models::Family::CameraAware`]): their keypoints are rectified to what a
-//! level camera at the same place would see (`blapose_core::level`) before
-//! the GRU step, in the same batcher as every other session.
+//! ([`models::Family::CameraAware`]), fed their keypoints as those weights'
+//! input contract says (`blapose_model::input`: undistorted, rectified to a
+//! level camera at the same place, scaled to the floor), in the same
+//! batcher as every other session.
 //!
-//! Module map, one concern each:
-//! [`config`] (flags and [`ServerConfig`]), [`session`] (store, TTL, resume),
-//! [`batcher`] (queue and batched steps on a dedicated thread), [`backend`]
-//! (the model-execution trait), [`engine`] (blapose-model's fast engines
-//! behind it), [`models`] (weights and providers), [`validate`] (client
-//! input), [`stream`] (the bidirectional session protocol), [`offline`]
-//! (whole-sequence requests), [`service`] (the tonic service), [`auth`],
+//! A frame's way through the server, one module per stage:
+//! [`validate`] (checks and typed errors) -> [`prepare`] (missing joints,
+//! the server lifter, the camera the model reads through) -> [`batch`] (the
+//! queue; only batching) -> [`step`] (the batched GRU step) -> [`answer`]
+//! (lengths, adjustment, token snapshots). [`stream`] drives a streamed
+//! frame through them, [`offline`] a whole sequence (`AdjustSequence`,
+//! which shares prepare and answer).
+//!
+//! Around them: [`config`] (flags and [`ServerConfig`]), [`session`] (store,
+//! TTL, resume), [`backend`] (the model-execution trait), [`engine`]
+//! (blapose-model's fast engines behind it), [`models`] (weights, their
+//! input contract, providers), [`service`] (the tonic service), [`auth`],
 //! [`metrics`], [`shutdown`], [`telemetry`], [`token`] (portable session
-//! state: session tokens).
+//! state: session tokens), [`testing`] (test support).
 //!
 //! Embedding (tests, load generators): [`spawn`] starts a server on a bound
 //! listener and returns a [`ServerHandle`]; [`serve`] runs until a future
 //! completes.
 
+pub mod answer;
 pub mod auth;
 pub mod backend;
-pub mod batcher;
+pub mod batch;
 pub mod config;
 pub mod engine;
 pub mod error;
+#[cfg(test)]
+mod fakes;
 pub mod metrics;
 pub mod models;
 pub mod offline;
+pub mod prepare;
 pub mod service;
 pub mod session;
 pub mod shutdown;
+pub mod step;
 pub mod stream;
 pub mod telemetry;
 pub mod testing;
@@ -68,16 +79,17 @@ use tonic::transport::server::TcpIncoming;
 use tonic::transport::{Identity, Server, ServerTlsConfig};
 use tonic_health::ServingStatus;
 
+pub use blapose_model::input::ModelInput;
 pub use config::CameraAwareWeights;
 pub use config::{Cli, HealthCheckTls, LogFormat, ServerConfig, TlsFiles, WeightsSource};
 pub use error::ServerError;
 pub use models::{
-    embedded_bigru, embedded_bigru_rectified, embedded_gru, embedded_gru_rectified, CameraReading,
-    Family, LoadedLifter, ModelProvider, WeightsProvider,
+    embedded_bigru, embedded_bigru_rectified, embedded_gru, embedded_gru_rectified, Family,
+    LoadedLifter, ModelProvider, WeightsProvider,
 };
 
 use auth::BearerAuth;
-use batcher::{Batcher, BatcherConfig, OnlineBackends};
+use batch::{Batcher, BatcherConfig};
 use offline::OfflineRunner;
 use service::{AppState, PoseService};
 use session::SessionStore;
@@ -222,18 +234,14 @@ pub async fn spawn_with_provider(
     let online_provider = provider.clone();
     let batcher_lifter = lifter.clone();
     let batcher = tokio::task::spawn_blocking(move || -> Result<Batcher, ServerError> {
-        let backends = OnlineBackends {
+        let backends = step::OnlineBackends {
             default: online_provider.online()?,
             camera_aware: online_provider
                 .camera_aware()
                 .map(|p| p.online())
                 .transpose()?,
         };
-        Ok(Batcher::start_with(
-            backends,
-            batcher_config,
-            batcher_lifter,
-        )?)
+        Ok(step::start(backends, batcher_config, batcher_lifter)?)
     })
     .await
     .map_err(|e| ServerError::Task(e.to_string()))??;
@@ -264,7 +272,7 @@ pub async fn spawn_with_provider(
     });
 
     let (health, health_service) = tonic_health::server::health_reporter();
-    // Warm-up ran inside Batcher::start, so the model is ready now.
+    // Warm-up ran inside step::start, so the model is ready now.
     health.set_service_status("", ServingStatus::Serving).await;
     health
         .set_service_status(blapose_proto::SERVICE_NAME, ServingStatus::Serving)

@@ -5,9 +5,12 @@
 //! `build.rs`), so `blapose-server` serves with no arguments; `--weights`,
 //! `--bigru-weights` and their `--rectified-*` twins override them. The
 //! rectified pair is the *camera-aware* family: it serves the sessions and
-//! requests that send a camera calibration (their keypoints rectified with
-//! [`blapose_core::level`]); [`ModelProvider::camera_aware`] is how the
-//! service reaches it. [`ModelProvider`] is the seam between the
+//! requests that send a camera calibration (their keypoints prepared as the
+//! weights' input contract says, [`crate::prepare`]);
+//! [`ModelProvider::camera_aware`] is how the service reaches it. What a
+//! file expects as input is read once, at load, into a [`ModelInput`]
+//! (blapose-model's one reading of the weights' metadata); the server reads
+//! no metadata key itself. [`ModelProvider`] is the seam between the
 //! service and model execution: the real [`WeightsProvider`] builds
 //! blapose-model's fast engines, tests plug in fakes. A server lifter is
 //! never embedded: it runs only when `--lifter-weights` names a trained file
@@ -17,8 +20,8 @@ use std::collections::HashMap;
 use std::path::Path;
 use std::sync::Arc;
 
-use blapose_core::level::{CameraEnvelope, WIDE_CAMERA_ENVELOPE};
 use blapose_lifters::{TrainedLifter, TrainedLifterError};
+use blapose_model::input::ModelInput;
 use blapose_model::stature::StatureModel;
 use blapose_model::weights::{self, LoadedWeights};
 use blapose_model::{ModelError, ModelKind, OfflineBiGruEngine, OnlineGruEngine, Precision};
@@ -85,7 +88,7 @@ embedded_weights!(
 );
 
 /// Which family a model belongs to: the default one, fed keypoints as
-/// sent, or the camera-aware one, fed them rectified with the session's
+/// sent, or the camera-aware one, fed them through the session's
 /// calibration.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum Family {
@@ -101,6 +104,16 @@ impl Family {
         match self {
             Self::Default => "the default models (no camera)",
             Self::CameraAware => "the camera-aware models",
+        }
+    }
+
+    /// What weights loaded for this family read when they record no input
+    /// contract: screen coordinates, or plain rectified keypoints from any
+    /// camera.
+    pub const fn default_input(self) -> ModelInput {
+        match self {
+            Self::Default => ModelInput::screen(),
+            Self::CameraAware => ModelInput::level(),
         }
     }
 
@@ -159,9 +172,8 @@ pub enum WeightsError {
         #[source]
         source: ModelError,
     },
-    /// The file's training says it reads the other family's input
-    /// (`train_config.rectify`), e.g. default weights given as
-    /// `--rectified-weights`.
+    /// The file's input contract says it reads the other family's input,
+    /// e.g. default weights given as `--rectified-weights`.
     #[error("{kind} weights from {origin} were trained {trained} keypoints but are loaded for {family}; pass them with {flag}")]
     WrongFamily {
         /// Which model.
@@ -175,17 +187,17 @@ pub enum WeightsError {
         /// The flag that takes them.
         flag: &'static str,
     },
-    /// The GRU and the Bi-GRU of a family read calibrations differently.
-    #[error("the GRU ({gru}) and the Bi-GRU ({bigru}) of a family must read a camera alike (train_config height_normalized, floor_scaled, wide_cameras): {gru_reading:?} vs {bigru_reading:?}")]
-    MixedCameraReading {
+    /// The GRU and the Bi-GRU of a family read their input differently.
+    #[error("the GRU ({gru}) and the Bi-GRU ({bigru}) of a family must read a camera alike (their model_input: framing and trained cameras): {gru_input:?} vs {bigru_input:?}")]
+    MixedInput {
         /// The GRU's origin.
         gru: String,
         /// The Bi-GRU's origin.
         bigru: String,
-        /// How the GRU reads a calibration.
-        gru_reading: Box<CameraReading>,
-        /// How the Bi-GRU does.
-        bigru_reading: Box<CameraReading>,
+        /// What the GRU reads.
+        gru_input: Box<ModelInput>,
+        /// What the Bi-GRU reads.
+        bigru_input: Box<ModelInput>,
     },
     /// The `--lifter-weights` file cannot be served. (The cause is part of
     /// the message, not a `source()`, so an error chain prints it once.)
@@ -207,6 +219,9 @@ pub struct LoadedModel {
     pub origin: String,
     /// Lowercase hex SHA-256 of the file bytes.
     pub sha256: String,
+    /// What the model reads: its recorded input contract, or its family's
+    /// when it records none.
+    pub input: ModelInput,
 }
 
 impl LoadedModel {
@@ -238,9 +253,10 @@ impl LoadedModel {
                 origin: origin.clone(),
                 source,
             })?;
-        // A file that records its training must match the family (files
-        // that do not, e.g. converted ones, are taken as they are).
-        if let Some(rectified) = trained_rectified(&weights) {
+        // A file that records its input must match the family (files that
+        // do not, e.g. converted ones, are taken as the family's).
+        if let Some(recorded) = weights.meta.input {
+            let rectified = recorded.framing.needs_calibration();
             if rectified != (family == Family::CameraAware) {
                 let other = if rectified {
                     Family::CameraAware
@@ -256,25 +272,27 @@ impl LoadedModel {
                 });
             }
         }
+        let input = weights.meta.input.unwrap_or(family.default_input());
         Ok(Self {
             weights,
             origin,
             sha256: sha256_hex(&bytes),
+            input,
         })
     }
 
     /// The `ModelInfo` entry for this model, serving `family`.
     pub fn describe(&self, family: Family) -> pb::ModelDescription {
         let kind = self.weights.kind();
-        let (model, name) = match kind {
-            ModelKind::Gru => (pb::Model::OnlineGru, "bone_length_gru"),
-            ModelKind::BiGru => (pb::Model::OfflineBigru, "bone_length_bigru"),
+        let name = match kind {
+            ModelKind::Gru => "bone_length_gru",
+            ModelKind::BiGru => "bone_length_bigru",
         };
         let parameter_count =
             blapose_model::reference::count_parameters(self.weights.tensors().values()) as u64;
         let metadata: HashMap<String, String> = self.weights.meta.to_header().into_iter().collect();
         pb::ModelDescription {
-            model: model as i32,
+            model: pb::Model::from(kind) as i32,
             name: format!("{name}{}", family.suffix()),
             parameter_count,
             hidden_size: blapose_model::HIDDEN as u32,
@@ -282,54 +300,6 @@ impl LoadedModel {
             weights_sha256: self.sha256.clone(),
             metadata,
             camera_aware: family == Family::CameraAware,
-        }
-    }
-}
-
-/// A boolean of the weights' `train_config` metadata: `None` when the file
-/// records no training configuration, `false` when it predates the option.
-fn train_flag(weights: &LoadedWeights, flag: &str) -> Option<bool> {
-    let config = weights.meta.extra.get("train_config")?;
-    let config: serde_json::Value = serde_json::from_str(config).ok()?;
-    Some(config.get(flag).and_then(|v| v.as_bool()).unwrap_or(false))
-}
-
-/// Whether the weights were trained on rectified keypoints, when they say.
-fn trained_rectified(weights: &LoadedWeights) -> Option<bool> {
-    train_flag(weights, "rectify")
-}
-
-/// How a camera-aware model reads a calibration (its `train_config`).
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct CameraReading {
-    /// It predicts lengths as seen from
-    /// [`blapose_core::level::REFERENCE_CAMERA_HEIGHT`] (`train
-    /// --height-normalized`): the camera height is required and scales them.
-    pub height_normalized: bool,
-    /// It reads rectified keypoints scaled to the floor (`train
-    /// --floor-scaled`, [`blapose_core::level::LevelCamera::scaled_to_floor`]).
-    pub floor_scaled: bool,
-    /// The calibrations it was trained for: the wide range when trained
-    /// through wide cameras (`train --wide-cameras`); `None` (Human3.6M's
-    /// cameras) takes any calibration that rectifies.
-    pub trained_cameras: Option<CameraEnvelope>,
-}
-
-impl CameraReading {
-    /// What `weights` say (files that do not say read plain rectified
-    /// keypoints from any camera, unscaled).
-    fn of(weights: &LoadedWeights) -> Self {
-        let wide = weights
-            .meta
-            .extra
-            .get("train_config")
-            .and_then(|c| serde_json::from_str::<serde_json::Value>(c).ok())
-            .and_then(|c| c.get("wide_cameras")?.as_f64())
-            .unwrap_or(0.0);
-        Self {
-            height_normalized: train_flag(weights, "height_normalized").unwrap_or(false),
-            floor_scaled: train_flag(weights, "floor_scaled").unwrap_or(false),
-            trained_cameras: (wide > 0.0).then_some(WIDE_CAMERA_ENVELOPE),
         }
     }
 }
@@ -403,14 +373,19 @@ pub trait ModelProvider: Send + Sync + 'static {
     /// `ModelInfo` entries.
     fn describe(&self) -> Vec<pb::ModelDescription>;
     /// The camera-aware models, for sessions and requests that send a
-    /// camera calibration (their backends are fed rectified keypoints);
-    /// `None` when the server has none.
+    /// camera calibration (their backends are fed keypoints prepared as
+    /// [`ModelProvider::model_input`] says); `None` when the server has
+    /// none.
     fn camera_aware(&self) -> Option<Arc<dyn ModelProvider>> {
         None
     }
-    /// How these models read a calibration (for camera-aware models).
-    fn camera_reading(&self) -> CameraReading {
-        CameraReading::default()
+    /// What these models read (their weights' input contract); what the
+    /// camera-aware family's is decides how a calibration is read.
+    /// Default: plain rectified keypoints from any camera
+    /// ([`ModelInput::level`]), what camera-aware weights that record no
+    /// contract are taken to read.
+    fn model_input(&self) -> ModelInput {
+        ModelInput::level()
     }
 }
 
@@ -424,7 +399,6 @@ pub struct WeightsProvider {
     online: Arc<OnlineGruEngine>,
     offline: Arc<OfflineBiGruEngine>,
     camera_aware: Option<Arc<WeightsProvider>>,
-    camera_reading: CameraReading,
 }
 
 /// Scratch preallocated per online backend (it grows if a batch is larger).
@@ -442,14 +416,12 @@ impl WeightsProvider {
     ) -> Result<Self, ServerError> {
         let gru = LoadedModel::load(gru, ModelKind::Gru, family)?;
         let bigru = LoadedModel::load(bigru, ModelKind::BiGru, family)?;
-        let camera_reading = CameraReading::of(&gru.weights);
-        let bigru_reading = CameraReading::of(&bigru.weights);
-        if camera_reading != bigru_reading {
-            return Err(WeightsError::MixedCameraReading {
+        if gru.input != bigru.input {
+            return Err(WeightsError::MixedInput {
                 gru: gru.origin,
                 bigru: bigru.origin,
-                gru_reading: Box::new(camera_reading),
-                bigru_reading: Box::new(bigru_reading),
+                gru_input: Box::new(gru.input),
+                bigru_input: Box::new(bigru.input),
             }
             .into());
         }
@@ -462,7 +434,6 @@ impl WeightsProvider {
             online,
             offline,
             camera_aware: None,
-            camera_reading,
         })
     }
 
@@ -518,8 +489,8 @@ impl ModelProvider for WeightsProvider {
             .map(|p| p as Arc<dyn ModelProvider>)
     }
 
-    fn camera_reading(&self) -> CameraReading {
-        self.camera_reading
+    fn model_input(&self) -> ModelInput {
+        self.gru.input
     }
 }
 
@@ -560,8 +531,31 @@ mod tests {
             assert!(err.to_string().contains("trained on raw"), "{err}");
             let _ = std::fs::remove_dir_all(&dir);
         }
-        // Files that do not record their training load for either family.
+        // Files that record no input contract load for either family, and
+        // read what the family reads.
         let random = LoadedWeights::random(ModelKind::Gru, 1).unwrap();
-        assert_eq!(trained_rectified(&random), None);
+        assert_eq!(random.meta.input, None);
+        let dir = std::env::temp_dir().join(format!("blapose-family-{}-none", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("random.safetensors");
+        weights::save(&path, random.tensors(), &random.meta).unwrap();
+        for family in [Family::Default, Family::CameraAware] {
+            let loaded =
+                LoadedModel::load(&WeightsSource::File(path.clone()), ModelKind::Gru, family)
+                    .unwrap();
+            assert_eq!(loaded.input, family.default_input());
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+        // The shipped files record what they read; each family's pair agrees.
+        for family in [Family::Default, Family::CameraAware] {
+            let gru = LoadedModel::load(&embedded, ModelKind::Gru, family).unwrap();
+            let bigru = LoadedModel::load(&embedded, ModelKind::BiGru, family).unwrap();
+            assert!(gru.weights.meta.input.is_some(), "{family:?}");
+            assert_eq!(gru.input, bigru.input, "{family:?}");
+            assert_eq!(
+                gru.input.framing.needs_calibration(),
+                family == Family::CameraAware
+            );
+        }
     }
 }

@@ -1,6 +1,13 @@
 //! Offline adjustment of a whole sequence (the `AdjustSequence` RPC).
 //!
-//! A request runs on tokio's blocking pool, never on an async worker, and at
+//! A request goes through the stages a streamed frame goes through, on the
+//! whole sequence at once: [`crate::validate`], [`crate::prepare`] (missing
+//! joints held, the frames read through the request's camera as the
+//! camera-aware models' input contract says), the model (the Bi-GRU over
+//! the whole sequence, or the online GRU step by step), and
+//! [`crate::answer`].
+//!
+//! The model runs on tokio's blocking pool, never on an async worker, and at
 //! most `compute_threads` run at once (a semaphore) so offline work cannot
 //! starve the online batcher of CPU. At most [`MAX_WAITING`] more may wait
 //! for their turn; beyond that a request is refused with RESOURCE_EXHAUSTED
@@ -10,16 +17,19 @@
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Instant;
 
-use blapose_core::bones::{self, ZeroBonePolicy};
-use blapose_core::{BoneLengths, Pose};
+use blapose_core::{BoneLengths, ModelKind, Pose};
+use blapose_model::stature::StatureModel;
+use blapose_proto::v1 as pb;
 use tokio::sync::Semaphore;
 use tonic::Status;
 
+use crate::answer;
 use crate::backend::{Backend, BackendError, INPUT_DIM, OUTPUT_DIM, STATE_DIM};
 use crate::metrics;
 use crate::models::ModelProvider;
-use crate::session::{add_prediction, RunningMean};
-use crate::validate::{OfflineModel, ValidSequence};
+use crate::prepare::{self, PreparedSequence};
+use crate::session::RunningMean;
+use crate::validate;
 
 /// Result of an offline request.
 #[derive(Debug, Clone, PartialEq)]
@@ -87,8 +97,34 @@ impl OfflineRunner {
         }
     }
 
-    /// Predict lengths for a validated sequence and adjust its poses.
-    pub async fn adjust(&self, seq: ValidSequence) -> Result<AdjustedSequence, Status> {
+    /// Answer an `AdjustSequence` request: validate it, answer a subject
+    /// with its stature-regression lengths, or prepare the sequence and run
+    /// the model on it (`stature`: the server's stature model).
+    pub async fn respond(
+        &self,
+        req: &pb::AdjustSequenceRequest,
+        stature: &StatureModel,
+    ) -> Result<pb::AdjustSequenceResponse, Status> {
+        let contract = self.provider.camera_aware().map(|m| m.model_input());
+        let seq = validate::sequence(req, contract.as_ref()).map_err(|e| e.to_status())?;
+        let subject = validate::subject(req.subject.as_ref()).map_err(|e| e.to_status())?;
+        if let Some(subject) = subject {
+            // Every frame gets the subject's lengths; no model needs to run.
+            let subject = answer::subject(subject, stature);
+            return answer::subject_sequence(seq.model, &seq.poses, &subject);
+        }
+        let seq = prepare::sequence(seq, contract.as_ref()).map_err(|e| e.to_status())?;
+        let model = seq.model;
+        let done = self.adjust(seq).await?;
+        Ok(answer::sequence_response(
+            model,
+            &done.poses,
+            done.lengths.as_flattened(),
+        ))
+    }
+
+    /// Predict lengths for a prepared sequence and adjust its poses.
+    pub async fn adjust(&self, seq: PreparedSequence) -> Result<AdjustedSequence, Status> {
         let _admitted = self.admission.clone().try_acquire_owned().map_err(|_| {
             Status::resource_exhausted(format!(
                 "server busy: {MAX_WAITING} offline requests are already waiting; retry later"
@@ -100,7 +136,7 @@ impl OfflineRunner {
             .acquire_owned()
             .await
             .map_err(|_| Status::unavailable("the server is shutting down"))?;
-        let (provider, Pools { online, offline }) = if seq.camera.is_some() {
+        let (provider, Pools { online, offline }) = if seq.camera_aware {
             let provider = self
                 .provider
                 .camera_aware()
@@ -111,12 +147,10 @@ impl OfflineRunner {
         };
         let started = Instant::now();
         let model = seq.model;
-        // A height-normalized model's lengths, back at the camera's height.
-        let scale = seq.camera.as_ref().map_or(1.0, |c| c.length_scale);
         let result = tokio::task::spawn_blocking(move || -> Result<AdjustedSequence, Status> {
             let frames = seq.poses.len();
             let lengths = match model {
-                OfflineModel::BiGru => {
+                ModelKind::BiGru => {
                     let mut backend = match take(&offline) {
                         Some(b) => b,
                         None => provider.offline().map_err(internal)?,
@@ -129,47 +163,38 @@ impl OfflineRunner {
                             "the model produced non-finite bone lengths",
                         ));
                     }
-                    vec![predicted.map(|v| v * scale); frames]
+                    vec![predicted; frames]
                 }
-                OfflineModel::OnlineGru => {
+                ModelKind::Gru => {
                     let mut backend = match take(&online) {
                         Some(b) => b,
                         None => provider.online().map_err(internal)?,
                     };
-                    let result = online_lengths(backend.as_mut(), &seq.inputs, frames, scale);
+                    let result = online_lengths(backend.as_mut(), &seq.inputs, frames);
                     give(&online, backend);
                     result?
                 }
             };
-            let poses =
-                bones::adjust_sequence_per_frame(&seq.poses, &lengths, ZeroBonePolicy::Error)
-                    .map_err(|e| Status::internal(format!("adjustment failed: {e}")))?;
+            let poses = answer::adjust_frames(&seq.poses, &lengths)?;
             Ok(AdjustedSequence { poses, lengths })
         })
         .await
         .map_err(|e| Status::internal(format!("offline worker failed: {e}")))?;
-        metrics::offline(
-            match model {
-                OfflineModel::BiGru => "bigru",
-                OfflineModel::OnlineGru => "gru",
-            },
-            started.elapsed(),
-        );
+        metrics::offline(model.as_str(), started.elapsed());
         result
     }
 }
 
 /// The online model run causally over a sequence, one step per frame: row
-/// `t` is the running mean of the predictions of frames `0..=t` (each
-/// multiplied by `scale`), built by [`add_prediction`] as a stream's
-/// estimate is. The engine's sums may round differently in the last bits
-/// from a stream's, whose steps ran in other batches and after other calls
-/// (see the proto's `AdjustSequenceRequest.model`).
+/// `t` is the running mean of the predictions of frames `0..=t`, built as a
+/// stream's estimate is ([`answer::commit`]). The engine's sums may round
+/// differently in the last bits from a stream's, whose steps ran in other
+/// batches and after other calls (see the proto's
+/// `AdjustSequenceRequest.model`).
 pub fn online_lengths(
     backend: &mut dyn Backend,
     inputs: &[f32],
     frames: usize,
-    scale: f32,
 ) -> Result<Vec<BoneLengths>, Status> {
     let mut hidden = vec![0.0f32; STATE_DIM];
     let mut prediction = [0.0f32; OUTPUT_DIM];
@@ -188,7 +213,7 @@ pub fn online_lengths(
                 "the model produced a non-finite result at frame {t}"
             )));
         }
-        out.push(add_prediction(&mut running, &prediction, scale));
+        out.push(running.push(&prediction));
     }
     Ok(out)
 }
@@ -197,7 +222,6 @@ pub fn online_lengths(
 mod tests {
     use super::*;
     use crate::backend::SequenceBackend;
-    use blapose_proto::v1 as pb;
     use std::sync::Condvar;
 
     /// Online fake: prediction = number of frames seen so far (from the
@@ -251,24 +275,20 @@ mod tests {
     #[test]
     fn online_lengths_are_running_means() {
         let inputs = vec![0.0; 4 * INPUT_DIM];
-        let rows = online_lengths(&mut Counting, &inputs, 4, 1.0).unwrap();
+        let rows = online_lengths(&mut Counting, &inputs, 4).unwrap();
         let firsts: Vec<f32> = rows.iter().map(|r| r[0]).collect();
         assert_eq!(firsts, vec![1.0, 1.5, 2.0, 2.5]);
-        // A scale multiplies each prediction before the mean.
-        let rows = online_lengths(&mut Counting, &inputs, 4, 0.5).unwrap();
-        let firsts: Vec<f32> = rows.iter().map(|r| r[0]).collect();
-        assert_eq!(firsts, vec![0.5, 0.75, 1.0, 1.25]);
     }
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn too_many_waiting_requests_are_refused_not_queued() {
         let gate = Gate::default();
         let runner = Arc::new(OfflineRunner::new(Arc::new(Provider(gate.clone())), 1));
-        let seq = ValidSequence {
-            model: OfflineModel::BiGru,
+        let seq = PreparedSequence {
+            model: ModelKind::BiGru,
             inputs: vec![0.0; INPUT_DIM],
             poses: vec![pose()],
-            camera: None,
+            camera_aware: false,
         };
         let mut tasks = Vec::new();
         for _ in 0..(MAX_WAITING + 6) {

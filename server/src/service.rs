@@ -1,15 +1,16 @@
 //! The `blapose.v1.PoseAdjustment` gRPC service: the glue between tonic and
 //! the session store, the batcher and the offline runner.
 //!
-//! Handlers stay thin: validation lives in [`crate::validate`], the stream
-//! protocol in [`crate::stream`], model work in [`crate::batcher`] and
-//! [`crate::offline`].
+//! Handlers stay thin: the stream protocol lives in [`crate::stream`], whole
+//! sequences in [`crate::offline`], and what both do with a frame in the
+//! stages [`crate::validate`], [`crate::prepare`], [`crate::batch`],
+//! [`crate::step`] and [`crate::answer`].
 
 use std::sync::Arc;
 
-use blapose_core::bones;
 use blapose_core::layouts::KeypointLayout;
 use blapose_core::skeleton::{BONE_NAMES, JOINT_NAMES};
+use blapose_model::input::ModelInput;
 use blapose_model::stature::StatureModel;
 use blapose_proto::v1 as pb;
 use tokio::sync::mpsc;
@@ -18,9 +19,9 @@ use tokio_stream::{Stream, StreamExt};
 use tokio_util::sync::CancellationToken;
 use tonic::{Request, Response, Status, Streaming};
 
-use crate::batcher::Batcher;
+use crate::batch::Batcher;
 use crate::metrics;
-use crate::models::{CameraReading, LoadedLifter, ModelProvider};
+use crate::models::{LoadedLifter, ModelProvider};
 use crate::offline::OfflineRunner;
 use crate::session::SessionStore;
 use crate::stream::{self, session_status};
@@ -110,12 +111,13 @@ impl Tokens {
 }
 
 impl AppState {
-    /// The server's camera-aware models as [`validate::camera`] needs them
-    /// (`None` without any).
-    pub fn camera_models(&self) -> Option<CameraReading> {
+    /// The input contract of the server's camera-aware models, what a
+    /// calibration is checked against and read through (`None` without
+    /// any).
+    pub fn camera_models(&self) -> Option<ModelInput> {
         self.provider
             .camera_aware()
-            .map(|models| models.camera_reading())
+            .map(|models| models.model_input())
     }
 }
 
@@ -227,42 +229,13 @@ impl pb::pose_adjustment_server::PoseAdjustment for PoseService {
                 "AdjustSequence",
             );
         }
-        let seq = match validate::sequence(request.get_ref(), self.state.camera_models()) {
-            Ok(s) => s,
-            Err(e) => return fail(e.to_status(), "AdjustSequence"),
-        };
-        let subject =
-            match validate::subject(request.get_ref().subject.as_ref(), &self.state.stature) {
-                Ok(s) => s,
-                Err(e) => return fail(e.to_status(), "AdjustSequence"),
-            };
-        let model = match seq.model {
-            validate::OfflineModel::BiGru => pb::Model::OfflineBigru,
-            validate::OfflineModel::OnlineGru => pb::Model::OnlineGru,
-        };
-        if let Some(subject) = subject {
-            // Every frame gets the subject's lengths; no model needs to run.
-            let poses = match bones::adjust_sequence(&seq.poses, &subject.lengths) {
-                Ok(poses) => poses,
-                Err(e) => {
-                    return fail(
-                        Status::internal(format!("adjustment failed: {e}")),
-                        "AdjustSequence",
-                    )
-                }
-            };
-            return Ok(Response::new(pb::AdjustSequenceResponse {
-                model: model as i32,
-                adjusted_poses_3d: poses.iter().flatten().flatten().copied().collect(),
-                bone_lengths: subject.lengths.repeat(poses.len()),
-            }));
-        }
-        match self.state.offline.adjust(seq).await {
-            Ok(done) => Ok(Response::new(pb::AdjustSequenceResponse {
-                model: model as i32,
-                adjusted_poses_3d: done.poses.iter().flatten().flatten().copied().collect(),
-                bone_lengths: done.lengths.iter().flatten().copied().collect(),
-            })),
+        match self
+            .state
+            .offline
+            .respond(request.get_ref(), &self.state.stature)
+            .await
+        {
+            Ok(response) => Ok(Response::new(response)),
             Err(status) => fail(status, "AdjustSequence"),
         }
     }

@@ -31,10 +31,10 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
 
-use blapose_core::level::LevelCamera;
 use blapose_core::missing::HeldJoints;
 use blapose_core::BoneLengths;
 use blapose_lifters::SlidingWindow;
+use blapose_model::input::InputCamera;
 use blapose_proto::v1 as pb;
 use rand::TryRngCore;
 use tokio::sync::{watch, Notify};
@@ -118,18 +118,16 @@ pub use blapose_core::layouts::Coordinates;
 pub use blapose_core::layouts::InputFormat;
 
 /// A session's camera: the calibration as the client sent it (echoed on
-/// open and resume) and its level twin, which rectifies the keypoints for
-/// the camera-aware model.
+/// open and resume, carried by session tokens) and the camera the
+/// camera-aware model reads the session's keypoints through
+/// ([`crate::prepare::session_camera`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct SessionCamera {
     /// As sent in `OpenSession.camera`.
     pub calibration: pb::CameraCalibration,
-    /// Built from it.
-    pub level: LevelCamera,
-    /// What the camera-aware model's per-frame estimates are multiplied by:
-    /// the camera height over the reference height for height-normalized
-    /// models given a height, else 1.
-    pub length_scale: f32,
+    /// What the camera-aware model's input contract makes of it (`None`
+    /// for a contract that reads screen coordinates).
+    pub input: Option<InputCamera>,
 }
 
 /// A session's (or request's) subject: the person's stature and sex as
@@ -154,7 +152,7 @@ pub struct SessionConfig {
     /// whose window holds `frames` frames; `None`: the client sends them.
     pub lifter_frames: Option<usize>,
     /// `Some`: the camera-aware model serves the session, fed its keypoints
-    /// rectified with this camera; `None`: the default model.
+    /// through this camera; `None`: the default model.
     pub camera: Option<SessionCamera>,
     /// `Some`: the session answers with its subject's stature-regression
     /// lengths instead of the model's running estimate.
@@ -184,20 +182,6 @@ pub const MAX_LABEL_BYTES: usize = 128;
 /// far (the BLAPose reference's online rule), blapose-model's one
 /// definition of it.
 pub use blapose_model::RunningMean;
-
-/// Add one frame's `prediction` to an online estimate and return the
-/// estimate after it. `scale` is what the model's lengths are multiplied by
-/// (a height-normalized camera-aware model's camera height over the
-/// reference height, else 1), applied to each prediction before it is
-/// averaged. Streams (the batcher) and `AdjustSequence` with the online GRU
-/// both go through here, so the two compute a frame's estimate the same way.
-pub fn add_prediction(
-    lengths: &mut RunningMean,
-    prediction: &BoneLengths,
-    scale: f32,
-) -> BoneLengths {
-    lengths.push(&prediction.map(|v| v * scale))
-}
 
 /// Mutable per-session model state; only the batcher writes `hidden` and
 /// `lengths`.
@@ -948,17 +932,5 @@ mod tests {
         }
         assert_eq!(g.frames_seen(), 4);
         assert_eq!(g.estimate(), Some([0.75; NUM_BONES]));
-    }
-
-    #[test]
-    fn predictions_are_scaled_before_they_are_averaged() {
-        let mut lengths = RunningMean::new();
-        assert_eq!(
-            add_prediction(&mut lengths, &[0.5; NUM_BONES], 1.0),
-            [0.5; NUM_BONES]
-        );
-        let after = add_prediction(&mut lengths, &[0.3; NUM_BONES], 2.0);
-        assert_eq!(after, [0.55; NUM_BONES]);
-        assert_eq!(lengths.count(), 2);
     }
 }

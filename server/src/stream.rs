@@ -1,8 +1,9 @@
 //! One online stream: open or resume a session, then answer every frame
 //! exactly once and in order.
 //!
-//! Each stream runs as its own task that reads requests, validates frames,
-//! submits them to the batcher and keeps a FIFO of pending answers. Answers
+//! Each stream runs as its own task that reads requests, validates frames
+//! ([`crate::validate`]), submits them to the batcher ([`crate::batch`])
+//! and keeps a FIFO of pending answers ([`crate::answer`]). Answers
 //! are written strictly from the front of that FIFO, so a frame refused at
 //! validation (answered at once) never overtakes an earlier frame still in
 //! the model. The FIFO is bounded (`max_inflight_per_stream`): when it is
@@ -11,7 +12,7 @@
 //!
 //! In a session opened with `server_lifter`, frames carry keypoints only;
 //! the batcher lifts each one from the session's window of earlier frames
-//! (see [`crate::batcher`]) and the answer is built from that pose and
+//! (see [`crate::prepare`]) and the answer is built from that pose and
 //! names the lifter.
 //!
 //! Ending: a `close` request, the client ending its side, a protocol error,
@@ -24,7 +25,6 @@ use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::Instant;
 
-use blapose_core::bones;
 use blapose_core::Pose;
 use blapose_proto::v1 as pb;
 use pb::stream_request::Kind as Req;
@@ -33,8 +33,10 @@ use tokio::sync::{mpsc, oneshot, watch};
 use tonic::{Status, Streaming};
 use tracing::Instrument;
 
-use crate::batcher::{FrameJob, StepResult};
+use crate::answer::{self, frame_error};
+use crate::batch::{FrameJob, StepResult};
 use crate::metrics;
+use crate::prepare;
 use crate::service::AppState;
 use crate::session::{
     Attachment, Ownership, Session, SessionConfig, SessionError, SessionSnapshot, StateCopy,
@@ -195,10 +197,15 @@ fn open_or_resume(
             } else {
                 None
             };
-            let camera = validate::camera(open.camera.as_ref(), &input, state.camera_models())
-                .map_err(|e| e.to_status())?;
-            let subject = validate::subject(open.subject.as_ref(), &state.stature)
-                .map_err(|e| e.to_status())?;
+            let camera = prepare::session_camera(
+                open.camera.as_ref(),
+                &input,
+                state.camera_models().as_ref(),
+            )
+            .map_err(|e| e.to_status())?;
+            let subject = validate::subject(open.subject.as_ref())
+                .map_err(|e| e.to_status())?
+                .map(|s| answer::subject(s, &state.stature));
             let label = truncate_label(&open.client_label);
             let attachment = state
                 .store
@@ -269,21 +276,23 @@ fn restore(state: &AppState, resume: &pb::ResumeSession) -> Result<Attachment, S
             truncate_label(&resume.session_id)
         )));
     }
-    let camera = validate::camera(
+    let camera = prepare::session_camera(
         portable.camera.as_ref(),
         &portable.input,
-        state.camera_models(),
+        state.camera_models().as_ref(),
     )
     .map_err(|e| {
         Status::failed_precondition(format!(
             "the session token's camera calibration cannot be served here: {e}"
         ))
     })?;
-    let subject = validate::subject(portable.subject.as_ref(), &state.stature).map_err(|e| {
-        Status::failed_precondition(format!(
-            "the session token's subject cannot be served here: {e}"
-        ))
-    })?;
+    let subject = validate::subject(portable.subject.as_ref())
+        .map_err(|e| {
+            Status::failed_precondition(format!(
+                "the session token's subject cannot be served here: {e}"
+            ))
+        })?
+        .map(|s| answer::subject(s, &state.stature));
     let served = tokens.weights_for(camera.is_some());
     if served != Some(portable.weights_id) {
         return Err(Status::failed_precondition(format!(
@@ -436,17 +445,6 @@ fn lengths_vec(s: &SessionSnapshot) -> Vec<f32> {
     s.bone_lengths.map(|l| l.to_vec()).unwrap_or_default()
 }
 
-fn frame_error(frame_index: u64, code: tonic::Code, message: String) -> pb::StreamResponse {
-    metrics::frame_error(code);
-    pb::StreamResponse {
-        kind: Some(Resp::Error(pb::FrameError {
-            frame_index,
-            code: code as i32,
-            message,
-        })),
-    }
-}
-
 /// Validate and submit one frame; the returned entry answers it.
 fn submit(state: &AppState, a: &Attachment, token_every: u64, frame: pb::Frame) -> Pending {
     let received = Instant::now();
@@ -539,7 +537,13 @@ async fn next_answer(
                 .and_then(|c| seal(state, &a.session, *c))
                 .map(token_response);
             (
-                Some(step_response(frame_index, pose, lifter, received, result)),
+                Some(answer::frame_response(
+                    frame_index,
+                    pose,
+                    lifter,
+                    received,
+                    result,
+                )),
                 token,
             )
         }
@@ -550,69 +554,6 @@ async fn next_answer(
                 "frame was not answered".into(),
             )),
             None,
-        ),
-    }
-}
-
-fn step_response(
-    frame_index: u64,
-    client_pose: Option<Pose>,
-    lifter: &str,
-    received: Instant,
-    result: Result<StepResult, oneshot::error::RecvError>,
-) -> pb::StreamResponse {
-    let output = match result {
-        Ok(Ok(output)) => output,
-        Ok(Err(e)) => return frame_error(frame_index, e.code(), e.to_string()),
-        Err(_) => {
-            return frame_error(
-                frame_index,
-                tonic::Code::Unavailable,
-                "the batcher stopped before this frame".into(),
-            )
-        }
-    };
-    // The client's pose, or the one the server lifted for this frame.
-    let (pose, lifted) = match (client_pose, output.lifted) {
-        (Some(pose), _) => (pose, None),
-        (None, Some(lifted)) => (lifted, Some(lifted)),
-        (None, None) => {
-            return frame_error(
-                frame_index,
-                tonic::Code::Internal,
-                "the frame has neither a client pose nor a lifted one".into(),
-            )
-        }
-    };
-    // No estimate yet (a first frame without a detected joint): the pose
-    // as it is, with its own lengths.
-    let lengths = output.lengths.unwrap_or_else(|| bones::bone_lengths(&pose));
-    match bones::adjust_pose(&pose, &lengths) {
-        Ok(adjusted) => {
-            metrics::frame_ok(received.elapsed());
-            pb::StreamResponse {
-                kind: Some(Resp::Frame(pb::AdjustedFrame {
-                    frame_index,
-                    adjusted_pose_3d: adjusted.iter().flatten().copied().collect(),
-                    bone_lengths: lengths.to_vec(),
-                    frames_seen: output.frames_seen,
-                    lifter: if lifted.is_some() {
-                        lifter.to_string()
-                    } else {
-                        String::new()
-                    },
-                    lifted_pose_3d: lifted
-                        .map(|p| p.iter().flatten().copied().collect())
-                        .unwrap_or_default(),
-                })),
-            }
-        }
-        // Validation guarantees a pose the adjustment accepts; report
-        // rather than panic if that ever stops holding.
-        Err(e) => frame_error(
-            frame_index,
-            tonic::Code::Internal,
-            format!("adjustment failed: {e}"),
         ),
     }
 }

@@ -6,13 +6,13 @@
 //! server. It holds everything the answers after it depend on: the GRU
 //! hidden state (f32, bit for bit), the running mean's f64 sums and count
 //! (so the estimate continues bit for bit, not from a rounded mean), the
-//! input format, the camera calibration as the client sent it (the level
-//! camera and length scale are rebuilt from it by the same validation an
-//! open runs), the client label, the server lifter's window of normalized
-//! keypoints for a lifting session, and the SHA-256 of the weights the
-//! state belongs to (the online GRU of the session's family, and the
-//! lifter's) so that a replica with other weights refuses it instead of
-//! continuing a state its model never produced.
+//! input format, the camera calibration as the client sent it (the camera
+//! the models read through is rebuilt from it by the same validation and
+//! preparation an open runs), the client label, the server lifter's window
+//! of normalized keypoints for a lifting session, and the SHA-256 of the
+//! weights the state belongs to (the online GRU of the session's family,
+//! and the lifter's) so that a replica with other weights refuses it
+//! instead of continuing a state its model never produced.
 //!
 //! # Layout (version 2)
 //!

@@ -1,32 +1,35 @@
-//! Validation and conversion of client input, before anything touches a
-//! session.
+//! The validate stage: every check of client input, and its typed errors,
+//! before anything touches a session, the queue or a model.
 //!
-//! Everything a client sends is checked here and turned into the model's
-//! input (Human3.6M-17 keypoints in normalized screen coordinates, via
-//! blapose-core's layouts and camera modules) and a 3D pose that the
-//! adjustment is guaranteed to accept. Because the batcher only ever sees
-//! validated frames, a bad frame can be refused without the session's state
-//! moving. Every error says which value is wrong and what was expected; all
-//! of them map to INVALID_ARGUMENT.
+//! Everything a client sends is checked here, as text-embeddings-inference
+//! validates and tokenises a request before its queue: keypoints are read
+//! into Human3.6M-17 order and normalized screen coordinates (blapose-core's
+//! layouts and camera modules, the models' common input), a 3D pose is one
+//! the adjustment is guaranteed to accept, and a camera calibration is one
+//! the camera-aware models' input contract can read ([`camera`]). Because
+//! the later stages only ever see validated input, a bad frame is refused
+//! without the session's state moving. Nothing here builds a camera, fills
+//! a joint or runs a model ([`crate::prepare`] and [`crate::answer`] do).
+//! Every error says which value is wrong and what was expected; all of them
+//! map to INVALID_ARGUMENT.
 
 use blapose_core::bones::{self, BoneError};
 use blapose_core::layouts::{Coordinates, KeypointLayout};
 use blapose_core::lens::{LensDistortion, LensError};
 use blapose_core::level::{
-    self, CalibrationError, LevelCamera, LevelError, OutsideEnvelope, MAX_CAMERA_HEIGHT,
-    MIN_CAMERA_HEIGHT,
+    self, CalibrationError, LevelError, OutsideEnvelope, MAX_CAMERA_HEIGHT, MIN_CAMERA_HEIGHT,
 };
-use blapose_core::missing::hold_fill_sequence;
 pub use blapose_core::pose::POSE_VALUES;
 use blapose_core::skeleton::JOINT_NAMES;
-use blapose_core::{Pose, NUM_JOINTS};
-use blapose_model::stature::{Sex, StatureModel, MAX_STATURE_M, MIN_STATURE_M};
+use blapose_core::{ModelKind, Pose, Sex, NUM_JOINTS};
+use blapose_model::input::{ContractError, ModelInput, ViewCalibration};
+use blapose_model::stature::{MAX_STATURE_M, MIN_STATURE_M};
 pub use blapose_proto::convert::layout_to_proto;
+use blapose_proto::convert::{model_from_proto, sex_from_proto};
 use blapose_proto::v1 as pb;
 
 use crate::backend::INPUT_DIM;
-use crate::models::CameraReading;
-use crate::session::{InputFormat, SessionCamera, SessionSubject};
+use crate::session::InputFormat;
 
 /// Largest accepted magnitude of a 2D keypoint value (pixels or normalized).
 pub const MAX_KEYPOINT_ABS: f32 = 1e6;
@@ -204,7 +207,8 @@ pub enum InvalidInput {
     /// The camera height is not 0 (unknown) or a plausible height.
     #[error("camera.height {0} is not 0 (not given) or a height of {MIN_CAMERA_HEIGHT} to {MAX_CAMERA_HEIGHT} m")]
     CameraHeight(f32),
-    /// Height-normalized models without the camera height.
+    /// Models that read keypoints scaled to the floor, without the camera
+    /// height.
     #[error("camera.height is required: the camera-aware models read a person's size relative to the camera's height above the floor (metres; measure it with a tape)")]
     CameraHeightRequired,
     /// `camera.distortion` is not a usable lens model.
@@ -213,6 +217,10 @@ pub enum InvalidInput {
     /// A calibration the camera-aware models were not trained for.
     #[error("{0}")]
     OutsideTrainedCameras(OutsideEnvelope),
+    /// A calibration the camera-aware models' input contract cannot read
+    /// for another reason than the ones above.
+    #[error("camera: {0}")]
+    CameraContract(ContractError),
     /// A camera on a server without camera-aware models.
     #[error("a camera calibration was sent but this server has no camera-aware models (it was started with --no-camera-aware); leave camera out")]
     NoCameraAwareModel,
@@ -224,6 +232,18 @@ pub enum InvalidInput {
         /// The problem.
         source: Box<InvalidInput>,
     },
+}
+
+/// What a model's input contract refuses in a calibration, named as the
+/// checks of [`camera`] name it.
+impl From<ContractError> for InvalidInput {
+    fn from(e: ContractError) -> Self {
+        match e {
+            ContractError::CameraHeightRequired => InvalidInput::CameraHeightRequired,
+            ContractError::Level(e) => InvalidInput::Camera(e),
+            other => InvalidInput::CameraContract(other),
+        }
+    }
 }
 
 impl InvalidInput {
@@ -273,15 +293,30 @@ pub fn input_format_to_proto(spec: &InputFormat) -> pb::InputFormat {
     (*spec).into()
 }
 
+/// A checked calibration: as the client sent it (echoed on open and
+/// resume, carried by session tokens) and as the models' input contract
+/// reads it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ValidCamera {
+    /// As sent.
+    pub calibration: pb::CameraCalibration,
+    /// Its view: up, intrinsics and image size, the camera height when
+    /// given, and the lens when it has one.
+    pub view: ViewCalibration,
+}
+
 /// Validate an optional `CameraCalibration` against the input format and
-/// build its level twin. `served` is `None` when the server has no
-/// camera-aware models (a calibration is then refused), else what they
-/// ask of a calibration.
+/// `served`, the camera-aware models' input contract (`None` when the
+/// server has no camera-aware models: a calibration is then refused): a
+/// plausible camera height, and one when the contract scales to the floor;
+/// three values of up; the image the pixels refer to; a calibration that
+/// rectifies; a lens model that inverts over the image; a camera inside the
+/// ones the models were trained through.
 pub fn camera(
     calibration: Option<&pb::CameraCalibration>,
     spec: &InputFormat,
-    served: Option<CameraReading>,
-) -> Result<Option<SessionCamera>, InvalidInput> {
+    served: Option<&ModelInput>,
+) -> Result<Option<ValidCamera>, InvalidInput> {
     let Some(c) = calibration else {
         return Ok(None);
     };
@@ -292,19 +327,14 @@ pub fn camera(
     if height != 0.0 && !level::is_camera_height(height) {
         return Err(InvalidInput::CameraHeight(height));
     }
-    if (served.height_normalized || served.floor_scaled) && height == 0.0 {
+    if served.framing.needs_camera_height() && height == 0.0 {
         return Err(InvalidInput::CameraHeightRequired);
     }
-    let length_scale = if served.height_normalized {
-        blapose_core::level::height_scale(f64::from(height)) as f32
-    } else {
-        1.0
-    };
     let up: [f32; 3] =
         c.up.as_slice()
             .try_into()
             .map_err(|_| InvalidInput::CameraUpCount { got: c.up.len() })?;
-    let (width, height) =
+    let image_size =
         level::calibration_image_size(spec.coordinates, c.image_size.map(|s| (s.width, s.height)))
             .map_err(|e| match e {
                 CalibrationError::ImageSizeMismatch {
@@ -321,96 +351,77 @@ pub fn camera(
                 CalibrationError::ImageSizeMissing => InvalidInput::CameraImageSizeMissing,
                 other => InvalidInput::Camera(other.into()),
             })?;
-    let level = LevelCamera::from_pixels(
-        up.map(f64::from),
-        [c.focal_x, c.focal_y].map(f64::from),
-        [c.principal_x, c.principal_y].map(f64::from),
-        width,
-        height,
-    )
-    .map_err(InvalidInput::Camera)?;
-    let level = if served.floor_scaled {
-        level.scaled_to_floor(c.height)
-    } else {
-        level
+    let mut view = ViewCalibration {
+        up: up.map(f64::from),
+        focal: [c.focal_x, c.focal_y].map(f64::from),
+        principal: [c.principal_x, c.principal_y].map(f64::from),
+        image_size,
+        camera_height: (height != 0.0).then_some(height),
+        lens: None,
     };
-    let level = match LensDistortion::checked(
-        &c.distortion,
-        [c.focal_x, c.focal_y].map(f64::from),
-        [c.principal_x, c.principal_y].map(f64::from),
-        Some((width, height)),
-    )
-    .map_err(InvalidInput::CameraDistortion)?
-    {
-        None => level,
-        Some(lens) => level.with_lens(lens),
-    };
-    if let Some(envelope) = served.trained_cameras {
-        envelope
-            .check(
-                f64::from(c.height),
-                up.map(f64::from),
-                f64::from(c.focal_x),
-                width,
-            )
-            .map_err(InvalidInput::OutsideTrainedCameras)?;
-    }
-    Ok(Some(SessionCamera {
+    // The calibration must rectify; checked before the lens, whose model
+    // the contract's camera applies on top of the level one.
+    served.camera(&view)?;
+    view.lens =
+        LensDistortion::checked(&c.distortion, view.focal, view.principal, Some(image_size))
+            .map_err(InvalidInput::CameraDistortion)?;
+    served
+        .admits(&view)
+        .map_err(InvalidInput::OutsideTrainedCameras)?;
+    Ok(Some(ValidCamera {
         calibration: c.clone(),
-        level,
-        length_scale,
+        view,
     }))
 }
 
-/// Which model an offline request runs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum OfflineModel {
-    /// Whole-sequence Bi-GRU.
-    BiGru,
-    /// The online GRU run causally over the sequence.
-    OnlineGru,
+/// A model number of a request: `None` for UNSPECIFIED (the RPC's
+/// default), else the model, or [`InvalidInput::UnknownModel`].
+fn model(value: i32) -> Result<Option<ModelKind>, InvalidInput> {
+    if value == pb::Model::Unspecified as i32 {
+        return Ok(None);
+    }
+    model_from_proto(value)
+        .map(Some)
+        .ok_or(InvalidInput::UnknownModel(value))
 }
 
 /// Check the model of an `OpenSession` (only the online GRU streams).
-pub fn stream_model(value: i32) -> Result<pb::Model, InvalidInput> {
-    match pb::Model::try_from(value) {
-        Ok(pb::Model::Unspecified | pb::Model::OnlineGru) => Ok(pb::Model::OnlineGru),
-        Ok(pb::Model::OfflineBigru) => Err(InvalidInput::OfflineModelOnStream),
-        Err(_) => Err(InvalidInput::UnknownModel(value)),
+pub fn stream_model(value: i32) -> Result<ModelKind, InvalidInput> {
+    match model(value)?.unwrap_or(ModelKind::Gru) {
+        ModelKind::Gru => Ok(ModelKind::Gru),
+        ModelKind::BiGru => Err(InvalidInput::OfflineModelOnStream),
     }
 }
 
 /// The model of an `AdjustSequenceRequest` (Bi-GRU by default).
-pub fn offline_model(value: i32) -> Result<OfflineModel, InvalidInput> {
-    match pb::Model::try_from(value) {
-        Ok(pb::Model::Unspecified | pb::Model::OfflineBigru) => Ok(OfflineModel::BiGru),
-        Ok(pb::Model::OnlineGru) => Ok(OfflineModel::OnlineGru),
-        Err(_) => Err(InvalidInput::UnknownModel(value)),
-    }
+pub fn offline_model(value: i32) -> Result<ModelKind, InvalidInput> {
+    Ok(model(value)?.unwrap_or(ModelKind::BiGru))
 }
 
-/// Validate an optional subject and give it its stature-regression
-/// lengths (`model`: the server's stature model).
-pub fn subject(
-    subject: Option<&pb::Subject>,
-    model: &StatureModel,
-) -> Result<Option<SessionSubject>, InvalidInput> {
+/// A checked subject: as sent (echoed on open, carried by tokens), with
+/// its sex read.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ValidSubject {
+    /// As sent in `OpenSession.subject` / `AdjustSequenceRequest.subject`.
+    pub subject: pb::Subject,
+    /// Its sex, when given.
+    pub sex: Option<Sex>,
+}
+
+/// Validate an optional subject: a stature the stature model covers, and
+/// a known sex.
+pub fn subject(subject: Option<&pb::Subject>) -> Result<Option<ValidSubject>, InvalidInput> {
     let Some(s) = subject else {
         return Ok(None);
     };
     if !(s.height_m.is_finite() && (MIN_STATURE_M..=MAX_STATURE_M).contains(&s.height_m)) {
         return Err(InvalidInput::SubjectHeight(s.height_m));
     }
-    let sex = match pb::Sex::try_from(s.sex) {
-        Ok(pb::Sex::Unspecified) => None,
-        Ok(pb::Sex::Female) => Some(Sex::Female),
-        Ok(pb::Sex::Male) => Some(Sex::Male),
-        Err(_) => return Err(InvalidInput::SubjectSex(s.sex)),
-    };
-    Ok(Some(SessionSubject {
-        subject: *s,
-        lengths: model.predict(s.height_m, sex),
-    }))
+    let sex = sex_from_proto(s.sex);
+    if sex.is_none() && s.sex != pb::Sex::Unspecified as i32 {
+        return Err(InvalidInput::SubjectSex(s.sex));
+    }
+    Ok(Some(ValidSubject { subject: *s, sex }))
 }
 
 /// Where a joint counts as missing: [`blapose_core::missing::MISSING_CONFIDENCE`]
@@ -614,21 +625,23 @@ pub fn lifted_pose(pose: &Pose) -> Result<Pose, InvalidInput> {
 #[derive(Debug, Clone, PartialEq)]
 pub struct ValidSequence {
     /// Which model to run.
-    pub model: OfflineModel,
-    /// `frames x INPUT_DIM` model inputs.
+    pub model: ModelKind,
+    /// `frames x INPUT_DIM` inputs in normalized screen coordinates
+    /// (missing joints: placeholders).
     pub inputs: Vec<f32>,
+    /// `frames x NUM_JOINTS`: which joints were detected.
+    pub present: Vec<bool>,
     /// One pose per frame.
     pub poses: Vec<Pose>,
-    /// The request's camera: `Some` when it sent a calibration, and then
-    /// `inputs` are already rectified for the camera-aware model.
-    pub camera: Option<SessionCamera>,
+    /// The request's calibration, when it sent one.
+    pub camera: Option<ValidCamera>,
 }
 
 /// Validate an `AdjustSequenceRequest` (`camera_aware`: the server's
-/// camera-aware models, see [`camera`]).
+/// camera-aware models' input contract, see [`camera`]).
 pub fn sequence(
     req: &pb::AdjustSequenceRequest,
-    camera_aware: Option<CameraReading>,
+    camera_aware: Option<&ModelInput>,
 ) -> Result<ValidSequence, InvalidInput> {
     let spec = input_format(req.input_format.as_ref())?;
     let model = offline_model(req.model)?;
@@ -679,22 +692,17 @@ pub fn sequence(
     if !present.iter().any(|&p| p) {
         return Err(InvalidInput::NothingDetected);
     }
-    if present.iter().any(|&p| !p) {
-        hold_fill_sequence(&mut inputs, &present);
-    }
-    if let Some(camera) = &camera {
-        camera.level.rectify_frames(&mut inputs);
-    }
     Ok(ValidSequence {
         model,
         inputs,
+        present,
         poses,
         camera,
     })
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use blapose_core::camera::normalize_screen;
 
@@ -729,7 +737,10 @@ mod tests {
         joints.iter().flatten().copied().collect()
     }
 
-    fn format(layout: i32, coordinates: Option<pb::input_format::Coordinates>) -> pb::InputFormat {
+    pub(crate) fn format(
+        layout: i32,
+        coordinates: Option<pb::input_format::Coordinates>,
+    ) -> pb::InputFormat {
         pb::InputFormat {
             layout,
             coordinates,
@@ -792,12 +803,13 @@ mod tests {
 
     #[test]
     fn models_are_checked() {
-        assert_eq!(stream_model(0), Ok(pb::Model::OnlineGru));
-        assert_eq!(stream_model(1), Ok(pb::Model::OnlineGru));
+        assert_eq!(stream_model(0), Ok(ModelKind::Gru));
+        assert_eq!(stream_model(1), Ok(ModelKind::Gru));
         assert_eq!(stream_model(2), Err(InvalidInput::OfflineModelOnStream));
         assert_eq!(stream_model(9), Err(InvalidInput::UnknownModel(9)));
-        assert_eq!(offline_model(0), Ok(OfflineModel::BiGru));
-        assert_eq!(offline_model(1), Ok(OfflineModel::OnlineGru));
+        assert_eq!(offline_model(0), Ok(ModelKind::BiGru));
+        assert_eq!(offline_model(1), Ok(ModelKind::Gru));
+        assert_eq!(offline_model(2), Ok(ModelKind::BiGru));
         assert_eq!(offline_model(-3), Err(InvalidInput::UnknownModel(-3)));
     }
 
@@ -968,59 +980,6 @@ mod tests {
         ));
     }
 
-    /// Joints below [`MISSING_CONFIDENCE`] are not read: any coordinates
-    /// (NaN included) give the same inputs, those of the joint held at its
-    /// last detection (or its first, before it).
-    #[test]
-    fn missing_joints_of_a_sequence_are_held_whatever_their_coordinates() {
-        let fmt = format(1, Some(pb::input_format::Coordinates::Normalized(true)));
-        let kp: Vec<f32> = (0..3 * 34).map(|i| 0.01 * (i % 50) as f32).collect();
-        let mut req = pb::AdjustSequenceRequest {
-            input_format: Some(fmt),
-            model: 0,
-            num_frames: 3,
-            keypoints_2d: kp.clone(),
-            confidence: vec![0.9; 3 * 17],
-            poses_3d: standing_pose().repeat(3),
-            camera: None,
-            subject: None,
-        };
-        let clean = sequence(&req, None).unwrap().inputs;
-        // Joint 5 lost in frame 1, joint 2 lost in frame 0.
-        req.confidence[17 + 5] = 0.0;
-        req.confidence[2] = 0.05;
-        req.keypoints_2d[34 + 10] = f32::NAN;
-        req.keypoints_2d[34 + 11] = 1e9;
-        req.keypoints_2d[4] = -7.0;
-        let held = sequence(&req, None).unwrap().inputs;
-        req.keypoints_2d[34 + 10] = 0.3;
-        req.keypoints_2d[4] = 0.9;
-        assert_eq!(
-            sequence(&req, None).unwrap().inputs,
-            held,
-            "coordinates not read"
-        );
-        let at =
-            |t: usize, j: usize| [held[t * INPUT_DIM + 2 * j], held[t * INPUT_DIM + 2 * j + 1]];
-        let was = |t: usize, j: usize| {
-            [
-                clean[t * INPUT_DIM + 2 * j],
-                clean[t * INPUT_DIM + 2 * j + 1],
-            ]
-        };
-        assert_eq!(at(1, 5), was(0, 5), "held from frame 0");
-        assert_eq!(at(0, 2), was(1, 2), "before its first detection: that one");
-        for (t, j) in [(0, 0), (1, 4), (2, 5), (2, 2)] {
-            assert_eq!(at(t, j), was(t, j), "detected joints unchanged");
-        }
-        req.confidence = vec![0.0; 3 * 17];
-        assert_eq!(sequence(&req, None), Err(InvalidInput::NothingDetected));
-        assert_eq!(
-            sequence(&req, None).unwrap_err().to_status().code(),
-            tonic::Code::InvalidArgument
-        );
-    }
-
     #[test]
     fn sequences_are_checked_frame_by_frame() {
         let fmt = format(1, Some(pb::input_format::Coordinates::Normalized(true)));
@@ -1035,7 +994,7 @@ mod tests {
             subject: None,
         };
         let ok = sequence(&req, None).unwrap();
-        assert_eq!(ok.model, OfflineModel::BiGru);
+        assert_eq!(ok.model, ModelKind::BiGru);
         assert_eq!(ok.inputs.len(), 3 * INPUT_DIM);
         assert_eq!(ok.poses.len(), 3);
 
@@ -1072,7 +1031,7 @@ mod tests {
         ));
     }
 
-    fn calibration() -> pb::CameraCalibration {
+    pub(crate) fn calibration() -> pb::CameraCalibration {
         // Looking 12 degrees down, centred principal point.
         let tilt = 12f32.to_radians();
         pb::CameraCalibration {
@@ -1099,16 +1058,18 @@ mod tests {
         let normalized = spec(KeypointLayout::H36m17, Coordinates::Normalized);
         let c = calibration();
         assert_eq!(camera(None, &pixels, None), Ok(None));
-        let got = camera(Some(&c), &pixels, Some(ANY_CAMERA))
+        let got = camera(Some(&c), &pixels, Some(&ANY_CAMERA))
             .unwrap()
             .unwrap();
         assert_eq!(got.calibration, c);
+        assert_eq!(got.view.image_size, (1000, 1000));
+        assert_eq!(got.view.camera_height, None);
         assert_eq!(
             camera(Some(&c), &pixels, None),
             Err(InvalidInput::NoCameraAwareModel)
         );
         assert_eq!(
-            camera(Some(&c), &normalized, Some(ANY_CAMERA)),
+            camera(Some(&c), &normalized, Some(&ANY_CAMERA)),
             Err(InvalidInput::CameraImageSizeMissing)
         );
         let sized = pb::CameraCalibration {
@@ -1120,11 +1081,11 @@ mod tests {
         };
         // The same camera, whether its image comes from the input or itself.
         assert_eq!(
-            camera(Some(&sized), &normalized, Some(ANY_CAMERA))
+            camera(Some(&sized), &normalized, Some(&ANY_CAMERA))
                 .unwrap()
                 .unwrap()
-                .level,
-            got.level
+                .view,
+            got.view
         );
         let other = pb::CameraCalibration {
             image_size: Some(pb::ImageSize {
@@ -1134,7 +1095,7 @@ mod tests {
             ..c.clone()
         };
         assert!(matches!(
-            camera(Some(&other), &pixels, Some(ANY_CAMERA)),
+            camera(Some(&other), &pixels, Some(&ANY_CAMERA)),
             Err(InvalidInput::CameraImageSizeMismatch {
                 camera_width: 1920,
                 ..
@@ -1145,7 +1106,7 @@ mod tests {
             ..c.clone()
         };
         assert_eq!(
-            camera(Some(&short), &pixels, Some(ANY_CAMERA)),
+            camera(Some(&short), &pixels, Some(&ANY_CAMERA)),
             Err(InvalidInput::CameraUpCount { got: 2 })
         );
         for bad in [
@@ -1166,19 +1127,15 @@ mod tests {
                 ..c.clone()
             },
         ] {
-            let err = camera(Some(&bad), &pixels, Some(ANY_CAMERA)).unwrap_err();
+            let err = camera(Some(&bad), &pixels, Some(&ANY_CAMERA)).unwrap_err();
             assert!(matches!(err, InvalidInput::Camera(_)), "{err}");
             assert!(err.to_string().starts_with("camera: "), "{err}");
         }
     }
 
-    /// Camera-aware models that take any calibration and are not
-    /// height-normalized.
-    const ANY_CAMERA: CameraReading = CameraReading {
-        height_normalized: false,
-        floor_scaled: false,
-        trained_cameras: None,
-    };
+    /// Camera-aware models that read plain rectified keypoints from any
+    /// camera.
+    pub(crate) const ANY_CAMERA: ModelInput = ModelInput::level();
 
     #[test]
     fn wide_camera_models_need_the_height_and_a_calibration_they_were_trained_for() {
@@ -1189,20 +1146,17 @@ mod tests {
                 height: 1000,
             },
         );
-        let wide = CameraReading {
-            height_normalized: true,
-            floor_scaled: true,
-            trained_cameras: Some(level::WIDE_CAMERA_ENVELOPE),
-        };
-        // 10 degrees down, 47 degrees across, 1.5 m up: served, scaled.
+        let wide = ModelInput::from_training(true, true, true);
+        assert_eq!(wide.trained_cameras, Some(level::WIDE_CAMERA_ENVELOPE));
+        // 10 degrees down, 47 degrees across, 1.5 m up: served.
         let c = pb::CameraCalibration {
             height: 1.5,
             ..calibration()
         };
-        let got = camera(Some(&c), &pixels, Some(wide)).unwrap().unwrap();
-        assert_eq!(got.level.floor_scale_height(), Some(1.5));
-        assert!((got.length_scale - (1.5 / level::REFERENCE_CAMERA_HEIGHT) as f32).abs() < 1e-6);
-        let refused = |c: pb::CameraCalibration| camera(Some(&c), &pixels, Some(wide)).unwrap_err();
+        let got = camera(Some(&c), &pixels, Some(&wide)).unwrap().unwrap();
+        assert_eq!(got.view.camera_height, Some(1.5));
+        let refused =
+            |c: pb::CameraCalibration| camera(Some(&c), &pixels, Some(&wide)).unwrap_err();
         assert_eq!(
             refused(pb::CameraCalibration {
                 height: 0.0,
@@ -1248,11 +1202,11 @@ mod tests {
             height: 4.0,
             ..c.clone()
         };
-        assert!(camera(Some(&far), &pixels, Some(ANY_CAMERA)).is_ok());
+        assert!(camera(Some(&far), &pixels, Some(&ANY_CAMERA)).is_ok());
     }
 
     #[test]
-    fn a_lens_distortion_is_undone_or_refused_by_name() {
+    fn a_lens_distortion_is_read_or_refused_by_name() {
         let pixels = spec(
             KeypointLayout::H36m17,
             Coordinates::Pixels {
@@ -1264,28 +1218,20 @@ mod tests {
             distortion,
             ..calibration()
         };
-        let plain = camera(Some(&calibration()), &pixels, Some(ANY_CAMERA))
+        let plain = camera(Some(&calibration()), &pixels, Some(&ANY_CAMERA))
             .unwrap()
             .unwrap();
+        assert_eq!(plain.view.lens, None);
         for ok in [
             vec![-0.2, 0.05, 0.001, -0.001],
             vec![-0.2, 0.05, 0.001, -0.001, 0.01],
         ] {
-            let lens = camera(Some(&with(ok.clone())), &pixels, Some(ANY_CAMERA))
+            let lens = camera(Some(&with(ok.clone())), &pixels, Some(&ANY_CAMERA))
                 .unwrap()
                 .unwrap();
-            // Echoed as sent; a corner keypoint lands elsewhere than without.
+            // Echoed as sent, and read into the view.
             assert_eq!(lens.calibration.distortion, ok);
-            let mut corner = vec![0.9f32; 34];
-            let mut same = corner.clone();
-            lens.level.rectify_frames(&mut corner);
-            plain.level.rectify_frames(&mut same);
-            assert!(
-                (corner[0] - same[0]).abs() > 0.01,
-                "{} vs {}",
-                corner[0],
-                same[0]
-            );
+            assert!(lens.view.lens.is_some());
         }
         for bad in [
             vec![0.1, 0.2, 0.3],
@@ -1293,44 +1239,12 @@ mod tests {
             // Folds over within the picture.
             vec![-2.0, 0.0, 0.0, 0.0],
         ] {
-            let err = camera(Some(&with(bad.clone())), &pixels, Some(ANY_CAMERA)).unwrap_err();
+            let err = camera(Some(&with(bad.clone())), &pixels, Some(&ANY_CAMERA)).unwrap_err();
             assert!(
                 matches!(err, InvalidInput::CameraDistortion(_)),
                 "{bad:?}: {err}"
             );
             assert!(err.to_string().starts_with("camera.distortion"), "{err}");
         }
-    }
-
-    #[test]
-    fn a_sequence_with_a_camera_is_rectified_for_the_model() {
-        let fmt = format(
-            1,
-            Some(pb::input_format::Coordinates::ImageSize(pb::ImageSize {
-                width: 1000,
-                height: 1000,
-            })),
-        );
-        let keypoints: Vec<f32> = (0..2 * 34).map(|i| 300.0 + 7.0 * i as f32).collect();
-        let mut req = pb::AdjustSequenceRequest {
-            input_format: Some(fmt),
-            model: 0,
-            num_frames: 2,
-            keypoints_2d: keypoints,
-            confidence: vec![],
-            poses_3d: standing_pose().repeat(2),
-            camera: None,
-            subject: None,
-        };
-        let plain = sequence(&req, Some(ANY_CAMERA)).unwrap();
-        req.camera = Some(calibration());
-        assert_eq!(sequence(&req, None), Err(InvalidInput::NoCameraAwareModel));
-        let rectified = sequence(&req, Some(ANY_CAMERA)).unwrap();
-        let camera = rectified.camera.clone().unwrap();
-        let mut want = plain.inputs.clone();
-        camera.level.rectify_frames(&mut want);
-        assert_eq!(rectified.inputs, want);
-        assert_ne!(rectified.inputs, plain.inputs);
-        assert_eq!(rectified.poses, plain.poses);
     }
 }

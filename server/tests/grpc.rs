@@ -13,7 +13,7 @@ use blapose_server::backend::{
     Backend, BackendError, SequenceBackend, INPUT_DIM, OUTPUT_DIM, STATE_DIM,
 };
 use blapose_server::testing::StepGate;
-use blapose_server::{CameraReading, ModelProvider, ServerConfig, ServerHandle};
+use blapose_server::{ModelInput, ModelProvider, ServerConfig, ServerHandle};
 use pb::pose_adjustment_client::PoseAdjustmentClient;
 use pb::stream_request::Kind as Req;
 use pb::stream_response::Kind as Resp;
@@ -88,7 +88,8 @@ struct Fake {
     delay: Duration,
     offset: f32,
     camera_aware: Option<Arc<Fake>>,
-    height_normalized: bool,
+    /// The input contract the fake reports.
+    input: ModelInput,
     gate: Option<Arc<StepGate>>,
 }
 
@@ -98,7 +99,7 @@ impl Fake {
             delay,
             offset: 0.0,
             camera_aware: None,
-            height_normalized: false,
+            input: ModelInput::level(),
             gate: None,
         }
     }
@@ -138,14 +139,8 @@ impl ModelProvider for Fake {
             .clone()
             .map(|p| p as Arc<dyn ModelProvider>)
     }
-    fn camera_reading(&self) -> CameraReading {
-        CameraReading {
-            height_normalized: self.height_normalized,
-            floor_scaled: false,
-            trained_cameras: self
-                .height_normalized
-                .then_some(blapose_core::level::WIDE_CAMERA_ENVELOPE),
-        }
+    fn model_input(&self) -> ModelInput {
+        self.input
     }
 }
 
@@ -1252,17 +1247,21 @@ async fn bad_or_unserved_cameras_are_refused_at_open() {
     server.shutdown().await.unwrap();
 }
 
+/// Camera-aware models whose input contract reads keypoints scaled to the
+/// floor, through the wide cameras: the camera's height is required, a
+/// calibration outside those cameras is refused naming the value, and the
+/// lengths are the model's own (no scaling), the same bits streamed and
+/// offline.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn height_normalized_models_are_scaled_by_the_camera_height() {
+async fn the_camera_aware_contract_decides_what_a_calibration_needs() {
     let mut fake = Fake::with_camera_aware(Duration::ZERO);
     fake.camera_aware = Some(Arc::new(Fake {
         offset: 0.1,
-        height_normalized: true,
+        input: ModelInput::from_training(true, true, true),
         ..Fake::new(Duration::ZERO)
     }));
     let server = start_with(config(), fake).await;
     let mut c = client(server.local_addr()).await;
-    let scale = 1.3 / blapose_core::level::REFERENCE_CAMERA_HEIGHT as f32;
     // Without the camera's height the size cannot be read: refused.
     let no_height = pb::CameraCalibration {
         height: 0.0,
@@ -1300,7 +1299,7 @@ async fn height_normalized_models_are_scaled_by_the_camera_height() {
             .starts_with("camera.height gives a camera height of 3.40 m"),
         "{err:?}"
     );
-    for (height, k) in [(1.3, scale), (2.6, 2.0 * scale)] {
+    for height in [1.3, 2.6] {
         let camera = pb::CameraCalibration {
             height,
             ..calibration()
@@ -1313,13 +1312,13 @@ async fn height_normalized_models_are_scaled_by_the_camera_height() {
         for n in 1..=3 {
             let f = conn.frame().await;
             for b in 0..16 {
-                let want = (expected_mean(b, n) + 0.1) * k;
+                let want = expected_mean(b, n) + 0.1;
                 assert!((f.bone_lengths[b] - want).abs() < 1e-6, "height {height}");
             }
             streamed.extend(f.bone_lengths);
         }
-        // The online GRU offline scales and averages as the stream does:
-        // the same bits.
+        // The online GRU offline averages as the stream does: the same
+        // bits.
         let gru = c
             .adjust_sequence(pb::AdjustSequenceRequest {
                 model: pb::Model::OnlineGru as i32,
@@ -1334,12 +1333,9 @@ async fn height_normalized_models_are_scaled_by_the_camera_height() {
             .await
             .unwrap()
             .into_inner();
-        assert!(
-            (seq.bone_lengths[0] - 0.4 * k).abs() < 1e-6,
-            "height {height}"
-        );
+        assert!((seq.bone_lengths[0] - 0.4).abs() < 1e-6, "height {height}");
     }
-    // The default models never scale.
+    // The default models read no camera.
     let (mut conn, _) = Conn::open(&mut c).await;
     conn.send(frame(0)).await;
     assert!((conn.frame().await.bone_lengths[0] - expected_mean(0, 1)).abs() < 1e-6);

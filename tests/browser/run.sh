@@ -15,6 +15,8 @@
 # and a screenshot (default: a temporary directory, removed).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
+# shellcheck source=../e2e-lib.sh
+. tests/e2e-lib.sh
 ROOT=$PWD
 PY=${BLAPOSE_PYTHON:-$ROOT/target/pyvenv-ci/bin/python}
 EXAMPLE=${BLAPOSE_REPORT_EXAMPLE:-examples/cmu_02_02_walk.npz}
@@ -33,34 +35,10 @@ echo "== npm ci (tests/browser)"
 (cd tests/browser && npm ci --no-audit --no-fund --loglevel=error)
 cargo build --release --quiet -p blapose-server -p blapose-client
 
-if [ -n "${BLAPOSE_REPORT_DIR:-}" ]; then
-    OUT=$BLAPOSE_REPORT_DIR
-    mkdir -p "$OUT"
-else
-    OUT=$(mktemp -d)
-fi
-SERVER_PID=
-cleanup() {
-    if [ -n "$SERVER_PID" ]; then kill "$SERVER_PID" 2>/dev/null || true; wait "$SERVER_PID" 2>/dev/null || true; fi
-    if [ -z "${BLAPOSE_REPORT_DIR:-}" ]; then rm -rf "$OUT"; fi
-}
-trap cleanup EXIT
+use_out_dir "${BLAPOSE_REPORT_DIR:-}"
 
-# The server picks a free port (--addr 127.0.0.1:0) and logs it.
-target/release/blapose-server --addr 127.0.0.1:0 --no-metrics >"$OUT/server.log" 2>&1 &
-SERVER_PID=$!
-URL=
-for _ in $(seq 600); do
-    PORT=$(sed -n 's/.*serving blapose\.v1 addr=127\.0\.0\.1:\([0-9]*\).*/\1/p' "$OUT/server.log" | head -n 1)
-    if [ -n "$PORT" ]; then URL=http://127.0.0.1:$PORT; break; fi
-    kill -0 "$SERVER_PID" 2>/dev/null || break
-    sleep 0.1
-done
-if [ -z "$URL" ]; then
-    echo "error: blapose-server did not start:" >&2
-    cat "$OUT/server.log" >&2
-    exit 1
-fi
+# The server picks a free port and logs it (tests/e2e-lib.sh).
+start_server "$OUT/server.log"
 
 echo "== reports of $EXAMPLE (server $URL)"
 target/release/blapose-client --server "$URL" replay "$EXAMPLE" --html "$OUT/report_rust.html" >/dev/null

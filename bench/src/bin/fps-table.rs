@@ -27,25 +27,28 @@
 //! kernel, everything else in candle), with rayon's and candle's default
 //! thread counts unless `--threads` is given; the GRU engine uses
 //! `--gru-threads`.
+//!
+//! The steps themselves are [`blapose_bench::online`]'s and the timing
+//! protocol [`blapose_bench::timing`]'s; this file is the table: its
+//! rows, the paper's figures, and the report.
 
 use std::hint::black_box;
 use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use blapose_bench::machine::{cpu_model, load_average, process_cpu_seconds};
+use blapose_bench::machine::{cpu_model, load_average};
+use blapose_bench::online::{synthetic_stream, Adjuster, LifterStream};
+use blapose_bench::timing::{measure, median_of, Measurement};
 use clap::{Parser, ValueEnum};
 use serde::Serialize;
 
 use blapose_core::bones::adjust_pose_lenient;
-use blapose_core::{BoneLengths, Keypoints2d, Pose, NUM_BONES, NUM_JOINTS};
-use blapose_lifters::{
-    poses_from_tensor, Anatomy3d, Anatomy3dConfig, Lifter, OnlineBoneLengths, PoseFormer,
-    PoseFormerConfig, SlidingWindow, VideoPose3d, VideoPose3dConfig,
-};
-use blapose_model::fast::{EngineOptions, OnlineGruEngine, StepScratch};
+use blapose_core::{Keypoints2d, Pose};
+use blapose_lifters::{Anatomy3d, Anatomy3dConfig, Lifter, OnlineBoneLengths, ReferenceLifter};
+use blapose_model::fast::{EngineOptions, OnlineGruEngine};
 use blapose_model::{Isa, Precision};
-use blapose_model::{LoadedWeights, ModelKind, RunningMean, INPUT_DIM, OUTPUT_DIM, STATE_DIM};
+use blapose_model::{LoadedWeights, ModelKind};
 
 /// Reproduce the paper's FPS table (online, batch 1, one frame per step).
 #[derive(Parser, Debug)]
@@ -232,179 +235,12 @@ struct Report {
     rows: Vec<Row>,
 }
 
-/// BLAPose's per-frame work: GRU step, running mean, adjustment.
-struct Adjuster<'a> {
-    engine: &'a OnlineGruEngine,
-    scratch: StepScratch,
-    hidden: Vec<f32>,
-    out: [f32; OUTPUT_DIM],
-    /// The estimate, averaged as the server does.
-    running: RunningMean,
-}
-
-impl<'a> Adjuster<'a> {
-    fn new(engine: &'a OnlineGruEngine) -> Self {
-        Self {
-            engine,
-            scratch: engine.scratch(1),
-            hidden: vec![0.0; STATE_DIM],
-            out: [0.0; OUTPUT_DIM],
-            running: RunningMean::new(),
-        }
-    }
-
-    /// One GRU step; returns the mean prediction over the stream so far.
-    fn lengths(&mut self, frame: &Keypoints2d) -> Result<BoneLengths> {
-        let input: &[f32] = frame.as_flattened();
-        debug_assert_eq!(input.len(), INPUT_DIM);
-        self.engine
-            .step(input, &mut self.hidden, &mut self.out, &mut self.scratch)?;
-        // Random weights can predict negative lengths; a length is >= 0.
-        Ok(self.running.push(&self.out).map(|l| l.max(0.0)))
-    }
-
-    fn adjust(&mut self, frame: &Keypoints2d, pose: &Pose) -> Result<Pose> {
-        let lengths = self.lengths(frame)?;
-        Ok(adjust_pose_lenient(pose, &lengths)?)
-    }
-}
-
 /// The models under test.
 struct Models {
-    videopose: Option<VideoPose3d>,
-    poseformer: Option<PoseFormer>,
+    videopose: Option<Box<dyn Lifter>>,
+    poseformer: Option<Box<dyn Lifter>>,
     anatomy: Option<Anatomy3d>,
     gru: OnlineGruEngine,
-}
-
-/// One stream through a lifter (state that a server would keep per session).
-struct LifterStream<'a> {
-    lifter: &'a dyn Lifter,
-    anatomy: Option<&'a Anatomy3d>,
-    window: SlidingWindow,
-    lengths: OnlineBoneLengths,
-}
-
-impl<'a> LifterStream<'a> {
-    fn new(lifter: &'a dyn Lifter, anatomy: Option<&'a Anatomy3d>) -> Self {
-        Self {
-            lifter,
-            anatomy,
-            window: SlidingWindow::new(lifter.receptive_field()),
-            lengths: OnlineBoneLengths::new(),
-        }
-    }
-
-    fn step(&mut self, frame: &Keypoints2d) -> Result<Pose> {
-        self.window.push(*frame);
-        let window = self
-            .window
-            .tensor()?
-            .context("window is empty after a push")?;
-        let out = match self.anatomy {
-            Some(a) => {
-                let frame_t = blapose_lifters::keypoints_tensor(std::slice::from_ref(frame))?;
-                let lengths = a.bone_length().step(&frame_t, &mut self.lengths)?;
-                let lengths = candle_core::Tensor::from_slice(
-                    &lengths,
-                    (1, NUM_BONES),
-                    &candle_core::Device::Cpu,
-                )?;
-                a.predict_frame_with(&window, None, &lengths)?
-            }
-            None => self.lifter.predict_frame(&window)?,
-        };
-        poses_from_tensor(&out)?
-            .pop()
-            .context("lifter returned no pose")
-    }
-}
-
-/// A deterministic 2D stream: a standing figure in normalized screen
-/// coordinates, swaying and breathing a little.
-fn synthetic_stream(frames: usize) -> Vec<Keypoints2d> {
-    const BASE: [[f32; 2]; NUM_JOINTS] = [
-        [0.0, 0.0],
-        [-0.06, 0.0],
-        [-0.07, 0.22],
-        [-0.07, 0.44],
-        [0.06, 0.0],
-        [0.07, 0.22],
-        [0.07, 0.44],
-        [0.0, -0.12],
-        [0.0, -0.24],
-        [0.0, -0.29],
-        [0.0, -0.34],
-        [0.08, -0.23],
-        [0.12, -0.11],
-        [0.13, 0.0],
-        [-0.08, -0.23],
-        [-0.12, -0.11],
-        [-0.13, 0.0],
-    ];
-    (0..frames)
-        .map(|t| {
-            let phase = t as f32 * 0.05;
-            std::array::from_fn(|j| {
-                let s = 0.02 * (phase + j as f32 * 0.3).sin();
-                [BASE[j][0] + s + 0.05 * phase.sin(), BASE[j][1] + 0.5 * s]
-            })
-        })
-        .collect()
-}
-
-/// One timed measurement.
-#[derive(Debug, Clone, Copy, Serialize)]
-struct Measurement {
-    /// Steps per wall-clock second.
-    fps: f64,
-    /// Process CPU time over wall time, in percent (100 = one core busy
-    /// throughout; below the thread count means the process waited for a
-    /// CPU, i.e. the machine was shared).
-    cpu_pct: Option<f64>,
-    /// With the adjustment: the share of the timed wall time spent in the
-    /// adjustment itself, in percent (timed inside the same steps, so it is
-    /// robust to load changes between runs).
-    adjustment_share_pct: Option<f64>,
-}
-
-/// Time `steps` calls of `step` after `warmup` untimed ones.
-fn measure(
-    stream: &[Keypoints2d],
-    warmup: usize,
-    steps: usize,
-    mut step: impl FnMut(&Keypoints2d) -> Result<()>,
-) -> Result<Measurement> {
-    let mut frames = stream.iter().cycle();
-    for _ in 0..warmup {
-        step(frames.next().context("empty stream")?)?;
-    }
-    let cpu0 = process_cpu_seconds();
-    let start = Instant::now();
-    for _ in 0..steps {
-        step(frames.next().context("empty stream")?)?;
-    }
-    let wall = start.elapsed().as_secs_f64();
-    let cpu_pct = cpu0
-        .zip(process_cpu_seconds())
-        .map(|(a, b)| 100.0 * (b - a) / wall);
-    Ok(Measurement {
-        fps: steps as f64 / wall,
-        cpu_pct,
-        adjustment_share_pct: None,
-    })
-}
-
-/// Median of the defined values of `f` over `runs` (`None` if there are none).
-fn median_of(runs: &[Measurement], f: impl Fn(&Measurement) -> Option<f64>) -> Option<f64> {
-    let mut v: Vec<f64> = runs.iter().filter_map(f).collect();
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    match n {
-        0 => None,
-        _ if n % 2 == 1 => Some(v[n / 2]),
-        _ => Some(0.5 * (v[n / 2 - 1] + v[n / 2])),
-    }
 }
 
 fn overhead_pct(alone: f64, with: f64) -> f64 {
@@ -512,15 +348,10 @@ fn build_models(args: &Args, rows: &[RowKind]) -> Result<Models> {
     let want = |k: RowKind| rows.contains(&k);
     Ok(Models {
         videopose: want(RowKind::Videopose3d)
-            .then(|| {
-                VideoPose3d::random(
-                    VideoPose3dConfig::receptive_field_243().with_causal(causal),
-                    args.seed,
-                )
-            })
+            .then(|| ReferenceLifter::VideoPose3d.random(causal, args.seed))
             .transpose()?,
         poseformer: want(RowKind::Poseformer)
-            .then(|| PoseFormer::random(PoseFormerConfig::frames_81(), args.seed))
+            .then(|| ReferenceLifter::PoseFormer.random(causal, args.seed))
             .transpose()?,
         anatomy: (want(RowKind::Anatomy3d) || want(RowKind::AnatomyBoneLength))
             .then(|| {
@@ -692,11 +523,17 @@ fn main() -> Result<()> {
     for &kind in &rows {
         let row = match kind {
             RowKind::Videopose3d => {
-                let m = models.videopose.as_ref().context("VideoPose3D not built")?;
+                let m = models
+                    .videopose
+                    .as_deref()
+                    .context("VideoPose3D not built")?;
                 lifter_row(&args, kind, m, None, &models.gru, &stream)?
             }
             RowKind::Poseformer => {
-                let m = models.poseformer.as_ref().context("PoseFormer not built")?;
+                let m = models
+                    .poseformer
+                    .as_deref()
+                    .context("PoseFormer not built")?;
                 lifter_row(&args, kind, m, None, &models.gru, &stream)?
             }
             RowKind::Anatomy3d => {
@@ -782,19 +619,7 @@ mod tests {
     use super::*;
 
     fn m(fps: f64, cpu: Option<f64>) -> Measurement {
-        Measurement {
-            fps,
-            cpu_pct: cpu,
-            adjustment_share_pct: None,
-        }
-    }
-
-    #[test]
-    fn medians_skip_missing_values() {
-        let runs = [m(3.0, Some(50.0)), m(1.0, None), m(2.0, Some(70.0))];
-        assert_eq!(median_of(&runs, |r| Some(r.fps)), Some(2.0));
-        assert_eq!(median_of(&runs, |r| r.cpu_pct), Some(60.0));
-        assert_eq!(median_of(&[], |r| Some(r.fps)), None);
+        Measurement::new(fps, cpu)
     }
 
     #[test]
@@ -820,28 +645,6 @@ mod tests {
         // 3000 FPS while getting 99 % of a CPU is 3030 steps per CPU-second.
         assert!((gru.fps_per_cpu_second.unwrap() - 3030.3).abs() < 0.1);
         assert_eq!(row.fps_per_cpu_second, None);
-    }
-
-    #[test]
-    fn measure_counts_steps_and_warmup() {
-        let stream = synthetic_stream(5);
-        let mut calls = 0;
-        let r = measure(&stream, 3, 10, |_| {
-            calls += 1;
-            Ok(())
-        })
-        .unwrap();
-        assert_eq!(calls, 13);
-        assert!(r.fps > 0.0);
-        assert!(measure(&stream, 0, 1, |_| bail!("boom")).is_err());
-    }
-
-    #[test]
-    fn stream_is_deterministic_and_in_normalized_range() {
-        let a = synthetic_stream(50);
-        assert_eq!(a, synthetic_stream(50));
-        assert_ne!(a[0], a[49]);
-        assert!(a.iter().flatten().flatten().all(|v| v.abs() < 1.0));
     }
 
     #[test]

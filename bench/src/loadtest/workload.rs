@@ -11,7 +11,7 @@
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use blapose_client::{InputFormat, Sequence, SequenceError};
+use blapose_client::{InputFormat, Sequence, SequenceError, ToProto};
 use blapose_proto::v1 as pb;
 
 /// Why the workload could not be loaded.

@@ -21,8 +21,12 @@ pub mod lens;
 pub mod level;
 pub mod metrics;
 pub mod missing;
+pub mod model_kind;
+pub mod person;
 pub mod pose;
 pub mod skeleton;
 
+pub use model_kind::ModelKind;
+pub use person::Sex;
 pub use pose::{BoneDirections, BoneLengths, Keypoints2d, Pose};
 pub use skeleton::{NUM_BONES, NUM_JOINTS};

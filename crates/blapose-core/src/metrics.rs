@@ -21,16 +21,21 @@
 //! - Action aggregation ([`ActionAggregator`]): a frame-weighted mean per
 //!   action (all takes, subjects and cameras of that action), then the
 //!   unweighted mean over actions.
+//! - [`PoseMetrics`]: the millimetre summary of one set of poses, the one
+//!   shape the client's before/after table ([`Evaluation`], [`evaluate`])
+//!   and the trainer's adjustment tables both report and serialize.
 //!
 //! Non-finite inputs propagate (the result is NaN): metrics report, they do
 //! not validate. All sums are accumulated in `f64`.
 
 use std::collections::BTreeMap;
+use std::fmt;
 
 use nalgebra::{Matrix3, Vector3};
+use serde::{Deserialize, Serialize};
 
 use crate::bones::bone_lengths;
-use crate::pose::{BoneLengths, Pose};
+use crate::pose::{root_relative, BoneLengths, Pose};
 use crate::skeleton::{NUM_BONES, NUM_JOINTS};
 
 /// Millimetres per metre.
@@ -340,5 +345,165 @@ impl ActionAggregator {
     pub fn mean_over_actions(&self) -> Option<f64> {
         let per = self.per_action();
         (!per.is_empty()).then(|| per.iter().map(|(_, v)| v).sum::<f64>() / per.len() as f64)
+    }
+}
+
+/// Accuracy of one set of poses, in millimetres (MPJVE in millimetres per
+/// frame).
+///
+/// Serialized as `{"mpjpe_mm":..,"p_mpjpe_mm":..,"bone_error_mm":..}`, with
+/// `"mpjve_mm"` between the second and the third only when it was computed.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PoseMetrics {
+    /// MPJPE (protocol 1).
+    pub mpjpe_mm: f64,
+    /// P-MPJPE (protocol 2, similarity-aligned).
+    pub p_mpjpe_mm: f64,
+    /// MPJVE, when computed (the trainer's tables); `None` where only
+    /// positions are compared (the client's before/after table).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub mpjve_mm: Option<f64>,
+    /// Mean absolute bone-length error over the 16 bones and all frames.
+    pub bone_error_mm: f64,
+}
+
+/// Accuracy of `pred` against `gt`, both moved to a pelvis at the origin
+/// for MPJPE (P-MPJPE and bone lengths do not depend on translation), as
+/// lifters are scored under protocol 1; MPJVE is not computed.
+pub fn pose_metrics(pred: &[Pose], gt: &[Pose]) -> Result<PoseMetrics, MetricError> {
+    let pred_rel: Vec<Pose> = pred.iter().map(root_relative).collect();
+    let gt_rel: Vec<Pose> = gt.iter().map(root_relative).collect();
+    Ok(PoseMetrics {
+        mpjpe_mm: mpjpe(&pred_rel, &gt_rel)? * MM_PER_M,
+        p_mpjpe_mm: p_mpjpe(&pred_rel, &gt_rel)? * MM_PER_M,
+        mpjve_mm: None,
+        bone_error_mm: pose_bone_length_error(pred, gt)?.mean * MM_PER_M,
+    })
+}
+
+/// A lifter's accuracy and the adjusted accuracy on one sequence: what an
+/// adjustment did, as `blapose-client` prints it (a table, via `Display`)
+/// and writes it (`{"frames":T,"before":{..},"after":{..}}`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Evaluation {
+    /// Frames compared.
+    pub frames: usize,
+    /// The poses before the adjustment (the lifter's).
+    pub before: PoseMetrics,
+    /// The adjusted poses.
+    pub after: PoseMetrics,
+}
+
+/// Compare the lifter's poses and the adjusted poses with the ground truth
+/// ([`pose_metrics`] for each).
+pub fn evaluate(
+    lifted: &[Pose],
+    adjusted: &[Pose],
+    gt: &[Pose],
+) -> Result<Evaluation, MetricError> {
+    Ok(Evaluation {
+        frames: gt.len(),
+        before: pose_metrics(lifted, gt)?,
+        after: pose_metrics(adjusted, gt)?,
+    })
+}
+
+/// The relative change from `before` to `after`, or `-` without a base.
+fn change(before: f64, after: f64) -> String {
+    if before > 0.0 {
+        format!("{:+.1}%", (after - before) / before * 100.0)
+    } else {
+        "-".to_string()
+    }
+}
+
+impl fmt::Display for Evaluation {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(
+            f,
+            "{:<18} {:>10} {:>10} {:>9}",
+            format!("{} frames", self.frames),
+            "before",
+            "after",
+            "change"
+        )?;
+        let rows = [
+            ("MPJPE (mm)", self.before.mpjpe_mm, self.after.mpjpe_mm),
+            (
+                "P-MPJPE (mm)",
+                self.before.p_mpjpe_mm,
+                self.after.p_mpjpe_mm,
+            ),
+            (
+                "bone error (mm)",
+                self.before.bone_error_mm,
+                self.after.bone_error_mm,
+            ),
+        ];
+        for (name, b, a) in rows {
+            writeln!(f, "{name:<18} {b:>10.2} {a:>10.2} {:>9}", change(b, a))?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use approx::assert_relative_eq;
+
+    fn pose(scale: f32, shift: f32) -> Pose {
+        std::array::from_fn(|j| {
+            let j = j as f32;
+            [
+                scale * (0.1 * j).sin() + shift,
+                scale * 0.07 * j + shift,
+                scale * (0.3 * j).cos() + shift,
+            ]
+        })
+    }
+
+    #[test]
+    fn identical_poses_score_zero_and_translation_is_ignored() {
+        let gt = vec![pose(1.0, 0.0); 3];
+        let moved = vec![pose(1.0, 2.5); 3];
+        let m = pose_metrics(&moved, &gt).unwrap();
+        assert!(
+            m.mpjpe_mm < 1e-3 && m.p_mpjpe_mm < 1e-3 && m.bone_error_mm < 1e-3,
+            "{m:?}"
+        );
+        assert_eq!(m.mpjve_mm, None, "positions only");
+    }
+
+    #[test]
+    fn scaled_pose_has_the_expected_bone_error() {
+        let gt = vec![pose(1.0, 0.0); 2];
+        let big = vec![pose(1.1, 0.0); 2];
+        let m = pose_metrics(&big, &gt).unwrap();
+        let mean_len = bone_lengths(&gt[0]).iter().map(|&l| l as f64).sum::<f64>() / 16.0;
+        assert_relative_eq!(
+            m.bone_error_mm,
+            0.1 * mean_len * 1000.0,
+            max_relative = 1e-4
+        );
+        // A uniformly scaled pose is perfect after similarity alignment.
+        assert!(m.p_mpjpe_mm < 1e-2, "{m:?}");
+        assert!(m.mpjpe_mm > 1.0);
+    }
+
+    #[test]
+    fn evaluation_compares_both_sides_and_prints_a_table() {
+        let gt = vec![pose(1.0, 0.0); 2];
+        let e = evaluate(&[pose(1.1, 0.0), pose(1.1, 0.0)], &gt, &gt).unwrap();
+        assert_eq!(e.frames, 2);
+        assert!(e.before.bone_error_mm > 1.0 && e.after.bone_error_mm < 1e-3);
+        let table = e.to_string();
+        assert!(table.starts_with("2 frames"), "{table}");
+        assert!(table.contains("bone error (mm)"), "{table}");
+        assert!(table.contains("-100.0%"), "{table}");
+        assert!(matches!(
+            evaluate(&gt[..1], &gt, &gt),
+            Err(MetricError::LengthMismatch { .. })
+        ));
     }
 }

@@ -74,14 +74,8 @@ pub enum AnsurError {
     ColumnMismatch,
 }
 
-/// Sex as recorded in the survey's `Gender` column.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum Sex {
-    /// `Male`.
-    Male,
-    /// `Female`.
-    Female,
-}
+/// Sex as recorded in the survey's `Gender` column (`Male`, `Female`).
+pub use blapose_core::Sex;
 
 /// One person.
 #[derive(Debug, Clone, PartialEq)]

@@ -44,16 +44,15 @@
 
 use blapose_core::bones::{decompose, rebuild, BoneError};
 use blapose_core::camera::Camera;
+use blapose_core::layouts::{InputFormat, KeypointLayout};
 use blapose_core::pose::root_relative;
 use blapose_core::skeleton::{NUM_BONES, NUM_JOINTS};
 use blapose_core::{BoneLengths, Pose};
 use blapose_data::npz::{Array, Npz};
+use blapose_data::replay::{CameraCalibration, Sequence, SequenceError};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
-
-use blapose_client::sequence::{Sequence, SequenceError};
-use blapose_client::types::{CameraCalibration, InputFormat, KeypointLayout};
 
 /// Bone lengths (metres) of the example person in the Human3.6M joint
 /// convention, bone order of [`blapose_core::skeleton::BONE_NAMES`]: hip

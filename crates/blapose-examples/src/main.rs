@@ -9,8 +9,8 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
-use blapose_client::report::pose_metrics;
 use blapose_core::bones::adjust_sequence;
+use blapose_core::metrics::pose_metrics;
 use blapose_data::npz::{read_npz, write_npz};
 use blapose_examples::{clip_name_and_stature, make_example, ExampleConfig};
 use clap::Parser;

@@ -26,16 +26,20 @@
 //! few rows of online lifting). A trainer would build its own autograd
 //! forward over the same tensor names.
 //!
-//! [`trained`] loads a VideoPose3D trained by `blapose train-lifter` from
-//! its weights file (architecture and provenance in the file's metadata)
-//! as a [`TrainedLifter`], the causal online lifter blapose-server can run
-//! for clients that send 2D keypoints only.
+//! [`ReferenceLifter`] names those three reference architectures (random
+//! weights for timing). Lifters trained by `blapose train-lifter` are
+//! another concept: [`arch`] defines their architectures once
+//! ([`LifterArch`], selected by [`LifterKind`]) for the trainer that builds
+//! them and everyone who reads their weights files, and [`trained`] loads a
+//! trained causal VideoPose3D as a [`TrainedLifter`], the online lifter
+//! blapose-server can run for clients that send 2D keypoints only.
 //!
 //! Conventions: inputs are normalized 2D keypoints `(B, F, 17, 2)` in
 //! Human3.6M joint order, outputs root-relative 3D poses `(B, 17, 3)` (in
 //! whatever unit the weights were trained in; metres for the references).
 
 pub mod anatomy;
+pub mod arch;
 mod error;
 mod init;
 mod kernel;
@@ -47,6 +51,7 @@ pub mod videopose;
 mod window;
 
 pub use anatomy::{Anatomy3d, Anatomy3dConfig, BoneLengthBranch, OnlineBoneLengths};
+pub use arch::{LifterArch, LifterKind, MlpArch, VideoPoseArch};
 pub use error::{LifterError, Result};
 pub use init::{record_random, RandomInit};
 pub use poseformer::{PoseFormer, PoseFormerConfig};
@@ -78,9 +83,10 @@ pub trait Lifter: Send + Sync {
     fn predict_frame(&self, window: &Tensor) -> Result<Tensor>;
 }
 
-/// The lifters of the paper's efficiency table.
+/// The published reference lifters of the paper's efficiency table (not
+/// the architectures the trainer trains: those are [`LifterKind`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum LifterKind {
+pub enum ReferenceLifter {
     /// VideoPose3D, 243 frames.
     VideoPose3d,
     /// PoseFormer, 81 frames.
@@ -89,27 +95,27 @@ pub enum LifterKind {
     Anatomy3d,
 }
 
-impl LifterKind {
-    /// All kinds, in the order of the paper's table.
-    pub const ALL: [LifterKind; 3] = [
-        LifterKind::VideoPose3d,
-        LifterKind::Anatomy3d,
-        LifterKind::PoseFormer,
+impl ReferenceLifter {
+    /// All of them, in the order of the paper's table.
+    pub const ALL: [ReferenceLifter; 3] = [
+        ReferenceLifter::VideoPose3d,
+        ReferenceLifter::Anatomy3d,
+        ReferenceLifter::PoseFormer,
     ];
 
-    /// The reference model of this kind with random weights. `causal`
-    /// selects the causal variant where the model has one (VideoPose3D,
-    /// Anatomy3D); PoseFormer has none and always outputs the centre frame.
+    /// The reference model with random weights. `causal` selects the
+    /// causal variant where the model has one (VideoPose3D, Anatomy3D);
+    /// PoseFormer has none and always outputs the centre frame.
     pub fn random(self, causal: bool, seed: u64) -> Result<Box<dyn Lifter>> {
         Ok(match self {
-            LifterKind::VideoPose3d => Box::new(VideoPose3d::random(
+            ReferenceLifter::VideoPose3d => Box::new(VideoPose3d::random(
                 VideoPose3dConfig::receptive_field_243().with_causal(causal),
                 seed,
             )?),
-            LifterKind::PoseFormer => {
+            ReferenceLifter::PoseFormer => {
                 Box::new(PoseFormer::random(PoseFormerConfig::frames_81(), seed)?)
             }
-            LifterKind::Anatomy3d => Box::new(Anatomy3d::random(
+            ReferenceLifter::Anatomy3d => Box::new(Anatomy3d::random(
                 Anatomy3dConfig::receptive_field_243().with_causal(causal),
                 seed,
             )?),

@@ -7,8 +7,9 @@
 //! do that itself, and a client needs nothing but a 2D detector. The weights
 //! file says everything needed to rebuild the network (the trainer writes a
 //! JSON [`LifterMetadata`] under the safetensors header key
-//! [`METADATA_KEY`], and the tensors under the reference VideoPose3D names
-//! that [`VideoPose3d::new`] loads), so serving one takes no size flags.
+//! [`METADATA_KEY`], its architecture a [`LifterArch`], and the tensors
+//! under the reference VideoPose3D names that [`VideoPose3d::new`] loads),
+//! so serving one takes no size flags.
 //!
 //! What is refused, each with its own [`TrainedLifterError`]: files without
 //! the metadata, architectures other than VideoPose3D (the trainer's `mlp`
@@ -35,8 +36,11 @@ use candle_nn::VarBuilder;
 use serde::{Deserialize, Serialize};
 
 use crate::error::LifterError;
-use crate::{poses_from_tensor, Lifter, SlidingWindow, VideoPose3d, VideoPose3dConfig};
+use crate::{poses_from_tensor, Lifter, SlidingWindow, VideoPose3d};
 use crate::{Result as LifterResult, INPUT_FEATURES};
+
+/// The architecture types the metadata records (defined in [`crate::arch`]).
+pub use crate::arch::{LifterArch, MlpArch, VideoPoseArch};
 
 /// Safetensors header key of the lifter metadata JSON (the trainer's
 /// `blapose_train::lifter::weights::METADATA_KEY`).
@@ -110,108 +114,32 @@ impl From<candle_core::Error> for TrainedLifterError {
 /// Result alias for this module.
 pub type Result<T> = std::result::Result<T, TrainedLifterError>;
 
-/// Size of a VideoPose3D-style temporal lifter as the trainer stores it:
-/// `blocks + 1` layers, all of filter width `filter_width`.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct VideoPoseArch {
-    /// Filter width of every layer (odd).
-    pub filter_width: usize,
-    /// Residual blocks after the expanding convolution.
-    pub blocks: usize,
-    /// Convolution channels.
-    pub channels: usize,
-    /// Dropout probability used in training (no effect at inference).
-    #[serde(default)]
-    pub dropout: f32,
-    /// Causal: the pose belongs to the window's last frame.
-    pub causal: bool,
+/// The receptive field of `arch` if a server can hold and build it: an odd
+/// filter width, channels, and at most [`MAX_RECEPTIVE_FIELD`] frames.
+fn servable_receptive_field(arch: &VideoPoseArch) -> Result<usize> {
+    let rf = arch.receptive_field().filter(|&r| r <= MAX_RECEPTIVE_FIELD);
+    let rf = rf.ok_or_else(|| {
+        TrainedLifterError::Size(format!(
+            "filter width {} and {} blocks give a receptive field over {MAX_RECEPTIVE_FIELD} frames",
+            arch.filter_width, arch.blocks
+        ))
+    })?;
+    if arch.filter_width.is_multiple_of(2) || arch.channels == 0 {
+        return Err(TrainedLifterError::Size(format!(
+            "filter width must be odd and channels > 0, got width {} and {} channels",
+            arch.filter_width, arch.channels
+        )));
+    }
+    Ok(rf)
 }
 
-impl VideoPoseArch {
-    /// Frames one pose depends on, `filter_width^(blocks + 1)`; `None` if
-    /// that overflows.
-    pub fn receptive_field(&self) -> Option<usize> {
-        let layers = u32::try_from(self.blocks).ok()?.checked_add(1)?;
-        self.filter_width.checked_pow(layers)
-    }
-
-    /// The trainer's short name: `videopose27-causal`, `videopose243`.
-    pub fn name(&self) -> String {
-        let rf = self
-            .receptive_field()
-            .map_or_else(|| "?".to_string(), |r| r.to_string());
-        format!("videopose{rf}{}", if self.causal { "-causal" } else { "" })
-    }
-
-    /// The inference crate's configuration of this size.
-    pub fn config(&self) -> VideoPose3dConfig {
-        VideoPose3dConfig {
-            filter_widths: vec![self.filter_width; self.blocks.saturating_add(1)],
-            channels: self.channels,
-            causal: self.causal,
-        }
-    }
-
-    fn check(&self) -> Result<usize> {
-        let rf = self.receptive_field().filter(|&r| r <= MAX_RECEPTIVE_FIELD);
-        let rf = rf.ok_or_else(|| {
-            TrainedLifterError::Size(format!(
-                "filter width {} and {} blocks give a receptive field over {MAX_RECEPTIVE_FIELD} frames",
-                self.filter_width, self.blocks
-            ))
-        })?;
-        if self.filter_width.is_multiple_of(2) || self.channels == 0 {
-            return Err(TrainedLifterError::Size(format!(
-                "filter width must be odd and channels > 0, got width {} and {} channels",
-                self.filter_width, self.channels
-            )));
-        }
-        Ok(rf)
-    }
-}
-
-/// Size of the trainer's residual MLP (single-frame; recognized only to be
-/// refused with a clear message).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct MlpArch {
-    /// Hidden width.
-    pub hidden: usize,
-    /// Residual blocks.
-    pub blocks: usize,
-    /// Dropout probability used in training.
-    #[serde(default)]
-    pub dropout: f32,
-}
-
-/// A lifter architecture, tagged by `model` as the trainer writes it.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "model", rename_all = "lowercase")]
-pub enum LifterArch {
-    /// `"videopose"`: temporal convolutions (servable when causal).
-    #[serde(rename = "videopose")]
-    VideoPose(VideoPoseArch),
-    /// `"mlp"`: the single-frame residual MLP (not servable).
-    Mlp(MlpArch),
-}
-
-impl LifterArch {
-    /// The `model` tag.
-    pub fn model(&self) -> &'static str {
-        match self {
-            Self::VideoPose(_) => "videopose",
-            Self::Mlp(_) => "mlp",
-        }
-    }
-}
-
-/// Provenance and conventions of a lifter weights file. The trainer writes
-/// it with its own architecture type (`A`, the networks it can build) and
-/// the server reads it back with [`LifterArch`]; one struct, so the two
-/// cannot drift apart.
+/// Provenance and conventions of a lifter weights file: the trainer
+/// writes it and the server and the evaluation read it back, one struct
+/// over one [`LifterArch`], so the two sides cannot drift apart.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct LifterMetadata<A = LifterArch> {
+pub struct LifterMetadata {
     /// Architecture and size.
-    pub arch: A,
+    pub arch: LifterArch,
     /// 2D input layout (`h36m17`).
     pub keypoint_layout: String,
     /// How pixels were normalized.
@@ -227,7 +155,7 @@ pub struct LifterMetadata<A = LifterArch> {
     pub extra: BTreeMap<String, String>,
 }
 
-impl<A: Serialize> LifterMetadata<A> {
+impl LifterMetadata {
     /// Flat key/value pairs for display (e.g. a server's ModelInfo):
     /// `arch` as JSON, the named fields, and `extra.*`.
     pub fn to_pairs(&self) -> BTreeMap<String, String> {
@@ -311,7 +239,7 @@ impl TrainedLifter {
                 })
             }
         };
-        let receptive_field = arch.check()?;
+        let receptive_field = servable_receptive_field(&arch)?;
         let name = arch.name();
         if !arch.causal {
             return Err(TrainedLifterError::NotCausal {
@@ -464,7 +392,7 @@ pub fn random_metadata(arch: VideoPoseArch, seed: u64) -> LifterMetadata {
 /// reference names, with the pelvis rows of `shrink` zeroed as in a trained
 /// file. For tests and benchmarks that need a weights file.
 pub fn random_tensors(arch: VideoPoseArch, seed: u64) -> Result<HashMap<String, Tensor>> {
-    arch.check()?;
+    servable_receptive_field(&arch)?;
     let (_, mut tensors) =
         crate::init::record_random(seed, |vb| VideoPose3d::new(arch.config(), vb))?;
     for name in ["shrink.weight", "shrink.bias"] {
@@ -683,6 +611,35 @@ mod tests {
                 matches!(e, TrainedLifterError::Size(_)),
                 "{width} {blocks}: {e}"
             );
+        }
+    }
+
+    /// The shipped lifter files' metadata parses into [`LifterMetadata`]
+    /// and writes back byte for byte (the trainer writes it with the same
+    /// types); the causal one serves. Skips where `models/` is absent.
+    #[test]
+    fn shipped_metadata_round_trips_byte_for_byte() {
+        let models = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models");
+        let mut seen = 0;
+        for entry in std::fs::read_dir(&models).into_iter().flatten() {
+            let path = entry.unwrap().path();
+            let name = path.file_name().unwrap().to_string_lossy().into_owned();
+            if !(name.starts_with("lifter_") && name.ends_with(".safetensors")) {
+                continue;
+            }
+            let bytes = std::fs::read(&path).unwrap();
+            let (_, header) = safetensors::SafeTensors::read_metadata(&bytes).unwrap();
+            let json = &header.metadata().as_ref().unwrap()[METADATA_KEY];
+            let metadata = read_metadata(&bytes).unwrap();
+            assert_eq!(&serde_json::to_string(&metadata).unwrap(), json, "{name}");
+            if name.contains("causal") {
+                let lifter = TrainedLifter::from_bytes(&bytes).unwrap();
+                assert_eq!(lifter.name(), "videopose27-causal");
+            }
+            seen += 1;
+        }
+        if seen == 0 {
+            println!("skipping: no lifter files in {}", models.display());
         }
     }
 

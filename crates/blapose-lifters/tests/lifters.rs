@@ -14,8 +14,8 @@ use candle_nn::VarBuilder;
 
 use blapose_lifters::anatomy::{self, REFERENCE_BONES};
 use blapose_lifters::{
-    record_random, Anatomy3d, Anatomy3dConfig, Lifter, LifterError, LifterKind, OnlineBoneLengths,
-    PoseFormer, PoseFormerConfig, VideoPose3d, VideoPose3dConfig,
+    record_random, Anatomy3d, Anatomy3dConfig, Lifter, LifterError, OnlineBoneLengths, PoseFormer,
+    PoseFormerConfig, ReferenceLifter, VideoPose3d, VideoPose3dConfig,
 };
 
 /// A model built by [`record_random`], with the tensors it loaded.
@@ -425,12 +425,12 @@ fn streaming_softmax_is_exact_and_overflow_free() {
 }
 
 #[test]
-fn lifter_kinds_build_the_reference_models() {
-    // Cheapest kind only; the others are the shared models above.
-    let pf = LifterKind::PoseFormer.random(false, 4).unwrap();
+fn reference_lifters_build_with_random_weights() {
+    // The cheapest only; the others are the shared models above.
+    let pf = ReferenceLifter::PoseFormer.random(false, 4).unwrap();
     assert_eq!(
         (pf.name(), pf.receptive_field(), pf.params()),
         ("PoseFormer", 81, 9_602_885)
     );
-    assert_eq!(LifterKind::ALL.len(), 3);
+    assert_eq!(ReferenceLifter::ALL.len(), 3);
 }

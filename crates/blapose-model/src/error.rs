@@ -10,9 +10,13 @@ use crate::ModelKind;
 /// Everything that can go wrong loading weights or running a model.
 #[derive(Debug, thiserror::Error)]
 pub enum ModelError {
+    /// The weights' input contract cannot be read or is no longer served.
+    #[error(transparent)]
+    Contract(#[from] crate::input::ContractError),
+
     /// A model kind string that is neither `gru` nor `bigru`.
-    #[error("unknown model kind {0:?} (expected \"gru\" or \"bigru\")")]
-    UnknownKind(String),
+    #[error(transparent)]
+    UnknownKind(#[from] blapose_core::model_kind::UnknownModelKind),
 
     /// Reading or writing a weights file failed.
     #[error("{path}: {source}")]

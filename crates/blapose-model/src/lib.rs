@@ -18,6 +18,7 @@ pub mod averaging;
 pub mod error;
 pub mod fast;
 pub mod init;
+pub mod input;
 pub mod names;
 pub mod reference;
 pub mod stature;
@@ -27,6 +28,7 @@ pub mod weights;
 pub use averaging::RunningMean;
 pub use error::ModelError;
 pub use fast::{EngineOptions, Isa, OfflineBiGruEngine, OnlineGruEngine, Precision, StepScratch};
+pub use input::{Framing, ModelInput};
 pub use reference::{BoneLengthBiGru, BoneLengthGru};
 pub use weights::{LoadedWeights, WeightsMetadata};
 
@@ -52,54 +54,16 @@ pub const PARAMS: usize = 2_390_784;
 /// Floats of recurrent state one online session carries (two GRUs x 512).
 pub const STATE_DIM: usize = 2 * HIDDEN;
 
-/// Which of the paper's two bone-length models.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum ModelKind {
-    /// Online model: two unidirectional GRUs fed the same stream.
-    Gru,
-    /// Offline model: one bidirectional GRU over the whole sequence.
-    BiGru,
-}
+pub use blapose_core::ModelKind;
 
-impl ModelKind {
-    /// The name used on command lines and in weights metadata.
-    pub const fn as_str(self) -> &'static str {
-        match self {
-            ModelKind::Gru => "gru",
-            ModelKind::BiGru => "bigru",
-        }
-    }
-
-    /// `Ok` if `found` is this kind, else [`ModelError::WrongKind`]: what
-    /// loading a file and building an engine both check.
-    pub fn expect(self, found: ModelKind) -> Result<(), ModelError> {
-        if found == self {
-            Ok(())
-        } else {
-            Err(ModelError::WrongKind {
-                expected: self,
-                found,
-            })
-        }
-    }
-}
-
-impl std::fmt::Display for ModelKind {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.as_str())
-    }
-}
-
-impl std::str::FromStr for ModelKind {
-    type Err = ModelError;
-
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s.trim().to_ascii_lowercase().as_str() {
-            "gru" => Ok(ModelKind::Gru),
-            "bigru" | "bi-gru" => Ok(ModelKind::BiGru),
-            _ => Err(ModelError::UnknownKind(s.to_string())),
-        }
+/// `Ok` if the weights found are of the `expected` kind, else
+/// [`ModelError::WrongKind`]: what loading a file and building an engine
+/// both check.
+pub fn expect_kind(expected: ModelKind, found: ModelKind) -> Result<(), ModelError> {
+    if found == expected {
+        Ok(())
+    } else {
+        Err(ModelError::WrongKind { expected, found })
     }
 }
 
@@ -114,14 +78,11 @@ mod tests {
     use super::*;
 
     #[test]
-    fn kind_round_trips_through_strings() {
-        for kind in [ModelKind::Gru, ModelKind::BiGru] {
-            assert_eq!(kind.to_string().parse::<ModelKind>().unwrap(), kind);
-        }
-        assert_eq!("BiGRU".parse::<ModelKind>().unwrap(), ModelKind::BiGru);
+    fn the_kind_found_must_be_the_kind_expected() {
+        assert!(expect_kind(ModelKind::Gru, ModelKind::Gru).is_ok());
         assert!(matches!(
-            "lstm".parse::<ModelKind>(),
-            Err(ModelError::UnknownKind(_))
+            expect_kind(ModelKind::Gru, ModelKind::BiGru),
+            Err(ModelError::WrongKind { .. })
         ));
     }
 

@@ -25,14 +25,7 @@ pub const MIN_STATURE_M: f32 = 1.0;
 /// Tallest stature accepted, metres.
 pub const MAX_STATURE_M: f32 = 2.3;
 
-/// A person's sex, when given.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Sex {
-    /// Female.
-    Female,
-    /// Male.
-    Male,
-}
+pub use blapose_core::Sex;
 
 /// One line per bone: `length = intercept + slope * stature` (metres).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

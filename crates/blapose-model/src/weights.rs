@@ -17,6 +17,7 @@ use candle_core::safetensors::Load;
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 
+use crate::input::{ModelInput, KEY_MODEL_INPUT};
 use crate::names::tensor_specs;
 use crate::{ModelError, ModelKind};
 
@@ -32,7 +33,8 @@ const KEY_LAYOUT: &str = "keypoint_layout";
 const KEY_NORMALIZATION: &str = "input_normalization";
 const KEY_TRAINING_DATA: &str = "training_data";
 const KEY_VERSION: &str = "version";
-const RESERVED: [&str; 7] = [
+const RESERVED: [&str; 8] = [
+    KEY_MODEL_INPUT,
     KEY_FORMAT,
     KEY_FORMAT_VERSION,
     KEY_KIND,
@@ -48,7 +50,7 @@ pub const DEFAULT_KEYPOINT_LAYOUT: &str = "h36m17";
 pub const DEFAULT_INPUT_NORMALIZATION: &str = "screen: u = x/w*2-1, v = y/w*2-h/w";
 
 /// What a weights file is for; stored as strings in the safetensors header.
-#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct WeightsMetadata {
     /// Model kind the tensors belong to.
     pub kind: ModelKind,
@@ -60,6 +62,10 @@ pub struct WeightsMetadata {
     pub training_data: String,
     /// Version of these weights (not of the file format).
     pub version: String,
+    /// What the network expects as input ([`crate::input`]): recorded by
+    /// the trainer, or read from an older file's `train_config`; `None`
+    /// when the file records neither.
+    pub input: Option<ModelInput>,
     /// Any further key/value pairs (training metrics, command line, ...).
     pub extra: BTreeMap<String, String>,
 }
@@ -74,6 +80,7 @@ impl WeightsMetadata {
             input_normalization: DEFAULT_INPUT_NORMALIZATION.to_string(),
             training_data: String::new(),
             version: String::new(),
+            input: None,
             extra: BTreeMap::new(),
         }
     }
@@ -93,6 +100,9 @@ impl WeightsMetadata {
         m.insert(KEY_NORMALIZATION.into(), self.input_normalization.clone());
         m.insert(KEY_TRAINING_DATA.into(), self.training_data.clone());
         m.insert(KEY_VERSION.into(), self.version.clone());
+        if let Some(input) = &self.input {
+            m.insert(KEY_MODEL_INPUT.into(), input.to_json());
+        }
         m
     }
 
@@ -131,12 +141,14 @@ impl WeightsMetadata {
                 value: kind_s.clone(),
                 reason: e.to_string(),
             })?;
+        let input = ModelInput::from_metadata(|key| header.get(key))?;
         let extra = header
             .iter()
             .filter(|(k, _)| !RESERVED.contains(&k.as_str()))
             .map(|(k, v)| (k.clone(), v.clone()))
             .collect();
         Ok(Self {
+            input,
             kind,
             keypoint_layout: get(KEY_LAYOUT)?,
             input_normalization: get(KEY_NORMALIZATION)?,
@@ -317,7 +329,7 @@ pub fn load_bytes(bytes: &[u8], expected: ModelKind) -> Result<LoadedWeights, Mo
     let (_, header) = safetensors::SafeTensors::read_metadata(bytes)
         .map_err(|e| ModelError::InvalidFile(e.to_string()))?;
     let meta = WeightsMetadata::from_header(header.metadata().as_ref().unwrap_or(&HashMap::new()))?;
-    expected.expect(meta.kind)?;
+    crate::expect_kind(expected, meta.kind)?;
     let st = safetensors::SafeTensors::deserialize(bytes)
         .map_err(|e| ModelError::InvalidFile(e.to_string()))?;
     let mut tensors = HashMap::new();

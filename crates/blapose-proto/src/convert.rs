@@ -3,14 +3,15 @@
 //!
 //! The server validates what clients send and echoes it back; the client
 //! library builds what it sends and reads the echoes. Both speak of the same
-//! core types ([`KeypointLayout`], [`Coordinates`], [`InputFormat`]), so the
-//! mapping to the generated enums and messages lives here, next to them,
+//! core types ([`KeypointLayout`], [`Coordinates`], [`InputFormat`],
+//! [`ModelKind`], [`Sex`]), so the mapping to the generated enums and messages lives here, next to them,
 //! and a layout added to the proto fails to compile until it is mapped
 //! (every `match` is exhaustive). What is *valid* stays with each end: the
 //! server refuses `normalized: false` or an empty image with its own
 //! messages before it converts; the client reads whatever the server echoes.
 
 use blapose_core::layouts::{Coordinates, InputFormat, KeypointLayout};
+use blapose_core::{ModelKind, Sex};
 
 use crate::v1 as pb;
 
@@ -74,6 +75,47 @@ impl From<InputFormat> for pb::InputFormat {
     }
 }
 
+/// The wire enum of a bone-length model.
+impl From<ModelKind> for pb::Model {
+    fn from(kind: ModelKind) -> Self {
+        match kind {
+            ModelKind::Gru => pb::Model::OnlineGru,
+            ModelKind::BiGru => pb::Model::OfflineBigru,
+        }
+    }
+}
+
+/// The model with this wire number (`Model` value); `None` for UNSPECIFIED
+/// (whose meaning, the RPC's default, is for the receiver to decide) and
+/// numbers the proto does not define.
+pub fn model_from_proto(value: i32) -> Option<ModelKind> {
+    match pb::Model::try_from(value).ok()? {
+        pb::Model::Unspecified => None,
+        pb::Model::OnlineGru => Some(ModelKind::Gru),
+        pb::Model::OfflineBigru => Some(ModelKind::BiGru),
+    }
+}
+
+/// The wire enum of a person's sex.
+impl From<Sex> for pb::Sex {
+    fn from(sex: Sex) -> Self {
+        match sex {
+            Sex::Female => pb::Sex::Female,
+            Sex::Male => pb::Sex::Male,
+        }
+    }
+}
+
+/// The sex with this wire number (`Sex` value); `None` for UNSPECIFIED
+/// (not given) and numbers the proto does not define.
+pub fn sex_from_proto(value: i32) -> Option<Sex> {
+    match pb::Sex::try_from(value).ok()? {
+        pb::Sex::Unspecified => None,
+        pb::Sex::Female => Some(Sex::Female),
+        pb::Sex::Male => Some(Sex::Male),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -113,5 +155,23 @@ mod tests {
             Coordinates::from(pb::input_format::Coordinates::Normalized(false)),
             Coordinates::Normalized
         );
+    }
+
+    #[test]
+    fn models_and_sexes_map_to_their_wire_numbers_and_back() {
+        for kind in ModelKind::ALL {
+            assert_eq!(model_from_proto(pb::Model::from(kind) as i32), Some(kind));
+        }
+        assert_eq!(pb::Model::from(ModelKind::Gru) as i32, 1);
+        assert_eq!(pb::Model::from(ModelKind::BiGru) as i32, 2);
+        for sex in [Sex::Female, Sex::Male] {
+            assert_eq!(sex_from_proto(pb::Sex::from(sex) as i32), Some(sex));
+        }
+        assert_eq!(pb::Sex::from(Sex::Female) as i32, 1);
+        assert_eq!(pb::Sex::from(Sex::Male) as i32, 2);
+        for unknown in [0, 3, -1] {
+            assert_eq!(model_from_proto(unknown), None, "{unknown}");
+            assert_eq!(sex_from_proto(unknown), None, "{unknown}");
+        }
     }
 }

@@ -1,5 +1,5 @@
 //! The fixed held-out split of ANSUR II people: the bodies of the
-//! many-bodies benchmark ([`crate::bodies`]), which training never draws.
+//! many-bodies benchmark (`blapose-lab bodies`), which training never draws.
 //!
 //! Why: a benchmark that asks "does the model read *this* person's size"
 //! is only honest on people the model was never trained to output. The

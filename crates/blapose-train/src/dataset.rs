@@ -19,6 +19,7 @@ use blapose_core::pose::flip_bone_lengths;
 use blapose_core::{BoneLengths, Keypoints2d, Pose};
 use blapose_data::h36m::{H36m, Parts, ShKeypoints};
 pub use blapose_data::h36m::{TEST_SUBJECTS, TRAIN_SUBJECTS};
+use blapose_model::input::{ModelInput, ViewCalibration};
 use rayon::prelude::*;
 
 use crate::error::TrainError;
@@ -59,26 +60,43 @@ pub struct EvalSequence {
     pub gt: BoneLengths,
 }
 
-/// Rectify every stream's keypoints with its camera
-/// ([`blapose_core::level`]), as models trained with `--rectify` read them
-/// (and scaled to the floor, for models trained with `--floor-scaled`);
-/// `camera(subject, id)` finds each stream's calibration.
-pub fn rectify_streams<'a>(
-    streams: &mut [EvalSequence],
+/// The calibration of a stream's camera, by its subject and camera id.
+fn stream_camera<'a>(
     camera: &impl Fn(&str, &str) -> Option<&'a Camera>,
-    floor_scaled: bool,
+    stream: &EvalSequence,
+) -> Result<&'a Camera, TrainError> {
+    camera(&stream.subject, &stream.camera).ok_or_else(|| {
+        TrainError::Data(format!(
+            "no camera {} for {}",
+            stream.camera, stream.subject
+        ))
+    })
+}
+
+/// Every stream made into what weights with the input contract `input`
+/// read ([`ModelInput::camera`], then [`InputCamera::prepare_frames`]):
+/// rectified with its camera (and scaled to the floor) for camera-aware
+/// weights, untouched for calibration-free ones. `camera(subject, id)`
+/// finds each stream's calibration, a Human3.6M-convention camera whose
+/// keypoints are already undistorted ([`undistort_streams`]).
+///
+/// [`InputCamera::prepare_frames`]: blapose_model::input::InputCamera::prepare_frames
+pub fn prepare_streams<'a>(
+    streams: &mut [EvalSequence],
+    input: &ModelInput,
+    camera: &impl Fn(&str, &str) -> Option<&'a Camera>,
 ) -> Result<(), TrainError> {
+    if !input.framing.needs_calibration() {
+        return Ok(());
+    }
     for t in streams {
-        let cam = camera(&t.subject, &t.camera)
-            .ok_or_else(|| TrainError::Data(format!("no camera {} for {}", t.camera, t.subject)))?;
-        let level = blapose_core::level::LevelCamera::from_camera(cam)
+        let view = ViewCalibration::from_camera(stream_camera(camera, t)?);
+        let prepared = input
+            .camera(&view)
             .map_err(|e| TrainError::Data(format!("{} camera {}: {e}", t.subject, t.camera)))?;
-        let level = if floor_scaled {
-            level.scaled_to_floor(cam.center[2] as f32)
-        } else {
-            level
-        };
-        level.rectify_frames(&mut t.input);
+        if let Some(prepared) = prepared {
+            prepared.prepare_frames(&mut t.input);
+        }
     }
     Ok(())
 }
@@ -93,8 +111,7 @@ pub fn undistort_streams<'a>(
 ) -> Result<(), TrainError> {
     use blapose_core::camera::{denormalize_screen, normalize_screen};
     for t in streams {
-        let cam = camera(&t.subject, &t.camera)
-            .ok_or_else(|| TrainError::Data(format!("no camera {} for {}", t.camera, t.subject)))?;
+        let cam = stream_camera(camera, t)?;
         let k = cam.pixel_intrinsics();
         for xy in t.input.chunks_exact_mut(2) {
             let px = denormalize_screen([xy[0], xy[1]], cam.width, cam.height);
@@ -144,16 +161,6 @@ impl EvalSequence {
             input.extend(fa.iter().zip(fb).map(|(x, y)| x + (y - x) * t));
         }
         Ok(self.with_input(input, self.gt))
-    }
-
-    /// The trial joined `skip` frames in: what a model sees when a client
-    /// starts streaming in the middle of a recording. A trial no longer
-    /// than `skip` keeps its last frame, so it still has one.
-    pub fn skipped(&self, skip: usize) -> EvalSequence {
-        use crate::synth::FRAME_DIM;
-        let n = self.frames();
-        let first = skip.min(n.saturating_sub(1));
-        self.with_input(self.input[first * FRAME_DIM..].to_vec(), self.gt)
     }
 
     /// The same trial seen in a mirror: every frame's keypoints flipped
@@ -536,19 +543,5 @@ mod tests {
         assert!(s.resampled(0.0).is_err());
         assert!(s.resampled(f32::NAN).is_err());
         assert_eq!(ramp(0).resampled(30.0).unwrap().frames(), 0);
-    }
-
-    #[test]
-    fn skipping_starts_later_and_keeps_at_least_one_frame() {
-        let s = ramp(10);
-        let late = s.skipped(4);
-        assert_eq!(late.frames(), 6);
-        assert_eq!(late.input[0], 4.0);
-        assert_eq!(late.gt, s.gt);
-        assert_eq!(s.skipped(0), s);
-        let last = s.skipped(50);
-        assert_eq!(last.frames(), 1);
-        assert_eq!(last.input[0], 9.0);
-        assert_eq!(ramp(0).skipped(3).frames(), 0);
     }
 }

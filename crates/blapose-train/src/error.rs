@@ -36,6 +36,9 @@ pub enum TrainError {
     /// Loading or saving model weights failed.
     #[error(transparent)]
     Model(#[from] blapose_model::ModelError),
+    /// Weights' input contract cannot be applied to a view.
+    #[error(transparent)]
+    Contract(#[from] blapose_model::input::ContractError),
     /// An inference-crate lifter failed.
     #[error(transparent)]
     Lifter(#[from] blapose_lifters::LifterError),

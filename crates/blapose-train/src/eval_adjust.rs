@@ -55,18 +55,9 @@ use serde::Serialize;
 use crate::error::TrainError;
 use crate::lifter::data::LifterSequence;
 
-/// The four pose metrics (mm; MPJVE in mm per frame).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct PoseMetrics {
-    /// MPJPE (protocol 1).
-    pub mpjpe_mm: f64,
-    /// P-MPJPE (protocol 2).
-    pub p_mpjpe_mm: f64,
-    /// MPJVE.
-    pub mpjve_mm: f64,
-    /// Mean bone-length error.
-    pub bone_error_mm: f64,
-}
+/// The four pose metrics (mm; MPJVE in mm per frame, always computed
+/// here): blapose-core's one definition, shared with the client.
+pub use blapose_core::metrics::PoseMetrics;
 
 /// One method's aggregated metrics.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -122,11 +113,11 @@ fn trial_metrics(pred: &[Pose], gt: &[Pose]) -> Result<TrialMetrics, TrainError>
         m: PoseMetrics {
             mpjpe_mm: mpjpe(pred, gt).map_err(metric)? * MM_PER_M,
             p_mpjpe_mm: p_mpjpe(pred, gt).map_err(metric)? * MM_PER_M,
-            mpjve_mm: if pred.len() >= 2 {
+            mpjve_mm: Some(if pred.len() >= 2 {
                 mpjve(pred, gt).map_err(metric)? * MM_PER_M
             } else {
                 0.0
-            },
+            }),
             bone_error_mm: pose_bone_length_error(pred, gt).map_err(metric)?.mean * MM_PER_M,
         },
         frames: pred.len(),
@@ -146,8 +137,11 @@ impl Accumulator {
     fn add(&mut self, sequence: &str, t: TrialMetrics) {
         self.mpjpe.add_mean(sequence, t.m.mpjpe_mm, t.frames);
         self.p_mpjpe.add_mean(sequence, t.m.p_mpjpe_mm, t.frames);
-        self.mpjve
-            .add_mean(sequence, t.m.mpjve_mm, t.frames.saturating_sub(1));
+        self.mpjve.add_mean(
+            sequence,
+            t.m.mpjve_mm.unwrap_or(f64::NAN),
+            t.frames.saturating_sub(1),
+        );
         self.bone.add_mean(sequence, t.m.bone_error_mm, t.frames);
     }
 
@@ -166,7 +160,7 @@ impl Accumulator {
             avg: PoseMetrics {
                 mpjpe_mm: avg(&self.mpjpe),
                 p_mpjpe_mm: avg(&self.p_mpjpe),
-                mpjve_mm: avg(&self.mpjve),
+                mpjve_mm: Some(avg(&self.mpjve)),
                 bone_error_mm: avg(&self.bone),
             },
             per_action: m
@@ -178,7 +172,7 @@ impl Accumulator {
                         PoseMetrics {
                             mpjpe_mm: mv,
                             p_mpjpe_mm: get(&p),
-                            mpjve_mm: get(&v),
+                            mpjve_mm: Some(get(&v)),
                             bone_error_mm: get(&b),
                         },
                     )
@@ -432,7 +426,10 @@ pub fn markdown(reports: &BTreeMap<String, LifterReport>) -> String {
         for (method, m) in methods(r) {
             s.push_str(&format!(
                 "| {name} | {method} | {:.2} | {:.2} | {:.2} | {:.2} |\n",
-                m.avg.mpjpe_mm, m.avg.p_mpjpe_mm, m.avg.mpjve_mm, m.avg.bone_error_mm
+                m.avg.mpjpe_mm,
+                m.avg.p_mpjpe_mm,
+                m.avg.mpjve_mm.unwrap_or(f64::NAN),
+                m.avg.bone_error_mm
             ));
         }
     }

@@ -1,10 +1,14 @@
-//! blapose-train: training and evaluation of the BLAPose bone-length models
-//! (the library behind the `blapose` CLI).
+//! blapose-train: what reproduces the shipped bone-length weights and their
+//! evaluation (the library behind the `blapose` CLI). Research that goes
+//! beyond the shipped evaluation (the many-bodies benchmark, its oracles,
+//! the eval diagnostics) lives above it, in `blapose-lab`.
 //!
 //! - [`lengths`], [`ansur`]: what bone lengths synthetic sequences get;
 //! - [`ansur_split`]: the held-out ANSUR people training never draws;
-//! - [`bodies`], [`bench_camera`]: the many-bodies cross-camera benchmark
-//!   on those people; [`stature`]: its stature-regression baseline;
+//! - [`camera_range`]: the wide camera distribution the camera-aware
+//!   models are trained through;
+//! - [`stature`]: the stature regression the server answers a known
+//!   height with;
 //! - [`noise`]: 2D detector-noise models fitted to real detections;
 //! - [`synth`], [`loader`]: the augmentation pipeline and batch prefetching;
 //! - [`dataset`]: Human3.6M as training and evaluation read it;
@@ -12,7 +16,8 @@
 //!   hand-written network; [`run`]: the run directory, schedule and log
 //!   every trainer shares; [`adam`]: the optimizer with checkpointable
 //!   state;
-//! - [`eval`]: the bone-length evaluation protocol; [`plot`]: curves;
+//! - [`eval`]: the bone-length evaluation protocol and one evaluation run;
+//!   [`plot`]: curves; [`cli`]: the flags both command lines share;
 //! - [`lifter`]: 2D-to-3D lifters trained on the real detections;
 //! - [`eval_adjust`]: lifter accuracy before and after the bone-length
 //!   adjustment (the paper's Tables 2 and 3).
@@ -24,21 +29,18 @@
 pub mod adam;
 pub mod ansur;
 pub mod ansur_split;
-pub mod bench_camera;
-pub mod bodies;
+pub mod camera_range;
+pub mod cli;
 pub mod dataset;
 pub mod error;
 pub mod eval;
 pub mod eval_adjust;
 pub mod fastnet;
-pub mod height_fusion;
-pub mod joint_dropout;
 pub mod lengths;
 pub mod lifter;
 pub mod loader;
 pub mod noise;
 pub mod plot;
-pub mod real_check;
 pub mod run;
 pub mod stature;
 pub mod synth;

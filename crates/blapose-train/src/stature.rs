@@ -8,8 +8,10 @@
 //! that ignores the video altogether: an ordinary least-squares line per
 //! bone, `length_b = a_b + s_b * stature`, fitted over the survey. With sex
 //! given, each sex gets its own line (its own intercept and slope per bone).
-//! This is the `"model": "stature-regression"` row of the many-bodies
-//! benchmark ([`crate::bodies`]), inputs `height` and `height+sex`.
+//! `blapose fit-stature` writes it as the file the server answers a known
+//! stature with (`models/stature_regression.json`,
+//! [`blapose_model::stature`]); the many-bodies benchmark (`blapose-lab
+//! bodies`) scores it beside the networks.
 //!
 //! **Fitted on the training split only.** [`StatureRegression::fit_training`]
 //! fits on the ANSUR people outside the held-out split
@@ -31,67 +33,6 @@ use blapose_data::ansur::Sex;
 use blapose_model::stature::{StatureLines, StatureModel, STATURE_FORMAT};
 
 use crate::ansur_split::{is_held_out, Person};
-
-/// Ankle to floor, metres: the ANSUR II mean lateral malleolus height
-/// (69.6 mm over its 6,068 people), added by [`stature_proxy`].
-pub const ANKLE_HEIGHT_M: f32 = 0.0696;
-
-/// The stature whose lengths on `lines` (a regression's pooled lines) sum
-/// to `truth`'s summed length: a diagnostic stature that reads the truth,
-/// so the regression gets the overall size exactly and what is left of its
-/// error is proportion. `None` when the lines' summed slope is not
-/// positive.
-pub fn matched_stature(lines: &StatureLines, truth: &BoneLengths) -> Option<f32> {
-    let intercept: f64 = lines.intercept.iter().sum();
-    let slope: f64 = lines.slope.iter().sum();
-    let total = blapose_core::bones::summed_length(truth);
-    (slope > 0.0).then(|| ((total - intercept) / slope) as f32)
-}
-
-/// The lengths `lines` give at `truth`'s matched stature
-/// ([`matched_stature`]): the truth's overall size with the lines'
-/// proportions. `None` when the lines' summed slope is not positive.
-pub fn matched_lengths(lines: &StatureLines, truth: &BoneLengths) -> Option<BoneLengths> {
-    matched_stature(lines, truth).map(|stature| lines.predict(stature))
-}
-
-/// The mean over `subjects` (each one's stature proxy and true lengths:
-/// training subjects only) of its matched stature ([`matched_stature`])
-/// minus its proxy: what [`stature_proxy`] reads short by, on average,
-/// through `lines`. Added to a test subject's proxy it gives the
-/// calibrated proxy. `None` without subjects.
-pub fn proxy_offset(lines: &StatureLines, subjects: &[(f32, BoneLengths)]) -> Option<f32> {
-    let diffs: Vec<f32> = subjects
-        .iter()
-        .map(|(proxy, truth)| matched_stature(lines, truth).map(|m| m - proxy))
-        .collect::<Option<_>>()?;
-    (!diffs.is_empty()).then(|| diffs.iter().sum::<f32>() / diffs.len() as f32)
-}
-
-/// A stature proxy for a motion-capture subject, whose stature is not
-/// published (Human3.6M): the 99th percentile over `poses` (world
-/// coordinates, metres, z up) of the vertical span from the lower ankle to
-/// the head joint, plus [`ANKLE_HEIGHT_M`]. Taking the head joint for the
-/// crown and the 99th percentile for standing upright, it reads short by
-/// however far the crown is above the head joint. `None` without poses.
-pub fn stature_proxy(poses: &[blapose_core::Pose]) -> Option<f32> {
-    const HEAD: usize = 10;
-    const ANKLES: [usize; 2] = [3, 6];
-    let mut spans: Vec<f32> = poses
-        .iter()
-        .map(|p| p[HEAD][2] - p[ANKLES[0]][2].min(p[ANKLES[1]][2]))
-        .filter(|v| v.is_finite())
-        .collect();
-    if spans.is_empty() {
-        return None;
-    }
-    spans.sort_by(f32::total_cmp);
-    let k = ((spans.len() - 1) as f64 * 0.99).round() as usize;
-    Some(spans[k] + ANKLE_HEIGHT_M)
-}
-
-/// The benchmark rows' `model`.
-pub const MODEL_NAME: &str = "stature-regression";
 
 /// Why the regression could not be fitted or applied.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -124,7 +65,7 @@ pub enum StatureError {
     NoFitForSex(&'static str),
 }
 
-/// Which inputs the regression reads (`input` of the benchmark rows).
+/// Which inputs the regression reads.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum StatureInput {
     /// Stature only: one line per bone over everyone.
@@ -134,16 +75,8 @@ pub enum StatureInput {
 }
 
 impl StatureInput {
-    /// Both, in the benchmark's row order.
+    /// Both: stature alone first.
     pub const ALL: [Self; 2] = [Self::Height, Self::HeightSex];
-
-    /// The JSON spelling.
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::Height => "height",
-            Self::HeightSex => "height+sex",
-        }
-    }
 }
 
 fn sex_name(sex: Sex) -> &'static str {
@@ -323,56 +256,6 @@ impl StatureRegression {
 mod tests {
     use super::*;
 
-    #[test]
-    fn matched_statures_reproduce_the_true_total_and_offsets_average_them() {
-        let model = StatureModel {
-            format: STATURE_FORMAT.into(),
-            source: "test".into(),
-            pooled: StatureLines {
-                intercept: vec![0.01; NUM_BONES],
-                slope: vec![0.15; NUM_BONES],
-                people: 3,
-            },
-            female: StatureLines {
-                intercept: vec![0.0; NUM_BONES],
-                slope: vec![0.1; NUM_BONES],
-                people: 1,
-            },
-            male: StatureLines {
-                intercept: vec![0.0; NUM_BONES],
-                slope: vec![0.1; NUM_BONES],
-                people: 1,
-            },
-        };
-        let truth = model.predict(1.8, None);
-        let m = matched_stature(&model.pooled, &truth).unwrap();
-        assert!((m - 1.8).abs() < 1e-5, "{m}");
-        let other = model.predict(1.6, None);
-        let offset = proxy_offset(&model.pooled, &[(1.7, truth), (1.5, other)]).unwrap();
-        assert!((offset - 0.1).abs() < 1e-5, "{offset}");
-        assert_eq!(proxy_offset(&model.pooled, &[]), None);
-        let mut flat = model.clone();
-        flat.pooled.slope = vec![0.0; NUM_BONES];
-        assert_eq!(matched_stature(&flat.pooled, &truth), None);
-    }
-
-    #[test]
-    fn the_stature_proxy_is_the_upright_span_plus_the_ankle() {
-        let pose = |span: f32| {
-            let mut p = [[0.0f32; 3]; 17];
-            p[3][2] = 0.1;
-            p[6][2] = 0.05;
-            p[10][2] = 0.05 + span;
-            p
-        };
-        // 200 frames crouching at 1.2 m, one standing at 1.7 m among 100.
-        let mut poses: Vec<_> = (0..99).map(|_| pose(1.2)).collect();
-        poses.extend((0..101).map(|_| pose(1.7)));
-        let proxy = stature_proxy(&poses).unwrap();
-        assert!((proxy - (1.7 + ANKLE_HEIGHT_M)).abs() < 1e-5, "{proxy}");
-        assert_eq!(stature_proxy(&[]), None);
-    }
-
     /// A known relation: bone b = 0.02 * b + (0.1 + 0.01 * b) * stature,
     /// with a sex offset on the intercept and slope.
     fn truth(b: usize, stature: f64, sex: Sex) -> f64 {
@@ -436,7 +319,6 @@ mod tests {
             Err(StatureError::NoFitForSex("female"))
         );
         assert!(m.predict(StatureInput::Height, 1.7, Sex::Female).is_ok());
-        assert_eq!(StatureInput::HeightSex.name(), "height+sex");
     }
 
     #[test]

@@ -26,7 +26,7 @@
 //!    still tells the distance, as it does in any fixed-camera scene;
 //!    With probability `wide_cameras` the window is instead seen through a
 //!    camera drawn from the many-bodies benchmark's wide distribution
-//!    ([`crate::bench_camera::wide_cameras`]: any height 0.5-3 m, distance,
+//!    ([`crate::camera_range::wide_cameras`]: any height 0.5-3 m, distance,
 //!    heading, tilt and field of view a user might set up), framing the
 //!    whole window, no shift; its detector noise is a random residual track
 //!    (no recorded track belongs to a drawn camera);
@@ -45,16 +45,17 @@ use std::sync::Arc;
 
 use blapose_core::bones::rebuild;
 use blapose_core::camera::{Camera, NormalizedIntrinsics};
-use blapose_core::level::{height_scale, LevelCamera};
+use blapose_core::level::LevelCamera;
 use blapose_core::pose::flip_keypoints_normalized;
 use blapose_core::skeleton::{NUM_BONES, NUM_JOINTS};
 use blapose_core::{BoneDirections, BoneLengths, Keypoints2d, Pose};
+use blapose_model::input::{ContractError, InputCamera, ModelInput, ViewCalibration};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::bench_camera::{draw_camera_seeing, wide_cameras};
+use crate::camera_range::{draw_camera_seeing, wide_cameras};
 use crate::error::TrainError;
 use crate::lengths::{normal_f32, LengthSampler};
 use crate::noise::{apply_residual, residual_at, MetricResidual, NoiseKind, ResidualBank};
@@ -215,19 +216,13 @@ pub struct SynthConfig {
     /// Give the keypoints as the camera's level twin would see them
     /// ([`blapose_core::level`]; such models need the camera's calibration).
     pub rectify: bool,
-    /// Targets as seen from a camera at
-    /// [`blapose_core::level::REFERENCE_CAMERA_HEIGHT`]: the drawn lengths
-    /// times that height over the sample camera's, so every target agrees
-    /// with what the rectified picture shows; estimates are scaled back with
-    /// the camera's height ([`blapose_core::level::height_scale`]).
-    pub height_normalized: bool,
     /// Rectified keypoints further scaled, frame by frame, by the camera's
     /// height over the lowest joint's drop below the horizon
     /// ([`LevelCamera::scaled_to_floor`]): the body at a fixed metric
     /// scale, whatever the camera.
     pub floor_scaled: bool,
     /// Probability that a sample is seen through a camera drawn from the
-    /// wide distribution ([`crate::bench_camera::wide_cameras`]) instead of
+    /// wide distribution ([`crate::camera_range::wide_cameras`]) instead of
     /// a recorded Human3.6M camera (0: recorded cameras only).
     pub wide_cameras: f32,
 }
@@ -246,7 +241,6 @@ impl Default for SynthConfig {
             floor_contact: false,
             random_yaw: false,
             rectify: false,
-            height_normalized: false,
             floor_scaled: false,
             wide_cameras: 0.0,
         }
@@ -254,25 +248,20 @@ impl Default for SynthConfig {
 }
 
 impl SynthConfig {
-    /// The level twin of a camera `camera_height` metres above the floor
-    /// as these samples use it (scaled to the floor when asked).
-    pub fn level_camera(&self, level: LevelCamera, camera_height: f64) -> LevelCamera {
-        if self.floor_scaled {
-            level.scaled_to_floor(camera_height as f32)
-        } else {
-            level
-        }
+    /// What a network trained on these samples reads: the input contract
+    /// the trainer records in its weights ([`blapose_model::input`]).
+    pub fn model_input(&self) -> ModelInput {
+        ModelInput::from_training(self.rectify, self.floor_scaled, self.wide_cameras > 0.0)
     }
 
-    /// The target of a sample with `lengths` seen from a camera
-    /// `camera_height` metres up (height-normalized when asked).
-    fn target(&self, lengths: &BoneLengths, camera_height: f64) -> BoneLengths {
-        if self.height_normalized {
-            let k = (1.0 / height_scale(camera_height)) as f32;
-            lengths.map(|l| l * k)
-        } else {
-            *lengths
-        }
+    /// The camera a sample seen through `cam` (Human3.6M convention, a
+    /// pinhole: the lens is applied by the projection) is read through,
+    /// as the contract prepares a served session's keypoints
+    /// ([`ModelInput::camera`]): `Ok(None)` when the keypoints are read as
+    /// the camera gives them, an error when `cam` does not rectify.
+    fn input_camera(&self, cam: &Camera) -> Result<Option<InputCamera>, ContractError> {
+        self.model_input()
+            .camera(&ViewCalibration::from_camera(cam))
     }
 
     /// Check the knobs.
@@ -280,9 +269,6 @@ impl SynthConfig {
         let bad = |m: &str| Err(TrainError::InvalidArgument(m.to_string()));
         if self.seq_len == 0 {
             return bad("seq_len must be positive");
-        }
-        if self.height_normalized && !self.rectify {
-            return bad("height-normalized targets need rectified keypoints (--rectify)");
         }
         if self.floor_scaled && !self.rectify {
             return bad("floor scaling needs rectified keypoints (--rectify)");
@@ -604,11 +590,7 @@ impl SynthSource {
         let flipped = rng.random::<f32>() < cfg.flip_prob;
 
         // Every camera was checked by `check_rectifiable`.
-        let level = cfg
-            .rectify
-            .then(|| LevelCamera::from_camera(cam))
-            .and_then(Result::ok)
-            .map(|l| cfg.level_camera(l, cam.center[2]));
+        let read_through = cfg.input_camera(cam).ok().flatten();
         let mut input = Vec::with_capacity(t_len * FRAME_DIM);
         for (t, p) in cam_poses.iter().enumerate() {
             let shifted = p.map(|j| [j[0] + shift[0], j[1] + shift[1], j[2] + shift[2]]);
@@ -624,12 +606,12 @@ impl SynthSource {
                     residual_at(tr, u.min((tr.len() - 1) as f32))
                 }),
             };
-            let kp = as_read(kp, residual, depth, k.focal, level.as_ref(), flipped);
+            let kp = as_read(kp, residual, depth, k.focal, read_through.as_ref(), flipped);
             input.extend(kp.iter().flatten());
         }
         Sample {
             input,
-            target: cfg.target(&lengths, cam.center[2]),
+            target: lengths,
             sequence: seq_idx,
             camera: cam_idx,
             stride,
@@ -675,11 +657,8 @@ impl SynthSource {
             _ => 0.0,
         };
         let flipped = rng.random::<f32>() < cfg.flip_prob;
-        let level = if cfg.rectify {
-            Some(cfg.level_camera(LevelCamera::from_camera(cam).ok()?, drawn.height_m))
-        } else {
-            None
-        };
+        // A drawn camera that does not rectify gives no sample.
+        let read_through = cfg.input_camera(cam).ok()?;
         let mut input = Vec::with_capacity(cfg.seq_len * FRAME_DIM);
         for (t, p) in world.iter().enumerate() {
             let c = cam.world_to_camera_pose(p);
@@ -691,12 +670,19 @@ impl SynthSource {
                     track.map(|tr| residual_at(tr, offset + t as f32 * window.stride))
                 }
             };
-            let kp = as_read(kp, residual, c[0][2], k.focal, level.as_ref(), flipped);
+            let kp = as_read(
+                kp,
+                residual,
+                c[0][2],
+                k.focal,
+                read_through.as_ref(),
+                flipped,
+            );
             input.extend(kp.iter().flatten());
         }
         Some(Sample {
             input,
-            target: cfg.target(lengths, drawn.height_m),
+            target: *lengths,
             sequence: window.sequence,
             camera: WIDE_CAMERA,
             stride: window.stride,
@@ -727,21 +713,22 @@ impl SynthSource {
 }
 
 /// One projected frame as the network reads it: detector noise (`residual`,
-/// metric, at the root's `depth`), then rectified by `level` when given,
-/// then mirrored when `flipped`.
+/// metric, at the root's `depth`), then prepared by the contract's camera
+/// when given ([`InputCamera::prepare_frames`]), then mirrored when
+/// `flipped`.
 fn as_read(
     mut kp: Keypoints2d,
     residual: Option<MetricResidual>,
     depth: f32,
     focal: [f32; 2],
-    level: Option<&LevelCamera>,
+    read_through: Option<&InputCamera>,
     flipped: bool,
 ) -> Keypoints2d {
     if let Some(r) = residual {
         apply_residual(&mut kp, &r, depth, focal);
     }
-    if let Some(level) = level {
-        kp = level.rectify(&kp);
+    if let Some(camera) = read_through {
+        camera.prepare_frames(kp.as_flattened_mut());
     }
     if flipped {
         kp = flip_keypoints_normalized(&kp);

@@ -17,8 +17,10 @@
 //!   checked against candle autograd on the reference model), not candle's
 //!   autograd, which was ~5x slower here.
 //! * **Configuration.** [`TrainConfig`] is stored in the checkpoint and, as
-//!   JSON, in the weights' metadata (`train_config`), where the server reads
-//!   which family a file belongs to (`rectify`, `height_normalized`). Files
+//!   JSON, in the weights' metadata (`train_config`, for provenance).
+//!   What the weights expect as input is written beside it as the typed
+//!   contract ([`TrainConfig::model_input`], [`blapose_model::input`]),
+//!   which the server, the evaluation and the benchmarks read. Files
 //!   written before an option was removed still parse: unknown fields are
 //!   ignored, and a checkpoint that used a removed option is refused
 //!   ([`removed_options`]).
@@ -28,6 +30,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use blapose_core::skeleton::NUM_BONES;
+use blapose_model::input::{ModelInput, KEY_TRAIN_CONFIG};
 use blapose_model::weights::{self, LoadedWeights, WeightsMetadata};
 use blapose_model::{ModelKind, DROPOUT};
 use candle_core::{Device, Tensor};
@@ -106,11 +109,6 @@ pub struct TrainConfig {
     /// read them as the camera gave them.
     #[serde(default)]
     pub rectify: bool,
-    /// Height-normalized targets
-    /// ([`crate::synth::SynthConfig::height_normalized`]); runs before this
-    /// field had raw targets.
-    #[serde(default)]
-    pub height_normalized: bool,
     /// Floor-scaled rectified keypoints
     /// ([`crate::synth::SynthConfig::floor_scaled`]); runs before this
     /// field read them unscaled.
@@ -169,24 +167,19 @@ fn one() -> f32 {
     1.0
 }
 
-/// The training configuration recorded in `weights` (`None` when they
-/// carry none, or one this trainer cannot read).
-pub fn trained_config(weights: &blapose_model::LoadedWeights) -> Option<TrainConfig> {
-    serde_json::from_str(weights.meta.extra.get("train_config")?).ok()
-}
-
 /// Research options measured and removed since (models/README.md,
 /// "Removed research options"), each with the test of the value that
 /// meant "off". A checkpoint whose configuration turns one on cannot be
 /// continued by this trainer.
 type IsOff = fn(&serde_json::Value) -> bool;
-const REMOVED_OPTIONS: [(&str, IsOff); 6] = [
+const REMOVED_OPTIONS: [(&str, IsOff); 7] = [
     ("noise_scale", |v| v.as_f64() == Some(1.0)),
     ("camera_height_std", |v| v.as_f64() == Some(0.0)),
     ("camera_angle_std_deg", |v| v.as_f64() == Some(0.0)),
     ("detector_gain", |v| v.as_bool() == Some(false)),
     ("precondition", |v| v.as_bool() == Some(false)),
     ("decouple_size", |v| v.as_bool() == Some(false)),
+    ("height_normalized", |v| v.as_bool() == Some(false)),
 ];
 
 /// The removed research options a serialized configuration turns on.
@@ -213,12 +206,18 @@ impl TrainConfig {
             floor_contact: self.floor_contact,
             random_yaw: self.random_yaw,
             rectify: self.rectify,
-            height_normalized: self.height_normalized,
             floor_scaled: self.floor_scaled,
             wide_cameras: self.wide_cameras,
         };
         cfg.validate()?;
         Ok(cfg)
+    }
+
+    /// What the trained weights expect as input: rectified or not, scaled
+    /// to the floor or not, through the wide cameras or Human3.6M's (the
+    /// contract the samples were made for: [`SynthConfig::model_input`]).
+    pub fn model_input(&self) -> ModelInput {
+        ModelInput::from_training(self.rectify, self.floor_scaled, self.wide_cameras > 0.0)
     }
 
     /// The learning-rate schedule.
@@ -631,8 +630,9 @@ pub fn train(
         );
     }
     meta.version = format!("blapose-train {}", env!("CARGO_PKG_VERSION"));
+    meta.input = Some(cfg.model_input());
     meta.extra
-        .insert("train_config".into(), serde_json::to_string(cfg)?);
+        .insert(KEY_TRAIN_CONFIG.into(), serde_json::to_string(cfg)?);
     meta.extra.insert("train_steps".into(), step.to_string());
     meta.extra.insert(
         "train_wall_clock_s".into(),

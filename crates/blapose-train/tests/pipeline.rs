@@ -286,43 +286,8 @@ fn a_camera_subset_draws_through_those_cameras_only() {
 }
 
 #[test]
-fn height_normalized_targets_are_seen_from_the_reference_height() {
-    let Some(f) = fixture() else { return };
-    let src = source(f, LengthStrategy::Ansur);
-    let rectified = SynthConfig {
-        seq_len: 8,
-        rectify: true,
-        ..Default::default()
-    };
-    let normalized = SynthConfig {
-        height_normalized: true,
-        ..rectified
-    };
-    for i in 0..16 {
-        let plain = src.sample(&rectified, &mut sample_rng(7, 0, i));
-        let scaled = src.sample(&normalized, &mut sample_rng(7, 0, i));
-        // Same picture, same camera; the target as a 1.56 m camera sees it.
-        assert_eq!(plain.input, scaled.input);
-        let cam = &src.sequences()[plain.sequence].cameras[plain.camera];
-        let k = (blapose_core::level::REFERENCE_CAMERA_HEIGHT / cam.center[2]) as f32;
-        assert!(
-            (k - 1.0).abs() > 1e-3,
-            "Human3.6M cameras are not at 1.56 m"
-        );
-        for (p, s) in plain.target.iter().zip(&scaled.target) {
-            assert!((p * k - s).abs() < 1e-6, "{p} * {k} vs {s}");
-        }
-    }
-    // Only with rectified keypoints.
-    let bad = SynthConfig {
-        rectify: false,
-        ..normalized
-    };
-    assert!(bad.validate().is_err());
-}
-
-#[test]
-fn wide_camera_samples_frame_the_person_and_normalize_by_their_camera() {
+fn wide_camera_samples_frame_the_person_and_floor_scale_by_their_camera() {
+    use blapose_core::level::{MIN_FLOOR_DROP, REFERENCE_CAMERA_HEIGHT};
     let Some(f) = fixture() else { return };
     let src = source(f, LengthStrategy::Ansur);
     let plain = SynthConfig {
@@ -335,37 +300,40 @@ fn wide_camera_samples_frame_the_person_and_normalize_by_their_camera() {
         rectify: true,
         ..plain
     };
-    let normalized = SynthConfig {
-        height_normalized: true,
-        ..rectified
-    };
     let floor = SynthConfig {
         floor_scaled: true,
         ..rectified
     };
     let mut wide = 0;
-    let mut scales = Vec::new();
+    let mut heights = Vec::new();
     for i in 0..64 {
         let p = src.sample(&plain, &mut sample_rng(11, 0, i));
         let r = src.sample(&rectified, &mut sample_rng(11, 0, i));
-        let n = src.sample(&normalized, &mut sample_rng(11, 0, i));
         let fl = src.sample(&floor, &mut sample_rng(11, 0, i));
-        assert_eq!(fl.target, r.target);
-        // The camera height is what the normalized target divided by.
-        let height =
-            (blapose_core::level::REFERENCE_CAMERA_HEIGHT as f32) * r.target[0] / n.target[0];
-        for (a, b) in r.input.chunks_exact(34).zip(fl.input.chunks_exact(34)) {
-            let kp: blapose_core::Keypoints2d = std::array::from_fn(|j| [a[2 * j], a[2 * j + 1]]);
-            let want: Vec<f32> = blapose_core::level::scale_to_floor(&kp, height)
-                .into_iter()
-                .flatten()
-                .collect();
-            for (x, y) in b.iter().zip(&want) {
-                assert!((x - y).abs() <= 1e-4 * y.abs().max(1.0), "{x} vs {y}");
-            }
-        }
         assert_eq!(p.target, r.target);
-        assert_eq!(r.input, n.input);
+        assert_eq!(fl.target, r.target);
+        // Each floor-scaled frame is the rectified one times the camera
+        // height over 1.56 m over the lowest joint's drop: one camera
+        // height for every frame of the sample.
+        let per_frame: Vec<f32> = r
+            .input
+            .chunks_exact(34)
+            .zip(fl.input.chunks_exact(34))
+            .map(|(a, b)| {
+                let drop = (0..17)
+                    .map(|j| a[2 * j + 1])
+                    .fold(f32::MIN, f32::max)
+                    .max(MIN_FLOOR_DROP as f32);
+                let j = (0..34)
+                    .max_by(|&x, &y| a[x].abs().total_cmp(&a[y].abs()))
+                    .unwrap();
+                b[j] / a[j] * drop * REFERENCE_CAMERA_HEIGHT as f32
+            })
+            .collect();
+        let height = per_frame[0];
+        for h in &per_frame {
+            assert!((h - height).abs() <= 1e-4 * height, "{h} vs {height}");
+        }
         if p.camera != WIDE_CAMERA {
             continue;
         }
@@ -373,17 +341,13 @@ fn wide_camera_samples_frame_the_person_and_normalize_by_their_camera() {
         // In the picture (normalized: |x| <= 1), up to detector noise.
         assert!(p.input.iter().all(|v| v.is_finite() && v.abs() < 1.2));
         assert_ne!(p.input, r.input, "rectifying a tilted camera moves points");
-        // One factor for every bone: 1.56 m over a height in 0.5-3 m.
-        let k = n.target[0] / r.target[0];
-        assert!((0.5..=3.2).contains(&k), "{k}");
-        for (a, b) in r.target.iter().zip(&n.target) {
-            assert!((a * k - b).abs() < 1e-5);
-        }
-        scales.push(k);
+        // A camera 0.5-3 m above the floor.
+        assert!((0.499..=3.001).contains(&height), "{height}");
+        heights.push(height);
     }
     assert!(wide >= 58, "only {wide} of 64 samples got a wide camera");
-    let spread = scales.iter().cloned().fold(f32::MIN, f32::max)
-        - scales.iter().cloned().fold(f32::MAX, f32::min);
+    let spread = heights.iter().cloned().fold(f32::MIN, f32::max)
+        - heights.iter().cloned().fold(f32::MAX, f32::min);
     assert!(spread > 1.0, "camera heights barely vary: {spread}");
     let bad = SynthConfig {
         wide_cameras: 1.5,

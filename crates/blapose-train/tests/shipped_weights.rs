@@ -12,7 +12,8 @@ use std::path::Path;
 use blapose_data::h36m::{H36m, Parts, ALL_SUBJECTS, TEST_SUBJECTS};
 use blapose_model::ModelKind;
 use blapose_train::dataset::{eval_sequences, subject_lengths, InputKind};
-use blapose_train::eval::{calibrated, evaluate, BiGruEstimator, GruEstimator, LengthEstimator};
+use blapose_train::eval::run::network_estimator;
+use blapose_train::eval::{calibrate, evaluate};
 
 #[test]
 fn shipped_weights_reproduce_the_model_card() {
@@ -63,14 +64,11 @@ fn shipped_weights_reproduce_the_model_card() {
         };
         let weights =
             blapose_model::weights::load(models.join(file), kind).expect("shipped weights load");
-        let mut est: Box<dyn LengthEstimator> = match kind {
-            ModelKind::BiGru => Box::new(BiGruEstimator::new(&weights).unwrap()),
-            ModelKind::Gru => Box::new(GruEstimator::new(&weights).unwrap()),
-        };
+        let est = network_estimator(kind, &weights).unwrap();
         // The camera-aware pair as a calibrated session is served.
         let mut trials = trials.clone();
         if key.contains("rectified") {
-            est = calibrated(est, &weights, &mut trials, |s, id| h.cameras.get(s, id)).unwrap();
+            calibrate(&weights, &mut trials, |s, id| h.cameras.get(s, id)).unwrap();
         }
         let r = evaluate(est.as_ref(), &trials, &[], kind.as_str(), "sh", file, &[]).unwrap();
         assert!(
@@ -83,11 +81,12 @@ fn shipped_weights_reproduce_the_model_card() {
 
 /// Every shipped bone-length file's `train_config`, written before some
 /// research options were removed, still parses into [`TrainConfig`] and
-/// serializes back to the same values (the server judges a file's family
-/// by `rectify`, `height_normalized`, `floor_scaled` and `wide_cameras`
-/// there).
+/// serializes back to the same values, and reads into the input contract
+/// its family is served by (`rectify`, `floor_scaled` and `wide_cameras`
+/// there: [`blapose_model::input::ModelInput::from_train_config`]).
 #[test]
 fn shipped_train_configs_still_parse() {
+    use blapose_model::input::ModelInput;
     use blapose_train::lengths::LengthStrategy;
     use blapose_train::noise::NoiseKind;
     use blapose_train::synth::ShiftPlane;
@@ -108,14 +107,13 @@ fn shipped_train_configs_still_parse() {
         ),
     ] {
         let weights = blapose_model::weights::load(models.join(file), kind).expect(file);
-        let text = &weights.meta.extra["train_config"];
+        let text = &weights.meta.extra[blapose_model::input::KEY_TRAIN_CONFIG];
         let old: serde_json::Value = serde_json::from_str(text).unwrap();
         assert_eq!(removed_options(&old), Vec::<&str>::new(), "{file}");
         let cfg: TrainConfig = serde_json::from_str(text).expect(file);
-        assert_eq!(
-            (cfg.kind, cfg.rectify, cfg.height_normalized),
-            (kind, rectify, false)
-        );
+        assert_eq!((cfg.kind, cfg.rectify), (kind, rectify));
+        // What the trainer now records, read back from the older file.
+        assert_eq!(weights.meta.input, Some(cfg.model_input()), "{file}");
         assert_eq!(cfg.lengths, LengthStrategy::Ansur);
         assert_eq!(cfg.noise, NoiseKind::Residual);
         if rectify {
@@ -124,11 +122,17 @@ fn shipped_train_configs_still_parse() {
             assert!(cfg.floor_scaled, "{file}");
             assert_eq!(cfg.wide_cameras, 1.0, "{file}");
             assert_eq!(
+                cfg.model_input(),
+                ModelInput::from_training(true, true, true),
+                "{file}"
+            );
+            assert_eq!(
                 cfg.ansur_people,
                 blapose_train::ansur_split::AnsurPeople::Train,
                 "{file}"
             );
         } else {
+            assert_eq!(cfg.model_input(), ModelInput::screen(), "{file}");
             assert_eq!(cfg.shift_plane, ShiftPlane::Ground);
             // Written before the held-out split: every ANSUR person.
             assert_eq!(
@@ -152,4 +156,9 @@ fn shipped_train_configs_still_parse() {
     assert_eq!(removed_options(&old), ["detector_gain"]);
     old["noise_scale"] = 1.5.into();
     assert_eq!(removed_options(&old), ["noise_scale", "detector_gain"]);
+    // Height-normalized targets are gone; `false` (what every shipped file
+    // says, or nothing) is still read.
+    let old = serde_json::json!({"rectify": true, "height_normalized": true});
+    assert_eq!(removed_options(&old), ["height_normalized"]);
+    assert!(removed_options(&serde_json::json!({"height_normalized": false})).is_empty());
 }

@@ -64,7 +64,6 @@ fn config(steps: u64) -> TrainConfig {
         random_yaw: false,
         cameras: Vec::new(),
         rectify: false,
-        height_normalized: false,
         floor_scaled: false,
         wide_cameras: 0.0,
         flip_prob: 0.5,

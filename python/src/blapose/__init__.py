@@ -7,10 +7,12 @@
 ...         result.adjusted, result.bone_lengths  # (17, 3), (16,)
 
 See :class:`Client`, :class:`Session`, :mod:`blapose.errors`, :mod:`blapose.aio` and
-:mod:`blapose.report` (``write_html``: a self-contained HTML report of an adjustment).
+:mod:`blapose.report` (``write_html``: a self-contained HTML report of an adjustment) and
+:mod:`blapose.export` (``write_bvh``, ``write_c3d``, ``write_trc``: the motion for animation and
+biomechanics tools).
 """
 
-from . import aio, report
+from . import aio, export, report
 from ._common import MISSING_CONFIDENCE
 from .client import Client, Session
 from .errors import (
@@ -33,6 +35,7 @@ from .errors import (
     Unimplemented,
     UnknownError,
 )
+from .export import write_bvh, write_c3d, write_trc
 from .report import write_html, write_replay_html
 from .types import (
     BONE_NAMES,
@@ -43,13 +46,12 @@ from .types import (
     ClosedSession,
     FrameResult,
     ModelInfo,
-    ReplayFile,
     SequenceResult,
     SessionInfo,
     SessionToken,
     adjust_pose,
-    load_replay,
 )
+from .replay_file import DEFAULT_MAX_FRAMES, ReplayFile, ReplayFileError, load_replay
 
 __version__ = "0.1.0"
 
@@ -57,6 +59,10 @@ __all__ = [
     "MISSING_CONFIDENCE",
     "aio",
     "report",
+    "export",
+    "write_bvh",
+    "write_c3d",
+    "write_trc",
     "write_html",
     "write_replay_html",
     "Client",
@@ -66,6 +72,8 @@ __all__ = [
     "FrameResult",
     "ModelInfo",
     "ReplayFile",
+    "ReplayFileError",
+    "DEFAULT_MAX_FRAMES",
     "SequenceResult",
     "SessionInfo",
     "SessionToken",

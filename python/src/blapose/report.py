@@ -27,7 +27,8 @@ from typing import Any, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .types import BONE_NAMES, JOINT_NAMES, PARENTS, FrameResult, ReplayFile, SequenceResult
+from .replay_file import ReplayFile
+from .types import BONE_NAMES, JOINT_NAMES, PARENTS, FrameResult, SequenceResult
 
 __all__ = [
     "DATA_PLACEHOLDER",
@@ -103,7 +104,7 @@ def _procrustes(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
 def metrics(pred: Any, gt: Any) -> Dict[str, float]:
     """MPJPE (root-relative), P-MPJPE and mean absolute bone-length error of ``pred``
     against ``gt`` (both ``(T, 17, 3)`` metres), in millimetres: the client's
-    ``PoseMetrics`` (client/src/report.rs)."""
+    ``PoseMetrics`` (``blapose_core::metrics::pose_metrics``)."""
     p = _poses("pred", pred, None)
     g = _poses("gt", gt, p.shape[0])
     pr, gr = p - p[:, :1], g - g[:, :1]

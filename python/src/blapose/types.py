@@ -12,7 +12,6 @@ Array conventions (the proto's, as numpy arrays):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Dict, Optional, Tuple, Union
 from typing import Sequence as Seq
 
@@ -32,8 +31,6 @@ __all__ = [
     "ClosedSession",
     "SessionToken",
     "ModelInfo",
-    "ReplayFile",
-    "load_replay",
     "adjust_pose",
 ]
 
@@ -365,63 +362,6 @@ class ModelInfo:
             max_message_bytes=msg.max_message_bytes,
             lifter=lifter,
             raw=msg,
-        )
-
-
-@dataclass
-class ReplayFile:
-    """A replay ``.npz`` as ``blapose-client replay`` reads it (see client/README.md)."""
-
-    keypoints_2d: np.ndarray  # (T, J, 2)
-    pose_3d: np.ndarray  # (T, 17, 3)
-    image_size: Tuple[int, int]
-    layout: str
-    gt_3d: Optional[np.ndarray] = None
-    confidence: Optional[np.ndarray] = None
-    fps: Optional[float] = None
-    camera: Optional[Camera] = None
-
-    @property
-    def num_frames(self) -> int:
-        return int(self.keypoints_2d.shape[0])
-
-    def frames(self):
-        """``(keypoints, pose)`` pairs, ready for :meth:`blapose.Session.stream`."""
-        return zip(self.keypoints_2d, self.pose_3d)
-
-
-def load_replay(path: Union[str, Path]) -> ReplayFile:
-    """Load a replay file (``keypoints_2d``, ``pose_3d``, ``image_size``, optional
-    ``layout``, ``gt_3d``, ``confidence``, ``fps``, ``camera_*``)."""
-    with np.load(path) as z:
-        kp = np.asarray(z["keypoints_2d"], dtype=np.float32)
-        pose = np.asarray(z["pose_3d"], dtype=np.float32)
-        w, h = (int(v) for v in np.asarray(z["image_size"]).reshape(-1)[:2])
-        if "layout" in z:
-            code = int(np.asarray(z["layout"]).reshape(-1)[0])
-            layout = _LAYOUT_BY_VALUE[code]
-        else:
-            layout = {17: "h36m17", 16: "sh16"}[kp.shape[1]]
-        camera = None
-        if "camera_up" in z:
-            height = float(np.asarray(z["camera_height"]).reshape(-1)[0]) if "camera_height" in z else None
-            distortion = tuple(float(v) for v in z["camera_distortion"]) if "camera_distortion" in z else None
-            camera = Camera(
-                up=tuple(float(v) for v in z["camera_up"]),  # type: ignore[arg-type]
-                focal=tuple(float(v) for v in z["camera_focal"]),  # type: ignore[arg-type]
-                principal=tuple(float(v) for v in z["camera_principal"]),  # type: ignore[arg-type]
-                height=height,
-                distortion=distortion,
-            )
-        return ReplayFile(
-            keypoints_2d=kp,
-            pose_3d=pose,
-            image_size=(w, h),
-            layout=layout,
-            gt_3d=np.asarray(z["gt_3d"], dtype=np.float32) if "gt_3d" in z else None,
-            confidence=np.asarray(z["confidence"], dtype=np.float32) if "confidence" in z else None,
-            fps=float(np.asarray(z["fps"]).reshape(-1)[0]) if "fps" in z else None,
-            camera=camera,
         )
 
 

@@ -2,7 +2,7 @@
 //! code, a message that says what is wrong, and no damage to the session or
 //! to other sessions.
 
-use blapose_client::{ClientError, FrameInput, KeypointLayout, SessionEvent};
+use blapose_client::{ClientError, FrameInput, KeypointLayout, SessionEvent, ToProto};
 use blapose_proto::v1 as pb;
 use blapose_proto::v1::stream_request::Kind;
 use blapose_tests::{
@@ -356,14 +356,13 @@ async fn oversize_messages_are_out_of_range() {
 
     // Offline: 1,000 frames is ~340 KB, over the 64 KiB limit.
     let seq = synthetic_sequence(35, 1000, KeypointLayout::H36m17);
-    let err =
-        blapose_client::adjust_offline(&client, &seq, blapose_client::ModelChoice::OfflineBiGru)
-            .await
-            .expect_err("too big");
+    let err = blapose_client::adjust_offline(&client, &seq, blapose_client::ModelKind::BiGru)
+        .await
+        .expect_err("too big");
     assert_eq!(err.code(), Some(Code::OutOfRange), "{err}");
     // A smaller one on the same connection is fine.
     let small = synthetic_sequence(36, 50, KeypointLayout::H36m17);
-    blapose_client::adjust_offline(&client, &small, blapose_client::ModelChoice::OfflineBiGru)
+    blapose_client::adjust_offline(&client, &small, blapose_client::ModelKind::BiGru)
         .await
         .expect("within the limit");
 

@@ -4,7 +4,7 @@
 //! server; without them the test says so and passes vacuously.
 
 use blapose_client::{
-    adjust_offline, evaluate, replay, Evaluation, ModelChoice, ReplayOptions, Sequence,
+    adjust_offline, evaluate, replay, Evaluation, ModelKind, ReplayOptions, Sequence,
 };
 use blapose_server::{ServerConfig, WeightsSource};
 use blapose_tests::{workspace_root, TestServer};
@@ -73,7 +73,7 @@ async fn replaying_the_examples_improves_them() {
             let e = evaluate(&seq.pose_3d, &streamed.adjusted, gt).expect("metrics");
             println!("{} (stream, {family} gru):\n{e}", file.display());
             online.push(e);
-            let adjusted = adjust_offline(&client, &seq, ModelChoice::OfflineBiGru)
+            let adjusted = adjust_offline(&client, &seq, ModelKind::BiGru)
                 .await
                 .expect("offline");
             let e = evaluate(&seq.pose_3d, &adjusted.adjusted, gt).expect("metrics");

@@ -14,13 +14,15 @@
 //!   errors, client-pose sessions beside lifting ones;
 //! - [`security`]: the bearer token and TLS;
 //! - [`shutdown`]: graceful shutdown answers frames already received;
-//! - [`example`]: replaying the shipped example improves its accuracy;
-//! - [`report`]: the HTML report of `replay --html`.
+//! - [`example`]: replaying the shipped example improves its accuracy.
+//!
+//! The HTML report of `replay --html` belongs to the `blapose-client`
+//! binary, so its end-to-end test runs that binary
+//! (`client/tests/html_report.rs`).
 
 mod errors;
 mod example;
 mod lifter;
-mod report;
 mod security;
 mod sessions;
 mod shutdown;

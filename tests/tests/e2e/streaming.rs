@@ -4,8 +4,7 @@
 use std::sync::Arc;
 
 use blapose_client::{
-    adjust_offline, replay, replay_session, KeypointLayout, ModelChoice, ReplayOptions,
-    SessionEvent,
+    adjust_offline, replay, replay_session, KeypointLayout, ModelKind, ReplayOptions, SessionEvent,
 };
 use blapose_tests::{
     lengths_diff, pose_diff, synthetic_sequence, test_camera, test_config, Reference, TestServer,
@@ -139,10 +138,10 @@ async fn offline_rpc_matches_the_library_path() {
         let mut seq = synthetic_sequence(seed, 75, layout);
         seq.camera = camera;
 
-        let bigru = adjust_offline(&client, &seq, ModelChoice::OfflineBiGru)
+        let bigru = adjust_offline(&client, &seq, ModelKind::BiGru)
             .await
             .expect("bigru");
-        assert_eq!(bigru.model, ModelChoice::OfflineBiGru);
+        assert_eq!(bigru.model, ModelKind::BiGru);
         let (want, lengths) = reference.offline(&seq);
         for (t, (got, want)) in bigru.adjusted.iter().zip(&want).enumerate() {
             assert!(pose_diff(got, want) < TOLERANCE, "{layout} frame {t}");
@@ -162,10 +161,10 @@ async fn offline_rpc_matches_the_library_path() {
         }
 
         // The online model through the offline RPC gives what a stream gives.
-        let gru = adjust_offline(&client, &seq, ModelChoice::OnlineGru)
+        let gru = adjust_offline(&client, &seq, ModelKind::Gru)
             .await
             .expect("gru");
-        assert_eq!(gru.model, ModelChoice::OnlineGru);
+        assert_eq!(gru.model, ModelKind::Gru);
         let (want, lengths) = reference.online(&seq);
         for t in 0..seq.len() {
             assert!(
@@ -195,7 +194,7 @@ async fn model_info_and_health() {
     assert_eq!(info.layouts.len(), 3);
     let kinds: Vec<_> = info.models.iter().filter_map(|m| m.model).collect();
     assert!(
-        kinds.contains(&ModelChoice::OnlineGru) && kinds.contains(&ModelChoice::OfflineBiGru),
+        kinds.contains(&ModelKind::Gru) && kinds.contains(&ModelKind::BiGru),
         "{kinds:?}"
     );
     for m in &info.models {

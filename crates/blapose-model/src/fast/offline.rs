@@ -67,7 +67,7 @@ impl OfflineBiGruEngine {
     /// Build with explicit [`EngineOptions`] (the precision applies to the
     /// recurrent weights; the batched input projection stays f32).
     pub fn with_options(weights: &LoadedWeights, opts: EngineOptions) -> Result<Self, ModelError> {
-        ModelKind::BiGru.expect(weights.kind())?;
+        crate::expect_kind(ModelKind::BiGru, weights.kind())?;
         let isa = opts.resolved_isa()?;
         let threads = opts.threads;
         let names = GruNames::for_kind(ModelKind::BiGru);

@@ -182,7 +182,7 @@ impl OnlineGruEngine {
 
     /// Build with explicit [`EngineOptions`].
     pub fn with_options(weights: &LoadedWeights, opts: EngineOptions) -> Result<Self, ModelError> {
-        ModelKind::Gru.expect(weights.kind())?;
+        crate::expect_kind(ModelKind::Gru, weights.kind())?;
         let isa = opts.resolved_isa()?;
         let threads = opts.threads;
         let pack = |n: &GruNames| -> Result<PackedGru, ModelError> {

@@ -113,3 +113,17 @@ pub fn apply_dropout(x: &Tensor, p: f32, rng: &mut dyn RngCore) -> Result<Tensor
         .collect();
     Ok(x.mul(&Tensor::from_vec(mask, x.shape(), x.device())?)?)
 }
+
+/// `x` after dropout `p` in training mode (`train` is `Some`: the mask is
+/// drawn from its generator, [`apply_dropout`]); `x` itself in evaluation
+/// mode or when `p` is 0.
+pub fn dropout(
+    x: Tensor,
+    p: f32,
+    train: &mut Option<&mut dyn RngCore>,
+) -> Result<Tensor, TrainError> {
+    match train {
+        Some(rng) if p > 0.0 => apply_dropout(&x, p, &mut **rng),
+        _ => Ok(x),
+    }
+}

@@ -7,12 +7,13 @@
 //! blocks of `[Linear(h -> h), BatchNorm, ReLU, Dropout] x 2` with the
 //! block input added to its output, then `Linear(h -> 48)`: the 16 non-root
 //! joints, root-relative, metres (the root is fixed at the origin, as in the
-//! paper, which predicts 16 joints). The paper's size is `h = 1024`,
-//! `blocks = 2`, dropout 0.5 (about 4.3 M parameters). Unlike the paper the
-//! inputs and targets are not z-scored: the inputs are already normalized
-//! screen coordinates in about [-1, 1] and the metre targets are of order
-//! one, and a per-coordinate z-score would break the exact mirror symmetry
-//! that flip augmentation relies on.
+//! paper, which predicts 16 joints). Its size is an [`MlpArch`]; the
+//! paper's, the default, is `h = 1024`, `blocks = 2`, dropout 0.5 (about
+//! 4.3 M parameters). Unlike the paper the inputs and targets are not
+//! z-scored: the inputs are already normalized screen coordinates in about
+//! [-1, 1] and the metre targets are of order one, and a per-coordinate
+//! z-score would break the exact mirror symmetry that flip augmentation
+//! relies on.
 //!
 //! Built in candle-nn on a [`VarMap`] so candle autograd trains it. The
 //! initial weights are drawn from a seeded generator ([`MlpLifter::init`]:
@@ -25,35 +26,12 @@ use blapose_core::Keypoints2d;
 use candle_core::{Device, Tensor};
 use candle_nn::{BatchNorm, Linear, Module, ModuleT, VarBuilder, VarMap};
 use rand::RngCore;
-use serde::{Deserialize, Serialize};
 
 use super::data::Window;
-use super::init::{apply_dropout, seeded};
-use super::{LifterKind, LifterNet, OUTPUT_DIM};
+use super::init::seeded;
+use super::{LifterKind, LifterNet, MlpArch, OUTPUT_DIM};
 use crate::error::TrainError;
 use crate::synth::FRAME_DIM;
-
-/// Size of the MLP.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct MlpConfig {
-    /// Hidden width.
-    pub hidden: usize,
-    /// Residual blocks.
-    pub blocks: usize,
-    /// Dropout probability (training only).
-    pub dropout: f32,
-}
-
-impl Default for MlpConfig {
-    /// The paper's size.
-    fn default() -> Self {
-        Self {
-            hidden: 1024,
-            blocks: 2,
-            dropout: 0.5,
-        }
-    }
-}
 
 /// Linear + batch norm (+ ReLU + dropout in `forward`).
 struct Layer {
@@ -77,16 +55,13 @@ impl Layer {
     ) -> Result<Tensor, TrainError> {
         let y = self.linear.forward(x)?;
         let y = self.bn.forward_t(&y, train.is_some())?.relu()?;
-        match train {
-            Some(rng) if dropout > 0.0 => apply_dropout(&y, dropout, &mut **rng),
-            _ => Ok(y),
-        }
+        super::init::dropout(y, dropout, train)
     }
 }
 
 /// The residual MLP lifter.
 pub struct MlpLifter {
-    config: MlpConfig,
+    config: MlpArch,
     input: Layer,
     blocks: Vec<[Layer; 2]>,
     output: Linear,
@@ -95,7 +70,7 @@ pub struct MlpLifter {
 impl MlpLifter {
     /// Build on `vb` (tensor names `input.*`, `blocks.{i}.{0,1}.*`,
     /// `output.*`).
-    pub fn new(config: MlpConfig, vb: VarBuilder) -> Result<Self, TrainError> {
+    pub fn new(config: MlpArch, vb: VarBuilder) -> Result<Self, TrainError> {
         if config.hidden == 0 || !(0.0..1.0).contains(&config.dropout) {
             return Err(TrainError::InvalidArgument(format!(
                 "MLP needs hidden > 0 and dropout in [0, 1), got {config:?}"
@@ -119,12 +94,12 @@ impl MlpLifter {
     }
 
     /// A fresh model in a new [`VarMap`], initialized from `seed`.
-    pub fn init(config: MlpConfig, seed: u64) -> Result<(Self, VarMap), TrainError> {
+    pub fn init(config: MlpArch, seed: u64) -> Result<(Self, VarMap), TrainError> {
         seeded(seed, "output.weight", |vb| Self::new(config, vb))
     }
 
     /// The size.
-    pub fn config(&self) -> MlpConfig {
+    pub fn config(&self) -> MlpArch {
         self.config
     }
 
@@ -169,7 +144,7 @@ mod tests {
 
     #[test]
     fn paper_size_and_seeded_init() {
-        let (m, vars) = MlpLifter::init(MlpConfig::default(), 7).unwrap();
+        let (m, vars) = MlpLifter::init(MlpArch::default(), 7).unwrap();
         let trainable: usize = vars
             .data()
             .lock()
@@ -182,10 +157,10 @@ mod tests {
         assert_eq!(trainable, 4_293_680);
         let x = Tensor::ones((3, FRAME_DIM), DType::F32, &Device::Cpu).unwrap();
         let a = m.forward(&x, None).unwrap().to_vec2::<f32>().unwrap();
-        let (m2, _) = MlpLifter::init(MlpConfig::default(), 7).unwrap();
+        let (m2, _) = MlpLifter::init(MlpArch::default(), 7).unwrap();
         let b = m2.forward(&x, None).unwrap().to_vec2::<f32>().unwrap();
         assert_eq!(a, b, "same seed, same network");
-        let (m3, _) = MlpLifter::init(MlpConfig::default(), 8).unwrap();
+        let (m3, _) = MlpLifter::init(MlpArch::default(), 8).unwrap();
         let c = m3.forward(&x, None).unwrap().to_vec2::<f32>().unwrap();
         assert_ne!(a, c);
         assert_eq!(a[0].len(), OUTPUT_DIM);

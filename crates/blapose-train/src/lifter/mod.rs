@@ -17,6 +17,12 @@
 //!   checkpointable [`crate::adam::Adam`]), checkpoints, resume, log;
 //! - [`weights`]: the weights file (safetensors + metadata) and loading.
 //!
+//! What each network is and how large is a [`LifterArch`] (an [`MlpArch`] or
+//! a [`VideoPoseArch`], selected by [`LifterKind`]): the type the weights
+//! files record, defined in `blapose_lifters::arch` and used here as the
+//! training configuration too, so a run writes exactly what the server
+//! reads; [`build`] makes the network of one.
+//!
 //! Every lifter is a [`LifterNet`]: a [`data::Window`] of frames in, the 16
 //! non-root joints of one frame out — the window's centre frame, or its
 //! last for a causal model (the root is fixed at the origin: targets are
@@ -36,90 +42,30 @@ use blapose_core::{Pose, NUM_JOINTS};
 use candle_core::Tensor;
 use candle_nn::VarMap;
 use rand::RngCore;
-use serde::{Deserialize, Serialize};
 
 use crate::error::TrainError;
 use data::Window;
-use mlp::{MlpConfig, MlpLifter};
-use temporal::{TemporalConfig, TemporalLifter};
+use mlp::MlpLifter;
+use temporal::TemporalLifter;
+
+/// The architectures trained here, as the weights files record them:
+/// defined once in the serving crate, which reads those files.
+pub use blapose_lifters::arch::{LifterArch, LifterKind, MlpArch, VideoPoseArch};
 
 /// Outputs of a lifter: the 16 non-root joints x (x, y, z), metres.
 pub const OUTPUT_DIM: usize = (NUM_JOINTS - 1) * 3;
 
-/// Which lifter architecture (`train-lifter --model`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, clap::ValueEnum)]
-pub enum LifterKind {
-    /// Martinez et al. 2017 residual MLP, single frame.
-    Mlp,
-    /// VideoPose3D-style temporal convolutions.
-    #[value(name = "videopose")]
-    Temporal,
-}
-
-impl LifterKind {
-    /// Flag and metadata spelling.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Self::Mlp => "mlp",
-            Self::Temporal => "videopose",
+/// A fresh network of architecture `arch`, its variables initialized from
+/// `seed`.
+pub fn build(arch: &LifterArch, seed: u64) -> Result<(Box<dyn LifterNet>, VarMap), TrainError> {
+    match *arch {
+        LifterArch::Mlp(c) => {
+            let (m, v) = MlpLifter::init(c, seed)?;
+            Ok((Box::new(m), v))
         }
-    }
-}
-
-impl std::fmt::Display for LifterKind {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.as_str())
-    }
-}
-
-/// An architecture with its size: what a weights file needs to rebuild the
-/// network (stored in its metadata).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "model", rename_all = "lowercase")]
-pub enum LifterArch {
-    /// [`MlpLifter`].
-    Mlp(MlpConfig),
-    /// [`TemporalLifter`].
-    #[serde(rename = "videopose")]
-    Temporal(TemporalConfig),
-}
-
-impl LifterArch {
-    /// The default size of `kind`.
-    pub fn default_for(kind: LifterKind) -> Self {
-        match kind {
-            LifterKind::Mlp => Self::Mlp(MlpConfig::default()),
-            LifterKind::Temporal => Self::Temporal(TemporalConfig::default()),
-        }
-    }
-
-    /// The architecture's kind.
-    pub fn kind(&self) -> LifterKind {
-        match self {
-            Self::Mlp(_) => LifterKind::Mlp,
-            Self::Temporal(_) => LifterKind::Temporal,
-        }
-    }
-
-    /// A short name for tables: `mlp`, `videopose27`, `videopose27-causal`.
-    pub fn name(&self) -> String {
-        match self {
-            Self::Mlp(_) => "mlp".into(),
-            Self::Temporal(c) => c.served().name(),
-        }
-    }
-
-    /// A fresh network, its variables initialized from `seed`.
-    pub fn build(&self, seed: u64) -> Result<(Box<dyn LifterNet>, VarMap), TrainError> {
-        match *self {
-            Self::Mlp(c) => {
-                let (m, v) = MlpLifter::init(c, seed)?;
-                Ok((Box::new(m), v))
-            }
-            Self::Temporal(c) => {
-                let (m, v) = TemporalLifter::init(c, seed)?;
-                Ok((Box::new(m), v))
-            }
+        LifterArch::VideoPose(c) => {
+            let (m, v) = TemporalLifter::init(c, seed)?;
+            Ok((Box::new(m), v))
         }
     }
 }

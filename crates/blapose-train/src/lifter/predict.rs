@@ -98,7 +98,7 @@ impl<'a> StreamLifter<'a> {
     /// The fastest exact form for `lifter`.
     pub fn new(lifter: &'a LoadedLifter) -> Result<Self, TrainError> {
         match lifter.metadata.arch {
-            LifterArch::Temporal(c) => {
+            LifterArch::VideoPose(c) => {
                 let tensors = named_tensors(&lifter.varmap)?.into_iter().collect();
                 let vb = candle_nn::VarBuilder::from_tensors(
                     tensors,
@@ -106,7 +106,7 @@ impl<'a> StreamLifter<'a> {
                     &Device::Cpu,
                 );
                 Ok(Self::Dilated(Box::new(blapose_lifters::VideoPose3d::new(
-                    c.inference_config(),
+                    c.config(),
                     vb,
                 )?)))
             }
@@ -139,20 +139,20 @@ impl<'a> StreamLifter<'a> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::lifter::temporal::TemporalConfig;
     use crate::lifter::weights::metadata;
+    use crate::lifter::{build, VideoPoseArch};
 
     #[test]
     fn dilated_streams_match_windowed_prediction() {
         for causal in [false, true] {
-            let arch = LifterArch::Temporal(TemporalConfig {
+            let arch = LifterArch::VideoPose(VideoPoseArch {
                 filter_width: 3,
                 blocks: 1,
                 channels: 16,
                 dropout: 0.1,
                 causal,
             });
-            let (net, varmap) = arch.build(4).unwrap();
+            let (net, varmap) = build(&arch, 4).unwrap();
             let x: Vec<f32> = (0..8 * net.window().values())
                 .map(|i| (i as f32 * 0.21).cos())
                 .collect();

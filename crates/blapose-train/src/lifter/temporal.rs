@@ -10,8 +10,9 @@
 //! names (`expand_conv`, `expand_bn`, `layers_conv.{i}`, `layers_bn.{i}`,
 //! `shrink`) and shapes (`Conv1d` weights `(out, in, k)`), so a weights file
 //! written here loads unchanged into `blapose_lifters::VideoPose3d` — the
-//! fast online path the server runs ([`TemporalConfig::inference_config`];
-//! a test checks both give the same poses).
+//! fast online path the server runs ([`VideoPoseArch::config`]; a test
+//! checks both give the same poses). Its size is the [`VideoPoseArch`] the
+//! weights file records.
 //!
 //! The reference predicts all 17 joints and is trained towards a pelvis at
 //! the origin; here the three pelvis rows of `shrink` start at zero and,
@@ -25,92 +26,41 @@
 use candle_core::Tensor;
 use candle_nn::{BatchNorm, ModuleT, VarBuilder, VarMap};
 use rand::RngCore;
-use serde::{Deserialize, Serialize};
 
 use super::data::Window;
-use super::init::{apply_dropout, seeded, zero_leading_rows};
-use super::{LifterKind, LifterNet, OUTPUT_DIM};
+use super::init::{seeded, zero_leading_rows};
+use super::{LifterKind, LifterNet, VideoPoseArch, OUTPUT_DIM};
 use crate::error::TrainError;
 use crate::synth::FRAME_DIM;
 
 /// Outputs of `shrink`: all 17 joints, as in the reference.
 const SHRINK_OUTPUTS: usize = OUTPUT_DIM + 3;
 
-/// Size of the temporal model: `blocks + 1` layers, all of filter width
-/// `filter_width`, so the receptive field is `filter_width^(blocks + 1)`.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct TemporalConfig {
-    /// Filter width of every layer (odd).
-    pub filter_width: usize,
-    /// Residual blocks after the expanding convolution.
-    pub blocks: usize,
-    /// Convolution channels.
-    pub channels: usize,
-    /// Dropout probability (training only).
-    pub dropout: f32,
-    /// Causal convolutions: the output is the window's last frame.
-    pub causal: bool,
-}
+/// Largest receptive field trained here (frames).
+const MAX_RECEPTIVE_FIELD: usize = 729;
 
-impl Default for TemporalConfig {
-    /// 27 frames (`3,3,3`), 512 channels, dropout 0.25: the reference's
-    /// 27-frame model at half its width, which a 2-core CPU trains in
-    /// about two hours.
-    fn default() -> Self {
-        Self {
-            filter_width: 3,
-            blocks: 2,
-            channels: 512,
-            dropout: 0.25,
-            causal: false,
+/// The input window of `arch` if this crate can train it: an odd filter
+/// width, channels, dropout in `[0, 1)` and at most
+/// [`MAX_RECEPTIVE_FIELD`] frames.
+pub fn window(arch: &VideoPoseArch) -> Result<Window, TrainError> {
+    let frames = arch
+        .receptive_field()
+        .filter(|&rf| rf <= MAX_RECEPTIVE_FIELD);
+    match frames {
+        Some(frames)
+            if arch.filter_width % 2 == 1
+                && arch.channels > 0
+                && (0.0..1.0).contains(&arch.dropout) =>
+        {
+            Ok(Window {
+                frames,
+                causal: arch.causal,
+            })
         }
-    }
-}
-
-impl TemporalConfig {
-    /// Frames one output depends on.
-    pub fn receptive_field(&self) -> usize {
-        self.filter_width.pow(self.blocks as u32 + 1)
-    }
-
-    /// The input window of one output frame.
-    pub fn window(&self) -> Window {
-        Window {
-            frames: self.receptive_field(),
-            causal: self.causal,
-        }
-    }
-
-    /// The size as the weights file's metadata records it, which is what
-    /// the serving crate reads back.
-    pub fn served(&self) -> blapose_lifters::trained::VideoPoseArch {
-        blapose_lifters::trained::VideoPoseArch {
-            filter_width: self.filter_width,
-            blocks: self.blocks,
-            channels: self.channels,
-            dropout: self.dropout,
-            causal: self.causal,
-        }
-    }
-
-    /// The same network for the inference crate (the server's path).
-    pub fn inference_config(&self) -> blapose_lifters::VideoPose3dConfig {
-        self.served().config()
-    }
-
-    fn validate(&self) -> Result<(), TrainError> {
-        let ok = self.filter_width % 2 == 1
-            && self.channels > 0
-            && (0.0..1.0).contains(&self.dropout)
-            && self.receptive_field() <= 729;
-        if ok {
-            Ok(())
-        } else {
-            Err(TrainError::InvalidArgument(format!(
-                "temporal lifter needs an odd filter width, channels > 0, dropout in [0, 1) and \
-                 a receptive field of at most 729 frames; got {self:?}"
-            )))
-        }
+        _ => Err(TrainError::InvalidArgument(format!(
+            "temporal lifter needs an odd filter width, channels > 0, dropout in [0, 1) and \
+             a receptive field of at most {MAX_RECEPTIVE_FIELD} frames; got {arch:?}"
+        ))),
     }
 }
 
@@ -175,16 +125,14 @@ impl ConvLayer {
             .forward_t(&y.reshape((b * n, c))?, train.is_some())?
             .relu()?
             .reshape((b, n, c))?;
-        match train {
-            Some(rng) if dropout > 0.0 => apply_dropout(&y, dropout, &mut **rng),
-            _ => Ok(y),
-        }
+        super::init::dropout(y, dropout, train)
     }
 }
 
 /// The temporal lifter.
 pub struct TemporalLifter {
-    config: TemporalConfig,
+    config: VideoPoseArch,
+    window: Window,
     expand: ConvLayer,
     /// `(wide, pointwise)` per residual block.
     blocks: Vec<(ConvLayer, ConvLayer)>,
@@ -194,8 +142,8 @@ pub struct TemporalLifter {
 
 impl TemporalLifter {
     /// Build on `vb` under the reference names.
-    pub fn new(config: TemporalConfig, vb: VarBuilder) -> Result<Self, TrainError> {
-        config.validate()?;
+    pub fn new(config: VideoPoseArch, vb: VarBuilder) -> Result<Self, TrainError> {
+        let window = window(&config)?;
         let (c, w) = (config.channels, config.filter_width);
         let expand = ConvLayer::new(FRAME_DIM, c, w, vb.pp("expand_conv"), vb.pp("expand_bn"))?;
         let (convs, bns) = (vb.pp("layers_conv"), vb.pp("layers_bn"));
@@ -212,6 +160,7 @@ impl TemporalLifter {
         let shrink_bias = shrink.get_with_hints(SHRINK_OUTPUTS, "bias", candle_nn::init::ZERO)?;
         Ok(Self {
             config,
+            window,
             expand,
             blocks,
             shrink_weight,
@@ -222,25 +171,25 @@ impl TemporalLifter {
     /// A fresh model in a new [`VarMap`], initialized from `seed` (as the
     /// MLP: Kaiming-normal weights, the output layer scaled down) with the
     /// pelvis rows of `shrink` at zero.
-    pub fn init(config: TemporalConfig, seed: u64) -> Result<(Self, VarMap), TrainError> {
+    pub fn init(config: VideoPoseArch, seed: u64) -> Result<(Self, VarMap), TrainError> {
         let (model, varmap) = seeded(seed, "shrink.weight", |vb| Self::new(config, vb))?;
         zero_leading_rows(&varmap, &["shrink.weight", "shrink.bias"], 3)?;
         Ok((model, varmap))
     }
 
     /// The size.
-    pub fn config(&self) -> TemporalConfig {
+    pub fn config(&self) -> VideoPoseArch {
         self.config
     }
 }
 
 impl LifterNet for TemporalLifter {
     fn kind(&self) -> LifterKind {
-        LifterKind::Temporal
+        LifterKind::VideoPose
     }
 
     fn window(&self) -> Window {
-        self.config.window()
+        self.window
     }
 
     fn forward(
@@ -249,7 +198,7 @@ impl LifterNet for TemporalLifter {
         mut train: Option<&mut dyn RngCore>,
     ) -> Result<Tensor, TrainError> {
         let (b, width) = x.dims2()?;
-        let rf = self.config.receptive_field();
+        let rf = self.window.frames;
         if width != rf * FRAME_DIM {
             return Err(TrainError::InvalidArgument(format!(
                 "temporal lifter input has {width} values per row, needs {rf} frames x {FRAME_DIM}"
@@ -293,8 +242,8 @@ mod tests {
             .sum()
     }
 
-    fn small(causal: bool) -> TemporalConfig {
-        TemporalConfig {
+    fn small(causal: bool) -> VideoPoseArch {
+        VideoPoseArch {
             filter_width: 3,
             blocks: 2,
             channels: 16,
@@ -305,7 +254,7 @@ mod tests {
 
     #[test]
     fn reference_names_sizes_and_seeded_init() {
-        let (m, vars) = TemporalLifter::init(TemporalConfig::default(), 3).unwrap();
+        let (m, vars) = TemporalLifter::init(VideoPoseArch::default(), 3).unwrap();
         assert_eq!(m.window().frames, 27);
         let t = named_tensors(&vars).unwrap();
         assert_eq!(t["expand_conv.weight"].dims(), &[512, 34, 3]);
@@ -316,7 +265,7 @@ mod tests {
         assert_eq!(trainable, 2_180_659);
         let x = Tensor::ones((2, 27 * FRAME_DIM), DType::F32, &Device::Cpu).unwrap();
         let a = m.forward(&x, None).unwrap().to_vec2::<f32>().unwrap();
-        let (m2, _) = TemporalLifter::init(TemporalConfig::default(), 3).unwrap();
+        let (m2, _) = TemporalLifter::init(VideoPoseArch::default(), 3).unwrap();
         assert_eq!(a, m2.forward(&x, None).unwrap().to_vec2::<f32>().unwrap());
         assert_eq!(a[0].len(), OUTPUT_DIM);
         let pelvis = t["shrink.weight"].narrow(0, 0, 3).unwrap();
@@ -351,8 +300,7 @@ mod tests {
             let tensors: std::collections::HashMap<String, Tensor> =
                 named_tensors(&vars).unwrap().into_iter().collect();
             let vb = VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu);
-            let reference =
-                blapose_lifters::VideoPose3d::new(m.config().inference_config(), vb).unwrap();
+            let reference = blapose_lifters::VideoPose3d::new(m.config().config(), vb).unwrap();
             let trainable: usize = tensors_count(&vars);
             assert_eq!(blapose_lifters::Lifter::params(&reference), trainable);
             let theirs = reference

@@ -358,7 +358,7 @@ pub fn train(
     let run = RunDir::create(out)?;
     let schedule = cfg.schedule();
 
-    let (net, varmap) = cfg.arch.build(cfg.seed)?;
+    let (net, varmap) = super::build(&cfg.arch, cfg.seed)?;
     if let Some(init) = &cfg.init_weights {
         // A resumed run overwrites these with the checkpoint below.
         let (meta, tensors) = weights::read_lifter(init)?;

@@ -20,9 +20,9 @@ pub use blapose_lifters::trained::METADATA_KEY;
 pub const OUTPUT_DESCRIPTION: &str =
     "16 joints (H36M-17 order without the pelvis, which is fixed at 0), root-relative camera space, metres";
 
-/// Provenance and conventions of a lifter weights file: the serving
-/// crate's struct over this crate's architectures.
-pub type LifterMetadata = blapose_lifters::trained::LifterMetadata<LifterArch>;
+/// Provenance and conventions of a lifter weights file, as the serving
+/// crate reads it back.
+pub use blapose_lifters::trained::LifterMetadata;
 
 /// Metadata with the project's input conventions.
 pub fn metadata(arch: LifterArch, training_data: &str, train_steps: u64) -> LifterMetadata {
@@ -117,7 +117,7 @@ pub struct LoadedLifter {
 /// Load a weights file written by [`save`].
 pub fn load(path: &Path) -> Result<LoadedLifter, TrainError> {
     let (metadata, tensors) = read_lifter(path)?;
-    let (net, varmap) = metadata.arch.build(0)?;
+    let (net, varmap) = super::build(&metadata.arch, 0)?;
     assign(&varmap, &tensors, path)?;
     Ok(LoadedLifter {
         net,
@@ -140,4 +140,81 @@ pub fn read_lifter(path: &Path) -> Result<(LifterMetadata, HashMap<String, Tenso
             msg: format!("no {METADATA_KEY} metadata (not a lifter weights file?)"),
         })?;
     Ok((serde_json::from_str(json)?, tensors))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::lifter::objective::Objective;
+    use crate::lifter::train::LifterTrainConfig;
+    use crate::lifter::{MlpArch, VideoPoseArch};
+
+    /// What a training run writes into the weights file (the metadata, and
+    /// the run's configuration under `extra.train_config`) is the JSON
+    /// that the trainer wrote before the architecture types moved to
+    /// `blapose_lifters::arch`, to the byte: these strings were printed by
+    /// that code.
+    #[test]
+    fn metadata_and_train_config_json_are_unchanged() {
+        let archs = [
+            LifterArch::Mlp(MlpArch::default()),
+            LifterArch::VideoPose(VideoPoseArch {
+                causal: true,
+                ..VideoPoseArch::default()
+            }),
+            LifterArch::VideoPose(VideoPoseArch {
+                filter_width: 5,
+                blocks: 1,
+                channels: 7,
+                dropout: 0.125,
+                causal: false,
+            }),
+        ];
+        let want = [
+            (
+                r#"{"arch":{"model":"mlp","hidden":1024,"blocks":2,"dropout":0.5},"keypoint_layout":"h36m17","input_normalization":"screen: u = x/w*2-1, v = y/w*2-h/w","output":"16 joints (H36M-17 order without the pelvis, which is fixed at 0), root-relative camera space, metres","training_data":"Human3.6M S1; \"quoted\"","train_steps":123,"extra":{"version":"x"}}"#,
+                r#"{"arch":{"model":"mlp","hidden":1024,"blocks":2,"dropout":0.5},"every":4,"batch":256,"steps":10000,"epoch_steps":500,"lr":0.001,"lr_decay":0.95,"clip_norm":5.0,"flip_prob":0.5,"seed":0,"val_every":500,"val_samples":8192,"checkpoint_secs":300,"objective":"adjusted","direction_weight":1.0,"init_weights":"a/b.safetensors"}"#,
+            ),
+            (
+                r#"{"arch":{"model":"videopose","filter_width":3,"blocks":2,"channels":512,"dropout":0.25,"causal":true},"keypoint_layout":"h36m17","input_normalization":"screen: u = x/w*2-1, v = y/w*2-h/w","output":"16 joints (H36M-17 order without the pelvis, which is fixed at 0), root-relative camera space, metres","training_data":"Human3.6M S1; \"quoted\"","train_steps":123,"extra":{"version":"x"}}"#,
+                r#"{"arch":{"model":"videopose","filter_width":3,"blocks":2,"channels":512,"dropout":0.25,"causal":true},"every":4,"batch":256,"steps":10000,"epoch_steps":500,"lr":0.001,"lr_decay":0.95,"clip_norm":5.0,"flip_prob":0.5,"seed":0,"val_every":500,"val_samples":8192,"checkpoint_secs":300,"objective":"adjusted","direction_weight":1.0,"init_weights":"a/b.safetensors"}"#,
+            ),
+            (
+                r#"{"arch":{"model":"videopose","filter_width":5,"blocks":1,"channels":7,"dropout":0.125,"causal":false},"keypoint_layout":"h36m17","input_normalization":"screen: u = x/w*2-1, v = y/w*2-h/w","output":"16 joints (H36M-17 order without the pelvis, which is fixed at 0), root-relative camera space, metres","training_data":"Human3.6M S1; \"quoted\"","train_steps":123,"extra":{"version":"x"}}"#,
+                r#"{"arch":{"model":"videopose","filter_width":5,"blocks":1,"channels":7,"dropout":0.125,"causal":false},"every":4,"batch":256,"steps":10000,"epoch_steps":500,"lr":0.001,"lr_decay":0.95,"clip_norm":5.0,"flip_prob":0.5,"seed":0,"val_every":500,"val_samples":8192,"checkpoint_secs":300,"objective":"adjusted","direction_weight":1.0,"init_weights":"a/b.safetensors"}"#,
+            ),
+        ];
+        for (arch, (meta_json, config_json)) in archs.into_iter().zip(want) {
+            let mut meta = metadata(arch, "Human3.6M S1; \"quoted\"", 123);
+            meta.extra.insert("version".into(), "x".into());
+            assert_eq!(serde_json::to_string(&meta).unwrap(), meta_json);
+            assert_eq!(
+                serde_json::from_str::<LifterMetadata>(meta_json).unwrap(),
+                meta
+            );
+            let config = LifterTrainConfig {
+                arch,
+                every: 4,
+                batch: 256,
+                steps: 10_000,
+                epoch_steps: 500,
+                lr: 1e-3,
+                lr_decay: 0.95,
+                clip_norm: 5.0,
+                flip_prob: 0.5,
+                seed: 0,
+                val_every: 500,
+                val_samples: 8192,
+                checkpoint_secs: 300,
+                objective: Objective::Adjusted,
+                direction_weight: 1.0,
+                init_weights: Some("a/b.safetensors".into()),
+            };
+            assert_eq!(serde_json::to_string(&config).unwrap(), config_json);
+            assert_eq!(
+                serde_json::from_str::<LifterTrainConfig>(config_json).unwrap(),
+                config
+            );
+        }
+    }
 }

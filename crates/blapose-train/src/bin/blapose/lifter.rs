@@ -13,11 +13,10 @@ use blapose_core::BoneLengths;
 use blapose_data::h36m::{H36m, Parts, TRAIN_SUBJECTS};
 use blapose_train::eval_adjust::LengthEstimates;
 use blapose_train::lifter::data::{lifter_sequences, LifterSequence};
-use blapose_train::lifter::mlp::MlpConfig;
 use blapose_train::lifter::objective::Objective;
-use blapose_train::lifter::temporal::TemporalConfig;
 use blapose_train::lifter::train::LifterTrainConfig;
-use blapose_train::lifter::{LifterArch, LifterKind};
+use blapose_train::lifter::{LifterArch, LifterKind, MlpArch, VideoPoseArch};
+use clap::builder::PossibleValue;
 
 use crate::common::step_bar;
 
@@ -77,8 +76,8 @@ pub struct LifterRunArgs {
 pub struct TrainLifterArgs {
     /// Lifter architecture: mlp (Martinez et al. 2017 residual MLP, one
     /// frame) or videopose (VideoPose3D-style temporal convolutions).
-    #[arg(long, value_enum, default_value_t = LifterKind::Mlp)]
-    model: LifterKind,
+    #[arg(long, value_enum, default_value_t = ModelFlag(LifterKind::Mlp))]
+    model: ModelFlag,
     #[command(flatten)]
     run: LifterRunArgs,
     /// mlp: hidden width.
@@ -101,6 +100,29 @@ pub struct TrainLifterArgs {
     /// frame; the variant for online use).
     #[arg(long)]
     causal: bool,
+}
+
+/// `--model`: a [`LifterKind`] as a clap value (the library type has no
+/// clap), spelled and described as the library spells and describes it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ModelFlag(LifterKind);
+
+impl ModelFlag {
+    /// Every kind; an added one fails to compile here until listed.
+    const ALL: [ModelFlag; LifterKind::ALL.len()] = {
+        let [a, b] = LifterKind::ALL;
+        [ModelFlag(a), ModelFlag(b)]
+    };
+}
+
+impl clap::ValueEnum for ModelFlag {
+    fn value_variants<'a>() -> &'a [Self] {
+        &Self::ALL
+    }
+
+    fn to_possible_value(&self) -> Option<PossibleValue> {
+        Some(PossibleValue::new(self.0.as_str()).help(self.0.description()))
+    }
 }
 
 /// Arguments of `blapose finetune`.
@@ -133,25 +155,19 @@ pub struct FinetuneArgs {
 
 /// `blapose train-lifter`.
 pub fn train_lifter(a: TrainLifterArgs) -> Result<()> {
-    let arch = match a.model {
-        LifterKind::Mlp => {
-            let d = MlpConfig::default();
-            LifterArch::Mlp(MlpConfig {
-                hidden: a.hidden,
-                blocks: a.blocks,
-                dropout: a.dropout.unwrap_or(d.dropout),
-            })
-        }
-        LifterKind::Temporal => {
-            let d = TemporalConfig::default();
-            LifterArch::Temporal(TemporalConfig {
-                filter_width: a.filter_width,
-                blocks: a.blocks,
-                channels: a.channels,
-                dropout: a.dropout.unwrap_or(d.dropout),
-                causal: a.causal,
-            })
-        }
+    let arch = match a.model.0 {
+        LifterKind::Mlp => LifterArch::Mlp(MlpArch {
+            hidden: a.hidden,
+            blocks: a.blocks,
+            dropout: a.dropout.unwrap_or(MlpArch::default().dropout),
+        }),
+        LifterKind::VideoPose => LifterArch::VideoPose(VideoPoseArch {
+            filter_width: a.filter_width,
+            blocks: a.blocks,
+            channels: a.channels,
+            dropout: a.dropout.unwrap_or(VideoPoseArch::default().dropout),
+            causal: a.causal,
+        }),
     };
     run_lifter_training(
         &a.run,

@@ -3,18 +3,19 @@
 //! them; the library (`blapose_train`) does the work.
 //!
 //! - `train` ([`train`]): a bone-length model on synthetic sequences;
-//! - `eval` ([`eval`]): bone-length error on Human3.6M, or (`--benchmark
-//!   bodies`, [`bodies`]) on the many-bodies cross-camera benchmark;
+//! - `eval` ([`eval`]): bone-length error on Human3.6M (the many-bodies
+//!   benchmark and the eval diagnostics are research: `blapose-lab`);
 //! - `train-lifter`, `finetune` ([`lifter`]): 2D-to-3D lifters;
 //! - `eval-adjust` ([`eval_adjust`]): lifters before and after the
 //!   bone-length adjustment;
+//! - `fit-stature` ([`stature`]): the stature regression the server
+//!   embeds;
 //! - `data-report`, `bench-train` ([`report`]): data statistics and
 //!   training throughput.
 //!
-//! Every closed set of values is a clap `ValueEnum` of the library (or
-//! [`common::ModelArg`]), spelled as in the runs' configuration files.
+//! Every closed set of values is a clap `ValueEnum` of the library,
+//! spelled as in the runs' configuration files.
 
-mod bodies;
 mod common;
 mod eval;
 mod eval_adjust;
@@ -136,6 +137,7 @@ mod tests {
             "--camera-angle-std=1",
             "--noise-scale=1.5",
             "--init-output-mean=false",
+            "--height-normalized",
         ] {
             assert!(
                 Cli::try_parse_from(["blapose", "train", "--out", "x", gone]).is_err(),
@@ -190,56 +192,36 @@ mod tests {
     }
 
     #[test]
-    fn the_benchmark_needs_no_model_flags_and_refuses_them() {
-        let cli = Cli::try_parse_from([
-            "blapose",
-            "eval",
-            "--benchmark",
-            "bodies",
-            "--json",
-            "b.json",
-            "--bench-individuals",
-            "5",
+    fn eval_takes_a_model_and_its_weights_and_no_research_diagnostics() {
+        let eval = |extra: &[&str]| {
+            let mut all = vec!["blapose", "eval", "--model", "gru", "--weights", "w"];
+            all.extend_from_slice(extra);
+            Cli::try_parse_from(all)
+        };
+        let cli = eval(&[
+            "--calibrated",
+            "--fps",
+            "25",
+            "--every",
+            "4",
+            "--flip-average",
         ])
         .unwrap();
         assert!(matches!(cli.command, Command::Eval(_)));
-        // Without --benchmark the model and its weights are required.
+        // The model and its weights are required.
         assert!(Cli::try_parse_from(["blapose", "eval", "--model", "gru"]).is_err());
         assert!(Cli::try_parse_from(["blapose", "eval", "--weights", "w"]).is_err());
-        assert!(Cli::try_parse_from([
-            "blapose",
-            "eval",
-            "--benchmark",
-            "bodies",
-            "--model",
-            "gru"
-        ])
-        .is_err());
-        assert!(Cli::try_parse_from(["blapose", "eval", "--benchmark", "people"]).is_err());
-    }
-
-    #[test]
-    fn the_stature_proxy_takes_its_source_and_defaults_to_the_calibrated_proxy() {
-        let source = |args: &[&str]| {
-            let mut all = vec!["blapose", "eval", "--stature-proxy"];
-            all.extend_from_slice(args);
-            let cli = Cli::try_parse_from(all).ok()?;
-            match cli.command {
-                Command::Eval(a) => Some(a.stature_source),
-                _ => None,
-            }
-        };
-        assert_eq!(source(&[]), Some(eval::StatureSource::CalibratedProxy));
-        assert_eq!(
-            source(&["--stature-source", "matched"]),
-            Some(eval::StatureSource::Matched)
-        );
-        assert_eq!(
-            source(&["--stature-source", "proxy"]),
-            Some(eval::StatureSource::Proxy)
-        );
-        assert_eq!(source(&["--stature-source", "tape"]), None);
-        // Not with a model.
-        assert_eq!(source(&["--model", "gru", "--weights", "w"]), None);
+        // Research lives in blapose-lab; removed options are gone.
+        for research in [
+            &["--benchmark", "bodies"][..],
+            &["--state-frames", "4"],
+            &["--skip-frames", "100"],
+            &["--rectify"],
+            &["--drop-joints", "0.2"],
+            &["--stature-proxy"],
+            &["--height-correction"],
+        ] {
+            assert!(eval(research).is_err(), "{research:?}");
+        }
     }
 }

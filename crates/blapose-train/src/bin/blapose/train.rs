@@ -10,7 +10,7 @@ use std::time::Instant;
 
 use anyhow::Result;
 use blapose_train::ansur_split::{AnsurPeople, AnsurSplit};
-use blapose_train::dataset::{rectify_streams, undistort_streams, TrainingSet};
+use blapose_train::dataset::{prepare_streams, undistort_streams, TrainingSet};
 use blapose_train::lengths::{LengthSampler, LengthStrategy, TrainingLengthStats};
 use blapose_train::noise::NoiseKind;
 use blapose_train::synth::{ShiftPlane, SynthSource};
@@ -100,19 +100,13 @@ pub struct TrainArgs {
     /// Give the network the keypoints as a level camera at the same place
     /// would see them (blapose_core::level): such a model needs each view's
     /// calibration, which the server gets from a session's `camera`;
-    /// evaluate with `eval --rectify`.
+    /// evaluate with `eval --calibrated`.
     #[arg(long)]
     rectify: bool,
-    /// With --rectify: targets as seen from a camera at the reference height
-    /// (1.56 m), so every target agrees with its rectified picture; such a
-    /// model's estimates are scaled by the camera's height (`eval
-    /// --height-correction`, the server's CameraCalibration.height).
-    #[arg(long, requires = "rectify")]
-    height_normalized: bool,
     /// With --rectify: divide each frame's keypoints by the lowest joint's
     /// drop below the horizon, so the picture shows the body in units of
-    /// the camera's height whatever the distance and lens (pair with
-    /// --height-normalized; blapose_core::level::LevelCamera::scaled_to_floor).
+    /// the camera's height whatever the distance and lens
+    /// (blapose_core::level::LevelCamera::scaled_to_floor).
     #[arg(long, requires = "rectify")]
     floor_scaled: bool,
     /// Share of samples (0-1) seen through a camera drawn from the
@@ -185,7 +179,6 @@ impl TrainArgs {
             random_yaw: self.random_yaw,
             cameras: self.cameras.clone(),
             rectify: self.rectify,
-            height_normalized: self.height_normalized,
             floor_scaled: self.floor_scaled,
             wide_cameras: self.wide_cameras,
             flip_prob: self.flip_prob,
@@ -211,7 +204,7 @@ impl TrainArgs {
 /// The weights' `training_data` text: the data and augmentation of `cfg`.
 fn training_data(cfg: &TrainConfig) -> String {
     format!(
-        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}, people {}), noise={}, seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), floor_contact={}, random yaw={}, cameras={}, rectified={}, height-normalized={}{}, flip={}",
+        "Human3.6M S1 S5 S6 S7 S8, lengths={} (ansur spread {}, people {}), noise={}, seq_len={}, stride=[{:.3},{:.3}], shift_std={} m ({}), floor_contact={}, random yaw={}, cameras={}, rectified={}{}, flip={}",
         cfg.lengths,
         cfg.ansur_spread,
         cfg.ansur_people,
@@ -225,7 +218,6 @@ fn training_data(cfg: &TrainConfig) -> String {
         cfg.random_yaw,
         camera_list(&cfg.cameras),
         cfg.rectify,
-        cfg.height_normalized,
         if cfg.wide_cameras > 0.0 || cfg.floor_scaled {
             format!(
                 ", floor-scaled={}, wide cameras={}",
@@ -281,23 +273,15 @@ pub fn run(a: TrainArgs) -> Result<()> {
             .find(|s| s.subject == subject)
             .and_then(|s| s.cameras.iter().find(|c| c.id == id))
     };
-    if cfg.rectify {
+    let input = cfg.model_input();
+    if input.framing.needs_calibration() {
         // A model trained through the wide (distortion-free) cameras only
         // reads undistorted keypoints, as served; one trained through
         // Human3.6M's cameras saw their distortion, as the detections have it.
         if cfg.wide_cameras >= 1.0 {
             undistort_streams(real_sh.to_mut(), &camera)?;
         }
-        rectify_streams(real_sh.to_mut(), &camera, cfg.floor_scaled)?;
-    }
-    if cfg.height_normalized {
-        // Their targets as the model is asked for them.
-        for t in real_sh.to_mut() {
-            let cam = camera(&t.subject, &t.camera)
-                .ok_or_else(|| anyhow::anyhow!("no camera {} for {}", t.camera, t.subject))?;
-            let k = (1.0 / blapose_core::level::height_scale(cam.center[2])) as f32;
-            t.gt = t.gt.map(|l| l * k);
-        }
+        prepare_streams(real_sh.to_mut(), &input, &camera)?;
     }
     let outcome = blapose_train::train::train(
         &cfg,

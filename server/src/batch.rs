@@ -1,0 +1,494 @@
+//! The batch stage: one bounded queue of frames from every session, and the
+//! rule that turns it into batches (Triton's "oldest" sequence batching).
+//!
+//! A GRU step costs almost the same for 1 session as for 32 (the weights are
+//! read once either way), so frames from all streams wait in one queue and
+//! one thread runs them together. This module is only that queue and its
+//! rule; what a batch goes through once taken is the other stages'
+//! ([`crate::prepare`], [`crate::step`], [`crate::answer`]), which the
+//! worker thread given to [`Batcher::start`] runs. The rules:
+//!
+//! * **At most one frame per session per batch**: a session's next frame
+//!   needs the hidden state (and the held joints and lifter window) its
+//!   previous frame leaves, so a session's frames run one batch after
+//!   another, in the order they were submitted.
+//! * **Oldest first**: sessions enter a batch in the order of their oldest
+//!   waiting frame; a session with more frames waiting goes to the back.
+//! * **Bounded wait**: a partial batch runs as soon as every attached stream
+//!   has a frame waiting (nobody else can contribute), or when the oldest
+//!   frame has waited `max_queue_delay`, whichever comes first. A lone
+//!   pipelined stream therefore never waits for company.
+//! * **Explicit backpressure**: a full queue refuses the frame
+//!   ([`SubmitError::QueueFull`] -> RESOURCE_EXHAUSTED); nothing is dropped
+//!   silently. Every accepted frame is answered exactly once through its
+//!   oneshot ([`StepResult`]), including at shutdown (the queue is drained
+//!   first).
+//! * **Off the async runtime**: the worker is the batcher's own OS thread,
+//!   never a tokio worker.
+//!
+//! What waits here is a validated frame already in the model's coordinates
+//! ([`FrameJob`]). The rest of its preparation (missing joints held at
+//! their last detection, the server lifter's pose, rectification) reads the
+//! state its session's *previous* frame leaves, which is only known once
+//! that frame has been through its step, so [`crate::prepare`] finishes it
+//! when its batch is taken.
+
+use std::collections::{HashMap, VecDeque};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use blapose_core::{BoneLengths, Keypoints2d, Pose, NUM_JOINTS};
+use tokio::sync::oneshot;
+
+use crate::backend::INPUT_DIM;
+use crate::session::{Session, StateCopy};
+
+/// Batching limits.
+#[derive(Debug, Clone, Copy)]
+pub struct BatcherConfig {
+    /// Most frames per step (>= 1).
+    pub max_batch: usize,
+    /// Longest wait for more sessions before running a partial batch.
+    pub max_queue_delay: Duration,
+    /// Most frames waiting at once, all sessions together (>= 1).
+    pub queue_capacity: usize,
+}
+
+/// One frame to run.
+#[derive(Debug)]
+pub struct FrameJob {
+    /// Its session.
+    pub session: Arc<Session>,
+    /// The epoch of the stream that sent it.
+    pub epoch: u64,
+    /// Normalized Human3.6M-17 keypoints, joint-major (x, y); a missing
+    /// joint's pair is a placeholder, replaced by its held position
+    /// ([`blapose_core::missing::HeldJoints`]) when the frame runs.
+    pub input: [f32; INPUT_DIM],
+    /// Which joints were detected.
+    pub present: [bool; NUM_JOINTS],
+    /// Lift the pose from the session's window and `input` with the server
+    /// lifter (the session must have been opened lifting).
+    pub lift: bool,
+    /// Copy the session's state into the answer ([`StepOutput::state`])
+    /// when this frame makes its frames seen a multiple of this (0: never);
+    /// the copy is taken under the same lock as the update, so it is
+    /// exactly the state after this frame (for periodic session tokens).
+    pub state_every: u64,
+    /// Where the answer goes.
+    pub reply: oneshot::Sender<StepResult>,
+}
+
+impl FrameJob {
+    /// The frame's keypoints (its model input) as a keypoint frame: what
+    /// the server lifter's window holds.
+    pub fn keypoints(&self) -> Keypoints2d {
+        std::array::from_fn(|j| [self.input[2 * j], self.input[2 * j + 1]])
+    }
+}
+
+/// A processed frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StepOutput {
+    /// The lengths the session answers with after this frame
+    /// ([`SessionConfig::served`](crate::session::SessionConfig::served):
+    /// its running-mean estimate, or its subject's); `None` for a frame
+    /// without a detected joint before any frame was read (no estimate
+    /// yet).
+    pub lengths: Option<BoneLengths>,
+    /// Frames processed in the session, this one included.
+    pub frames_seen: u64,
+    /// The server lifter's pose for this frame (root at 0), for a lifting
+    /// frame; `None` when the client sent the pose.
+    pub lifted: Option<Pose>,
+    /// The session's state right after this frame, when the job asked for
+    /// it ([`FrameJob::state_every`]).
+    pub state: Option<Box<StateCopy>>,
+}
+
+/// Why an accepted frame was not processed. The session is unchanged.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum StepError {
+    /// Another stream resumed the session, or it was closed, after the frame
+    /// was queued.
+    #[error("the session was resumed by another stream or closed before this frame ran")]
+    Superseded,
+    /// The model failed on the whole batch.
+    #[error("the model failed: {0}")]
+    Model(String),
+    /// The model produced NaN or infinity for this frame.
+    #[error(
+        "the model produced a non-finite result for this frame; the session state was not updated"
+    )]
+    NonFinite,
+    /// The server lifter failed on this frame.
+    #[error("the server lifter failed: {0}; the session state was not updated")]
+    Lifter(String),
+    /// The server lifter's pose cannot be adjusted (non-finite, out of
+    /// bounds or a zero-length bone).
+    #[error("the server lifter produced a pose that cannot be adjusted ({0}); the session state was not updated")]
+    LiftedPose(String),
+}
+
+impl StepError {
+    /// The gRPC code this error is reported with.
+    pub fn code(&self) -> tonic::Code {
+        match self {
+            StepError::Superseded => tonic::Code::Aborted,
+            StepError::Model(_)
+            | StepError::NonFinite
+            | StepError::Lifter(_)
+            | StepError::LiftedPose(_) => tonic::Code::Internal,
+        }
+    }
+}
+
+/// Result of one frame.
+pub type StepResult = Result<StepOutput, StepError>;
+
+/// Why a frame was refused at submission (it was never queued).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum SubmitError {
+    /// The queue holds `capacity` frames already.
+    #[error("server busy: the frame queue is full ({capacity} frames waiting); retry after earlier answers arrive")]
+    QueueFull {
+        /// The queue's capacity.
+        capacity: usize,
+    },
+    /// The batcher is shutting down.
+    #[error("the server is shutting down")]
+    ShuttingDown,
+}
+
+impl SubmitError {
+    /// The gRPC code this error is reported with.
+    pub fn code(&self) -> tonic::Code {
+        match self {
+            SubmitError::QueueFull { .. } => tonic::Code::ResourceExhausted,
+            SubmitError::ShuttingDown => tonic::Code::Unavailable,
+        }
+    }
+}
+
+/// A frame in the queue, and when it entered it.
+#[derive(Debug)]
+pub struct Queued {
+    /// The frame.
+    pub job: FrameJob,
+    /// When it was submitted.
+    pub enqueued: Instant,
+}
+
+#[derive(Debug, Default)]
+struct Queue {
+    /// Waiting frames per session key, in submission order.
+    per_session: HashMap<u64, VecDeque<Queued>>,
+    /// Session keys with waiting frames, oldest first; each key once.
+    ready: VecDeque<u64>,
+    /// Total waiting frames.
+    len: usize,
+    closed: bool,
+}
+
+impl Queue {
+    fn oldest(&self) -> Option<Instant> {
+        let key = self.ready.front()?;
+        self.per_session.get(key)?.front().map(|q| q.enqueued)
+    }
+}
+
+#[derive(Debug)]
+struct Shared {
+    queue: Mutex<Queue>,
+    available: Condvar,
+    config: BatcherConfig,
+    active_streams: AtomicUsize,
+}
+
+impl Shared {
+    fn lock(&self) -> MutexGuard<'_, Queue> {
+        self.queue.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+}
+
+/// The batcher: a queue plus the thread that drains it.
+#[derive(Debug)]
+pub struct Batcher {
+    shared: Arc<Shared>,
+    thread: Mutex<Option<JoinHandle<()>>>,
+}
+
+/// Counts an attached stream while alive (the batcher stops waiting for
+/// more frames once every attached stream has one queued).
+#[derive(Debug)]
+pub struct StreamGuard {
+    shared: Arc<Shared>,
+}
+
+impl Drop for StreamGuard {
+    fn drop(&mut self) {
+        self.shared.active_streams.fetch_sub(1, Ordering::Relaxed);
+        self.shared.available.notify_one();
+    }
+}
+
+/// The worker thread's side of the queue: it takes batches from here.
+#[derive(Debug)]
+pub struct Batches {
+    shared: Arc<Shared>,
+}
+
+impl Batches {
+    /// The limits in force.
+    pub fn config(&self) -> BatcherConfig {
+        self.shared.config
+    }
+
+    /// Frames waiting now.
+    pub fn queue_len(&self) -> usize {
+        self.shared.lock().len
+    }
+
+    /// Wait for frames and take the next batch into `batch` (empty on
+    /// entry); `false` once the queue is closed and empty.
+    pub fn next(&self, batch: &mut Vec<Queued>) -> bool {
+        next_batch(&self.shared, batch)
+    }
+}
+
+impl Batcher {
+    /// Start the thread that drains the queue: `worker` takes batches from
+    /// its [`Batches`] until [`Batches::next`] says the queue is closed and
+    /// empty, and must answer every frame it takes.
+    pub fn start(
+        config: BatcherConfig,
+        worker: impl FnOnce(Batches) + Send + 'static,
+    ) -> std::io::Result<Self> {
+        let config = BatcherConfig {
+            max_batch: config.max_batch.max(1),
+            queue_capacity: config.queue_capacity.max(1),
+            ..config
+        };
+        let shared = Arc::new(Shared {
+            queue: Mutex::new(Queue::default()),
+            available: Condvar::new(),
+            config,
+            active_streams: AtomicUsize::new(0),
+        });
+        let batches = Batches {
+            shared: shared.clone(),
+        };
+        let thread = std::thread::Builder::new()
+            .name("blapose-batcher".into())
+            .spawn(move || worker(batches))?;
+        Ok(Self {
+            shared,
+            thread: Mutex::new(Some(thread)),
+        })
+    }
+
+    /// The limits in force.
+    pub fn config(&self) -> BatcherConfig {
+        self.shared.config
+    }
+
+    /// Register an attached stream for the duration of the guard.
+    pub fn stream_guard(&self) -> StreamGuard {
+        self.shared.active_streams.fetch_add(1, Ordering::Relaxed);
+        StreamGuard {
+            shared: self.shared.clone(),
+        }
+    }
+
+    /// Frames waiting now.
+    pub fn queue_len(&self) -> usize {
+        self.shared.lock().len
+    }
+
+    /// Queue a frame; its answer arrives on `job.reply`. Never blocks.
+    pub fn submit(&self, job: FrameJob) -> Result<(), SubmitError> {
+        let mut q = self.shared.lock();
+        if q.closed {
+            return Err(SubmitError::ShuttingDown);
+        }
+        let capacity = self.shared.config.queue_capacity;
+        if q.len >= capacity {
+            return Err(SubmitError::QueueFull { capacity });
+        }
+        let key = job.session.key();
+        let frames = q.per_session.entry(key).or_default();
+        let first = frames.is_empty();
+        frames.push_back(Queued {
+            job,
+            enqueued: Instant::now(),
+        });
+        if first {
+            q.ready.push_back(key);
+        }
+        q.len += 1;
+        drop(q);
+        self.shared.available.notify_one();
+        Ok(())
+    }
+
+    /// Stop accepting frames; the thread answers every queued frame, then
+    /// exits. Idempotent.
+    pub fn close(&self) {
+        self.shared.lock().closed = true;
+        self.shared.available.notify_all();
+    }
+
+    /// [`close`](Self::close) and wait for the thread to finish (blocking).
+    pub fn join(&self) {
+        self.close();
+        let handle = self
+            .thread
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .take();
+        if let Some(handle) = handle {
+            if handle.join().is_err() {
+                tracing::error!("the batcher thread panicked");
+            }
+        }
+    }
+}
+
+impl Drop for Batcher {
+    fn drop(&mut self) {
+        self.join();
+    }
+}
+
+/// What the batcher does with the frames waiting.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Gather {
+    /// Take a batch now.
+    Run,
+    /// Wait for more sessions' frames, until this instant at the latest.
+    WaitUntil(Instant),
+}
+
+/// The batching rule, apart from the clock so it can be tested without
+/// one: with `ready` sessions having a frame waiting, `streams` streams
+/// attached and the oldest frame queued at `oldest`, run once every stream
+/// that could contribute has a frame waiting (at most `max_batch`; a lone
+/// stream never waits), the queue is closing, or the oldest frame has
+/// waited `max_queue_delay`; otherwise wait until that deadline.
+fn gather(
+    config: &BatcherConfig,
+    ready: usize,
+    streams: usize,
+    closed: bool,
+    oldest: Instant,
+    now: Instant,
+) -> Gather {
+    let target = config.max_batch.min(streams.max(1));
+    let deadline = oldest + config.max_queue_delay;
+    if closed || ready >= target || now >= deadline {
+        Gather::Run
+    } else {
+        Gather::WaitUntil(deadline)
+    }
+}
+
+/// Wait for frames and take the next batch; `false` once closed and empty.
+fn next_batch(shared: &Shared, batch: &mut Vec<Queued>) -> bool {
+    let config = shared.config;
+    let mut q = shared.lock();
+    while q.len == 0 {
+        if q.closed {
+            return false;
+        }
+        q = shared
+            .available
+            .wait(q)
+            .unwrap_or_else(PoisonError::into_inner);
+    }
+    if let Some(oldest) = q.oldest() {
+        loop {
+            let streams = shared.active_streams.load(Ordering::Relaxed);
+            let now = Instant::now();
+            let wait = match gather(&config, q.ready.len(), streams, q.closed, oldest, now) {
+                Gather::Run => break,
+                Gather::WaitUntil(deadline) => deadline - now,
+            };
+            q = shared
+                .available
+                .wait_timeout(q, wait)
+                .unwrap_or_else(PoisonError::into_inner)
+                .0;
+        }
+    }
+    let mut more = Vec::new();
+    while batch.len() < config.max_batch {
+        let Some(key) = q.ready.pop_front() else {
+            break;
+        };
+        let Some(frames) = q.per_session.get_mut(&key) else {
+            continue;
+        };
+        let Some(item) = frames.pop_front() else {
+            q.per_session.remove(&key);
+            continue;
+        };
+        if frames.is_empty() {
+            q.per_session.remove(&key);
+        } else {
+            more.push(key);
+        }
+        batch.push(item);
+    }
+    q.ready.extend(more);
+    q.len -= batch.len();
+    true
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_batching_rule() {
+        let t0 = Instant::now();
+        let ms = Duration::from_millis;
+        let cfg = BatcherConfig {
+            max_batch: 4,
+            max_queue_delay: ms(200),
+            queue_capacity: 100,
+        };
+        let at = |elapsed: u64| t0 + ms(elapsed);
+        // A lone stream never waits, however long the delay.
+        assert_eq!(gather(&cfg, 1, 1, false, t0, t0), Gather::Run);
+        assert_eq!(gather(&cfg, 1, 0, false, t0, t0), Gather::Run);
+        // Two streams, one frame: wait for the other up to the delay ...
+        assert_eq!(
+            gather(&cfg, 1, 2, false, t0, t0),
+            Gather::WaitUntil(at(200))
+        );
+        assert_eq!(
+            gather(&cfg, 1, 2, false, t0, at(199)),
+            Gather::WaitUntil(at(200))
+        );
+        // ... and no longer.
+        assert_eq!(gather(&cfg, 1, 2, false, t0, at(200)), Gather::Run);
+        assert_eq!(gather(&cfg, 1, 2, false, t0, at(5000)), Gather::Run);
+        // Every stream has a frame: go.
+        assert_eq!(gather(&cfg, 2, 2, false, t0, at(1)), Gather::Run);
+        // More streams than a batch holds: a full batch goes.
+        assert_eq!(gather(&cfg, 4, 100, false, t0, at(1)), Gather::Run);
+        assert_eq!(
+            gather(&cfg, 3, 100, false, t0, at(1)),
+            Gather::WaitUntil(at(200))
+        );
+        // Closing: the queue drains without waiting.
+        assert_eq!(gather(&cfg, 1, 2, true, t0, t0), Gather::Run);
+        // The deadline counts from the oldest frame, not from now.
+        assert_eq!(
+            gather(&cfg, 1, 2, false, at(150), at(300)),
+            Gather::WaitUntil(at(350))
+        );
+    }
+}

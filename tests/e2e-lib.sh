@@ -1,0 +1,42 @@
+# Helpers sourced by the end-to-end scripts (tests/browser/run.sh,
+# tests/export/run.sh), run from the repository root.
+
+# use_out_dir KEEP: OUT is KEEP (created, kept) when it is set, else a
+# temporary directory; on exit the server (SERVER_PID) is stopped and a
+# temporary OUT removed.
+use_out_dir() {
+    KEEP_OUT=$1
+    if [ -n "$KEEP_OUT" ]; then
+        OUT=$KEEP_OUT
+        mkdir -p "$OUT"
+    else
+        OUT=$(mktemp -d)
+    fi
+    SERVER_PID=
+    trap e2e_cleanup EXIT
+}
+
+e2e_cleanup() {
+    if [ -n "$SERVER_PID" ]; then kill "$SERVER_PID" 2>/dev/null || true; wait "$SERVER_PID" 2>/dev/null || true; fi
+    if [ -z "$KEEP_OUT" ]; then rm -rf "$OUT"; fi
+}
+
+# start_server LOG [ARGS...]: starts target/release/blapose-server on a free
+# loopback port (--addr 127.0.0.1:0; it logs the port it got) with ARGS,
+# sets SERVER_PID and URL, and exits with the log when it does not come up.
+start_server() {
+    local log=$1 port
+    shift
+    target/release/blapose-server --addr 127.0.0.1:0 --no-metrics "$@" >"$log" 2>&1 &
+    SERVER_PID=$!
+    URL=
+    for _ in $(seq 600); do
+        port=$(sed -n 's/.*serving blapose\.v1 addr=127\.0\.0\.1:\([0-9]*\).*/\1/p' "$log" | head -n 1)
+        if [ -n "$port" ]; then URL=http://127.0.0.1:$port; return 0; fi
+        kill -0 "$SERVER_PID" 2>/dev/null || break
+        sleep 0.1
+    done
+    echo "error: blapose-server did not start:" >&2
+    cat "$log" >&2
+    exit 1
+}
