@@ -43,6 +43,7 @@ use blapose_core::{BoneLengths, Keypoints2d, Pose, NUM_JOINTS};
 use tokio::sync::oneshot;
 
 use crate::backend::INPUT_DIM;
+use crate::quota::{ClientId, QuotaError};
 use crate::session::{Session, StateCopy};
 
 /// Batching limits.
@@ -160,13 +161,18 @@ pub enum SubmitError {
     /// The batcher is shutting down.
     #[error("the server is shutting down")]
     ShuttingDown,
+    /// A per-session or per-client share of the queue is full.
+    #[error(transparent)]
+    Quota(#[from] QuotaError),
 }
 
 impl SubmitError {
     /// The gRPC code this error is reported with.
     pub fn code(&self) -> tonic::Code {
         match self {
-            SubmitError::QueueFull { .. } => tonic::Code::ResourceExhausted,
+            SubmitError::QueueFull { .. } | SubmitError::Quota(_) => {
+                tonic::Code::ResourceExhausted
+            }
             SubmitError::ShuttingDown => tonic::Code::Unavailable,
         }
     }
@@ -189,6 +195,8 @@ struct Queue {
     ready: VecDeque<u64>,
     /// Total waiting frames.
     len: usize,
+    /// Waiting frames per client (entries removed at zero).
+    per_client: HashMap<ClientId, usize>,
     closed: bool,
 }
 
@@ -309,15 +317,39 @@ impl Batcher {
 
     /// Queue a frame; its answer arrives on `job.reply`. Never blocks.
     pub fn submit(&self, job: FrameJob) -> Result<(), SubmitError> {
+        self.submit_limited(job, usize::MAX, usize::MAX)
+    }
+
+    /// [`submit`](Self::submit), refusing the frame when its session has
+    /// `per_session` frames waiting or its client `per_client`: one
+    /// client's overload is refused to that client while the queue still
+    /// has room for the others.
+    pub fn submit_limited(
+        &self,
+        job: FrameJob,
+        per_session: usize,
+        per_client: usize,
+    ) -> Result<(), SubmitError> {
         let mut q = self.shared.lock();
         if q.closed {
             return Err(SubmitError::ShuttingDown);
+        }
+        let key = job.session.key();
+        let client = job.session.client();
+        let session_frames = q.per_session.get(&key).map_or(0, VecDeque::len);
+        if session_frames >= per_session {
+            crate::metrics::limited("frames_per_session");
+            return Err(QuotaError::SessionFrames { limit: per_session }.into());
+        }
+        if q.per_client.get(&client).copied().unwrap_or(0) >= per_client {
+            crate::metrics::limited("queued_frames_per_client");
+            return Err(QuotaError::ClientFrames { limit: per_client }.into());
         }
         let capacity = self.shared.config.queue_capacity;
         if q.len >= capacity {
             return Err(SubmitError::QueueFull { capacity });
         }
-        let key = job.session.key();
+        *q.per_client.entry(client).or_default() += 1;
         let frames = q.per_session.entry(key).or_default();
         let first = frames.is_empty();
         frames.push_back(Queued {
@@ -438,6 +470,13 @@ fn next_batch(shared: &Shared, batch: &mut Vec<Queued>) -> bool {
             q.per_session.remove(&key);
         } else {
             more.push(key);
+        }
+        let client = item.job.session.client();
+        if let Some(n) = q.per_client.get_mut(&client) {
+            *n = n.saturating_sub(1);
+            if *n == 0 {
+                q.per_client.remove(&client);
+            }
         }
         batch.push(item);
     }

@@ -106,6 +106,15 @@ pub struct ServerConfig {
     /// Storage precision of the GRU weights in the fast engines (f16, the
     /// default, halves the bytes streamed per step; arithmetic stays f32).
     pub weight_precision: Precision,
+    /// HTTP/2 streams one connection may have open at once (advertised in
+    /// SETTINGS_MAX_CONCURRENT_STREAMS; beyond it, REFUSED_STREAM).
+    pub max_concurrent_streams: u32,
+    /// Largest header list (all of one request's headers, decoded) a
+    /// connection may send (SETTINGS_MAX_HEADER_LIST_SIZE).
+    pub max_header_list_bytes: u32,
+    /// Connections held at once, all peers together, and from one IP
+    /// address; the deadline for a new one's TLS handshake and preface.
+    pub connection_limits: crate::transport::ConnectionLimits,
     /// Optional TLS.
     pub tls: Option<TlsFiles>,
     /// Optional bearer token required on blapose.v1 calls.
@@ -120,6 +129,20 @@ pub struct ServerConfig {
     /// With a key: send a session token every this many processed frames
     /// of a session (0: only in SessionOpened and on request).
     pub token_every: u64,
+    /// How long a session token is accepted after it was issued.
+    pub token_ttl: Duration,
+    /// Sessions one client may hold; `None`: half of `max_sessions`.
+    pub max_sessions_per_client: Option<usize>,
+    /// Frames one session may have waiting in the batcher queue.
+    pub max_frames_per_session: usize,
+    /// Frames one client may have waiting in the batcher queue; `None`:
+    /// half of `queue_capacity`.
+    pub max_queued_frames_per_client: Option<usize>,
+    /// Header naming the client, set by a load balancer (see
+    /// `trusted_proxies`); `None`: the client is the peer address.
+    pub client_header: Option<String>,
+    /// Peers whose `client_header` is believed.
+    pub trusted_proxies: Vec<std::net::IpAddr>,
 }
 
 impl Default for ServerConfig {
@@ -139,15 +162,31 @@ impl Default for ServerConfig {
             max_inflight_per_stream: DEFAULT_MAX_INFLIGHT,
             compute_threads: DEFAULT_COMPUTE_THREADS,
             weight_precision: Precision::F16,
+            max_concurrent_streams: DEFAULT_MAX_CONCURRENT_STREAMS,
+            max_header_list_bytes: DEFAULT_MAX_HEADER_LIST_BYTES,
+            connection_limits: crate::transport::ConnectionLimits {
+                max_connections: DEFAULT_MAX_CONNECTIONS,
+                max_connections_per_peer: DEFAULT_MAX_CONNECTIONS_PER_PEER,
+                handshake_timeout: Duration::from_secs(DEFAULT_HANDSHAKE_TIMEOUT_S),
+            },
             tls: None,
             auth_token: None,
             max_message_bytes: DEFAULT_MAX_MESSAGE_BYTES,
             shutdown_grace: Duration::from_secs(DEFAULT_SHUTDOWN_GRACE_S),
             session_key: None,
             token_every: DEFAULT_TOKEN_EVERY,
+            token_ttl: Duration::from_secs(DEFAULT_TOKEN_TTL_S),
+            max_sessions_per_client: None,
+            max_frames_per_session: DEFAULT_MAX_FRAMES_PER_SESSION,
+            max_queued_frames_per_client: None,
+            client_header: None,
+            trusted_proxies: Vec::new(),
         }
     }
 }
+
+const DEFAULT_TOKEN_TTL_S: u64 = 3600;
+const DEFAULT_MAX_FRAMES_PER_SESSION: usize = 128;
 
 const DEFAULT_MAX_SESSIONS: usize = 4096;
 const DEFAULT_SESSION_TTL_S: u64 = 60;
@@ -160,6 +199,15 @@ const DEFAULT_MAX_MESSAGE_BYTES: usize = 4 * 1024 * 1024;
 const DEFAULT_SHUTDOWN_GRACE_S: u64 = 10;
 const DEFAULT_OPEN_TIMEOUT_S: u64 = 10;
 const DEFAULT_TOKEN_EVERY: u64 = 100;
+// Transport limits. The load tests put at most a few hundred streams on one
+// connection (bench loadtest: its streams over at most 16 connections; the
+// failover test: 32 sessions); 1,024 streams of idle sessions stay well
+// under 64 MB.
+const DEFAULT_MAX_CONCURRENT_STREAMS: u32 = 1024;
+const DEFAULT_MAX_HEADER_LIST_BYTES: u32 = 16 * 1024;
+const DEFAULT_MAX_CONNECTIONS: usize = 4096;
+const DEFAULT_MAX_CONNECTIONS_PER_PEER: usize = 512;
+const DEFAULT_HANDSHAKE_TIMEOUT_S: u64 = 10;
 
 /// blapose-server: streaming BLAPose bone-length adjustment over gRPC.
 ///
@@ -311,6 +359,37 @@ pub struct Cli {
     #[arg(long, env = "BLAPOSE_TOKEN_EVERY", value_name = "N", default_value_t = DEFAULT_TOKEN_EVERY)]
     pub token_every: u64,
 
+    /// With --session-key: how long a session token is accepted after it was issued (every
+    /// replica refuses it afterwards); also how long a closed session's id is remembered.
+    #[arg(long, env = "BLAPOSE_TOKEN_TTL", default_value = "1h", value_parser = parse_duration)]
+    pub token_ttl: Duration,
+
+    /// Sessions one client (see --client-header) may hold; more -> RESOURCE_EXHAUSTED.
+    /// Default: half of --max-sessions.
+    #[arg(long, env = "BLAPOSE_MAX_SESSIONS_PER_CLIENT", value_name = "N",
+          value_parser = clap::value_parser!(u32).range(1..).map(|v| v as usize))]
+    pub max_sessions_per_client: Option<usize>,
+
+    /// Frames one session may have waiting for the model; more -> RESOURCE_EXHAUSTED.
+    #[arg(long, env = "BLAPOSE_MAX_FRAMES_PER_SESSION", default_value_t = DEFAULT_MAX_FRAMES_PER_SESSION,
+          value_parser = clap::value_parser!(u32).range(1..).map(|v| v as usize))]
+    pub max_frames_per_session: usize,
+
+    /// Frames one client may have waiting for the model; more -> RESOURCE_EXHAUSTED.
+    /// Default: half of --queue-capacity.
+    #[arg(long, env = "BLAPOSE_MAX_QUEUED_FRAMES_PER_CLIENT", value_name = "N",
+          value_parser = clap::value_parser!(u32).range(1..).map(|v| v as usize))]
+    pub max_queued_frames_per_client: Option<usize>,
+
+    /// Header that names the client behind a load balancer (e.g. x-blapose-client), believed
+    /// only from --trusted-proxies; without it a client is its peer IP address.
+    #[arg(long, env = "BLAPOSE_CLIENT_HEADER", value_name = "HEADER")]
+    pub client_header: Option<String>,
+
+    /// Comma-separated IP addresses of the load balancers allowed to set --client-header.
+    #[arg(long, env = "BLAPOSE_TRUSTED_PROXIES", value_name = "IP,...", value_delimiter = ',')]
+    pub trusted_proxies: Vec<std::net::IpAddr>,
+
     /// Act as a health-check client instead: query grpc.health.v1 at --addr, exit 0 if SERVING,
     /// else 1. With --tls-cert it connects over TLS (see --tls-ca, --tls-domain).
     #[arg(long)]
@@ -325,6 +404,32 @@ pub struct Cli {
     /// (one of its DNS names); default: localhost.
     #[arg(long, env = "BLAPOSE_TLS_DOMAIN", value_name = "NAME")]
     pub tls_domain: Option<String>,
+
+    /// HTTP/2 streams one connection may have open at once (advertised to clients, which
+    /// queue beyond it; a client that ignores it gets REFUSED_STREAM).
+    #[arg(long, env = "BLAPOSE_MAX_CONCURRENT_STREAMS", default_value_t = DEFAULT_MAX_CONCURRENT_STREAMS,
+          value_parser = clap::value_parser!(u32).range(1..))]
+    pub max_concurrent_streams: u32,
+
+    /// Largest header list (one request's headers, decoded) a client may send, in bytes.
+    #[arg(long, env = "BLAPOSE_MAX_HEADER_LIST_BYTES", default_value_t = DEFAULT_MAX_HEADER_LIST_BYTES,
+          value_parser = clap::value_parser!(u32).range(1024..))]
+    pub max_header_list_bytes: u32,
+
+    /// TCP connections held at once, all clients together; more are closed at accept.
+    #[arg(long, env = "BLAPOSE_MAX_CONNECTIONS", default_value_t = DEFAULT_MAX_CONNECTIONS,
+          value_parser = clap::value_parser!(u32).range(1..).map(|v| v as usize))]
+    pub max_connections: usize,
+
+    /// TCP connections held at once from one IP address (a load balancer is one address:
+    /// raise it there); more are closed at accept.
+    #[arg(long, env = "BLAPOSE_MAX_CONNECTIONS_PER_PEER", default_value_t = DEFAULT_MAX_CONNECTIONS_PER_PEER,
+          value_parser = clap::value_parser!(u32).range(1..).map(|v| v as usize))]
+    pub max_connections_per_peer: usize,
+
+    /// Time a new connection has to finish its TLS handshake and send the HTTP/2 preface.
+    #[arg(long, env = "BLAPOSE_HANDSHAKE_TIMEOUT", default_value = "10s", value_parser = parse_open_timeout)]
+    pub handshake_timeout: Duration,
 }
 
 /// How `--health-check` connects to a server with TLS on: it verifies the
@@ -383,12 +488,25 @@ impl Cli {
             max_inflight_per_stream: self.max_inflight_per_stream,
             compute_threads: self.compute_threads,
             weight_precision: self.weight_precision,
+            max_concurrent_streams: self.max_concurrent_streams,
+            max_header_list_bytes: self.max_header_list_bytes,
+            connection_limits: crate::transport::ConnectionLimits {
+                max_connections: self.max_connections,
+                max_connections_per_peer: self.max_connections_per_peer,
+                handshake_timeout: self.handshake_timeout,
+            },
             tls,
             auth_token: self.auth_token.filter(|t| !t.is_empty()),
             max_message_bytes: self.max_message_bytes,
             shutdown_grace: self.shutdown_grace,
             session_key: self.session_key,
             token_every: self.token_every,
+            token_ttl: self.token_ttl,
+            max_sessions_per_client: self.max_sessions_per_client,
+            max_frames_per_session: self.max_frames_per_session,
+            max_queued_frames_per_client: self.max_queued_frames_per_client,
+            client_header: self.client_header,
+            trusted_proxies: self.trusted_proxies,
         }
     }
 }
@@ -479,6 +597,9 @@ mod tests {
         assert_eq!(cfg.max_message_bytes, def.max_message_bytes);
         assert_eq!(cfg.shutdown_grace, def.shutdown_grace);
         assert_eq!(cfg.open_timeout, def.open_timeout);
+        assert_eq!(cfg.max_concurrent_streams, def.max_concurrent_streams);
+        assert_eq!(cfg.max_header_list_bytes, def.max_header_list_bytes);
+        assert_eq!(cfg.connection_limits, def.connection_limits);
         assert_eq!(def.open_timeout, Duration::from_secs(10));
         assert_eq!(cfg.weights, WeightsSource::Embedded);
         assert_eq!(cfg.lifter_weights, None, "no server lifter unless asked");

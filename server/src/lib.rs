@@ -55,6 +55,8 @@ pub mod metrics;
 pub mod models;
 pub mod offline;
 pub mod prepare;
+pub mod quota;
+pub mod restore_check;
 pub mod service;
 pub mod session;
 pub mod shutdown;
@@ -63,6 +65,7 @@ pub mod stream;
 pub mod telemetry;
 pub mod testing;
 pub mod token;
+pub mod transport;
 pub mod validate;
 
 use std::future::Future;
@@ -75,8 +78,7 @@ use tokio::net::TcpListener;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 use tonic::service::interceptor::InterceptedService;
-use tonic::transport::server::TcpIncoming;
-use tonic::transport::{Identity, Server, ServerTlsConfig};
+use tonic::transport::Server;
 use tonic_health::ServingStatus;
 
 pub use blapose_model::input::ModelInput;
@@ -255,7 +257,15 @@ pub async fn spawn_with_provider(
             lifter.as_deref(),
         )
     });
-    let (store, purge_guard) = SessionStore::new(config.max_sessions.max(1), config.session_ttl);
+    let (store, purge_guard) = SessionStore::with_memory(
+        config.max_sessions.max(1),
+        config.session_ttl,
+        // Ended sessions are remembered only where tokens could revive them.
+        config
+            .session_key
+            .as_ref()
+            .map_or(std::time::Duration::ZERO, |_| config.token_ttl),
+    );
     let shutdown = CancellationToken::new();
     let state = Arc::new(AppState {
         store,
@@ -269,6 +279,7 @@ pub async fn spawn_with_provider(
         max_message_bytes: config.max_message_bytes,
         tokens,
         stature: Arc::new(models::embedded_stature_model()?),
+        limits: quota::Limits::new(&config),
     });
 
     let (health, health_service) = tonic_health::server::health_reporter();
@@ -291,29 +302,34 @@ pub async fn spawn_with_provider(
 
     let pose = PoseAdjustmentServer::new(PoseService::new(state.clone()))
         .max_decoding_message_size(config.max_message_bytes);
+    let pose = metrics::ErrorCounting::new(pose);
     let pose = InterceptedService::new(pose, BearerAuth::new(config.auth_token.as_deref()));
 
+    // TLS is terminated in `transport` (under the handshake deadline).
+    let tls = config
+        .tls
+        .as_ref()
+        .map(transport::tls_acceptor)
+        .transpose()
+        .map_err(ServerError::Tls)?;
+    export_limits(&config);
     let mut builder = Server::builder()
         .http2_keepalive_interval(Some(Duration::from_secs(30)))
-        .http2_keepalive_timeout(Some(Duration::from_secs(20)));
-    if let Some(tls) = &config.tls {
-        let cert = std::fs::read(&tls.cert)
-            .map_err(|e| ServerError::Tls(format!("cannot read {}: {e}", tls.cert.display())))?;
-        let key = std::fs::read(&tls.key)
-            .map_err(|e| ServerError::Tls(format!("cannot read {}: {e}", tls.key.display())))?;
-        builder = builder
-            .tls_config(ServerTlsConfig::new().identity(Identity::from_pem(cert, key)))
-            .map_err(|e| ServerError::Tls(e.to_string()))?;
-    }
+        .http2_keepalive_timeout(Some(Duration::from_secs(20)))
+        .max_concurrent_streams(config.max_concurrent_streams)
+        .http2_max_header_list_size(config.max_header_list_bytes);
     let router = builder
         .add_service(health_service)
         .add_service(reflection_v1)
         .add_service(reflection_v1alpha)
         .add_service(pose);
 
-    let incoming = TcpIncoming::from(listener)
-        .with_nodelay(Some(true))
-        .with_keepalive(Some(Duration::from_secs(60)));
+    let incoming = transport::incoming(
+        listener,
+        transport::ConnectionTable::new(config.connection_limits),
+        tls,
+        shutdown.clone(),
+    );
     let token = shutdown.clone();
     let grace = config.shutdown_grace;
     let task = tokio::spawn(async move {
@@ -354,6 +370,20 @@ pub async fn spawn_with_provider(
         shutdown,
         task: Some(task),
     })
+}
+
+/// Export the configured transport limits (`blapose_limit{limit}`, the
+/// gauge the per-client limits share; the handshake timeout in ms).
+fn export_limits(config: &ServerConfig) {
+    let c = &config.connection_limits;
+    metrics::limit("max_concurrent_streams", config.max_concurrent_streams as usize);
+    metrics::limit("max_header_list_bytes", config.max_header_list_bytes as usize);
+    metrics::limit("max_connections", c.max_connections);
+    metrics::limit("max_connections_per_peer", c.max_connections_per_peer);
+    metrics::limit(
+        "handshake_timeout_ms",
+        usize::try_from(c.handshake_timeout.as_millis()).unwrap_or(usize::MAX),
+    );
 }
 
 /// Run a server on `listener` until `shutdown` completes, then shut down

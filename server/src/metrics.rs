@@ -44,6 +44,17 @@ pub const OFFLINE_LATENCY: &str = "blapose_offline_latency_seconds";
 pub const LIFTED_FRAMES: &str = "blapose_lifted_frames_total";
 /// Time one batched server-lifter call took.
 pub const LIFT_LATENCY: &str = "blapose_lift_latency_seconds";
+/// TCP connections held (admitted, handshaking or served).
+pub const CONNECTIONS: &str = "blapose_connections";
+/// Connections refused at accept, by `limit` (the flag's name).
+pub const CONNECTIONS_REFUSED: &str = "blapose_connections_refused_total";
+/// Connections closed before they reached HTTP/2, by `reason`.
+pub const CONNECTIONS_CLOSED: &str = "blapose_connections_closed_total";
+/// Gauge: a configured limit in force, by `limit` (its flag's name).
+pub const LIMIT: &str = "blapose_limit";
+/// Counter: requests or frames refused by a per-client limit or a token
+/// rule, by `limit`.
+pub const LIMITED: &str = "blapose_limited_total";
 
 const LATENCY_BUCKETS: [f64; 14] = [
     50e-6, 100e-6, 250e-6, 500e-6, 1e-3, 2e-3, 5e-3, 10e-3, 20e-3, 50e-3, 100e-3, 250e-3, 1.0, 5.0,
@@ -99,6 +110,7 @@ pub fn install_exporter(addr: SocketAddr) -> Result<(), MetricsError> {
     gauge!(SESSIONS).set(0.0);
     gauge!(STREAMS).set(0.0);
     gauge!(QUEUE_DEPTH).set(0.0);
+    gauge!(CONNECTIONS).set(0.0);
     Ok(())
 }
 
@@ -127,6 +139,8 @@ fn describe() {
         "Time from receiving a frame to its answer."
     );
     describe_gauge!(QUEUE_DEPTH, "Frames waiting in the batcher queue.");
+    describe_gauge!(LIMIT, "Configured limits in force, by flag name.");
+    describe_counter!(LIMITED, "Refusals by a per-client limit or session token rule, by limit.");
     describe_counter!(ERRORS, "Errors returned, by gRPC code and rpc.");
     describe_counter!(OFFLINE_SEQUENCES, "Offline sequences adjusted, by model.");
     describe_histogram!(
@@ -143,6 +157,33 @@ fn describe() {
         Unit::Seconds,
         "Time one batched server-lifter call took."
     );
+    describe_gauge!(
+        CONNECTIONS,
+        "TCP connections held (handshaking or served)."
+    );
+    describe_counter!(
+        CONNECTIONS_REFUSED,
+        "Connections refused at accept, by the limit (flag) that refused them."
+    );
+    describe_counter!(
+        CONNECTIONS_CLOSED,
+        "Connections closed before HTTP/2 (handshake timeout, wrong protocol), by reason."
+    );
+}
+
+/// `held` TCP connections now.
+pub fn connections(held: usize) {
+    gauge!(CONNECTIONS).set(held as f64);
+}
+
+/// A connection was refused by the limit whose flag is `limit`.
+pub fn connection_refused(limit: &'static str) {
+    counter!(CONNECTIONS_REFUSED, "limit" => limit).increment(1);
+}
+
+/// A connection was closed before HTTP/2 for `reason`.
+pub fn connection_closed(reason: &'static str) {
+    counter!(CONNECTIONS_CLOSED, "reason" => reason).increment(1);
 }
 
 /// A session was opened; `held` sessions now.
@@ -166,6 +207,16 @@ pub fn session_closed(held: usize) {
 pub fn session_evicted(held: usize) {
     counter!(SESSION_EVENTS, "event" => "evicted").increment(1);
     gauge!(SESSIONS).set(held as f64);
+}
+
+/// Export the configured value of the limit `name` (its flag's name).
+pub fn limit(name: &'static str, value: usize) {
+    gauge!(LIMIT, "limit" => name).set(value as f64);
+}
+
+/// Something was refused by the limit or token rule `name`.
+pub fn limited(name: &'static str) {
+    counter!(LIMITED, "limit" => name).increment(1);
 }
 
 /// A stream attached (`+1`) or detached (`-1`).
@@ -216,6 +267,76 @@ pub fn lift(frames: usize, elapsed: Duration) {
 pub fn offline(model: &'static str, elapsed: Duration) {
     counter!(OFFLINE_SEQUENCES, "model" => model).increment(1);
     histogram!(OFFLINE_LATENCY, "model" => model).record(elapsed.as_secs_f64());
+}
+
+/// Counts the unary methods' error statuses in [`ERRORS`], including those
+/// tonic answers before the handler runs (an undecodable or oversized
+/// `AdjustSequence` request): a unary error is a trailers-only response,
+/// its status in the headers, so it is read there once for all. Streams
+/// count their own statuses (`stream.rs`), which travel in trailers.
+#[derive(Debug, Clone)]
+pub struct ErrorCounting<S> {
+    inner: S,
+}
+
+impl<S> ErrorCounting<S> {
+    /// Count `inner`'s unary errors.
+    pub fn new(inner: S) -> Self {
+        Self { inner }
+    }
+}
+
+impl<S: tonic::server::NamedService> tonic::server::NamedService for ErrorCounting<S> {
+    const NAME: &'static str = S::NAME;
+}
+
+impl<S, B, R> tonic::codegen::Service<tonic::codegen::http::Request<B>> for ErrorCounting<S>
+where
+    S: tonic::codegen::Service<
+        tonic::codegen::http::Request<B>,
+        Response = tonic::codegen::http::Response<R>,
+    >,
+    S::Future: Send + 'static,
+{
+    type Response = S::Response;
+    type Error = S::Error;
+    type Future = tonic::codegen::BoxFuture<S::Response, S::Error>;
+
+    fn poll_ready(
+        &mut self,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<Result<(), Self::Error>> {
+        self.inner.poll_ready(cx)
+    }
+
+    fn call(&mut self, request: tonic::codegen::http::Request<B>) -> Self::Future {
+        let rpc = unary_rpc(request.uri().path());
+        let future = self.inner.call(request);
+        Box::pin(async move {
+            let response = future.await?;
+            let status = response
+                .headers()
+                .get("grpc-status")
+                .map(|v| tonic::Code::from_bytes(v.as_bytes()));
+            if let (Some(rpc), Some(code)) = (rpc, status) {
+                if code != tonic::Code::Ok {
+                    error(code, rpc);
+                }
+            }
+            Ok(response)
+        })
+    }
+}
+
+/// The `rpc` label of a unary method's path; `None` for the stream (and
+/// anything else).
+fn unary_rpc(path: &str) -> Option<&'static str> {
+    match path.rsplit('/').next()? {
+        "AdjustSequence" => Some("AdjustSequence"),
+        "CloseSession" => Some("CloseSession"),
+        "ModelInfo" => Some("ModelInfo"),
+        _ => None,
+    }
 }
 
 /// The canonical upper-case name of a gRPC code (as in the gRPC spec).

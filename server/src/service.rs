@@ -20,7 +20,6 @@ use tokio_util::sync::CancellationToken;
 use tonic::{Request, Response, Status, Streaming};
 
 use crate::batch::Batcher;
-use crate::metrics;
 use crate::models::{LoadedLifter, ModelProvider};
 use crate::offline::OfflineRunner;
 use crate::session::SessionStore;
@@ -52,6 +51,7 @@ pub struct AppState {
     pub tokens: Option<Tokens>,
     /// The stature model subjects are answered with (embedded).
     pub stature: Arc<StatureModel>,
+    pub limits: crate::quota::Limits,
 }
 
 /// What issuing and restoring session tokens needs: the key, how often to
@@ -143,8 +143,10 @@ impl PoseService {
     }
 }
 
-fn fail<T>(status: Status, rpc: &'static str) -> Result<T, Status> {
-    metrics::error(status.code(), rpc);
+/// An error answer of a unary call. It is counted in `blapose_errors_total`
+/// by [`crate::metrics::ErrorCounting`], with the errors tonic answers before the
+/// handler runs (an undecodable request).
+fn fail<T>(status: Status, _rpc: &'static str) -> Result<T, Status> {
     Err(status)
 }
 
@@ -190,11 +192,12 @@ impl pb::pose_adjustment_server::PoseAdjustment for PoseService {
         &self,
         request: Request<Streaming<pb::StreamRequest>>,
     ) -> Result<Response<Self::StreamStream>, Status> {
+        let client = self.state.limits.client(&request);
         let inbound = request.into_inner();
         // A little slack beyond the in-flight bound so answers never wait on
         // the channel while the stream task is still reading.
         let (tx, rx) = mpsc::channel(self.state.max_inflight_per_stream.max(1) + 2);
-        tokio::spawn(stream::run(self.state.clone(), inbound, tx));
+        tokio::spawn(stream::run(self.state.clone(), client, inbound, tx));
         Ok(Response::new(Box::pin(
             ReceiverStream::new(rx).map(|r| r.map(|response| *response)),
         )))

@@ -24,8 +24,16 @@
 //! Ids are 128 random bits from the operating system's CSPRNG, rendered as
 //! 32 lowercase hex characters: knowing an id is the only credential needed
 //! to resume a session, so it must be unguessable.
+//!
+//! Each session counts against the client that opened it
+//! ([`crate::quota`]), so one client filling its share of the table leaves
+//! the rest to the others. A session that ends (closed, or evicted after
+//! its TTL) is *remembered* for the session token TTL: a closed one so its
+//! tokens cannot revive it, an evicted one with the frames it had seen so
+//! that an older token cannot roll it back (see `server/README.md`,
+//! "Session tokens").
 
-use std::collections::{BTreeSet, HashMap};
+use std::collections::{BTreeSet, HashMap, VecDeque};
 use std::fmt;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
@@ -41,6 +49,7 @@ use tokio::sync::{watch, Notify};
 use tokio::time::Instant;
 
 use crate::metrics;
+use crate::quota::{ClientId, QuotaError};
 
 /// Floats of recurrent state per session (two GRUs x 512).
 pub const STATE_DIM: usize = blapose_model::STATE_DIM;
@@ -275,12 +284,13 @@ pub struct Session {
     id: SessionId,
     key: u64,
     config: SessionConfig,
+    client: ClientId,
     state: Mutex<SessionState>,
     owner: watch::Sender<Ownership>,
 }
 
 impl Session {
-    fn new(id: SessionId, key: u64, config: SessionConfig) -> Self {
+    fn new(id: SessionId, key: u64, config: SessionConfig, client: ClientId) -> Self {
         let state = SessionState {
             epoch: 1,
             closed: false,
@@ -300,6 +310,7 @@ impl Session {
             id,
             key,
             config,
+            client,
             state: Mutex::new(state),
             owner,
         }
@@ -318,6 +329,11 @@ impl Session {
     /// The session's fixed configuration.
     pub fn config(&self) -> &SessionConfig {
         &self.config
+    }
+
+    /// The client the session counts against.
+    pub fn client(&self) -> ClientId {
+        self.client
     }
 
     /// Lock the model state. A poisoned lock (a panic elsewhere while
@@ -381,6 +397,25 @@ pub enum SessionError {
     /// A session token's state does not fit the session it describes.
     #[error("cannot restore the session: {0}")]
     Restore(String),
+    /// A per-client limit.
+    #[error(transparent)]
+    Quota(#[from] QuotaError),
+    /// The session was closed here: its tokens ended with it.
+    #[error("session {id} was closed: its session tokens ended with it; open a new session")]
+    Closed {
+        /// The session.
+        id: SessionId,
+    },
+    /// The token is older than the state this server last held.
+    #[error("the session token for {id} is as of frame {token}, older than the {held} frames this server last held for it: a session is never rolled back; resume with its latest token")]
+    Rollback {
+        /// The session.
+        id: SessionId,
+        /// Frames seen in the token.
+        token: u64,
+        /// Frames this server last held.
+        held: u64,
+    },
 }
 
 #[derive(Debug)]
@@ -390,17 +425,106 @@ struct Entry {
     expires_at: Option<Instant>,
 }
 
+/// What is remembered of a session that ended, until its tokens expire.
+#[derive(Debug, Clone, Copy)]
+struct Retired {
+    until: Instant,
+    closed: bool,
+    frames_seen: u64,
+}
+
 #[derive(Debug, Default)]
 struct Inner {
     sessions: HashMap<SessionId, Entry>,
     expirations: BTreeSet<(Instant, SessionId)>,
+    per_client: HashMap<ClientId, usize>,
+    retired: HashMap<SessionId, Retired>,
+    /// `retired`'s entries in the order they end (one constant memory
+    /// span, so insertion order is expiry order).
+    retired_order: VecDeque<(Instant, SessionId)>,
     shutdown: bool,
 }
 
 impl Inner {
+    /// Refuse a new session of `client` beyond either limit.
+    fn check_room(&self, client: ClientId, max: usize, per_client: usize) -> Result<(), SessionError> {
+        if self.sessions.len() >= max {
+            return Err(SessionError::TooManySessions { max });
+        }
+        if self.per_client.get(&client).copied().unwrap_or(0) >= per_client {
+            metrics::limited("sessions_per_client");
+            return Err(QuotaError::Sessions { limit: per_client }.into());
+        }
+        Ok(())
+    }
+
+    /// Remove `id` from the table (closed or evicted) and remember it for
+    /// `memory`.
+    fn remove(&mut self, id: SessionId, closed: bool, memory: Duration) -> Option<Entry> {
+        let entry = self.sessions.remove(&id)?;
+        if let Some(when) = entry.expires_at {
+            self.expirations.remove(&(when, id));
+        }
+        let client = entry.session.client();
+        if let Some(n) = self.per_client.get_mut(&client) {
+            *n = n.saturating_sub(1);
+            if *n == 0 {
+                self.per_client.remove(&client);
+            }
+        }
+        let now = Instant::now();
+        while let Some(&(until, old)) = self.retired_order.front() {
+            if until > now {
+                break;
+            }
+            self.retired_order.pop_front();
+            if self.retired.get(&old).is_some_and(|r| r.until == until) {
+                self.retired.remove(&old);
+            }
+        }
+        if !memory.is_zero() {
+            let until = now + memory;
+            let frames_seen = entry.session.lock().frames_seen();
+            self.retired.insert(
+                id,
+                Retired {
+                    until,
+                    closed,
+                    frames_seen,
+                },
+            );
+            self.retired_order.push_back((until, id));
+        }
+        Some(entry)
+    }
+
+    /// Whether a token as of `frames` frames may restore `id` here.
+    fn check_retired(&self, id: SessionId, frames: u64) -> Result<(), SessionError> {
+        match self.retired.get(&id) {
+            Some(r) if r.until > Instant::now() => {
+                if r.closed {
+                    metrics::limited("closed_session");
+                    Err(SessionError::Closed { id })
+                } else if frames < r.frames_seen {
+                    metrics::limited("rollback");
+                    Err(SessionError::Rollback {
+                        id,
+                        token: frames,
+                        held: r.frames_seen,
+                    })
+                } else {
+                    Ok(())
+                }
+            }
+            _ => Ok(()),
+        }
+    }
+
     /// Hold `session` under `id`, attached (opened, or restored from a
     /// token).
     fn admit(&mut self, id: SessionId, session: &Arc<Session>) {
+        *self.per_client.entry(session.client()).or_default() += 1;
+        self.retired.remove(&id);
         self.sessions.insert(
             id,
             Entry {
@@ -418,6 +542,8 @@ struct Shared {
     purge: Notify,
     ttl: Duration,
     max_sessions: usize,
+    /// How long an ended session is remembered (the token TTL).
+    memory: Duration,
     next_key: AtomicU64,
 }
 
@@ -439,7 +565,7 @@ impl Shared {
                 return Some(when);
             }
             inner.expirations.remove(&(when, id));
-            if let Some(entry) = inner.sessions.remove(&id) {
+            if let Some(entry) = inner.remove(id, false, self.memory) {
                 mark_closed(&entry.session);
                 metrics::session_evicted(inner.sessions.len());
                 tracing::info!(session = %id, "session evicted after its TTL");
@@ -485,11 +611,23 @@ impl SessionStore {
     /// A store with the given limits, and its purge task spawned on the
     /// current tokio runtime. Keep the guard alive as long as the store.
     pub fn new(max_sessions: usize, ttl: Duration) -> (Self, PurgeGuard) {
+        Self::with_memory(max_sessions, ttl, Duration::ZERO)
+    }
+
+    /// [`new`](Self::new), remembering each session that ends for
+    /// `memory` (the session token TTL): a closed one is never restored
+    /// from a token, an evicted one never from a token older than its state.
+    pub fn with_memory(
+        max_sessions: usize,
+        ttl: Duration,
+        memory: Duration,
+    ) -> (Self, PurgeGuard) {
         let shared = Arc::new(Shared {
             inner: Mutex::new(Inner::default()),
             purge: Notify::new(),
             ttl,
             max_sessions,
+            memory,
             next_key: AtomicU64::new(1),
         });
         tokio::spawn(purge_task(shared.clone()));
@@ -517,17 +655,24 @@ impl SessionStore {
         self.len() == 0
     }
 
-    /// Create a session, attached to the caller.
+    /// Create a session, attached to the caller (no per-client limit).
     pub fn open(&self, config: SessionConfig) -> Result<Attachment, SessionError> {
+        self.open_for(config, ClientId::default(), usize::MAX)
+    }
+
+    /// Create a session, attached to the caller, for a client holding fewer
+    /// than `per_client` sessions.
+    pub fn open_for(
+        &self,
+        config: SessionConfig,
+        client: ClientId,
+        per_client: usize,
+    ) -> Result<Attachment, SessionError> {
         let id = SessionId::random()?;
         let key = self.shared.next_key.fetch_add(1, Ordering::Relaxed);
-        let session = Arc::new(Session::new(id, key, config));
+        let session = Arc::new(Session::new(id, key, config, client));
         let mut inner = self.shared.lock();
-        if inner.sessions.len() >= self.shared.max_sessions {
-            return Err(SessionError::TooManySessions {
-                max: self.shared.max_sessions,
-            });
-        }
+        inner.check_room(client, self.shared.max_sessions, per_client)?;
         // 128 random bits: a collision is astronomically unlikely, but an id
         // must never silently replace another session.
         if inner.sessions.contains_key(&id) {
@@ -554,6 +699,8 @@ impl SessionStore {
         id: SessionId,
         config: SessionConfig,
         state: StateCopy,
+        client: ClientId,
+        per_client: usize,
     ) -> Result<Attachment, SessionError> {
         if state.hidden.len() != STATE_DIM {
             return Err(SessionError::Restore(format!(
@@ -562,7 +709,8 @@ impl SessionStore {
             )));
         }
         let key = self.shared.next_key.fetch_add(1, Ordering::Relaxed);
-        let session = Arc::new(Session::new(id, key, config));
+        let session = Arc::new(Session::new(id, key, config, client));
+        let frames = state.frames_seen();
         {
             let mut st = session.lock();
             match (st.window.as_deref_mut(), &state.window) {
@@ -597,11 +745,8 @@ impl SessionStore {
             drop(inner);
             return self.resume(&id.to_string());
         }
-        if inner.sessions.len() >= self.shared.max_sessions {
-            return Err(SessionError::TooManySessions {
-                max: self.shared.max_sessions,
-            });
-        }
+        inner.check_retired(id, frames)?;
+        inner.check_room(client, self.shared.max_sessions, per_client)?;
         inner.admit(id, &session);
         drop(inner);
         let st = session.lock();
@@ -678,10 +823,8 @@ impl SessionStore {
         };
         let id = SessionId::parse(id_text).ok_or_else(not_found)?;
         let mut inner = self.shared.lock();
-        let entry = inner.sessions.remove(&id).ok_or_else(not_found)?;
-        if let Some(when) = entry.expires_at {
-            inner.expirations.remove(&(when, id));
-        }
+        let memory = self.shared.memory;
+        let entry = inner.remove(id, true, memory).ok_or_else(not_found)?;
         let remaining = inner.sessions.len();
         drop(inner);
         metrics::session_closed(remaining);
@@ -740,7 +883,7 @@ mod tests {
 
     #[test]
     fn only_lifting_sessions_hold_a_window() {
-        let plain = Session::new(SessionId([2; 16]), 1, config());
+        let plain = Session::new(SessionId([2; 16]), 1, config(), ClientId::default());
         assert!(plain.lock().window.is_none());
         let lifting = Session::new(
             SessionId([3; 16]),
@@ -750,6 +893,7 @@ mod tests {
                 camera: None,
                 ..config()
             },
+            ClientId::default(),
         );
         assert!(lifting.config().lifting());
         let st = lifting.lock();
@@ -924,7 +1068,7 @@ mod tests {
 
     #[test]
     fn estimate_is_the_running_mean() {
-        let s = Session::new(SessionId([1; 16]), 1, config());
+        let s = Session::new(SessionId([1; 16]), 1, config(), ClientId::default());
         let mut g = s.lock();
         assert!(g.estimate().is_none());
         for v in [0.5, 1.0, 0.25, 1.25] {

@@ -37,6 +37,8 @@ use crate::answer::{self, frame_error};
 use crate::batch::{FrameJob, StepResult};
 use crate::metrics;
 use crate::prepare;
+use crate::quota::ClientId;
+use crate::restore_check;
 use crate::service::AppState;
 use crate::session::{
     Attachment, Ownership, Session, SessionConfig, SessionError, SessionSnapshot, StateCopy,
@@ -85,6 +87,7 @@ enum End {
 /// Drive one stream to completion. Runs as its own task.
 pub async fn run(
     state: Arc<AppState>,
+    client: ClientId,
     mut inbound: Streaming<pb::StreamRequest>,
     tx: mpsc::Sender<Outbound>,
 ) {
@@ -97,7 +100,7 @@ pub async fn run(
             .unwrap_or_else(|_| Err(no_open_in_time(open_timeout)))
     };
     let (attachment, periodic_tokens) = tokio::select! {
-        first = first => match open_or_resume(&state, first) {
+        first = first => match open_or_resume(&state, client, first) {
             Ok(a) => a,
             Err(status) => {
                 metrics::error(status.code(), "Stream");
@@ -131,7 +134,8 @@ pub async fn run(
                 Some(t) if periodic_tokens => t.every,
                 _ => 0,
             };
-            frames(&state, &attachment, token_every, &mut inbound, &tx).await
+            let asked = periodic_tokens && state.tokens.is_some();
+            frames(&state, &attachment, token_every, asked, &mut inbound, &tx).await
         };
         metrics::stream_attached(-1);
         finish(&state, &attachment, end, &tx).await;
@@ -172,6 +176,7 @@ fn no_open_in_time(waited: std::time::Duration) -> Status {
 /// tokens.
 fn open_or_resume(
     state: &AppState,
+    client: ClientId,
     first: Result<Option<pb::StreamRequest>, Status>,
 ) -> Result<(Attachment, bool), Status> {
     let request = match first {
@@ -209,13 +214,17 @@ fn open_or_resume(
             let label = truncate_label(&open.client_label);
             let attachment = state
                 .store
-                .open(SessionConfig {
-                    input,
-                    label,
-                    lifter_frames,
-                    camera,
-                    subject,
-                })
+                .open_for(
+                    SessionConfig {
+                        input,
+                        label,
+                        lifter_frames,
+                        camera,
+                        subject,
+                    },
+                    client,
+                    state.limits.sessions_per_client,
+                )
                 .map_err(session_status)?;
             tracing::info!(
                 session = %attachment.session.id(),
@@ -232,7 +241,7 @@ fn open_or_resume(
             let attachment = match state.store.resume(&resume.session_id) {
                 Ok(a) => a,
                 Err(SessionError::NotFound { .. }) if !resume.session_token.is_empty() => {
-                    restore(state, &resume)?
+                    restore(state, client, &resume)?
                 }
                 Err(e) => return Err(session_status(e)),
             };
@@ -255,7 +264,11 @@ fn open_or_resume(
 }
 
 /// Restore a session this server does not hold from the resume's token.
-fn restore(state: &AppState, resume: &pb::ResumeSession) -> Result<Attachment, Status> {
+fn restore(
+    state: &AppState,
+    client: ClientId,
+    resume: &pb::ResumeSession,
+) -> Result<Attachment, Status> {
     let tokens = state.tokens.as_ref().ok_or_else(|| {
         Status::failed_precondition(format!(
             "no session {:?} on this server, and it has no session key (--session-key), so it \
@@ -265,6 +278,15 @@ fn restore(state: &AppState, resume: &pb::ResumeSession) -> Result<Attachment, S
     })?;
     let portable =
         PortableState::open(&resume.session_token, &tokens.key).map_err(|e| e.to_status())?;
+    // Authentic is not the same as sane: check it like input.
+    restore_check::check(&portable, crate::token::now_ms(), state.limits.token_ttl).map_err(
+        |e| {
+            if matches!(e, restore_check::RestoreError::Expired { .. }) {
+                metrics::limited("token_ttl");
+            }
+            e.to_status()
+        },
+    )?;
     if !portable
         .session_id
         .to_string()
@@ -322,7 +344,7 @@ fn restore(state: &AppState, resume: &pb::ResumeSession) -> Result<Attachment, S
     let id = portable.session_id;
     let config = SessionConfig {
         input: portable.input,
-        label: portable.label,
+        label: truncate_label(&portable.label),
         lifter_frames,
         camera,
         subject,
@@ -336,7 +358,7 @@ fn restore(state: &AppState, resume: &pb::ResumeSession) -> Result<Attachment, S
     };
     let attachment = state
         .store
-        .restore(id, config, copy)
+        .restore(id, config, copy, client, state.limits.sessions_per_client)
         .map_err(session_status)?;
     tracing::info!(session = %id, frames_seen = attachment.snapshot.frames_seen, "session restored from a token");
     Ok(attachment)
@@ -380,7 +402,12 @@ fn token_response((token, frames_seen): (Vec<u8>, u64)) -> pb::StreamResponse {
 /// The gRPC status for a store error.
 pub fn session_status(e: SessionError) -> Status {
     match e {
-        SessionError::TooManySessions { .. } => Status::resource_exhausted(e.to_string()),
+        SessionError::TooManySessions { .. } | SessionError::Quota(_) => {
+            Status::resource_exhausted(e.to_string())
+        }
+        SessionError::Closed { .. } | SessionError::Rollback { .. } => {
+            Status::failed_precondition(e.to_string())
+        }
         SessionError::NotFound { .. } => Status::not_found(e.to_string()),
         SessionError::Rng(_) => Status::internal(e.to_string()),
         SessionError::Restore(_) => Status::failed_precondition(e.to_string()),
@@ -478,7 +505,11 @@ fn submit(state: &AppState, a: &Attachment, token_every: u64, frame: pb::Frame) 
         state_every: token_every,
         reply,
     };
-    match state.batcher.submit(job) {
+    match state.batcher.submit_limited(
+        job,
+        state.limits.frames_per_session,
+        state.limits.queued_per_client,
+    ) {
         Ok(()) => Pending::Step {
             frame_index: index,
             pose,
@@ -571,6 +602,7 @@ async fn frames(
     state: &AppState,
     a: &Attachment,
     token_every: u64,
+    asked: bool,
     inbound: &mut Streaming<pb::StreamRequest>,
     tx: &mpsc::Sender<Outbound>,
 ) -> End {
@@ -612,10 +644,12 @@ async fn frames(
             }
             _ = state.draining.cancelled(), if reading => {
                 reading = false;
-                end = End::Fail(shutting_down(state.tokens.is_some()));
+                end = End::Fail(shutting_down(asked));
                 // A final token, as of every frame answered: the client
                 // resumes on another replica without re-sending any frame.
-                if state.tokens.is_some() {
+                // Only for a stream that asked for tokens: one that did
+                // not would never use it.
+                if asked {
                     pending.push_back(Pending::Token);
                 }
             }

@@ -14,7 +14,7 @@
 //! and the lifter's) so that a replica with other weights refuses it
 //! instead of continuing a state its model never produced.
 //!
-//! # Layout (version 2)
+//! # Layout (version 3)
 //!
 //! A simple explicit binary layout, all integers and floats little-endian,
 //! rather than a private protobuf message: the token is dominated by 1,024
@@ -32,11 +32,12 @@
 //!              present, bit 2 subject present
 //! 6      16    session id
 //! 22     32    SHA-256 of the session family's online GRU weights
-//! 54     8     frames the model read (u64) = the running mean's count
-//! 62     1     keypoint layout (1 H36M-17, 2 SH-16, 3 COCO-17)
-//! 63     1     coordinates (0 normalized, 1 pixels)
-//! 64     4+4   image width, height (u32; 0 when normalized)
-//! 72     1+n   client label (length byte, UTF-8)
+//! 54     8     issued at (u64, milliseconds since the Unix epoch)
+//! 62     8     frames the model read (u64) = the running mean's count
+//! 70     1     keypoint layout (1 H36M-17, 2 SH-16, 3 COCO-17)
+//! 71     1     coordinates (0 normalized, 1 pixels)
+//! 72     4+4   image width, height (u32; 0 when normalized)
+//! 80     1+n   client label (length byte, UTF-8)
 //! ..     128   running sums of the 16 bone-length predictions (f64)
 //! ..     4+4h  hidden-state length h (u32) and the hidden state (f32)
 //! ..     8     frames answered without a detected joint (u64); frames seen
@@ -52,12 +53,17 @@
 //! end-32 32    HMAC-SHA256(session key, every byte before it)
 //! ```
 //!
-//! A session without a camera or lifter gives a 4,481-byte token (plus its
+//! A session without a camera or lifter gives a 4,489-byte token (plus its
 //! label); the hidden state is 4,096 of them. Version 1 (before missing
-//! joints were held) lacked the two missing-joint fields. The magic and the version are
+//! joints were held) lacked the two missing-joint fields, version 2 the
+//! issue time. The magic and the version are
 //! read before the MAC is checked (a later version may authenticate
 //! differently); everything else is read only from authenticated bytes.
-//! Tokens do not expire: the TTL governs a replica's memory, not the token.
+//! A token expires `--token-ttl` after it was issued: every replica refuses
+//! it then, which bounds what a replica that never saw the session close
+//! can be made to restore. An authentic token is still checked like input
+//! before it is restored ([`crate::restore_check`]): a signature says which
+//! replica wrote it, not that its state is one a session can be in.
 //!
 //! HMAC-SHA256 comes from the `hmac` crate over `sha2` (checked here
 //! against RFC 4231's test vectors); MACs are verified in constant time
@@ -74,7 +80,7 @@ use sha2::{Digest, Sha256};
 use crate::session::{InputFormat, RunningMean, SessionId, StateCopy, STATE_DIM};
 
 /// The token format this server writes and reads.
-pub const TOKEN_VERSION: u8 = 2;
+pub const TOKEN_VERSION: u8 = 3;
 /// First bytes of every token.
 pub const MAGIC: [u8; 4] = *b"BLPT";
 /// Bytes of the MAC at the end of a token.
@@ -268,6 +274,15 @@ pub struct PortableState {
     pub skipped: u64,
     /// The subject as opened.
     pub subject: Option<pb::Subject>,
+    /// When the token was issued (milliseconds since the Unix epoch).
+    pub issued_at_ms: u64,
+}
+
+/// Milliseconds since the Unix epoch now (0 for a clock before it).
+pub fn now_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX))
 }
 
 impl PortableState {
@@ -306,6 +321,7 @@ impl PortableState {
             held: state.held,
             skipped: state.skipped,
             subject: None,
+            issued_at_ms: now_ms(),
         }
     }
 
@@ -334,6 +350,7 @@ impl PortableState {
         out.push(flags);
         out.extend_from_slice(self.session_id.as_bytes());
         out.extend_from_slice(&self.weights_id);
+        out.extend_from_slice(&self.issued_at_ms.to_le_bytes());
         out.extend_from_slice(&self.lengths.count().to_le_bytes());
         out.push(match self.input.layout {
             KeypointLayout::H36m17 => 1,
@@ -480,6 +497,7 @@ fn decode_body(body: &[u8]) -> Result<PortableState, TokenError> {
     }
     let session_id = SessionId::from_bytes(r.array("the session id")?);
     let weights_id = r.array("the weights hash")?;
+    let issued_at_ms = r.u64("the issue time")?;
     let count = r.u64("frames seen")?;
     let layout = match r.u8("the layout")? {
         1 => KeypointLayout::H36m17,
@@ -577,6 +595,7 @@ fn decode_body(body: &[u8]) -> Result<PortableState, TokenError> {
         held,
         skipped,
         subject,
+        issued_at_ms,
     })
 }
 
@@ -632,6 +651,7 @@ mod tests {
                 height_m: 1.72,
                 sex: 1,
             }),
+            issued_at_ms: 1_780_000_000_000,
         }
     }
 
@@ -672,8 +692,8 @@ mod tests {
             assert_eq!(back.lengths.sum(), s.lengths.sum());
         }
         let plain = state(false, false).seal(&key(1));
-        // 4,481 bytes + the label's 6.
-        assert_eq!(plain.len(), 4481 + 6, "token size");
+        // 4,489 bytes + the label's 6.
+        assert_eq!(plain.len(), 4489 + 6, "token size");
     }
 
     #[test]
@@ -705,12 +725,12 @@ mod tests {
                 }
             }
         }
-        // A version-1 token (before missing joints were held) is refused.
-        let mut v1 = good.clone();
-        v1[4] = 1;
+        // A version-2 token (before tokens expired) is refused.
+        let mut v2 = good.clone();
+        v2[4] = 2;
         assert_eq!(
-            PortableState::open(&v1, &key(1)),
-            Err(TokenError::Version { found: 1 })
+            PortableState::open(&v2, &key(1)),
+            Err(TokenError::Version { found: 2 })
         );
         assert_eq!(
             TokenError::Version { found: 1 }.to_status().code(),

@@ -4,20 +4,36 @@
 //! The Human3.6M data and the client's replay files only hold
 //! little-endian float arrays, so this module supports exactly that: arrays
 //! of `f4` or `f8` (either byte order; `f8` is converted to `f32`), C order,
-//! any rank. Entries are decoded in parallel from an in-memory copy of the
-//! archive, which is what makes loading the 90 MB of deflated Human3.6M poses
-//! take well under a second on two cores.
+//! any rank. [`read_npz`] decodes every entry in parallel from an in-memory
+//! copy of the archive, which is what makes loading the 90 MB of deflated
+//! Human3.6M poses take well under a second on two cores.
+//!
+//! Files from elsewhere (replay files) are read with [`NpzArchive`]
+//! instead: a zip member declares its own size and a 2 MB file can inflate
+//! to gigabytes, so it opens only the members asked for, reads each one's
+//! `.npy` header first, refuses a shape other than the caller's and a
+//! declared size beyond what that shape needs before inflating anything,
+//! and then reads at most the bytes the shape needs plus one (the zip
+//! directory may lie). Both readers parse headers and values the same way
+//! ([`read_npy_header`], [`parse_npy`]) and never allocate more than the
+//! data actually inflated.
 //!
 //! Keys are entry names without the `.npy` suffix and may contain `/` and
 //! spaces (`S9/Walking 1`), exactly as `numpy.savez` writes them.
 
 use std::collections::BTreeMap;
 use std::fs::File;
-use std::io::{BufWriter, Cursor, Read, Write};
+use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
 use blapose_core::{Keypoints2d, Pose};
-use rayon::prelude::*;
+
+mod archive;
+
+pub use archive::{
+    parse_npy, read_npy_header, read_npz, read_npz_bytes, read_npz_filtered, Dtype, NpyHeader,
+    NpzArchive, MAX_NPY_HEADER,
+};
 
 /// Why an npz file or array could not be read, written or used.
 #[derive(Debug, thiserror::Error)]
@@ -79,6 +95,19 @@ pub enum NpzError {
         expected: String,
         /// The actual shape.
         actual: Vec<usize>,
+    },
+    /// A member's declared (inflated) size is more than the shape the
+    /// caller expects can take: refused before anything is inflated.
+    #[error("array {key:?}: the archive declares {declared} bytes, more than the {limit} an array of shape {expected} can take")]
+    TooLarge {
+        /// The array's key.
+        key: String,
+        /// The size the zip directory declares.
+        declared: u64,
+        /// The most bytes a `.npy` of the expected shape takes.
+        limit: u64,
+        /// The expected shape.
+        expected: String,
     },
     /// Data length and shape disagree.
     #[error("shape {shape:?} needs {needed} values, got {got}")]
@@ -156,12 +185,7 @@ impl Array {
 
     /// Whether the shape matches `expected` (`None` = any size).
     pub fn has_shape(&self, expected: &[Option<usize>]) -> bool {
-        self.shape.len() == expected.len()
-            && self
-                .shape
-                .iter()
-                .zip(expected)
-                .all(|(a, e)| e.is_none_or(|e| e == *a))
+        check_declared_shape("", &self.shape, expected).is_ok()
     }
 
     /// Copy a `(T, J, D)` array into frames, checking the shape.
@@ -187,13 +211,28 @@ fn shape_pattern(expected: &[Option<usize>]) -> String {
 }
 
 fn check_shape(key: &str, a: &Array, expected: &[Option<usize>]) -> Result<(), NpzError> {
-    if a.has_shape(expected) {
+    check_declared_shape(key, &a.shape, expected)
+}
+
+/// Check a shape (e.g. a header's, before its data is read) against a
+/// pattern (`None` = any size), naming the key and the pattern.
+pub fn check_declared_shape(
+    key: &str,
+    shape: &[usize],
+    expected: &[Option<usize>],
+) -> Result<(), NpzError> {
+    let fits = shape.len() == expected.len()
+        && shape
+            .iter()
+            .zip(expected)
+            .all(|(a, e)| e.is_none_or(|e| e == *a));
+    if fits {
         Ok(())
     } else {
         Err(NpzError::Shape {
             key: key.to_owned(),
             expected: shape_pattern(expected),
-            actual: a.shape.clone(),
+            actual: shape.to_vec(),
         })
     }
 }
@@ -299,170 +338,6 @@ impl Npz {
     }
 }
 
-/// Read every array of an npz file.
-pub fn read_npz(path: impl AsRef<Path>) -> Result<Npz, NpzError> {
-    read_npz_filtered(path, |_| true)
-}
-
-/// Read the arrays whose key satisfies `keep` (e.g. one subject's
-/// sequences); entries are decompressed in parallel.
-pub fn read_npz_filtered(
-    path: impl AsRef<Path>,
-    keep: impl Fn(&str) -> bool + Sync,
-) -> Result<Npz, NpzError> {
-    let path = path.as_ref();
-    let bytes = std::fs::read(path).map_err(|source| NpzError::Io {
-        path: path.to_owned(),
-        source,
-    })?;
-    read_npz_bytes(&bytes, keep).map_err(|e| match e {
-        NpzError::Zip { source, .. } => NpzError::Zip {
-            path: path.to_owned(),
-            source,
-        },
-        e => e,
-    })
-}
-
-/// Parse an in-memory npz archive (see [`read_npz_filtered`]).
-pub fn read_npz_bytes(bytes: &[u8], keep: impl Fn(&str) -> bool + Sync) -> Result<Npz, NpzError> {
-    let zip_err = |source| NpzError::Zip {
-        path: PathBuf::from("<memory>"),
-        source,
-    };
-    let archive = zip::ZipArchive::new(Cursor::new(bytes)).map_err(zip_err)?;
-    let wanted: Vec<(usize, String)> = archive
-        .file_names()
-        .map(str::to_owned)
-        .collect::<Vec<_>>()
-        .into_iter()
-        .filter_map(|name| {
-            let key = name.strip_suffix(".npy").unwrap_or(&name).to_owned();
-            keep(&key).then_some((name, key))
-        })
-        .filter_map(|(name, key)| archive.index_for_name(&name).map(|i| (i, key)))
-        .collect();
-    let arrays = wanted
-        .into_par_iter()
-        .map(|(index, key)| {
-            let mut archive = archive.clone();
-            let mut entry = archive.by_index(index).map_err(zip_err)?;
-            let mut raw =
-                Vec::with_capacity(usize::try_from(entry.size()).unwrap_or(0).min(1 << 30));
-            entry.read_to_end(&mut raw).map_err(|e| NpzError::BadNpy {
-                key: key.clone(),
-                reason: format!("decompression failed: {e}"),
-            })?;
-            let array = parse_npy(&key, &raw)?;
-            Ok((key, array))
-        })
-        .collect::<Result<BTreeMap<_, _>, NpzError>>()?;
-    Ok(Npz { arrays })
-}
-
-/// Parse one `.npy` byte string.
-pub fn parse_npy(key: &str, raw: &[u8]) -> Result<Array, NpzError> {
-    let bad = |reason: &str| NpzError::BadNpy {
-        key: key.to_owned(),
-        reason: reason.to_owned(),
-    };
-    if raw.len() < 10 || &raw[..6] != b"\x93NUMPY" {
-        return Err(bad("missing \\x93NUMPY magic"));
-    }
-    let (header_len, start) = match raw[6] {
-        1 => (u16::from_le_bytes([raw[8], raw[9]]) as usize, 10),
-        2 | 3 if raw.len() >= 12 => (
-            u32::from_le_bytes([raw[8], raw[9], raw[10], raw[11]]) as usize,
-            12,
-        ),
-        v => return Err(bad(&format!("unsupported format version {v}"))),
-    };
-    let header = raw
-        .get(start..start + header_len)
-        .ok_or_else(|| bad("truncated header"))
-        .and_then(|h| std::str::from_utf8(h).map_err(|_| bad("header is not text")))?;
-    let descr = header_value(header, "descr")
-        .and_then(|v| {
-            v.trim()
-                .strip_prefix('\'')
-                .and_then(|v| v.split('\'').next())
-        })
-        .ok_or_else(|| bad("header has no 'descr'"))?;
-    let fortran = header_value(header, "fortran_order")
-        .ok_or_else(|| bad("header has no 'fortran_order'"))?;
-    if fortran.trim_start().starts_with("True") {
-        return Err(NpzError::FortranOrder {
-            key: key.to_owned(),
-        });
-    }
-    let shape_text = header_value(header, "shape")
-        .and_then(|v| v.trim_start().strip_prefix('('))
-        .and_then(|v| v.split(')').next())
-        .ok_or_else(|| bad("header has no 'shape' tuple"))?;
-    let shape = shape_text
-        .split(',')
-        .map(str::trim)
-        .filter(|s| !s.is_empty())
-        .map(|s| {
-            s.trim_end_matches('L')
-                .parse::<usize>()
-                .map_err(|_| bad(&format!("bad shape entry {s:?}")))
-        })
-        .collect::<Result<Vec<_>, _>>()?;
-    let n = product(&shape).ok_or_else(|| bad("shape overflows"))?;
-    let body = &raw[start + header_len..];
-    let data: Vec<f32> = match descr {
-        "<f4" | "|f4" | ">f4" => {
-            let need = n.checked_mul(4).ok_or_else(|| bad("shape overflows"))?;
-            if body.len() != need {
-                return Err(bad(&format!(
-                    "shape {shape:?} needs {need} bytes of data, found {}",
-                    body.len()
-                )));
-            }
-            let conv = if descr == ">f4" {
-                f32::from_be_bytes
-            } else {
-                f32::from_le_bytes
-            };
-            body.chunks_exact(4)
-                .map(|c| conv([c[0], c[1], c[2], c[3]]))
-                .collect()
-        }
-        "<f8" | ">f8" => {
-            let need = n.checked_mul(8).ok_or_else(|| bad("shape overflows"))?;
-            if body.len() != need {
-                return Err(bad(&format!(
-                    "shape {shape:?} needs {need} bytes of data, found {}",
-                    body.len()
-                )));
-            }
-            let conv = if descr == ">f8" {
-                f64::from_be_bytes
-            } else {
-                f64::from_le_bytes
-            };
-            body.chunks_exact(8)
-                .map(|c| conv([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]) as f32)
-                .collect()
-        }
-        other => {
-            return Err(NpzError::UnsupportedDtype {
-                key: key.to_owned(),
-                descr: other.to_owned(),
-            })
-        }
-    };
-    Ok(Array { shape, data })
-}
-
-/// The text after `'name':` in a NumPy header dict.
-fn header_value<'a>(header: &'a str, name: &str) -> Option<&'a str> {
-    let pat = format!("'{name}'");
-    let at = header.find(&pat)? + pat.len();
-    header[at..].trim_start().strip_prefix(':')
-}
-
 /// Serialize one array as `.npy` (format 1.0, little-endian float32).
 pub fn npy_bytes(array: &Array) -> Vec<u8> {
     let dims: Vec<String> = array.shape.iter().map(|d| d.to_string()).collect();
@@ -518,6 +393,7 @@ pub fn write_npz(path: impl AsRef<Path>, npz: &Npz) -> Result<(), NpzError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::io::Cursor;
 
     fn temp(name: &str) -> PathBuf {
         std::env::temp_dir().join(format!("blapose-npz-{}-{name}", std::process::id()))

@@ -34,36 +34,7 @@ use blapose_model::stature::{StatureLines, StatureModel, STATURE_FORMAT};
 
 use crate::ansur_split::{is_held_out, Person};
 
-/// Why the regression could not be fitted or applied.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum StatureError {
-    /// A group has fewer than two people: no line through them.
-    #[error("stature regression ({group}): needs at least 2 people, got {people}")]
-    TooFewPeople {
-        /// `everyone`, `male` or `female`.
-        group: &'static str,
-        /// How many there were.
-        people: usize,
-    },
-    /// Everyone in a group has the same stature: no slope.
-    #[error("stature regression ({group}): every person has the same stature")]
-    NoStatureSpread {
-        /// `everyone`, `male` or `female`.
-        group: &'static str,
-    },
-    /// A person's stature or a length is NaN or infinite.
-    #[error("stature regression: person {subject_id} has a non-finite stature or length")]
-    NonFinite {
-        /// The survey id.
-        subject_id: u64,
-    },
-    /// A stature to predict from is not a positive finite height.
-    #[error("stature regression: {0} m is not a positive finite stature")]
-    BadStature(f64),
-    /// Sex was given but that sex had no fit.
-    #[error("stature regression: no fit for {0} (too few of them, or no spread)")]
-    NoFitForSex(&'static str),
-}
+pub use crate::error::StatureError;
 
 /// Which inputs the regression reads.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -173,6 +173,11 @@ struct IoArgs {
     /// Keypoint layout, overriding the file's (h36m17, sh16, coco17).
     #[arg(long)]
     layout: Option<KeypointLayout>,
+    /// Refuse a file with more frames than this, before reading its
+    /// arrays (the file's members are never inflated past what that many
+    /// frames need).
+    #[arg(long, value_name = "N", default_value_t = blapose_client::sequence::DEFAULT_MAX_FRAMES)]
+    max_file_frames: usize,
     /// Send the file's camera calibration, so the server's camera-aware
     /// models serve the sequence. They need the camera's height above the
     /// floor (camera_height) and were trained for cameras 0.5-3 m high,
@@ -223,7 +228,7 @@ impl IoArgs {
     /// the file's world up direction in camera axes (`camera_up`), if any,
     /// for the HTML report's floor.
     fn load(&self) -> Result<(Sequence, Option<[f32; 3]>)> {
-        let mut seq = Sequence::load(&self.file, self.layout)?;
+        let mut seq = Sequence::load_with_max_frames(&self.file, self.layout, self.max_file_frames)?;
         let up = seq.camera.map(|c| c.up);
         if !self.camera {
             seq.camera = None;

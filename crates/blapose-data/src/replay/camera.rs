@@ -37,10 +37,9 @@ pub struct CameraCalibration {
     /// The camera's height above the floor in metres, [`MIN_CAMERA_HEIGHT`]
     /// to [`MAX_CAMERA_HEIGHT`]; `None` = not given (0 on the wire). A
     /// rectified picture does not show it (seen from a camera k times
-    /// higher, a scene looks like one k times smaller): camera-aware models
-    /// trained height-normalized predict lengths as seen from 1.56 m and
-    /// the server scales them by `height / 1.56`, assuming 1.56 m when it is
-    /// not given. Other models ignore it.
+    /// higher, a scene looks like one k times smaller): the shipped
+    /// camera-aware models scale each frame to the floor with it and
+    /// refuse a calibration without it. Other models ignore it.
     pub height: Option<f32>,
     /// The lens's distortion in OpenCV's model and order, `[k1, k2, p1,
     /// p2, k3]` (what `cv2.calibrateCamera` reports; k3 = 0 for a

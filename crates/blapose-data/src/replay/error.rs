@@ -29,6 +29,17 @@ pub enum SequenceError {
     /// The file has no frames.
     #[error("the sequence has no frames")]
     Empty,
+    /// A per-frame array's header declares more frames than the limit
+    /// (refused before its values are read).
+    #[error("{key} has {frames} frames, more than the limit of {max} (max_frames; the client's --max-file-frames)")]
+    TooManyFrames {
+        /// The array.
+        key: &'static str,
+        /// Frames its header declares.
+        frames: usize,
+        /// The limit.
+        max: usize,
+    },
     /// Two arrays disagree on the number of frames.
     #[error("{key} has {got} frames but {KEY_POSE_3D} has {expected}")]
     FrameCount {

@@ -37,15 +37,18 @@
 //! column. `camera_height` is the camera's height above the floor in metres
 //! (with world z up and the floor at z = 0, its centre's z), 0.3 to 10;
 //! leave the key out when it is unknown (a 0 is refused, not read as
-//! "unknown"). Height-normalized camera-aware models scale their estimates
-//! by it (assuming 1.56 m without it); other models ignore it. The CLI sends a
+//! "unknown"). The shipped camera-aware models need it (they scale each
+//! frame to the floor with it); other models ignore it. The CLI sends a
 //! file's calibration only when told to (`--camera`); the server's
 //! camera-aware models then serve it.
 //!
 //! Loading checks everything a server would refuse (shapes, frame counts,
 //! non-finite values, image size, a partial or invalid calibration) and
 //! names the key, frame and joint, so a bad file fails before any network
-//! traffic.
+//! traffic. A file is untrusted input: [`Sequence::load`] opens only these
+//! members, checks each header's shape (at most [`DEFAULT_MAX_FRAMES`]
+//! frames, or the caller's bound) before reading values, and never inflates
+//! a member past what that shape needs ([`crate::npz::NpzArchive`]).
 //!
 //! Modules: [`keys`] (array names, layout codes), [`sequence`] (the file's
 //! content: [`Sequence`], [`FrameInput`]), [`camera`] and [`subject`]
@@ -57,11 +60,12 @@ pub mod error;
 pub mod keys;
 pub mod output;
 pub mod sequence;
+mod source;
 pub mod subject;
 
 pub use camera::{CameraCalibration, CameraError};
 pub use error::SequenceError;
 pub use keys::*;
 pub use output::{read_adjusted, read_lifted, write_adjusted};
-pub use sequence::{FrameInput, Sequence};
+pub use sequence::{FrameInput, Sequence, DEFAULT_MAX_FRAMES};
 pub use subject::Subject;

@@ -16,8 +16,15 @@ use blapose_core::{Pose, Sex};
 use super::camera::{CameraCalibration, CameraError};
 use super::error::{npz_err, SequenceError};
 use super::keys::*;
+use super::source::{scalar, ArraySource};
 use super::subject::Subject;
-use crate::npz::{read_npz, write_npz, Array, Npz, NpzError};
+use crate::npz::{check_declared_shape, write_npz, Array, Npz, NpzArchive, NpzError};
+
+/// The most frames [`Sequence::load`] accepts (an hour at 250 fps: about
+/// 350 MB of keypoints and poses), as Python's `load_replay` does; every
+/// per-frame array is bounded by it before any value is read.
+/// [`Sequence::load_with_max_frames`] sets another.
+pub const DEFAULT_MAX_FRAMES: usize = 900_000;
 
 /// A recorded sequence, validated.
 #[derive(Debug, Clone, PartialEq)]
@@ -59,23 +66,22 @@ pub struct FrameInput {
 }
 
 /// The file's subject, if any.
-fn subject_from_npz(npz: &Npz) -> Result<Option<Subject>, SequenceError> {
+fn subject_from(npz: &mut impl ArraySource) -> Result<Option<Subject>, SequenceError> {
     let bad = |what: String| SequenceError::Subject(what);
-    if !npz.contains(KEY_SUBJECT_HEIGHT) {
-        if npz.contains(KEY_SUBJECT_SEX) {
+    if !npz.has(KEY_SUBJECT_HEIGHT) {
+        if npz.has(KEY_SUBJECT_SEX) {
             return Err(bad(format!("{KEY_SUBJECT_SEX} needs {KEY_SUBJECT_HEIGHT}")));
         }
         return Ok(None);
     }
-    let scalar = |key: &'static str| npz.scalar(key).map_err(npz_err);
-    let height_m = scalar(KEY_SUBJECT_HEIGHT)?;
+    let height_m = scalar(npz, KEY_SUBJECT_HEIGHT).map_err(npz_err)?;
     if !(height_m.is_finite() && height_m > 0.0) {
         return Err(bad(format!(
             "{KEY_SUBJECT_HEIGHT} is {height_m}; a stature in metres"
         )));
     }
-    let sex = if npz.contains(KEY_SUBJECT_SEX) {
-        match scalar(KEY_SUBJECT_SEX)? {
+    let sex = if npz.has(KEY_SUBJECT_SEX) {
+        match scalar(npz, KEY_SUBJECT_SEX).map_err(npz_err)? {
             1.0 => Some(Sex::Female),
             2.0 => Some(Sex::Male),
             v => return Err(bad(format!("{KEY_SUBJECT_SEX} is {v}; 1 female or 2 male"))),
@@ -244,31 +250,63 @@ impl Sequence {
     }
 
     /// Build from npz arrays; `layout_override` wins over the file's
-    /// `layout` array and the inference from `J`.
+    /// `layout` array and the inference from `J`. The arrays are in memory
+    /// already, so no frame limit applies.
     pub fn from_npz(
         npz: &Npz,
         layout_override: Option<KeypointLayout>,
     ) -> Result<Self, SequenceError> {
-        let wrap = |source| SequenceError::Npz {
-            path: PathBuf::from("<arrays>"),
-            error: source,
-        };
-        let pose_3d = npz.poses(KEY_POSE_3D).map_err(wrap)?;
-        let kp = npz
-            .get_shaped(KEY_KEYPOINTS, &[None, None, Some(2)])
-            .map_err(wrap)?;
-        let (frames, joints) = (kp.shape()[0], kp.shape()[1]);
-        if frames != pose_3d.len() {
+        Self::from_source(&mut { npz }, layout_override, usize::MAX)
+    }
+
+    /// The frames of per-frame array `key` of shape `shape`, which must
+    /// match `(_, rest..)` and hold at most `max_frames` frames.
+    fn frames_of(
+        key: &'static str,
+        shape: &[usize],
+        rest: &[Option<usize>],
+        max_frames: usize,
+    ) -> Result<usize, SequenceError> {
+        let pattern: Vec<Option<usize>> = [None].into_iter().chain(rest.iter().copied()).collect();
+        check_declared_shape(key, shape, &pattern).map_err(npz_err)?;
+        if shape[0] > max_frames {
+            return Err(SequenceError::TooManyFrames {
+                key,
+                frames: shape[0],
+                max: max_frames,
+            });
+        }
+        Ok(shape[0])
+    }
+
+    /// Build from `source`, checking every shape and frame count (at most
+    /// `max_frames`) before reading any values.
+    fn from_source(
+        npz: &mut impl ArraySource,
+        layout_override: Option<KeypointLayout>,
+        max_frames: usize,
+    ) -> Result<Self, SequenceError> {
+        let pose_shape = npz.shape_of(KEY_POSE_3D).map_err(npz_err)?;
+        let frames = Self::frames_of(
+            KEY_POSE_3D,
+            &pose_shape,
+            &[Some(NUM_JOINTS), Some(3)],
+            max_frames,
+        )?;
+        let kp_shape = npz.shape_of(KEY_KEYPOINTS).map_err(npz_err)?;
+        let kp_frames = Self::frames_of(KEY_KEYPOINTS, &kp_shape, &[None, Some(2)], max_frames)?;
+        let joints = kp_shape[1];
+        if kp_frames != frames {
             return Err(SequenceError::FrameCount {
                 key: KEY_KEYPOINTS,
-                got: frames,
-                expected: pose_3d.len(),
+                got: kp_frames,
+                expected: frames,
             });
         }
         let layout = match layout_override {
             Some(l) => l,
-            None if npz.contains(KEY_LAYOUT) => {
-                let code = npz.scalar(KEY_LAYOUT).map_err(wrap)?;
+            None if npz.has(KEY_LAYOUT) => {
+                let code = scalar(npz, KEY_LAYOUT).map_err(npz_err)?;
                 let valid = code.is_finite() && code.fract() == 0.0 && code >= 0.0;
                 valid
                     .then(|| layout_from_code(code as u32))
@@ -288,38 +326,75 @@ impl Sequence {
                 joints,
             });
         }
-        let size = npz
-            .get_shaped(KEY_IMAGE_SIZE, &[Some(2)])
-            .map_err(wrap)?
-            .data();
+        let size_shape = npz.shape_of(KEY_IMAGE_SIZE).map_err(npz_err)?;
+        check_declared_shape(KEY_IMAGE_SIZE, &size_shape, &[Some(2)]).map_err(npz_err)?;
+        let gt_shape = if npz.has(KEY_GT_3D) {
+            let shape = npz.shape_of(KEY_GT_3D).map_err(npz_err)?;
+            let got = Self::frames_of(KEY_GT_3D, &shape, &[Some(NUM_JOINTS), Some(3)], max_frames)?;
+            if got != frames {
+                return Err(SequenceError::FrameCount {
+                    key: KEY_GT_3D,
+                    got,
+                    expected: frames,
+                });
+            }
+            Some(shape)
+        } else {
+            None
+        };
+        let confidence_shape = if npz.has(KEY_CONFIDENCE) {
+            let shape = npz.shape_of(KEY_CONFIDENCE).map_err(npz_err)?;
+            let got = Self::frames_of(KEY_CONFIDENCE, &shape, &[Some(joints)], max_frames)?;
+            if got != frames {
+                return Err(SequenceError::FrameCount {
+                    key: KEY_CONFIDENCE,
+                    got,
+                    expected: frames,
+                });
+            }
+            Some(shape)
+        } else {
+            None
+        };
+        // Every shape is known and bounded: now the values.
+        let size = npz.read(KEY_IMAGE_SIZE, &size_shape).map_err(npz_err)?;
+        let size = size.data();
         let whole = |v: f32| v.is_finite() && v >= 1.0 && v.fract() == 0.0 && v <= u32::MAX as f32;
         if !size.iter().all(|&v| whole(v)) {
             return Err(SequenceError::ImageSize(size.to_vec()));
         }
-        let input_format = InputFormat::pixels(layout, size[0] as u32, size[1] as u32);
-        let gt_3d = if npz.contains(KEY_GT_3D) {
-            Some(npz.poses(KEY_GT_3D).map_err(wrap)?)
+        let image_size = (size[0] as u32, size[1] as u32);
+        let input_format = InputFormat::pixels(layout, image_size.0, image_size.1);
+        let pose_3d = npz
+            .read(KEY_POSE_3D, &pose_shape)
+            .and_then(|a| a.to_frames(KEY_POSE_3D))
+            .map_err(npz_err)?;
+        let (_, keypoints_2d) = npz
+            .read(KEY_KEYPOINTS, &kp_shape)
+            .map_err(npz_err)?
+            .into_parts();
+        let gt_3d = match gt_shape {
+            Some(shape) => Some(
+                npz.read(KEY_GT_3D, &shape)
+                    .and_then(|a| a.to_frames(KEY_GT_3D))
+                    .map_err(npz_err)?,
+            ),
+            None => None,
+        };
+        let confidence = match confidence_shape {
+            Some(shape) => npz.read(KEY_CONFIDENCE, &shape).map_err(npz_err)?.into_parts().1,
+            None => Vec::new(),
+        };
+        let fps = if npz.has(KEY_FPS) {
+            Some(scalar(npz, KEY_FPS).map_err(npz_err)?)
         } else {
             None
         };
-        let confidence = if npz.contains(KEY_CONFIDENCE) {
-            npz.get_shaped(KEY_CONFIDENCE, &[None, Some(joints)])
-                .map_err(wrap)?
-                .data()
-                .to_vec()
-        } else {
-            Vec::new()
-        };
-        let fps = if npz.contains(KEY_FPS) {
-            Some(npz.scalar(KEY_FPS).map_err(wrap)?)
-        } else {
-            None
-        };
-        let camera = camera_from_npz(npz, (size[0] as u32, size[1] as u32))?;
-        let subject = subject_from_npz(npz)?;
+        let camera = camera_from(npz, image_size)?;
+        let subject = subject_from(npz)?;
         let seq = Sequence {
             input_format,
-            keypoints_2d: kp.data().to_vec(),
+            keypoints_2d,
             confidence,
             pose_3d,
             gt_3d,
@@ -331,21 +406,36 @@ impl Sequence {
         Ok(seq)
     }
 
-    /// Read and validate a replay file.
+    /// Read and validate a replay file of at most [`DEFAULT_MAX_FRAMES`]
+    /// frames (see [`Sequence::load_with_max_frames`]).
     pub fn load(
         path: impl AsRef<Path>,
         layout_override: Option<KeypointLayout>,
     ) -> Result<Self, SequenceError> {
+        Self::load_with_max_frames(path, layout_override, DEFAULT_MAX_FRAMES)
+    }
+
+    /// Read and validate a replay file of at most `max_frames` frames.
+    ///
+    /// A replay file may come from anywhere, so only the format's members
+    /// are opened, each one's header is checked (shape, frames against
+    /// `max_frames` and the other arrays) before its values are read, and a
+    /// member is never inflated past what its checked shape needs: the
+    /// memory used is about that of the arrays returned, whatever the file
+    /// declares.
+    pub fn load_with_max_frames(
+        path: impl AsRef<Path>,
+        layout_override: Option<KeypointLayout>,
+        max_frames: usize,
+    ) -> Result<Self, SequenceError> {
         let path = path.as_ref();
-        let npz = read_npz(path).map_err(|source| SequenceError::Npz {
+        let with_path = |error| SequenceError::Npz {
             path: path.to_owned(),
-            error: source,
-        })?;
-        Sequence::from_npz(&npz, layout_override).map_err(|e| match e {
-            SequenceError::Npz { error: source, .. } => SequenceError::Npz {
-                path: path.to_owned(),
-                error: source,
-            },
+            error,
+        };
+        let mut archive = NpzArchive::open(path).map_err(with_path)?;
+        Sequence::from_source(&mut archive, layout_override, max_frames).map_err(|e| match e {
+            SequenceError::Npz { error, .. } => with_path(error),
             e => e,
         })
     }
@@ -446,19 +536,19 @@ impl Sequence {
 /// The calibration in `npz`'s camera keys (`None` without any), for
 /// keypoints in pixels of an image of `image_size`. Values are checked by
 /// [`Sequence::validate`].
-fn camera_from_npz(
-    npz: &Npz,
+fn camera_from(
+    npz: &mut impl ArraySource,
     image_size: (u32, u32),
 ) -> Result<Option<CameraCalibration>, SequenceError> {
     let present: Vec<&str> = CAMERA_KEYS
         .into_iter()
         .chain([KEY_CAMERA_HEIGHT, KEY_CAMERA_DISTORTION])
-        .filter(|k| npz.contains(k))
+        .filter(|k| npz.has(k))
         .collect();
     if present.is_empty() {
         return Ok(None);
     }
-    if let Some(missing) = CAMERA_KEYS.into_iter().find(|k| !npz.contains(k)) {
+    if let Some(missing) = CAMERA_KEYS.into_iter().find(|k| !npz.has(k)) {
         return Err(SequenceError::PartialCamera {
             missing,
             found: present.join(", "),
@@ -469,13 +559,13 @@ fn camera_from_npz(
         focal: camera_array(npz, KEY_CAMERA_FOCAL)?,
         principal: camera_array(npz, KEY_CAMERA_PRINCIPAL)?,
         image_size: Some(image_size),
-        height: if npz.contains(KEY_CAMERA_HEIGHT) {
-            Some(npz.scalar(KEY_CAMERA_HEIGHT).map_err(npz_err)?)
+        height: if npz.has(KEY_CAMERA_HEIGHT) {
+            Some(scalar(npz, KEY_CAMERA_HEIGHT).map_err(npz_err)?)
         } else {
             None
         },
-        distortion: if npz.contains(KEY_CAMERA_DISTORTION) {
-            Some(distortion_from_npz(npz)?)
+        distortion: if npz.has(KEY_CAMERA_DISTORTION) {
+            Some(distortion_from(npz)?)
         } else {
             None
         },
@@ -484,10 +574,16 @@ fn camera_from_npz(
 
 /// [`KEY_CAMERA_DISTORTION`] as the five OpenCV coefficients (`k3 = 0` for
 /// a four-value array).
-fn distortion_from_npz(npz: &Npz) -> Result<[f32; 5], SequenceError> {
-    let array = npz
-        .get_shaped(KEY_CAMERA_DISTORTION, &[None])
-        .map_err(npz_err)?;
+fn distortion_from(npz: &mut impl ArraySource) -> Result<[f32; 5], SequenceError> {
+    let shape = npz.shape_of(KEY_CAMERA_DISTORTION).map_err(npz_err)?;
+    if shape != [4] && shape != [5] {
+        return Err(npz_err(NpzError::Shape {
+            key: KEY_CAMERA_DISTORTION.to_owned(),
+            expected: "(4,) or (5,)".into(),
+            actual: shape,
+        }));
+    }
+    let array = npz.read(KEY_CAMERA_DISTORTION, &shape).map_err(npz_err)?;
     match *array.data() {
         [k1, k2, p1, p2] => Ok([k1, k2, p1, p2, 0.0]),
         [k1, k2, p1, p2, k3] => Ok([k1, k2, p1, p2, k3]),
@@ -500,20 +596,20 @@ fn distortion_from_npz(npz: &Npz) -> Result<[f32; 5], SequenceError> {
 }
 
 /// The `(N,)` array `key` as a fixed-size array.
-fn camera_array<const N: usize>(npz: &Npz, key: &str) -> Result<[f32; N], SequenceError> {
-    let array = npz.get_shaped(key, &[Some(N)]).map_err(npz_err)?;
-    array.data().try_into().map_err(|_| {
-        npz_err(NpzError::Shape {
-            key: key.to_owned(),
-            expected: format!("({N},)"),
-            actual: array.shape().to_vec(),
-        })
-    })
+fn camera_array<const N: usize>(
+    npz: &mut impl ArraySource,
+    key: &str,
+) -> Result<[f32; N], SequenceError> {
+    let shape = npz.shape_of(key).map_err(npz_err)?;
+    check_declared_shape(key, &shape, &[Some(N)]).map_err(npz_err)?;
+    let array = npz.read(key, &shape).map_err(npz_err)?;
+    Ok(std::array::from_fn(|i| array.data()[i]))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::npz::read_npz;
     use crate::replay::output::{read_adjusted, read_lifted, write_adjusted};
     use blapose_core::skeleton::NUM_BONES;
 

@@ -1,0 +1,199 @@
+//! Per-client limits: who a request comes from, and how much of the
+//! server's shared capacity (the session table, the frame queue) one client
+//! may hold, so that one client's overload is refused to that client and
+//! the others are served as before.
+//!
+//! A client is its *identity*: the peer's IP address, or, behind a load
+//! balancer, a header the balancer sets (`--client-header`), read only on
+//! connections from the peers named by `--trusted-proxies` (anyone else
+//! could set it to whatever escapes their limit). The bearer token is not
+//! an identity: the server has one shared `--auth-token`, so it would put
+//! every authenticated client in one bucket. The identity is hashed
+//! (SHA-256, 16 bytes) so the store never holds an address or header value.
+//!
+//! The limits: sessions per client (a fraction of `--max-sessions` by
+//! default, so that one client opening sessions as fast as it can fills its
+//! own share and no more), frames one session may have waiting in the
+//! batcher queue, and frames one client may have waiting (a share of
+//! `--queue-capacity`). Each refusal is RESOURCE_EXHAUSTED naming its limit.
+
+use std::net::IpAddr;
+use std::time::Duration;
+
+use sha2::{Digest, Sha256};
+
+use crate::config::ServerConfig;
+use crate::metrics;
+
+/// Who a session or frame belongs to, for the per-client limits.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub struct ClientId([u8; 16]);
+
+impl ClientId {
+    /// The id of an identity string (hashed; never stored as given).
+    pub fn of(identity: &str) -> Self {
+        let digest = Sha256::digest(identity.as_bytes());
+        let mut id = [0u8; 16];
+        id.copy_from_slice(&digest[..16]);
+        Self(id)
+    }
+}
+
+/// The per-client limits and how a request's client is told.
+#[derive(Debug, Clone)]
+pub struct Limits {
+    /// Sessions one client may hold (attached or detached).
+    pub sessions_per_client: usize,
+    /// Frames one session may have waiting in the batcher queue.
+    pub frames_per_session: usize,
+    /// Frames one client may have waiting in the batcher queue.
+    pub queued_per_client: usize,
+    /// How long a session token is accepted after it was issued.
+    pub token_ttl: Duration,
+    /// Header naming the client, set by a trusted balancer (lowercase).
+    client_header: Option<String>,
+    /// Peers allowed to set `client_header`.
+    trusted_proxies: Vec<IpAddr>,
+}
+
+/// Default share of `--max-sessions` one client may hold: half, so the
+/// load tests' 1,024 streams from one loopback client fit the default
+/// 4,096-session table and one client can never fill it.
+pub const SESSION_SHARE_DIVISOR: usize = 2;
+/// Default share of `--queue-capacity` one client's frames may take.
+pub const QUEUE_SHARE_DIVISOR: usize = 2;
+
+impl Limits {
+    /// The limits a configuration asks for (defaults filled in).
+    pub fn new(config: &ServerConfig) -> Self {
+        let sessions_per_client = config
+            .max_sessions_per_client
+            .unwrap_or(config.max_sessions / SESSION_SHARE_DIVISOR)
+            .clamp(1, config.max_sessions.max(1));
+        let queued_per_client = config
+            .max_queued_frames_per_client
+            .unwrap_or(config.queue_capacity / QUEUE_SHARE_DIVISOR)
+            .clamp(1, config.queue_capacity.max(1));
+        let limits = Self {
+            sessions_per_client,
+            frames_per_session: config.max_frames_per_session.max(1),
+            queued_per_client,
+            token_ttl: config.token_ttl,
+            client_header: config
+                .client_header
+                .as_ref()
+                .map(|h| h.trim().to_ascii_lowercase())
+                .filter(|h| !h.is_empty()),
+            trusted_proxies: config.trusted_proxies.clone(),
+        };
+        metrics::limit("max_sessions_per_client", limits.sessions_per_client);
+        metrics::limit("max_frames_per_session", limits.frames_per_session);
+        metrics::limit("max_queued_frames_per_client", limits.queued_per_client);
+        metrics::limit(
+            "token_ttl_seconds",
+            usize::try_from(limits.token_ttl.as_secs()).unwrap_or(usize::MAX),
+        );
+        limits
+    }
+
+    /// The client a request comes from.
+    pub fn client<T>(&self, request: &tonic::Request<T>) -> ClientId {
+        let peer = request.remote_addr().map(|a| a.ip());
+        ClientId::of(&self.identity(peer, |name| {
+            request
+                .metadata()
+                .get(name)
+                .and_then(|v| v.to_str().ok())
+                .map(str::to_string)
+        }))
+    }
+
+    /// The identity string of a peer (and its headers, read by `header`).
+    fn identity(
+        &self,
+        peer: Option<IpAddr>,
+        header: impl Fn(&str) -> Option<String>,
+    ) -> String {
+        if let (Some(name), Some(ip)) = (&self.client_header, peer) {
+            if self.trusted_proxies.contains(&ip) {
+                if let Some(value) = header(name).filter(|v| !v.is_empty()) {
+                    return format!("header:{value}");
+                }
+            }
+        }
+        match peer {
+            Some(ip) => format!("peer:{ip}"),
+            None => "peer:unknown".into(),
+        }
+    }
+}
+
+/// Why a per-client limit refused something.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum QuotaError {
+    /// The client holds its share of the session table.
+    #[error("this client already holds {limit} sessions (--max-sessions-per-client); close unused sessions or retry later")]
+    Sessions {
+        /// The limit.
+        limit: usize,
+    },
+    /// The session has its limit of frames waiting.
+    #[error("this session already has {limit} frames waiting (--max-frames-per-session); wait for earlier answers")]
+    SessionFrames {
+        /// The limit.
+        limit: usize,
+    },
+    /// The client has its share of the frame queue.
+    #[error("this client already has {limit} frames waiting (--max-queued-frames-per-client); wait for earlier answers")]
+    ClientFrames {
+        /// The limit.
+        limit: usize,
+    },
+}
+
+impl QuotaError {
+    /// The limit's name in metrics.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Self::Sessions { .. } => "sessions_per_client",
+            Self::SessionFrames { .. } => "frames_per_session",
+            Self::ClientFrames { .. } => "queued_frames_per_client",
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn limits(header: Option<&str>, trusted: &[&str]) -> Limits {
+        Limits::new(&ServerConfig {
+            client_header: header.map(str::to_string),
+            trusted_proxies: trusted.iter().map(|t| t.parse().unwrap()).collect(),
+            ..ServerConfig::default()
+        })
+    }
+
+    #[test]
+    fn defaults_are_a_share_of_the_global_limits() {
+        let l = limits(None, &[]);
+        let d = ServerConfig::default();
+        assert_eq!(l.sessions_per_client, d.max_sessions / 2);
+        assert_eq!(l.queued_per_client, d.queue_capacity / 2);
+        assert!(l.sessions_per_client >= 1024, "the load tests' 1,024 streams fit");
+    }
+
+    #[test]
+    fn the_header_counts_only_from_trusted_peers() {
+        let l = limits(Some("X-Blapose-Client"), &["10.0.0.5"]);
+        let header = |_: &str| Some("203.0.113.9".to_string());
+        let lb: IpAddr = "10.0.0.5".parse().unwrap();
+        let other: IpAddr = "10.0.0.6".parse().unwrap();
+        assert_eq!(l.identity(Some(lb), header), "header:203.0.113.9");
+        assert_eq!(l.identity(Some(other), header), "peer:10.0.0.6");
+        assert_eq!(l.identity(Some(lb), |_| None), "peer:10.0.0.5");
+        let untrusting = limits(None, &["10.0.0.5"]);
+        assert_eq!(untrusting.identity(Some(lb), header), "peer:10.0.0.5");
+        assert_ne!(ClientId::of("peer:a"), ClientId::of("peer:b"));
+    }
+}
