@@ -8,7 +8,9 @@
 #   2. SIGKILL: one replica is killed mid-stream; every session on it
 #      resumes on another replica from its latest session token;
 #   3. SIGTERM: the killed replica is restarted, then another one is
-#      drained; its sessions get a final token and resume elsewhere.
+#      drained; its sessions get a final token and resume elsewhere;
+#   4. the session-token rules and per-client limits through HAProxy
+#      (server/tests/haproxy.rs: two in-process replicas behind it).
 #
 # Each case passes only if no frame is lost or answered twice and every
 # bone length equals the undisturbed run's within 1e-6 m (the `failover`
@@ -38,7 +40,7 @@ while [[ $# -gt 0 ]]; do
         --fps) fps="$2"; shift 2 ;;
         --image) image="$2"; shift 2 ;;
         --engine) engine="$2"; shift 2 ;;
-        -h|--help) sed -n '2,27p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+        -h|--help) sed -n '2,29p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
         *) echo "unknown argument: $1 (see --help)" >&2; exit 2 ;;
     esac
 done
@@ -101,13 +103,15 @@ start_replica() { # index
         # without systemd cannot schedule the image's HEALTHCHECK).
         "$engine" run -d --no-healthcheck --name "$name" --network host \
             -e BLAPOSE_SESSION_KEY="$key" -e BLAPOSE_ADDR="127.0.0.1:${ports[$i]}" \
+            -e BLAPOSE_CLIENT_HEADER=x-blapose-client -e BLAPOSE_TRUSTED_PROXIES=127.0.0.1 \
             "$image" --no-metrics --token-every 25 --shutdown-grace 10s >/dev/null
         containers[$i]=$name
         # The container's init (tini), which forwards SIGTERM to the server;
         # SIGKILL to it ends the container at once.
         pids[$i]=$("$engine" inspect -f '{{.State.Pid}}' "$name")
     else
-        BLAPOSE_SESSION_KEY="$key" "$server" --addr "127.0.0.1:${ports[$i]}" --no-metrics \
+        BLAPOSE_SESSION_KEY="$key" BLAPOSE_CLIENT_HEADER=x-blapose-client \
+            BLAPOSE_TRUSTED_PROXIES=127.0.0.1 "$server" --addr "127.0.0.1:${ports[$i]}" --no-metrics \
             --token-every 25 --shutdown-grace 10s >>"$work/replica$((i + 1)).log" 2>&1 &
         pids[$i]=$!
     fi
@@ -210,6 +214,10 @@ print(json.dumps(report, indent=2))
 EOF
 )
 echo "$report"
+
+echo "== token rules and per-client limits behind HAProxy (server/tests/haproxy.rs)"
+BLAPOSE_REQUIRE_HAPROXY=1 cargo test --release --quiet -p blapose-server --test haproxy
+
 if [[ -n "$json" ]]; then
     echo "$report" >"$json"
     echo "wrote $json"

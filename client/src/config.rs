@@ -11,7 +11,7 @@ use std::time::Duration;
 use blapose_proto::v1::pose_adjustment_client::PoseAdjustmentClient;
 use tonic::metadata::{AsciiMetadataValue, MetadataValue};
 use tonic::service::interceptor::InterceptedService;
-use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint};
+use tonic::transport::{Channel, ClientTlsConfig, Endpoint};
 
 use crate::error::ClientError;
 
@@ -21,8 +21,11 @@ pub const DEFAULT_SERVER: &str = "http://127.0.0.1:50051";
 /// TLS settings; TLS is used when the URL is `https://` or a CA is given.
 #[derive(Debug, Clone, Default)]
 pub struct TlsOptions {
-    /// PEM of the CA that signed the server's certificate. Without it the
-    /// operating system's trust store is used.
+    /// PEM of the CA that signed the server's certificate, or of the
+    /// server's self-signed certificate itself (accepted even when marked
+    /// CA:TRUE, as `openssl req -x509` makes it: it is pinned, see
+    /// `blapose_tls`). Without it the operating system's trust store is
+    /// used.
     pub ca_cert_pem: Option<Vec<u8>>,
     /// Name to verify the server certificate against (default: the URL host).
     pub domain: Option<String>,
@@ -154,23 +157,44 @@ pub(crate) fn new_stub(channel: Channel, metadata: CallMetadata, config: &Client
         .max_encoding_message_size(config.max_message_bytes)
 }
 
+/// How to open a channel to the server: tonic's endpoint, and with a CA
+/// given, blapose-tls's connector (which pins a self-signed certificate
+/// and says when the server speaks plaintext).
+#[derive(Debug, Clone)]
+pub(crate) struct Target {
+    endpoint: Endpoint,
+    tls: Option<blapose_tls::TlsConnector>,
+}
+
+impl Target {
+    /// Connect now.
+    pub(crate) async fn connect(&self) -> Result<Channel, tonic::transport::Error> {
+        match &self.tls {
+            Some(tls) => self.endpoint.connect_with_connector(tls.clone()).await,
+            None => self.endpoint.connect().await,
+        }
+    }
+
+    /// A channel that connects at its first call.
+    pub(crate) fn connect_lazy(&self) -> Channel {
+        match &self.tls {
+            Some(tls) => self.endpoint.connect_with_connector_lazy(tls.clone()),
+            None => self.endpoint.connect_lazy(),
+        }
+    }
+}
+
 /// The endpoint `config` describes: URL, timeouts, keep-alive and TLS.
-pub(crate) fn build_endpoint(config: &ClientConfig) -> Result<Endpoint, ClientError> {
+pub(crate) fn build_endpoint(config: &ClientConfig) -> Result<Target, ClientError> {
     let invalid = |reason: String| ClientError::InvalidEndpoint {
         endpoint: config.endpoint.clone(),
         reason,
     };
-    let mut endpoint = Endpoint::from_shared(config.endpoint.clone())
-        .map_err(|e| invalid(e.to_string()))?
-        .connect_timeout(config.connect_timeout)
-        .tcp_nodelay(true)
-        .http2_keep_alive_interval(Duration::from_secs(30))
-        .keep_alive_while_idle(true);
-    let scheme = endpoint
-        .uri()
-        .scheme_str()
-        .unwrap_or("")
-        .to_ascii_lowercase();
+    let uri: tonic::codegen::http::Uri = config
+        .endpoint
+        .parse()
+        .map_err(|e: tonic::codegen::http::uri::InvalidUri| invalid(e.to_string()))?;
+    let scheme = uri.scheme_str().unwrap_or("").to_ascii_lowercase();
     match scheme.as_str() {
         "http" | "https" => {}
         other => {
@@ -179,20 +203,35 @@ pub(crate) fn build_endpoint(config: &ClientConfig) -> Result<Endpoint, ClientEr
             )))
         }
     }
-    if scheme == "https" || config.tls.ca_cert_pem.is_some() {
-        let mut tls = ClientTlsConfig::new();
-        tls = match &config.tls.ca_cert_pem {
-            Some(pem) => tls.ca_certificate(Certificate::from_pem(pem)),
-            None => tls.with_native_roots(),
-        };
+    // With a CA, blapose-tls's connector does TLS: tonic must then see a
+    // plain http:// URI.
+    let tls = config
+        .tls
+        .ca_cert_pem
+        .as_ref()
+        .map(|pem| blapose_tls::TlsConnector::new(pem, config.tls.domain.clone()))
+        .transpose()
+        .map_err(|e| invalid(e.to_string()))?;
+    let url = match tls {
+        Some(_) => blapose_tls::plain_scheme(&config.endpoint),
+        None => config.endpoint.clone(),
+    };
+    let mut endpoint = Endpoint::from_shared(url)
+        .map_err(|e| invalid(e.to_string()))?
+        .connect_timeout(config.connect_timeout)
+        .tcp_nodelay(true)
+        .http2_keep_alive_interval(Duration::from_secs(30))
+        .keep_alive_while_idle(true);
+    if scheme == "https" && tls.is_none() {
+        let mut native = ClientTlsConfig::new().with_native_roots();
         if let Some(domain) = &config.tls.domain {
-            tls = tls.domain_name(domain.clone());
+            native = native.domain_name(domain.clone());
         }
         endpoint = endpoint
-            .tls_config(tls)
+            .tls_config(native)
             .map_err(|e| invalid(e.to_string()))?;
     }
-    Ok(endpoint)
+    Ok(Target { endpoint, tls })
 }
 
 /// Longest pause between connection attempts.

@@ -32,8 +32,11 @@ pub enum ClientError {
     /// The bearer token cannot be sent as an HTTP header value.
     #[error("the bearer token contains characters not allowed in an HTTP header")]
     InvalidToken,
-    /// The server (or the transport) ended a call with a gRPC status.
-    #[error("server returned {}: {}", .0.code(), .0.message())]
+    /// The server (or the transport) ended a call with a gRPC status. A
+    /// transport failure's causes follow the message (tonic's message
+    /// alone says "h2 protocol error: http2 error"; the cause says why,
+    /// e.g. that the server speaks TLS).
+    #[error("server returned {}: {}{}", .0.code(), .0.message(), causes(.0))]
     Status(#[from] tonic::Status),
     /// A call did not finish within its deadline.
     #[error("{what} timed out after {after:?}")]
@@ -74,6 +77,22 @@ pub enum ClientError {
     /// Metrics could not be computed (mismatched lengths).
     #[error("metrics: {0}")]
     Metric(#[from] blapose_core::metrics::MetricError),
+}
+
+/// `": cause: cause..."` for the source chain of `status`, leaving out
+/// what its message already says.
+fn causes(status: &tonic::Status) -> String {
+    let mut out = String::new();
+    let mut next = std::error::Error::source(status);
+    while let Some(cause) = next {
+        let text = cause.to_string();
+        if !status.message().contains(&text) && !out.contains(&text) {
+            out.push_str(": ");
+            out.push_str(&text);
+        }
+        next = cause.source();
+    }
+    out
 }
 
 impl ClientError {

@@ -170,9 +170,7 @@ impl SubmitError {
     /// The gRPC code this error is reported with.
     pub fn code(&self) -> tonic::Code {
         match self {
-            SubmitError::QueueFull { .. } | SubmitError::Quota(_) => {
-                tonic::Code::ResourceExhausted
-            }
+            SubmitError::QueueFull { .. } | SubmitError::Quota(_) => tonic::Code::ResourceExhausted,
             SubmitError::ShuttingDown => tonic::Code::Unavailable,
         }
     }

@@ -365,7 +365,7 @@ pub struct Cli {
     pub token_ttl: Duration,
 
     /// Sessions one client (see --client-header) may hold; more -> RESOURCE_EXHAUSTED.
-    /// Default: half of --max-sessions.
+    /// Default: half of --max-sessions, at least 1024 (all of a smaller table).
     #[arg(long, env = "BLAPOSE_MAX_SESSIONS_PER_CLIENT", value_name = "N",
           value_parser = clap::value_parser!(u32).range(1..).map(|v| v as usize))]
     pub max_sessions_per_client: Option<usize>,
@@ -376,7 +376,7 @@ pub struct Cli {
     pub max_frames_per_session: usize,
 
     /// Frames one client may have waiting for the model; more -> RESOURCE_EXHAUSTED.
-    /// Default: half of --queue-capacity.
+    /// Default: half of --queue-capacity, at least 1024 (all of a smaller queue).
     #[arg(long, env = "BLAPOSE_MAX_QUEUED_FRAMES_PER_CLIENT", value_name = "N",
           value_parser = clap::value_parser!(u32).range(1..).map(|v| v as usize))]
     pub max_queued_frames_per_client: Option<usize>,
@@ -387,7 +387,12 @@ pub struct Cli {
     pub client_header: Option<String>,
 
     /// Comma-separated IP addresses of the load balancers allowed to set --client-header.
-    #[arg(long, env = "BLAPOSE_TRUSTED_PROXIES", value_name = "IP,...", value_delimiter = ',')]
+    #[arg(
+        long,
+        env = "BLAPOSE_TRUSTED_PROXIES",
+        value_name = "IP,...",
+        value_delimiter = ','
+    )]
     pub trusted_proxies: Vec<std::net::IpAddr>,
 
     /// Act as a health-check client instead: query grpc.health.v1 at --addr, exit 0 if SERVING,
@@ -527,7 +532,7 @@ pub fn parse_precision(text: &str) -> Result<Precision, String> {
 /// deadline would refuse every stream).
 pub fn parse_open_timeout(text: &str) -> Result<Duration, String> {
     match parse_duration(text)? {
-        Duration::ZERO => Err(format!("{text:?}: the open timeout must be above zero")),
+        Duration::ZERO => Err(format!("{text:?}: the timeout must be above zero")),
         d => Ok(d),
     }
 }

@@ -57,8 +57,10 @@ pub mod offline;
 pub mod prepare;
 pub mod quota;
 pub mod restore_check;
+mod retired;
 pub mod service;
 pub mod session;
+pub mod session_id;
 pub mod shutdown;
 pub mod step;
 pub mod stream;
@@ -279,7 +281,7 @@ pub async fn spawn_with_provider(
         max_message_bytes: config.max_message_bytes,
         tokens,
         stature: Arc::new(models::embedded_stature_model()?),
-        limits: quota::Limits::new(&config),
+        limits: service::limits(&config),
     });
 
     let (health, health_service) = tonic_health::server::health_reporter();
@@ -376,8 +378,14 @@ pub async fn spawn_with_provider(
 /// gauge the per-client limits share; the handshake timeout in ms).
 fn export_limits(config: &ServerConfig) {
     let c = &config.connection_limits;
-    metrics::limit("max_concurrent_streams", config.max_concurrent_streams as usize);
-    metrics::limit("max_header_list_bytes", config.max_header_list_bytes as usize);
+    metrics::limit(
+        "max_concurrent_streams",
+        config.max_concurrent_streams as usize,
+    );
+    metrics::limit(
+        "max_header_list_bytes",
+        config.max_header_list_bytes as usize,
+    );
     metrics::limit("max_connections", c.max_connections);
     metrics::limit("max_connections_per_peer", c.max_connections_per_peer);
     metrics::limit(
@@ -422,28 +430,46 @@ pub async fn probe_health(
     } else {
         addr
     };
-    let scheme = if tls.is_some() { "https" } else { "http" };
-    let mut endpoint = tonic::transport::Endpoint::from_shared(format!("{scheme}://{host}"))
+    // TLS goes through blapose-tls's connector (a pinned self-signed
+    // certificate is accepted even when marked CA:TRUE), on an http://
+    // endpoint so that tonic adds no TLS of its own.
+    let endpoint = tonic::transport::Endpoint::from_shared(format!("http://{host}"))
         .map_err(ServerError::from)?
         .connect_timeout(Duration::from_secs(3))
         .timeout(Duration::from_secs(3));
-    if let Some(tls) = tls {
-        let pem = std::fs::read(&tls.ca)
-            .map_err(|e| ServerError::Tls(format!("cannot read {}: {e}", tls.ca.display())))?;
-        endpoint = endpoint
-            .tls_config(
-                tonic::transport::ClientTlsConfig::new()
-                    .ca_certificate(tonic::transport::Certificate::from_pem(pem))
-                    .domain_name(tls.domain.clone()),
-            )
-            .map_err(ServerError::from)?;
+    let checked = async {
+        let channel = match tls {
+            Some(tls) => {
+                let pem = std::fs::read(&tls.ca).map_err(|e| {
+                    ServerError::Tls(format!("cannot read {}: {e}", tls.ca.display()))
+                })?;
+                let connector = blapose_tls::TlsConnector::new(&pem, Some(tls.domain.clone()))
+                    .map_err(|e| ServerError::Tls(format!("{}: {e}", tls.ca.display())))?;
+                endpoint.connect_with_connector(connector).await?
+            }
+            None => endpoint.connect().await?,
+        };
+        HealthClient::new(channel)
+            .check(HealthCheckRequest {
+                service: String::new(),
+            })
+            .await
+            .map_err(|s| ServerError::Task(format!("health check failed: {s}")))
     }
-    let channel = endpoint.connect().await?;
-    let response = HealthClient::new(channel)
-        .check(HealthCheckRequest {
-            service: String::new(),
-        })
-        .await
-        .map_err(|s| ServerError::Task(format!("health check failed: {s}")))?;
-    Ok(response.into_inner().status == S::Serving as i32)
+    .await;
+    match checked {
+        Ok(response) => Ok(response.into_inner().status == S::Serving as i32),
+        Err(e)
+            if tls.is_none()
+                && blapose_tls::probe(&host.ip().to_string(), host.port()).await
+                    == blapose_tls::Speaks::Tls =>
+        {
+            Err(ServerError::Tls(format!(
+                "the server speaks TLS: run --health-check with the server's TLS settings \
+                 (--tls-cert / BLAPOSE_TLS_CERT, and --tls-ca, --tls-domain if its certificate \
+                 needs them) ({e})"
+            )))
+        }
+        Err(e) => Err(e),
+    }
 }

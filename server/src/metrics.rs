@@ -140,7 +140,10 @@ fn describe() {
     );
     describe_gauge!(QUEUE_DEPTH, "Frames waiting in the batcher queue.");
     describe_gauge!(LIMIT, "Configured limits in force, by flag name.");
-    describe_counter!(LIMITED, "Refusals by a per-client limit or session token rule, by limit.");
+    describe_counter!(
+        LIMITED,
+        "Refusals by a per-client limit or session token rule, by limit."
+    );
     describe_counter!(ERRORS, "Errors returned, by gRPC code and rpc.");
     describe_counter!(OFFLINE_SEQUENCES, "Offline sequences adjusted, by model.");
     describe_histogram!(
@@ -157,10 +160,7 @@ fn describe() {
         Unit::Seconds,
         "Time one batched server-lifter call took."
     );
-    describe_gauge!(
-        CONNECTIONS,
-        "TCP connections held (handshaking or served)."
-    );
+    describe_gauge!(CONNECTIONS, "TCP connections held (handshaking or served).");
     describe_counter!(
         CONNECTIONS_REFUSED,
         "Connections refused at accept, by the limit (flag) that refused them."

@@ -22,9 +22,6 @@ use std::time::Duration;
 
 use sha2::{Digest, Sha256};
 
-use crate::config::ServerConfig;
-use crate::metrics;
-
 /// Who a session or frame belongs to, for the per-client limits.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
 pub struct ClientId([u8; 16]);
@@ -56,44 +53,40 @@ pub struct Limits {
     trusted_proxies: Vec<IpAddr>,
 }
 
-/// Default share of `--max-sessions` one client may hold: half, so the
-/// load tests' 1,024 streams from one loopback client fit the default
-/// 4,096-session table and one client can never fill it.
-pub const SESSION_SHARE_DIVISOR: usize = 2;
-/// Default share of `--queue-capacity` one client's frames may take.
-pub const QUEUE_SHARE_DIVISOR: usize = 2;
+/// Smallest default share: a small table or queue (a test's, a
+/// single-user deployment's) is not split, and the load tests' 1,024
+/// streams from one loopback client always fit.
+pub const MIN_DEFAULT_SHARE: usize = 1024;
+
+/// The default share of `total` (sessions, or queued frames) one client
+/// may take: half, so one client can never fill it, but at least
+/// [`MIN_DEFAULT_SHARE`] (all of it when smaller).
+pub fn default_share(total: usize) -> usize {
+    (total / 2).max(total.min(MIN_DEFAULT_SHARE))
+}
 
 impl Limits {
-    /// The limits a configuration asks for (defaults filled in).
-    pub fn new(config: &ServerConfig) -> Self {
-        let sessions_per_client = config
-            .max_sessions_per_client
-            .unwrap_or(config.max_sessions / SESSION_SHARE_DIVISOR)
-            .clamp(1, config.max_sessions.max(1));
-        let queued_per_client = config
-            .max_queued_frames_per_client
-            .unwrap_or(config.queue_capacity / QUEUE_SHARE_DIVISOR)
-            .clamp(1, config.queue_capacity.max(1));
-        let limits = Self {
-            sessions_per_client,
-            frames_per_session: config.max_frames_per_session.max(1),
-            queued_per_client,
-            token_ttl: config.token_ttl,
-            client_header: config
-                .client_header
-                .as_ref()
+    /// Limits with these values (each at least 1). A client is its peer's
+    /// address, or the value of `client_header` on a connection from one
+    /// of `trusted_proxies`.
+    pub fn new(
+        sessions_per_client: usize,
+        frames_per_session: usize,
+        queued_per_client: usize,
+        token_ttl: Duration,
+        client_header: Option<&str>,
+        trusted_proxies: Vec<IpAddr>,
+    ) -> Self {
+        Self {
+            sessions_per_client: sessions_per_client.max(1),
+            frames_per_session: frames_per_session.max(1),
+            queued_per_client: queued_per_client.max(1),
+            token_ttl,
+            client_header: client_header
                 .map(|h| h.trim().to_ascii_lowercase())
                 .filter(|h| !h.is_empty()),
-            trusted_proxies: config.trusted_proxies.clone(),
-        };
-        metrics::limit("max_sessions_per_client", limits.sessions_per_client);
-        metrics::limit("max_frames_per_session", limits.frames_per_session);
-        metrics::limit("max_queued_frames_per_client", limits.queued_per_client);
-        metrics::limit(
-            "token_ttl_seconds",
-            usize::try_from(limits.token_ttl.as_secs()).unwrap_or(usize::MAX),
-        );
-        limits
+            trusted_proxies,
+        }
     }
 
     /// The client a request comes from.
@@ -109,11 +102,7 @@ impl Limits {
     }
 
     /// The identity string of a peer (and its headers, read by `header`).
-    fn identity(
-        &self,
-        peer: Option<IpAddr>,
-        header: impl Fn(&str) -> Option<String>,
-    ) -> String {
+    fn identity(&self, peer: Option<IpAddr>, header: impl Fn(&str) -> Option<String>) -> String {
         if let (Some(name), Some(ip)) = (&self.client_header, peer) {
             if self.trusted_proxies.contains(&ip) {
                 if let Some(value) = header(name).filter(|v| !v.is_empty()) {
@@ -167,20 +156,8 @@ mod tests {
     use super::*;
 
     fn limits(header: Option<&str>, trusted: &[&str]) -> Limits {
-        Limits::new(&ServerConfig {
-            client_header: header.map(str::to_string),
-            trusted_proxies: trusted.iter().map(|t| t.parse().unwrap()).collect(),
-            ..ServerConfig::default()
-        })
-    }
-
-    #[test]
-    fn defaults_are_a_share_of_the_global_limits() {
-        let l = limits(None, &[]);
-        let d = ServerConfig::default();
-        assert_eq!(l.sessions_per_client, d.max_sessions / 2);
-        assert_eq!(l.queued_per_client, d.queue_capacity / 2);
-        assert!(l.sessions_per_client >= 1024, "the load tests' 1,024 streams fit");
+        let trusted = trusted.iter().map(|t| t.parse().unwrap()).collect();
+        Limits::new(8, 8, 8, Duration::from_secs(60), header, trusted)
     }
 
     #[test]

@@ -98,7 +98,10 @@ pub fn check(state: &PortableState, now_ms: u64, ttl: Duration) -> Result<(), Re
         }
     }
     let count = state.lengths.count();
-    for (name, n) in [("frames read", count), ("frames without a joint", state.skipped)] {
+    for (name, n) in [
+        ("frames read", count),
+        ("frames without a joint", state.skipped),
+    ] {
         if n > MAX_FRAMES {
             return Err(field(name, format!("{n}, more than {MAX_FRAMES}")));
         }

@@ -22,6 +22,7 @@ use tonic::{Request, Response, Status, Streaming};
 use crate::batch::Batcher;
 use crate::models::{LoadedLifter, ModelProvider};
 use crate::offline::OfflineRunner;
+use crate::quota::{self, Limits};
 use crate::session::SessionStore;
 use crate::stream::{self, session_status};
 use crate::token::{self, SessionKey};
@@ -51,7 +52,7 @@ pub struct AppState {
     pub tokens: Option<Tokens>,
     /// The stature model subjects are answered with (embedded).
     pub stature: Arc<StatureModel>,
-    pub limits: crate::quota::Limits,
+    pub limits: Limits,
 }
 
 /// What issuing and restoring session tokens needs: the key, how often to
@@ -108,6 +109,36 @@ impl Tokens {
             Some(self.default_weights)
         }
     }
+}
+
+/// The per-client limits a configuration asks for (defaults filled in:
+/// each client may hold a share of the session table and of the frame
+/// queue), exported as `blapose_limit` gauges.
+pub fn limits(config: &crate::config::ServerConfig) -> Limits {
+    let sessions_per_client = config
+        .max_sessions_per_client
+        .unwrap_or_else(|| quota::default_share(config.max_sessions))
+        .min(config.max_sessions.max(1));
+    let queued_per_client = config
+        .max_queued_frames_per_client
+        .unwrap_or_else(|| quota::default_share(config.queue_capacity))
+        .min(config.queue_capacity.max(1));
+    let limits = Limits::new(
+        sessions_per_client,
+        config.max_frames_per_session,
+        queued_per_client,
+        config.token_ttl,
+        config.client_header.as_deref(),
+        config.trusted_proxies.clone(),
+    );
+    crate::metrics::limit("max_sessions_per_client", limits.sessions_per_client);
+    crate::metrics::limit("max_frames_per_session", limits.frames_per_session);
+    crate::metrics::limit("max_queued_frames_per_client", limits.queued_per_client);
+    crate::metrics::limit(
+        "token_ttl_seconds",
+        usize::try_from(limits.token_ttl.as_secs()).unwrap_or(usize::MAX),
+    );
+    limits
 }
 
 impl AppState {

@@ -33,8 +33,7 @@
 //! that an older token cannot roll it back (see `server/README.md`,
 //! "Session tokens").
 
-use std::collections::{BTreeSet, HashMap, VecDeque};
-use std::fmt;
+use std::collections::{BTreeSet, HashMap};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
@@ -44,79 +43,17 @@ use blapose_core::BoneLengths;
 use blapose_lifters::SlidingWindow;
 use blapose_model::input::InputCamera;
 use blapose_proto::v1 as pb;
-use rand::TryRngCore;
 use tokio::sync::{watch, Notify};
 use tokio::time::Instant;
 
 use crate::metrics;
 use crate::quota::{ClientId, QuotaError};
+use crate::retired::Memory;
 
 /// Floats of recurrent state per session (two GRUs x 512).
 pub const STATE_DIM: usize = blapose_model::STATE_DIM;
 
-/// An unguessable session id (128 random bits).
-#[derive(Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub struct SessionId([u8; 16]);
-
-impl SessionId {
-    /// A fresh id from the operating system's CSPRNG.
-    pub fn random() -> Result<Self, SessionError> {
-        let mut bytes = [0u8; 16];
-        rand::rngs::OsRng
-            .try_fill_bytes(&mut bytes)
-            .map_err(|e| SessionError::Rng(e.to_string()))?;
-        Ok(Self(bytes))
-    }
-
-    /// Parse the 32-hex-character form; anything else is `None`.
-    pub fn parse(text: &str) -> Option<Self> {
-        let t = text.as_bytes();
-        if t.len() != 32 {
-            return None;
-        }
-        let mut out = [0u8; 16];
-        for (i, pair) in t.chunks_exact(2).enumerate() {
-            let hi = hex_value(pair[0])?;
-            let lo = hex_value(pair[1])?;
-            out[i] = (hi << 4) | lo;
-        }
-        Some(Self(out))
-    }
-
-    /// The raw bytes.
-    pub fn as_bytes(&self) -> &[u8; 16] {
-        &self.0
-    }
-
-    /// The id with these bytes (a session token's).
-    pub fn from_bytes(bytes: [u8; 16]) -> Self {
-        Self(bytes)
-    }
-}
-
-fn hex_value(c: u8) -> Option<u8> {
-    match c {
-        b'0'..=b'9' => Some(c - b'0'),
-        b'a'..=b'f' => Some(c - b'a' + 10),
-        b'A'..=b'F' => Some(c - b'A' + 10),
-        _ => None,
-    }
-}
-
-impl fmt::Display for SessionId {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        for b in self.0 {
-            write!(f, "{b:02x}")?;
-        }
-        Ok(())
-    }
-}
-
-impl fmt::Debug for SessionId {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "SessionId({self})")
-    }
-}
+pub use crate::session_id::SessionId;
 
 /// How a session's 2D keypoints are expressed (the client library's type
 /// too, so both ends mean the same thing).
@@ -214,6 +151,9 @@ pub struct SessionState {
     /// Frames answered without a detected joint: they changed nothing
     /// else, and count among the frames seen.
     pub skipped: u64,
+    /// Frames seen in the newest session token issued (or restored) here:
+    /// once the session ends, an older token is refused as a rollback.
+    pub newest_token: u64,
 }
 
 impl SessionState {
@@ -301,6 +241,7 @@ impl Session {
                 .map(|frames| Box::new(SlidingWindow::new(frames))),
             held: HeldJoints::default(),
             skipped: 0,
+            newest_token: 0,
         };
         let (owner, _) = watch::channel(Ownership {
             epoch: 1,
@@ -406,8 +347,8 @@ pub enum SessionError {
         /// The session.
         id: SessionId,
     },
-    /// The token is older than the state this server last held.
-    #[error("the session token for {id} is as of frame {token}, older than the {held} frames this server last held for it: a session is never rolled back; resume with its latest token")]
+    /// The token is older than the newest this server issued for it.
+    #[error("the session token for {id} is as of {token} frames, older than the newest token this server issued for it ({held} frames): a session is never rolled back; resume with its latest token")]
     Rollback {
         /// The session.
         id: SessionId,
@@ -425,29 +366,23 @@ struct Entry {
     expires_at: Option<Instant>,
 }
 
-/// What is remembered of a session that ended, until its tokens expire.
-#[derive(Debug, Clone, Copy)]
-struct Retired {
-    until: Instant,
-    closed: bool,
-    frames_seen: u64,
-}
-
 #[derive(Debug, Default)]
 struct Inner {
     sessions: HashMap<SessionId, Entry>,
     expirations: BTreeSet<(Instant, SessionId)>,
     per_client: HashMap<ClientId, usize>,
-    retired: HashMap<SessionId, Retired>,
-    /// `retired`'s entries in the order they end (one constant memory
-    /// span, so insertion order is expiry order).
-    retired_order: VecDeque<(Instant, SessionId)>,
+    retired: Memory,
     shutdown: bool,
 }
 
 impl Inner {
     /// Refuse a new session of `client` beyond either limit.
-    fn check_room(&self, client: ClientId, max: usize, per_client: usize) -> Result<(), SessionError> {
+    fn check_room(
+        &self,
+        client: ClientId,
+        max: usize,
+        per_client: usize,
+    ) -> Result<(), SessionError> {
         if self.sessions.len() >= max {
             return Err(SessionError::TooManySessions { max });
         }
@@ -472,59 +407,16 @@ impl Inner {
                 self.per_client.remove(&client);
             }
         }
-        let now = Instant::now();
-        while let Some(&(until, old)) = self.retired_order.front() {
-            if until > now {
-                break;
-            }
-            self.retired_order.pop_front();
-            if self.retired.get(&old).is_some_and(|r| r.until == until) {
-                self.retired.remove(&old);
-            }
-        }
-        if !memory.is_zero() {
-            let until = now + memory;
-            let frames_seen = entry.session.lock().frames_seen();
-            self.retired.insert(
-                id,
-                Retired {
-                    until,
-                    closed,
-                    frames_seen,
-                },
-            );
-            self.retired_order.push_back((until, id));
-        }
+        let newest_token = entry.session.lock().newest_token;
+        self.retired.remember(id, closed, newest_token, memory);
         Some(entry)
-    }
-
-    /// Whether a token as of `frames` frames may restore `id` here.
-    fn check_retired(&self, id: SessionId, frames: u64) -> Result<(), SessionError> {
-        match self.retired.get(&id) {
-            Some(r) if r.until > Instant::now() => {
-                if r.closed {
-                    metrics::limited("closed_session");
-                    Err(SessionError::Closed { id })
-                } else if frames < r.frames_seen {
-                    metrics::limited("rollback");
-                    Err(SessionError::Rollback {
-                        id,
-                        token: frames,
-                        held: r.frames_seen,
-                    })
-                } else {
-                    Ok(())
-                }
-            }
-            _ => Ok(()),
-        }
     }
 
     /// Hold `session` under `id`, attached (opened, or restored from a
     /// token).
     fn admit(&mut self, id: SessionId, session: &Arc<Session>) {
         *self.per_client.entry(session.client()).or_default() += 1;
-        self.retired.remove(&id);
+        self.retired.forget(id);
         self.sessions.insert(
             id,
             Entry {
@@ -617,11 +509,7 @@ impl SessionStore {
     /// [`new`](Self::new), remembering each session that ends for
     /// `memory` (the session token TTL): a closed one is never restored
     /// from a token, an evicted one never from a token older than its state.
-    pub fn with_memory(
-        max_sessions: usize,
-        ttl: Duration,
-        memory: Duration,
-    ) -> (Self, PurgeGuard) {
+    pub fn with_memory(max_sessions: usize, ttl: Duration, memory: Duration) -> (Self, PurgeGuard) {
         let shared = Arc::new(Shared {
             inner: Mutex::new(Inner::default()),
             purge: Notify::new(),
@@ -691,9 +579,10 @@ impl SessionStore {
     }
 
     /// Re-create a session from a copy of its state (a session token) under
-    /// its old id, attached to the caller as a resume (epoch 2). If a
-    /// session with this id is held after all (another stream restored it
-    /// first), it is resumed instead and `state` is ignored.
+    /// its old id, attached to the caller as a resume. If this store holds
+    /// the session, it is resumed (taking it over from any attached stream)
+    /// and continues from `state`: the token names the state the client
+    /// continues from (it may have lost answers after it).
     pub fn restore(
         &self,
         id: SessionId,
@@ -702,50 +591,37 @@ impl SessionStore {
         client: ClientId,
         per_client: usize,
     ) -> Result<Attachment, SessionError> {
-        if state.hidden.len() != STATE_DIM {
-            return Err(SessionError::Restore(format!(
-                "a hidden state of {} floats, expected {STATE_DIM}",
-                state.hidden.len()
-            )));
+        if self.shared.lock().sessions.contains_key(&id) {
+            // Take it over first: the old stream's frames are refused from
+            // here on, so nothing changes the state after it is loaded.
+            let mut attachment = self.resume(&id.to_string())?;
+            let session = attachment.session.clone();
+            let mut st = session.lock();
+            if st.accepts(attachment.epoch) {
+                load(&mut st, &state)?;
+                attachment.snapshot = SessionSnapshot {
+                    frames_seen: st.frames_seen(),
+                    bone_lengths: session.config.served(st.estimate()),
+                };
+            }
+            return Ok(attachment);
         }
         let key = self.shared.next_key.fetch_add(1, Ordering::Relaxed);
         let session = Arc::new(Session::new(id, key, config, client));
         let frames = state.frames_seen();
         {
             let mut st = session.lock();
-            match (st.window.as_deref_mut(), &state.window) {
-                (Some(window), Some(frames)) => {
-                    if frames.len() > window.frames() {
-                        return Err(SessionError::Restore(format!(
-                            "a lifter window of {} frames, the lifter holds {}",
-                            frames.len(),
-                            window.frames()
-                        )));
-                    }
-                    for frame in frames {
-                        window.push(*frame);
-                    }
-                }
-                (None, None) => {}
-                _ => {
-                    return Err(SessionError::Restore(
-                        "the lifter window does not match the session's configuration".into(),
-                    ))
-                }
-            }
-            st.hidden.copy_from_slice(&state.hidden);
-            st.lengths = state.lengths;
-            st.held = state.held;
-            st.skipped = state.skipped;
+            load(&mut st, &state)?;
             st.epoch = 2;
             session.publish(&st);
         }
         let mut inner = self.shared.lock();
         if inner.sessions.contains_key(&id) {
+            // Another stream restored it meanwhile: resume that one.
             drop(inner);
             return self.resume(&id.to_string());
         }
-        inner.check_retired(id, frames)?;
+        inner.retired.check(id, frames)?;
         inner.check_room(client, self.shared.max_sessions, per_client)?;
         inner.admit(id, &session);
         drop(inner);
@@ -837,6 +713,43 @@ impl SessionStore {
     }
 }
 
+/// Load a copy of a session's state (a token's) into `st`.
+fn load(st: &mut SessionState, state: &StateCopy) -> Result<(), SessionError> {
+    if state.hidden.len() != STATE_DIM {
+        return Err(SessionError::Restore(format!(
+            "a hidden state of {} floats, expected {STATE_DIM}",
+            state.hidden.len()
+        )));
+    }
+    match (st.window.as_deref_mut(), &state.window) {
+        (Some(window), Some(frames)) => {
+            if frames.len() > window.frames() {
+                return Err(SessionError::Restore(format!(
+                    "a lifter window of {} frames, the lifter holds {}",
+                    frames.len(),
+                    window.frames()
+                )));
+            }
+            *window = SlidingWindow::new(window.frames());
+            for frame in frames {
+                window.push(*frame);
+            }
+        }
+        (None, None) => {}
+        _ => {
+            return Err(SessionError::Restore(
+                "the lifter window does not match the session's configuration".into(),
+            ))
+        }
+    }
+    st.hidden.copy_from_slice(&state.hidden);
+    st.lengths = state.lengths;
+    st.held = state.held;
+    st.skipped = state.skipped;
+    st.newest_token = state.frames_seen();
+    Ok(())
+}
+
 fn truncate(s: &str, max: usize) -> String {
     let mut end = s.len().min(max);
     while !s.is_char_boundary(end) {
@@ -883,10 +796,15 @@ mod tests {
 
     #[test]
     fn only_lifting_sessions_hold_a_window() {
-        let plain = Session::new(SessionId([2; 16]), 1, config(), ClientId::default());
+        let plain = Session::new(
+            SessionId::from_bytes([2; 16]),
+            1,
+            config(),
+            ClientId::default(),
+        );
         assert!(plain.lock().window.is_none());
         let lifting = Session::new(
-            SessionId([3; 16]),
+            SessionId::from_bytes([3; 16]),
             2,
             SessionConfig {
                 lifter_frames: Some(27),
@@ -1068,7 +986,12 @@ mod tests {
 
     #[test]
     fn estimate_is_the_running_mean() {
-        let s = Session::new(SessionId([1; 16]), 1, config(), ClientId::default());
+        let s = Session::new(
+            SessionId::from_bytes([1; 16]),
+            1,
+            config(),
+            ClientId::default(),
+        );
         let mut g = s.lock();
         assert!(g.estimate().is_none());
         for v in [0.5, 1.0, 0.25, 1.25] {

@@ -601,4 +601,60 @@ mod tests {
             assert_eq!(rx.await.unwrap().unwrap().frames_seen, k as u64 + 1);
         }
     }
+
+    #[tokio::test]
+    async fn one_clients_overload_is_refused_to_that_client_only() {
+        use crate::quota::{ClientId, QuotaError};
+        let (batcher, gate, _) = gated_batcher(config(1, 0, 100));
+        let (store, _g) = SessionStore::new(10, Duration::from_secs(60));
+        let greedy = ClientId::of("peer:greedy");
+        let a = store.open_for(session_config(), greedy, 10).unwrap();
+        let b = store.open_for(session_config(), greedy, 10).unwrap();
+        let other = store
+            .open_for(session_config(), ClientId::of("peer:other"), 10)
+            .unwrap();
+        let mut rxs = Vec::new();
+        let mut submit = |s: &crate::session::Attachment| {
+            let (j, rx) = job(&s.session, s.epoch, 1.0, 0.0);
+            let result = batcher.submit_limited(j, 3, 4);
+            rxs.push(rx);
+            result
+        };
+        // The first frame is in the (held) step; the next ones wait.
+        submit(&a).unwrap();
+        gate.wait_entered(1);
+        for _ in 0..3 {
+            submit(&a).unwrap();
+        }
+        assert_eq!(
+            submit(&a),
+            Err(SubmitError::Quota(QuotaError::SessionFrames { limit: 3 }))
+        );
+        submit(&b).unwrap();
+        let refused = submit(&b).unwrap_err();
+        assert_eq!(
+            refused,
+            SubmitError::Quota(QuotaError::ClientFrames { limit: 4 })
+        );
+        assert_eq!(refused.code(), tonic::Code::ResourceExhausted);
+        assert!(refused
+            .to_string()
+            .contains("--max-queued-frames-per-client"));
+        // Another client's frame is queued as usual.
+        submit(&other).unwrap();
+        gate.set_open(true);
+        tokio::task::spawn_blocking(move || batcher.join())
+            .await
+            .unwrap();
+        let answered = {
+            let mut n = 0;
+            for rx in rxs {
+                if rx.await.is_ok() {
+                    n += 1;
+                }
+            }
+            n
+        };
+        assert_eq!(answered, 6, "every queued frame answered");
+    }
 }

@@ -95,9 +95,13 @@ pub async fn run(
     // connection slot forever: the open or resume has a deadline.
     let open_timeout = state.open_timeout;
     let first = async {
-        tokio::time::timeout(open_timeout, inbound.message())
-            .await
-            .unwrap_or_else(|_| Err(no_open_in_time(open_timeout)))
+        match tokio::time::timeout(open_timeout, inbound.message()).await {
+            Ok(Ok(None)) if client_cancelled(&tx).await => Err(Status::cancelled(
+                "the client cancelled the stream before its open or resume",
+            )),
+            Ok(first) => first,
+            Err(_) => Err(no_open_in_time(open_timeout)),
+        }
     };
     let (attachment, periodic_tokens) = tokio::select! {
         first = first => match open_or_resume(&state, client, first) {
@@ -161,6 +165,16 @@ fn shutting_down(tokens: bool) -> Status {
              end with it; reconnect later (or to another server) and open a new session",
         )
     }
+}
+
+/// Whether the client reset its stream (a cancel) rather than half-closed
+/// it: hyper ends a request body reset with CANCEL as if it had ended
+/// cleanly, but then the response side closes too, soon after (a client
+/// that half-closed is still reading and keeps it open).
+async fn client_cancelled(tx: &mpsc::Sender<Outbound>) -> bool {
+    tokio::time::timeout(std::time::Duration::from_millis(50), tx.closed())
+        .await
+        .is_ok()
 }
 
 /// The status a stream ends with when its first message did not arrive
@@ -238,12 +252,18 @@ fn open_or_resume(
             Ok((attachment, open.session_tokens))
         }
         Some(Req::Resume(resume)) => {
-            let attachment = match state.store.resume(&resume.session_id) {
-                Ok(a) => a,
-                Err(SessionError::NotFound { .. }) if !resume.session_token.is_empty() => {
-                    restore(state, client, &resume)?
+            // With a token (and a key) the token names the state to continue
+            // from, held here or not; without one, the held state.
+            let attachment = if !resume.session_token.is_empty() && state.tokens.is_some() {
+                restore(state, client, &resume)?
+            } else {
+                match state.store.resume(&resume.session_id) {
+                    Ok(a) => a,
+                    Err(SessionError::NotFound { .. }) if !resume.session_token.is_empty() => {
+                        restore(state, client, &resume)?
+                    }
+                    Err(e) => return Err(session_status(e)),
                 }
-                Err(e) => return Err(session_status(e)),
             };
             tracing::info!(session = %attachment.session.id(), frames_seen = attachment.snapshot.frames_seen, "session resumed");
             Ok((attachment, resume.session_tokens))
@@ -390,6 +410,10 @@ fn seal(state: &AppState, session: &Session, copy: StateCopy) -> Option<(Vec<u8>
         copy,
     );
     portable.subject = config.subject.as_ref().map(|s| s.subject);
+    {
+        let mut st = session.lock();
+        st.newest_token = st.newest_token.max(frames_seen);
+    }
     Some((portable.seal(&tokens.key), frames_seen))
 }
 
@@ -718,9 +742,14 @@ async fn finish(state: &AppState, a: &Attachment, end: End, tx: &mpsc::Sender<Ou
                 let _ = tx.send(Err(status)).await;
             }
         },
-        End::Detach | End::Gone => {
+        end @ (End::Detach | End::Gone) => {
             state.store.detach(&a.session, a.epoch);
             tracing::info!("stream ended; session detached");
+            // Gone, or the response side closed: the client cancelled (or
+            // lost its connection) rather than half-closing.
+            if matches!(end, End::Gone) || tx.is_closed() {
+                metrics::error(tonic::Code::Cancelled, "Stream");
+            }
         }
         End::Fail(status) => {
             state.store.detach(&a.session, a.epoch);

@@ -134,7 +134,9 @@ impl ConnectionTable {
 }
 
 fn lock(counts: &Mutex<Counts>) -> std::sync::MutexGuard<'_, Counts> {
-    counts.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+    counts
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner())
 }
 
 impl Drop for Permit {
@@ -195,12 +197,21 @@ pub fn tls_acceptor(files: &TlsFiles) -> Result<TlsAcceptor, String> {
     use rustls::pki_types::{CertificateDer, PrivateKeyDer};
     let certs = CertificateDer::pem_file_iter(&files.cert)
         .and_then(|certs| certs.collect::<Result<Vec<_>, _>>())
-        .map_err(|e| format!("cannot read certificates from {}: {e}", files.cert.display()))?;
+        .map_err(|e| {
+            format!(
+                "cannot read certificates from {}: {e}",
+                files.cert.display()
+            )
+        })?;
     if certs.is_empty() {
         return Err(format!("no certificate in {}", files.cert.display()));
     }
-    let key = PrivateKeyDer::from_pem_file(&files.key)
-        .map_err(|e| format!("cannot read a private key from {}: {e}", files.key.display()))?;
+    let key = PrivateKeyDer::from_pem_file(&files.key).map_err(|e| {
+        format!(
+            "cannot read a private key from {}: {e}",
+            files.key.display()
+        )
+    })?;
     let provider = Arc::new(rustls::crypto::ring::default_provider());
     let mut config = rustls::ServerConfig::builder_with_provider(provider)
         .with_safe_default_protocol_versions()
@@ -407,9 +418,23 @@ fn goaway_speaks_tls() -> Vec<u8> {
     out
 }
 
+/// Send [`goaway_speaks_tls`] and close gracefully: half-close, then read
+/// (and drop) what the client still sends for a moment, because closing a
+/// socket with unread data resets it and the client would lose the GOAWAY.
+async fn tell_speaks_tls(mut tcp: TcpStream) {
+    if tcp.write_all(&goaway_speaks_tls()).await.is_err() || tcp.shutdown().await.is_err() {
+        return;
+    }
+    let mut sink = [0u8; 1024];
+    let _ = tokio::time::timeout(Duration::from_secs(1), async {
+        while matches!(tcp.read(&mut sink).await, Ok(n) if n > 0) {}
+    })
+    .await;
+}
+
 /// Peek the first byte to tell TLS from plaintext, run the TLS handshake
 /// when the port speaks TLS, and read and check the HTTP/2 preface.
-async fn handshake(mut tcp: TcpStream, tls: Option<TlsAcceptor>) -> Result<Io, HandshakeError> {
+async fn handshake(tcp: TcpStream, tls: Option<TlsAcceptor>) -> Result<Io, HandshakeError> {
     let mut first = [0u8; 1];
     if tcp.peek(&mut first).await? == 0 {
         return Err(io::Error::from(io::ErrorKind::UnexpectedEof).into());
@@ -422,8 +447,7 @@ async fn handshake(mut tcp: TcpStream, tls: Option<TlsAcceptor>) -> Result<Io, H
         )),
         (Some(_), false) => {
             if first[0] == PREFACE[0] {
-                let _ = tcp.write_all(&goaway_speaks_tls()).await;
-                let _ = tcp.shutdown().await;
+                tell_speaks_tls(tcp).await;
             }
             return Err(HandshakeError::PlaintextOnTls);
         }
@@ -473,7 +497,8 @@ mod tests {
     fn goaway_is_a_well_formed_frame() {
         let bytes = goaway_speaks_tls();
         let goaway = &bytes[9..];
-        let len = (usize::from(goaway[0]) << 16) | (usize::from(goaway[1]) << 8) | usize::from(goaway[2]);
+        let len =
+            (usize::from(goaway[0]) << 16) | (usize::from(goaway[1]) << 8) | usize::from(goaway[2]);
         assert_eq!(goaway[3], 0x7);
         assert_eq!(goaway.len(), 9 + len);
     }

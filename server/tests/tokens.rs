@@ -8,6 +8,8 @@
 //! beyond it. Missing joints themselves: their coordinates are never read,
 //! and a frame without a detected joint changes nothing but the count.
 
+mod support;
+
 use std::path::PathBuf;
 use std::time::Duration;
 
@@ -17,6 +19,7 @@ use blapose_server::{ServerConfig, ServerHandle, WeightsSource};
 use pb::pose_adjustment_client::PoseAdjustmentClient;
 use pb::stream_request::Kind as Req;
 use pb::stream_response::Kind as Resp;
+use support::start;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::transport::Channel;
@@ -41,15 +44,6 @@ fn config(key: Option<&str>) -> ServerConfig {
         session_ttl: Duration::from_secs(30),
         ..ServerConfig::default()
     }
-}
-
-async fn start(config: ServerConfig) -> (ServerHandle, PoseAdjustmentClient<Channel>) {
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let server = blapose_server::spawn(config, listener).await.unwrap();
-    let client = PoseAdjustmentClient::connect(format!("http://{}", server.local_addr()))
-        .await
-        .unwrap();
-    (server, client)
 }
 
 /// A 3D pose (metres, camera frame) that moves a little with `t`.
@@ -324,7 +318,7 @@ async fn a_session_resumed_from_its_token_on_another_server_continues_bit_for_bi
         let all_tokens = tokens(&whole);
         let seen: Vec<u64> = all_tokens.iter().map(|t| t.frames_seen).collect();
         assert_eq!(seen, [10, 20, 30, 30, 40, 50], "{kind:?}");
-        assert_eq!(all_tokens[2].token, all_tokens[3].token);
+        assert_same_state(&all_tokens[2].token, &all_tokens[3].token);
         for (i, m) in whole.iter().enumerate() {
             if let Resp::Token(t) = m {
                 match &whole[i - 1] {
@@ -369,10 +363,10 @@ async fn a_session_resumed_from_its_token_on_another_server_continues_bit_for_bi
         assert_eq!(b_tokens.len(), 2);
         assert_same_state(&b_tokens[0].token, &all_tokens[4].token);
         assert_same_state(&b_tokens[1].token, &all_tokens[5].token);
-        // B holds it now; a resume there ignores the token.
+        // B holds it now; a resume there with the token continues from it.
         let (again, end) = exchange(&mut b, vec![resume(&o.session_id, &token.token)]).await;
         end.unwrap();
-        assert_eq!(opened(&again).frames_seen, N);
+        assert_eq!(opened(&again).frames_seen, K);
     }
     server_a.shutdown().await.unwrap();
     server_b.shutdown().await.unwrap();
@@ -517,11 +511,13 @@ async fn bad_tokens_are_refused_with_a_status_naming_the_problem() {
 /// A draining server (SIGTERM) ends each stream with a final token as of
 /// every frame answered, then UNAVAILABLE saying to resume elsewhere with
 /// it: the client re-sends nothing.
-#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
-async fn a_draining_server_sends_each_stream_a_final_token() {
+/// Open with `first` on a fresh server, send 12 frames, wait for their
+/// answers, then shut the server down with the stream still open: what
+/// came after the answers, and the status the stream ended with.
+async fn drained(first: pb::StreamRequest) -> (Vec<Resp>, tonic::Status) {
     let (server, mut client) = start(config(Some(KEY))).await;
     let (tx, rx) = mpsc::channel(32);
-    tx.send(open(Kind::Plain)).await.unwrap();
+    tx.send(first).await.unwrap();
     for t in 0..12 {
         tx.send(frame(t, false)).await.unwrap();
     }
@@ -538,22 +534,28 @@ async fn a_draining_server_sends_each_stream_a_final_token() {
     }
     // The stream stays open (tx is alive) while the server drains.
     let shutdown = tokio::spawn(server.shutdown());
-    let mut last = None;
+    let mut after = Vec::new();
     let status = loop {
         match tokio::time::timeout(Duration::from_secs(30), inbound.message())
             .await
             .expect("the drain ends the stream")
         {
-            Ok(Some(m)) => last = m.kind,
+            Ok(Some(m)) => after.extend(m.kind),
             Ok(None) => panic!("the stream ended without a status"),
             Err(status) => break status,
         }
     };
     drop(tx);
     shutdown.await.unwrap().unwrap();
+    (after, status)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_draining_server_sends_each_stream_a_final_token() {
+    let (after, status) = drained(open(Kind::Plain)).await;
     assert_eq!(status.code(), Code::Unavailable, "{status:?}");
     assert!(status.message().contains("token"), "{}", status.message());
-    match last {
+    match after.last() {
         Some(Resp::Token(t)) => {
             assert_eq!(t.frames_seen, 12);
             assert!(!t.token.is_empty());
@@ -622,4 +624,243 @@ async fn missing_joints_are_not_read_and_empty_frames_change_nothing() {
         );
     }
     server.shutdown().await.unwrap();
+}
+
+/// A token of `state` as `edit` leaves it, signed with the real key.
+fn crafted(token: &[u8], edit: impl FnOnce(&mut PortableState)) -> Vec<u8> {
+    let key = SessionKey::parse(KEY).unwrap();
+    let mut state = PortableState::open(token, &key).unwrap();
+    edit(&mut state);
+    state.seal(&key)
+}
+
+fn now_ms() -> u64 {
+    blapose_server::token::now_ms()
+}
+
+/// A session of `kind` on `client` with `n` frames, its stream ended
+/// without close (detached); its id and tokens.
+async fn detached(
+    client: &mut PoseAdjustmentClient<Channel>,
+    kind: Kind,
+    n: u64,
+) -> (String, Vec<pb::SessionToken>) {
+    let mut requests = vec![open(kind)];
+    requests.extend((0..n).map(|t| frame(t, matches!(kind, Kind::Lifter))));
+    let (run, end) = exchange(client, requests).await;
+    end.unwrap();
+    let id = opened(&run).session_id.clone();
+    (id, tokens(&run).into_iter().cloned().collect())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_restored_state_is_checked_like_input_even_with_a_valid_signature() {
+    let (server_a, mut a) = start(config(Some(KEY))).await;
+    let (server_b, mut b) = start(config(Some(KEY))).await;
+    let (id, plain) = detached(&mut a, Kind::Plain, 12).await;
+    let token = plain[0].token.clone();
+    let (lift_id, lifting) = detached(&mut a, Kind::Lifter, 12).await;
+    let nan_held = |s: &mut PortableState| {
+        let mut last = *s.held.last();
+        last[4] = Some([f32::NAN, 0.0]);
+        s.held = blapose_core::missing::HeldJoints::from_last(last);
+    };
+    type Edit = Box<dyn FnOnce(&mut PortableState)>;
+    let cases: Vec<(&str, Edit)> = vec![
+        ("hidden state [3]", Box::new(|s| s.hidden[3] = f32::NAN)),
+        ("hidden state [5]", Box::new(|s| s.hidden[5] = 4.0)),
+        (
+            "frames read",
+            Box::new(|s| {
+                s.lengths =
+                    blapose_server::session::RunningMean::from_parts(*s.lengths.sum(), u64::MAX)
+            }),
+        ),
+        ("frames without a joint", Box::new(|s| s.skipped = u64::MAX)),
+        (
+            "running sum [bone 2]",
+            Box::new(|s| {
+                let mut sum = *s.lengths.sum();
+                sum[2] = f64::INFINITY;
+                s.lengths =
+                    blapose_server::session::RunningMean::from_parts(sum, s.lengths.count());
+            }),
+        ),
+        (
+            "input format",
+            Box::new(|s| {
+                s.input.coordinates = blapose_server::session::Coordinates::Pixels {
+                    width: 0,
+                    height: 1000,
+                }
+            }),
+        ),
+        ("held joint [4]", Box::new(nan_held)),
+        (
+            "issue time",
+            Box::new(|s| s.issued_at_ms = now_ms() + 3_600_000),
+        ),
+    ];
+    for (field, edit) in cases {
+        let s = status_of(&mut b, resume(&id, &crafted(&token, edit))).await;
+        assert_eq!(s.code(), Code::InvalidArgument, "{field}: {s:?}");
+        assert!(s.message().contains(field), "{field}: {}", s.message());
+    }
+    let window = crafted(&lifting[0].token, |s| {
+        if let Some(w) = &mut s.window {
+            w.frames[0][0][0] = f32::INFINITY;
+        }
+    });
+    let s = status_of(&mut b, resume(&lift_id, &window)).await;
+    assert_eq!(s.code(), Code::InvalidArgument, "{s:?}");
+    assert!(s.message().contains("lifter window"), "{}", s.message());
+    // An expired token: every replica refuses it.
+    let old = crafted(&token, |s| s.issued_at_ms = now_ms() - 2 * 3_600_000);
+    let s = status_of(&mut b, resume(&id, &old)).await;
+    assert_eq!(s.code(), Code::FailedPrecondition, "{s:?}");
+    assert!(s.message().contains("expired"), "{}", s.message());
+    // The same state, re-signed as it was: restored.
+    let (back, end) = exchange(&mut b, vec![resume(&id, &crafted(&token, |_| {}))]).await;
+    end.unwrap();
+    assert_eq!(opened(&back).frames_seen, 10);
+    server_a.shutdown().await.unwrap();
+    server_b.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn closing_a_session_ends_its_tokens_where_it_lived() {
+    let (server_a, mut a) = start(config(Some(KEY))).await;
+    let (server_b, mut b) = start(config(Some(KEY))).await;
+    // Closed in its stream.
+    let mut requests = vec![open(Kind::Plain)];
+    requests.extend((0..12).map(|t| frame(t, false)));
+    requests.push(pb::StreamRequest {
+        kind: Some(Req::Close(pb::CloseSession {})),
+    });
+    let (run, end) = exchange(&mut a, requests).await;
+    end.unwrap();
+    let id = opened(&run).session_id.clone();
+    let token = tokens(&run)[0].token.clone();
+    let s = status_of(&mut a, resume(&id, &token)).await;
+    assert_eq!(s.code(), Code::FailedPrecondition, "{s:?}");
+    assert!(s.message().contains("closed"), "{}", s.message());
+    // Closed by CloseSession while detached.
+    let (id2, tokens2) = detached(&mut a, Kind::Plain, 12).await;
+    a.close_session(pb::CloseSessionRequest {
+        session_id: id2.clone(),
+    })
+    .await
+    .unwrap();
+    let s = status_of(&mut a, resume(&id2, &tokens2[0].token)).await;
+    assert_eq!(s.code(), Code::FailedPrecondition, "{s:?}");
+    assert!(s.message().contains("closed"), "{}", s.message());
+    // Around the balancer: a replica that never saw the session or its
+    // close restores it, until the token expires (documented).
+    let (on_b, end) = exchange(&mut b, vec![resume(&id, &token)]).await;
+    end.unwrap();
+    assert_eq!(opened(&on_b).frames_seen, 10);
+    let old = crafted(&tokens2[0].token, |s| {
+        s.issued_at_ms = now_ms() - 2 * 3_600_000
+    });
+    let s = status_of(&mut b, resume(&id2, &old)).await;
+    assert_eq!(s.code(), Code::FailedPrecondition, "{s:?}");
+    server_a.shutdown().await.unwrap();
+    server_b.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn an_older_token_never_rolls_a_session_back() {
+    let short = ServerConfig {
+        session_ttl: Duration::from_millis(300),
+        ..config(Some(KEY))
+    };
+    let (server_a, mut a) = start(short).await;
+    let (id, issued) = detached(&mut a, Kind::Plain, 35).await;
+    let frames_of = |t: &pb::SessionToken| t.frames_seen;
+    assert_eq!(
+        issued.iter().map(frames_of).collect::<Vec<_>>(),
+        [10, 20, 30]
+    );
+    // Held: the token names the state the client continues from (it lost
+    // the answers after it), and its SessionOpened brings the newest token.
+    let (held, end) = exchange(&mut a, vec![resume(&id, &issued[2].token)]).await;
+    end.unwrap();
+    assert_eq!(opened(&held).frames_seen, 30);
+    let newest = opened(&held).session_token.clone();
+    let mut requests = vec![resume(&id, &newest)];
+    requests.extend((30..35).map(|t| frame(t, false)));
+    requests.push(token_request());
+    let (again, end) = exchange(&mut a, requests).await;
+    end.unwrap();
+    let newest = tokens(&again)[0].clone();
+    assert_eq!(newest.frames_seen, 35);
+    let newest = newest.token;
+    // Evicted after its TTL: remembered, and a token older than the
+    // newest one issued is refused, named ...
+    tokio::time::sleep(Duration::from_millis(900)).await;
+    for old in [
+        &issued[0].token,
+        &issued[2].token,
+        &opened(&held).session_token,
+    ] {
+        let s = status_of(&mut a, resume(&id, old)).await;
+        assert_eq!(s.code(), Code::FailedPrecondition, "{s:?}");
+        assert!(s.message().contains("rolled back"), "{}", s.message());
+    }
+    // ... and the newest one restores it.
+    let (back, end) = exchange(&mut a, vec![resume(&id, &newest)]).await;
+    end.unwrap();
+    assert_eq!(opened(&back).frames_seen, 35);
+    server_a.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn resuming_a_live_session_retires_its_stream_on_that_replica() {
+    let (server_a, mut a) = start(config(Some(KEY))).await;
+    let (tx, rx) = mpsc::channel(32);
+    tx.send(open(Kind::Plain)).await.unwrap();
+    for t in 0..12 {
+        tx.send(frame(t, false)).await.unwrap();
+    }
+    let mut first = a
+        .stream(ReceiverStream::new(rx))
+        .await
+        .unwrap()
+        .into_inner();
+    let mut id = String::new();
+    let mut token = Vec::new();
+    while token.is_empty() {
+        match first.message().await.unwrap().unwrap().kind {
+            Some(Resp::Opened(o)) => id = o.session_id,
+            Some(Resp::Token(t)) => token = t.token,
+            _ => {}
+        }
+    }
+    // Newest wins: the resume takes the session, the old stream ends.
+    let (second, end) = exchange(&mut a, vec![resume(&id, &token)]).await;
+    end.unwrap();
+    assert!(opened(&second).resumed);
+    let status = loop {
+        match first.message().await {
+            Ok(Some(_)) => {}
+            Ok(None) => panic!("the old stream ended without a status"),
+            Err(status) => break status,
+        }
+    };
+    assert_eq!(status.code(), Code::Aborted, "{status:?}");
+    assert!(status.message().contains("resumed"), "{}", status.message());
+    drop(tx);
+    server_a.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_stream_that_never_asked_gets_no_token_at_shutdown() {
+    let mut quiet = open(Kind::Plain);
+    if let Some(Req::Open(o)) = &mut quiet.kind {
+        o.session_tokens = false;
+    }
+    let (after, status) = drained(quiet).await;
+    assert!(tokens(&after).is_empty(), "{after:?}");
+    assert_eq!(status.code(), Code::Unavailable, "{status:?}");
+    assert!(!status.message().contains("token"), "{}", status.message());
 }

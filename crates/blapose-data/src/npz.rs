@@ -546,6 +546,35 @@ mod tests {
     }
 
     #[test]
+    fn archives_read_only_checked_shapes() {
+        let mut npz = Npz::new();
+        npz.insert("a", Array::new(vec![2, 3], vec![1.0; 6]).unwrap());
+        npz.insert("big", Array::new(vec![20_000], vec![0.0; 20_000]).unwrap());
+        let path = temp("archive.npz");
+        write_npz(&path, &npz).unwrap();
+        let mut archive = NpzArchive::open(&path).unwrap();
+        assert!(archive.contains("a") && !archive.contains("zz"));
+        assert_eq!(archive.shape("a").unwrap(), [2, 3]);
+        assert_eq!(archive.read("a", &[2, 3]).unwrap().data(), [1.0; 6]);
+        let e = archive.read("a", &[3, 2]).unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "array \"a\" has shape [2, 3], expected (3, 2)"
+        );
+        // Declared larger than two values can be: refused uninflated.
+        let e = archive.read("big", &[2]).unwrap_err();
+        assert!(
+            matches!(&e, NpzError::TooLarge { key, expected, .. } if key == "big" && expected == "(2)"),
+            "{e}"
+        );
+        assert!(matches!(
+            archive.read("zz", &[1]),
+            Err(NpzError::MissingKey { .. })
+        ));
+        std::fs::remove_file(&path).ok();
+    }
+
+    #[test]
     fn garbage_files_are_typed_errors() {
         let path = temp("garbage.npz");
         std::fs::write(&path, b"this is not a zip file").unwrap();

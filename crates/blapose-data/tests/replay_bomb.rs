@@ -99,7 +99,11 @@ fn replay_file(bomb: &[u8], replace: Option<&[u8]>, bombs: &[&str]) -> Vec<u8> {
     let kp = Array::new(vec![FRAMES, 17, 2], vec![100.0; FRAMES * 34]).unwrap();
     let pose = Array::new(vec![FRAMES, 17, 3], vec![0.1; FRAMES * 51]).unwrap();
     let size = Array::new(vec![2], vec![1000.0, 1000.0]).unwrap();
-    for (key, array) in [(KEY_KEYPOINTS, kp), (KEY_POSE_3D, pose), (KEY_IMAGE_SIZE, size)] {
+    for (key, array) in [
+        (KEY_KEYPOINTS, kp),
+        (KEY_POSE_3D, pose),
+        (KEY_IMAGE_SIZE, size),
+    ] {
         if bombs.contains(&key) {
             continue;
         }
@@ -152,7 +156,11 @@ fn zip_bombs_cost_no_more_than_the_arrays_returned() {
     let dir = std::env::temp_dir().join(format!("blapose-bomb-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let bomb = bomb_archive();
-    assert!(bomb.len() < 4 << 20, "2 GiB deflate to {} bytes", bomb.len());
+    assert!(
+        bomb.len() < 4 << 20,
+        "2 GiB deflate to {} bytes",
+        bomb.len()
+    );
 
     // The valid file: its arrays are what a load returns.
     let valid = write(&dir, "valid.npz", &replay_file(&bomb, None, &[]));
@@ -212,7 +220,14 @@ fn zip_bombs_cost_no_more_than_the_arrays_returned() {
         let e = result.unwrap_err();
         eprintln!("pose_3d header {shape}: {e}; peak {peak}");
         assert!(
-            matches!(e, SequenceError::TooManyFrames { key: KEY_POSE_3D, max: 900_000, .. }),
+            matches!(
+                e,
+                SequenceError::TooManyFrames {
+                    key: KEY_POSE_3D,
+                    max: 900_000,
+                    ..
+                }
+            ),
             "{e}"
         );
         assert!(peak < 1 << 20, "{peak}");

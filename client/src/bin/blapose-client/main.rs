@@ -228,7 +228,8 @@ impl IoArgs {
     /// the file's world up direction in camera axes (`camera_up`), if any,
     /// for the HTML report's floor.
     fn load(&self) -> Result<(Sequence, Option<[f32; 3]>)> {
-        let mut seq = Sequence::load_with_max_frames(&self.file, self.layout, self.max_file_frames)?;
+        let mut seq =
+            Sequence::load_with_max_frames(&self.file, self.layout, self.max_file_frames)?;
         let up = seq.camera.map(|c| c.up);
         if !self.camera {
             seq.camera = None;
@@ -576,6 +577,26 @@ mod tests {
             Cli::try_parse_from(["blapose-client", "adjust", "x.npz", "--server-lifter"]).is_err(),
             "the offline call has no server lifter"
         );
+    }
+
+    #[test]
+    fn max_file_frames_defaults_to_the_library_bound() {
+        let io = |args: &[&str]| match Cli::try_parse_from(args).unwrap().command {
+            Command::Adjust { io, .. } | Command::Replay { io, .. } => io,
+            other => panic!("{other:?}"),
+        };
+        assert_eq!(
+            io(&["blapose-client", "adjust", "x.npz"]).max_file_frames,
+            blapose_client::sequence::DEFAULT_MAX_FRAMES
+        );
+        let small = io(&[
+            "blapose-client",
+            "replay",
+            "x.npz",
+            "--max-file-frames",
+            "10",
+        ]);
+        assert_eq!(small.max_file_frames, 10);
     }
 
     #[test]

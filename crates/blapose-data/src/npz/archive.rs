@@ -53,8 +53,12 @@ impl Dtype {
         match self {
             Dtype::F4Le => f32::from_le_bytes([c[0], c[1], c[2], c[3]]),
             Dtype::F4Be => f32::from_be_bytes([c[0], c[1], c[2], c[3]]),
-            Dtype::F8Le => f64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]) as f32,
-            Dtype::F8Be => f64::from_be_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]) as f32,
+            Dtype::F8Le => {
+                f64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]) as f32
+            }
+            Dtype::F8Be => {
+                f64::from_be_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]) as f32
+            }
         }
     }
 }
@@ -204,7 +208,11 @@ fn read_npy_values(key: &str, r: &mut impl Read, header: &NpyHeader) -> Result<A
             data.reserve_exact(more);
         }
         let got = fill(key, r, &mut chunk[..want])?;
-        data.extend(chunk[..got - got % size].chunks_exact(size).map(|c| header.dtype.decode(c)));
+        data.extend(
+            chunk[..got - got % size]
+                .chunks_exact(size)
+                .map(|c| header.dtype.decode(c)),
+        );
         read += got;
         if got < want {
             return Err(bad(
@@ -379,9 +387,7 @@ impl<R: Read + Seek> NpzArchive<R> {
     pub fn read(&mut self, key: &str, expected: &[usize]) -> Result<Array, NpzError> {
         let pattern: Vec<Option<usize>> = expected.iter().copied().map(Some).collect();
         let values = product(expected).ok_or_else(|| bad(key, "expected shape overflows"))?;
-        let limit = values
-            .saturating_mul(8)
-            .saturating_add(12 + MAX_NPY_HEADER) as u64;
+        let limit = values.saturating_mul(8).saturating_add(12 + MAX_NPY_HEADER) as u64;
         let mut entry = self.member(key)?;
         if entry.size() > limit {
             return Err(NpzError::TooLarge {

@@ -5,6 +5,7 @@
 //! fails before any network traffic. [`FrameInput`] is one of its frames
 //! as a session sends it.
 
+use std::io::{Read, Seek};
 use std::path::{Path, PathBuf};
 
 use blapose_core::layouts::{Coordinates, InputFormat, KeypointLayout};
@@ -382,7 +383,12 @@ impl Sequence {
             None => None,
         };
         let confidence = match confidence_shape {
-            Some(shape) => npz.read(KEY_CONFIDENCE, &shape).map_err(npz_err)?.into_parts().1,
+            Some(shape) => {
+                npz.read(KEY_CONFIDENCE, &shape)
+                    .map_err(npz_err)?
+                    .into_parts()
+                    .1
+            }
             None => Vec::new(),
         };
         let fps = if npz.has(KEY_FPS) {
@@ -429,13 +435,38 @@ impl Sequence {
         max_frames: usize,
     ) -> Result<Self, SequenceError> {
         let path = path.as_ref();
-        let with_path = |error| SequenceError::Npz {
+        let archive = NpzArchive::open(path).map_err(|error| SequenceError::Npz {
             path: path.to_owned(),
             error,
-        };
-        let mut archive = NpzArchive::open(path).map_err(with_path)?;
+        })?;
+        Self::from_archive(archive, layout_override, max_frames)
+    }
+
+    /// Read and validate a replay file from `reader` (e.g. bytes in
+    /// memory), `name` naming it in errors, as
+    /// [`Sequence::load_with_max_frames`] reads a file.
+    pub fn read_from<R: Read + Seek>(
+        reader: R,
+        name: impl Into<PathBuf>,
+        layout_override: Option<KeypointLayout>,
+        max_frames: usize,
+    ) -> Result<Self, SequenceError> {
+        let name = name.into();
+        let archive = NpzArchive::new(reader, &name).map_err(|error| SequenceError::Npz {
+            path: name.clone(),
+            error,
+        })?;
+        Self::from_archive(archive, layout_override, max_frames)
+    }
+
+    fn from_archive<R: Read + Seek>(
+        mut archive: NpzArchive<R>,
+        layout_override: Option<KeypointLayout>,
+        max_frames: usize,
+    ) -> Result<Self, SequenceError> {
+        let path = archive.path().to_owned();
         Sequence::from_source(&mut archive, layout_override, max_frames).map_err(|e| match e {
-            SequenceError::Npz { error, .. } => with_path(error),
+            SequenceError::Npz { error, .. } => SequenceError::Npz { path, error },
             e => e,
         })
     }
