@@ -277,3 +277,52 @@ fn the_strategies_reach_prepare_and_answer() {
     eprintln!("{reached} validated sequences in {} cases", config().cases);
     assert!(reached * 20 >= config().cases as usize, "{reached}");
 }
+
+/// Found by the longer run (PROPTEST_CASES=300000): a calibration whose
+/// principal point is f32::MAX pixels (finite, so accepted) without a
+/// camera height passes validation for the contracts that do not scale to
+/// the floor, and preparation then feeds non-finite inputs to the model.
+/// Validation should refuse such a principal point (INVALID_ARGUMENT
+/// naming camera.principal_y) as it refuses non-finite ones.
+#[test]
+#[ignore = "server bug: validate::camera accepts a principal point of f32::MAX and prepare::sequence then yields non-finite model inputs (server/src/validate.rs owner)"]
+fn regression_huge_principal_point_prepares_finite_inputs_or_is_refused() {
+    let req = pb::AdjustSequenceRequest {
+        input_format: Some(pb::InputFormat {
+            layout: 1,
+            coordinates: Some(pb::input_format::Coordinates::ImageSize(pb::ImageSize {
+                width: 1,
+                height: 1,
+            })),
+        }),
+        model: 1,
+        num_frames: 1,
+        keypoints_2d: vec![0.0; 34],
+        confidence: Vec::new(),
+        poses_3d: (0..17)
+            .flat_map(|j| [0.05 * j as f32, -0.1 * j as f32, 3.0 + 0.01 * j as f32])
+            .collect(),
+        camera: Some(pb::CameraCalibration {
+            up: vec![-1.2475443, -1.1749436, 1.3962421],
+            focal_x: 624.149,
+            focal_y: 67.00182,
+            principal_x: -2963.6563,
+            principal_y: f32::MAX,
+            image_size: None,
+            height: 0.0,
+            distortion: Vec::new(),
+        }),
+        subject: None,
+    };
+    for contract in contracts() {
+        let Ok(valid) = validate::sequence(&req, contract.as_ref()) else {
+            continue;
+        };
+        if let Ok(prepared) = prepare::sequence(valid, contract.as_ref()) {
+            assert!(
+                prepared.inputs.iter().all(|v| v.is_finite()),
+                "contract {contract:?}: non-finite prepared inputs"
+            );
+        }
+    }
+}

@@ -15,7 +15,7 @@ use std::time::Duration;
 
 use blapose_proto::v1 as pb;
 use blapose_server::token::{PortableState, SessionKey};
-use blapose_server::{ServerConfig, ServerHandle, WeightsSource};
+use blapose_server::{ServerConfig, WeightsSource};
 use pb::pose_adjustment_client::PoseAdjustmentClient;
 use pb::stream_request::Kind as Req;
 use pb::stream_response::Kind as Resp;
