@@ -33,7 +33,10 @@ use blapose_core::metrics::ActionAggregator;
 use blapose_core::pose::flip_bone_lengths;
 use blapose_core::skeleton::{BONE_NAMES, NUM_BONES};
 use blapose_core::BoneLengths;
-use blapose_model::{LoadedWeights, OfflineBiGruEngine, OnlineGruEngine, RunningMean, STATE_DIM};
+use blapose_model::{
+    EngineOptions, LoadedWeights, OfflineBiGruEngine, OnlineGruEngine, Precision, RunningMean,
+    STATE_DIM,
+};
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -97,8 +100,16 @@ pub struct BiGruEstimator {
 impl BiGruEstimator {
     /// From Bi-GRU weights.
     pub fn new(weights: &LoadedWeights) -> Result<Self, TrainError> {
+        Self::with_precision(weights, Precision::F32)
+    }
+
+    /// From Bi-GRU weights stored at `precision` in the engine.
+    pub fn with_precision(weights: &LoadedWeights, precision: Precision) -> Result<Self, TrainError> {
         Ok(Self {
-            engine: OfflineBiGruEngine::new(weights, 1)?,
+            engine: OfflineBiGruEngine::with_options(weights, EngineOptions {
+                precision,
+                ..EngineOptions::threads(1)
+            })?,
         })
     }
 }
@@ -259,8 +270,16 @@ pub struct GruEstimator {
 impl GruEstimator {
     /// From GRU weights.
     pub fn new(weights: &LoadedWeights) -> Result<Self, TrainError> {
+        Self::with_precision(weights, Precision::F32)
+    }
+
+    /// From GRU weights stored at `precision` in the engine.
+    pub fn with_precision(weights: &LoadedWeights, precision: Precision) -> Result<Self, TrainError> {
         Ok(Self {
-            engine: OnlineGruEngine::new(weights, 1)?,
+            engine: OnlineGruEngine::with_options(weights, EngineOptions {
+                precision,
+                ..EngineOptions::threads(1)
+            })?,
             state_frames: None,
         })
     }

@@ -131,6 +131,10 @@ pub struct EvalArgs {
     /// Data root (default: $BLAPOSE_DATA or ../shared/data).
     #[arg(long)]
     data: Option<PathBuf>,
+    /// Storage precision of the fast engines' GRU weights (f32, f16 or
+    /// bf16), to score a serving precision against f32.
+    #[arg(long, default_value = "f32")]
+    precision: blapose_model::Precision,
 }
 
 /// Where `--stature-proxy` takes each subject's stature from.
@@ -296,8 +300,10 @@ fn score_trials(
     baselines: &[(&str, BoneLengths)],
 ) -> Result<EvalReport> {
     let mut estimator: Box<dyn LengthEstimator> = match kind {
-        ModelKind::BiGru => Box::new(BiGruEstimator::new(weights)?),
-        ModelKind::Gru => Box::new(GruEstimator::new(weights)?.with_state_frames(a.state_frames)),
+        ModelKind::BiGru => Box::new(BiGruEstimator::with_precision(weights, a.precision)?),
+        ModelKind::Gru => Box::new(
+            GruEstimator::with_precision(weights, a.precision)?.with_state_frames(a.state_frames),
+        ),
     };
     let mut model_label = kind.as_str().to_string();
     if a.flip_average {
