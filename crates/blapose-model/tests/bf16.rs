@@ -109,7 +109,7 @@ fn bf16_online_step_stays_close_to_f32_at_every_batch_size() {
 }
 
 #[test]
-fn bf16_steps_are_bit_exact_across_threads_and_batch_neighbours_on_amx() {
+fn bf16_steps_are_bit_exact_across_threads_and_batch_neighbours() {
     let units = units();
     if units.is_empty() {
         return;
@@ -127,25 +127,19 @@ fn bf16_steps_are_bit_exact_across_threads_and_batch_neighbours_on_amx() {
         if unit != Bf16Unit::Amx {
             continue;
         }
-        // AMX computes each row on its own: session 20 stepped alone
-        // matches its row in the batch of 37, bit for bit.
-        let alone: Vec<f32> = frames
-            .chunks_exact(INPUT_DIM)
-            .skip(20)
-            .step_by(batch)
-            .flatten()
-            .copied()
-            .collect();
-        let (y1, h1) = run(&one, &alone, 1);
-        let row: Vec<f32> = a
-            .chunks_exact(OUTPUT_DIM)
-            .skip(20)
-            .step_by(batch)
-            .flatten()
-            .copied()
-            .collect();
-        assert_eq!(y1, row, "amx: a session's outputs depend on its batch");
-        assert_eq!(h1, ha[20 * STATE_DIM..21 * STATE_DIM], "amx: states depend on the batch");
+        // AMX computes each row on its own: sessions 20 and 0 stepped as a
+        // batch of two match their rows in the batch of 37, bit for bit
+        // (a batch of one runs on vdpbf16ps instead: kernel::AMX_MIN_ROWS).
+        let pick = |v: &[f32], width: usize, rows: [usize; 2]| -> Vec<f32> {
+            v.chunks_exact(batch * width)
+                .flat_map(|step| rows.iter().flat_map(move |&r| &step[r * width..(r + 1) * width]))
+                .copied()
+                .collect()
+        };
+        let pair = pick(&frames, INPUT_DIM, [20, 0]);
+        let (y2, h2) = run(&one, &pair, 2);
+        assert_eq!(y2, pick(&a, OUTPUT_DIM, [20, 0]), "amx: outputs depend on the batch");
+        assert_eq!(h2, pick(&ha, STATE_DIM, [20, 0]), "amx: states depend on the batch");
     }
 }
 

@@ -90,21 +90,24 @@ fn request_tile_data() -> Result<(), String> {
     Err("AMX is only enabled on Linux".into())
 }
 
-/// The `ldtilecfg` operand: palette 1, eight tiles of 16 rows x 64 bytes.
+/// The `ldtilecfg` operand: palette 1, eight tiles of 64 bytes per row;
+/// the accumulators (`tmm0..3`) and inputs (`tmm4`) have one row per batch
+/// row of the block (a partial last block multiplies only its own rows),
+/// the weights (`tmm5..7`) 16 pair rows.
 #[repr(C, align(64))]
 struct TileConfig([u8; 64]);
 
-const CONFIG: TileConfig = {
-    let mut c = [0u8; 64];
-    c[0] = 1; // palette
-    let mut t = 0;
-    while t < 8 {
-        c[16 + 2 * t] = 64; // bytes per row (u16, little-endian)
-        c[48 + t] = BLOCK as u8; // rows
-        t += 1;
+impl TileConfig {
+    fn new(rows: usize) -> Self {
+        let mut c = [0u8; 64];
+        c[0] = 1; // palette
+        for t in 0..8 {
+            c[16 + 2 * t] = 64; // bytes per row (u16, little-endian)
+            c[48 + t] = if t < 5 { rows as u8 } else { 16 };
+        }
+        TileConfig(c)
     }
-    TileConfig(c)
-};
+}
 
 /// Accumulators of one block as stored: `[r | z | n_in | n_h][row][lane]`.
 #[repr(C, align(64))]
@@ -143,8 +146,7 @@ macro_rules! tile_dp {
 
 /// Run one panel for `rows` rows: `a` as for the f32 kernels except that
 /// `a.w` is a paired bf16 panel and `a.x` is unused; row `b`'s bf16 inputs
-/// are at `x.add(b * x_stride)`, and rows up to the next multiple of 16 must
-/// be readable (their values do not matter: their results are dropped).
+/// are at `x.add(b * x_stride)`.
 ///
 /// # Safety
 /// The [`TileArgs`] contract (but for `x`) for `rows` rows; `x` as above
@@ -159,9 +161,15 @@ pub(crate) unsafe fn run(rows: usize, a: &TileArgs, x: *const u16, x_stride: usi
     let mut acc = Acc([0.0; 4 * BLOCK * LANES]);
     let acc_p = acc.0.as_mut_ptr();
     let cs = LANES * 4; // bytes per accumulator row
-    asm!("ldtilecfg [{}]", in(reg) CONFIG.0.as_ptr(), options(nostack, readonly, preserves_flags));
+    let mut configured = 0;
     let mut r0 = 0;
     while r0 < rows {
+        let n = BLOCK.min(rows - r0);
+        if n != configured {
+            let config = TileConfig::new(n);
+            asm!("ldtilecfg [{}]", in(reg) config.0.as_ptr(), options(nostack, readonly, preserves_flags));
+            configured = n;
+        }
         asm!(
             "tilezero tmm0",
             "tilezero tmm1",
@@ -195,7 +203,6 @@ pub(crate) unsafe fn run(rows: usize, a: &TileArgs, x: *const u16, x_stride: usi
         tile_store!(1, acc_p.add(BLOCK * LANES), cs);
         tile_store!(2, acc_p.add(2 * BLOCK * LANES), cs);
         tile_store!(3, acc_p.add(3 * BLOCK * LANES), cs);
-        let n = BLOCK.min(rows - r0);
         for b in 0..n {
             let row = |g: usize| _mm512_load_ps(acc_p.add((g * BLOCK + b) * LANES));
             let args = a.offset_rows(r0 + b);
