@@ -170,10 +170,7 @@ impl Bf16Unit {
 
     /// The best unit this CPU has, if any.
     pub fn detect() -> Option<Bf16Unit> {
-        Bf16Unit::ALL
-            .into_iter()
-            .rev()
-            .find(|u| u.is_available())
+        Bf16Unit::ALL.into_iter().rev().find(|u| u.is_available())
     }
 
     /// Lower-case name (`avx512bf16`, `amx`).

@@ -96,7 +96,8 @@ fn bf16_online_step_stays_close_to_f32_at_every_batch_size() {
         let scale = want.iter().fold(0.0f32, |m, v| m.max(v.abs()));
         for &unit in &units {
             for threads in [1, 2] {
-                let engine = OnlineGruEngine::with_options(&weights, opts(threads, Some(unit))).unwrap();
+                let engine =
+                    OnlineGruEngine::with_options(&weights, opts(threads, Some(unit))).unwrap();
                 assert_eq!(engine.precision(), Precision::Bf16);
                 assert_eq!(engine.bf16_unit(), Some(unit));
                 let (got, _) = run(&engine, &frames, batch);
@@ -132,14 +133,25 @@ fn bf16_steps_are_bit_exact_across_threads_and_batch_neighbours() {
         // (a batch of one runs on vdpbf16ps instead: kernel::AMX_MIN_ROWS).
         let pick = |v: &[f32], width: usize, rows: [usize; 2]| -> Vec<f32> {
             v.chunks_exact(batch * width)
-                .flat_map(|step| rows.iter().flat_map(move |&r| &step[r * width..(r + 1) * width]))
+                .flat_map(|step| {
+                    rows.iter()
+                        .flat_map(move |&r| &step[r * width..(r + 1) * width])
+                })
                 .copied()
                 .collect()
         };
         let pair = pick(&frames, INPUT_DIM, [20, 0]);
         let (y2, h2) = run(&one, &pair, 2);
-        assert_eq!(y2, pick(&a, OUTPUT_DIM, [20, 0]), "amx: outputs depend on the batch");
-        assert_eq!(h2, pick(&ha, STATE_DIM, [20, 0]), "amx: states depend on the batch");
+        assert_eq!(
+            y2,
+            pick(&a, OUTPUT_DIM, [20, 0]),
+            "amx: outputs depend on the batch"
+        );
+        assert_eq!(
+            h2,
+            pick(&ha, STATE_DIM, [20, 0]),
+            "amx: states depend on the batch"
+        );
     }
 }
 
@@ -168,7 +180,10 @@ fn bf16_offline_bigru_stays_close_to_f32() {
     }
     let weights = LoadedWeights::random(ModelKind::BiGru, 12).unwrap();
     let frames = random_frames(500, 13);
-    let want = OfflineBiGruEngine::new(&weights, 2).unwrap().predict(&frames).unwrap();
+    let want = OfflineBiGruEngine::new(&weights, 2)
+        .unwrap()
+        .predict(&frames)
+        .unwrap();
     let got = OfflineBiGruEngine::with_options(&weights, opts(2, None))
         .unwrap()
         .predict(&frames)
@@ -190,7 +205,10 @@ fn bf16_is_refused_where_it_cannot_run() {
         },
     )
     .unwrap_err();
-    assert!(matches!(e, ModelError::Config(ref m) if m.contains("avx512")), "{e}");
+    assert!(
+        matches!(e, ModelError::Config(ref m) if m.contains("avx512")),
+        "{e}"
+    );
     for unit in Bf16Unit::ALL {
         if let Some(missing) = unit.missing_feature() {
             let e = OnlineGruEngine::with_options(&weights, opts(1, Some(unit))).unwrap_err();
@@ -280,14 +298,20 @@ fn bf16_lengths_stay_within_a_tenth_of_a_millimetre_over_10000_frames() {
             .zip(mean(&want))
             .map(|(a, b)| (a - b).abs())
             .fold(0.0, f64::max);
-        let last = max_abs_diff(&got[got.len() - OUTPUT_DIM..], &want[want.len() - OUTPUT_DIM..]);
+        let last = max_abs_diff(
+            &got[got.len() - OUTPUT_DIM..],
+            &want[want.len() - OUTPUT_DIM..],
+        );
         eprintln!(
             "{unit}: 10,000 frames: per-frame max {:.4} mm, last frame {:.4} mm, running mean {:.4} mm",
             per_frame * 1e3,
             last * 1e3,
             mean_err * 1e3
         );
-        assert!(per_frame < 1e-4, "{unit}: per-frame lengths drift {per_frame} m");
+        assert!(
+            per_frame < 1e-4,
+            "{unit}: per-frame lengths drift {per_frame} m"
+        );
         assert!(mean_err < 1e-4, "{unit}: mean drifts {mean_err} m");
     }
 }

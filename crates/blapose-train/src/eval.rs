@@ -104,12 +104,18 @@ impl BiGruEstimator {
     }
 
     /// From Bi-GRU weights stored at `precision` in the engine.
-    pub fn with_precision(weights: &LoadedWeights, precision: Precision) -> Result<Self, TrainError> {
+    pub fn with_precision(
+        weights: &LoadedWeights,
+        precision: Precision,
+    ) -> Result<Self, TrainError> {
         Ok(Self {
-            engine: OfflineBiGruEngine::with_options(weights, EngineOptions {
-                precision,
-                ..EngineOptions::threads(1)
-            })?,
+            engine: OfflineBiGruEngine::with_options(
+                weights,
+                EngineOptions {
+                    precision,
+                    ..EngineOptions::threads(1)
+                },
+            )?,
         })
     }
 }
@@ -274,12 +280,18 @@ impl GruEstimator {
     }
 
     /// From GRU weights stored at `precision` in the engine.
-    pub fn with_precision(weights: &LoadedWeights, precision: Precision) -> Result<Self, TrainError> {
+    pub fn with_precision(
+        weights: &LoadedWeights,
+        precision: Precision,
+    ) -> Result<Self, TrainError> {
         Ok(Self {
-            engine: OnlineGruEngine::with_options(weights, EngineOptions {
-                precision,
-                ..EngineOptions::threads(1)
-            })?,
+            engine: OnlineGruEngine::with_options(
+                weights,
+                EngineOptions {
+                    precision,
+                    ..EngineOptions::threads(1)
+                },
+            )?,
             state_frames: None,
         })
     }

@@ -74,7 +74,13 @@ pub(crate) fn permission() -> Result<(), String> {
 fn request_tile_data() -> Result<(), String> {
     // SAFETY: arch_prctl with ARCH_REQ_XCOMP_PERM only reads its two integer
     // arguments; it changes which XSAVE features this process may use.
-    let rc = unsafe { libc::syscall(libc::SYS_arch_prctl, ARCH_REQ_XCOMP_PERM, XFEATURE_XTILEDATA) };
+    let rc = unsafe {
+        libc::syscall(
+            libc::SYS_arch_prctl,
+            ARCH_REQ_XCOMP_PERM,
+            XFEATURE_XTILEDATA,
+        )
+    };
     if rc == 0 {
         Ok(())
     } else {
