@@ -128,7 +128,7 @@ fn bf16_steps_are_bit_exact_across_threads_and_batch_neighbours() {
         if unit != Bf16Unit::Amx {
             continue;
         }
-        // AMX computes each row on its own: sessions 20 and 0 stepped as a
+        // AMX computes each row on its own: the sessions of rows 20 and 0 stepped as a
         // batch of two match their rows in the batch of 37, bit for bit
         // (a batch of one runs on vdpbf16ps instead: kernel::AMX_MIN_ROWS).
         let pick = |v: &[f32], width: usize, rows: [usize; 2]| -> Vec<f32> {
