@@ -24,6 +24,7 @@ LAYERS = {
     "blapose-proto": 1,
     "blapose-lifters": 1,
     "blapose-export": 1,
+    "blapose-tls": 1,
     "blapose-train": 2,
     "blapose-server": 2,
     "blapose-client": 2,
