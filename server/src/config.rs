@@ -299,8 +299,11 @@ pub struct Cli {
 
     /// Storage precision of the GRU weights: f16 (the default: lengths
     /// within ~1e-5 m of f32, 1.5-2x the batch-1 step rate, which is bound
-    /// by streaming the weights; arithmetic stays f32) or f32 (agrees with
-    /// the reference to ~1e-6).
+    /// by streaming the weights; arithmetic stays f32), f32 (agrees with
+    /// the reference to ~1e-6), bf16 (bf16 weights and matrix inputs on
+    /// the CPU's bf16 units, AMX or AVX512-BF16; the fastest for batches;
+    /// refused at start on CPUs without AVX512-BF16) or auto (bf16 where
+    /// the CPU has AVX512-BF16, else f16).
     #[arg(long, env = "BLAPOSE_WEIGHT_PRECISION", default_value = "f16", value_parser = parse_precision)]
     pub weight_precision: Precision,
 
@@ -522,10 +525,14 @@ pub fn parse_session_key(text: &str) -> Result<SessionKey, String> {
     SessionKey::parse(text).map_err(|e| e.to_string())
 }
 
-/// Parse `f32` or `f16`.
+/// Parse `f32`, `f16`, `bf16` or `auto` ([`Precision::fastest`] on this CPU).
 pub fn parse_precision(text: &str) -> Result<Precision, String> {
-    text.parse()
-        .map_err(|e: blapose_model::ModelError| e.to_string())
+    if text.trim().eq_ignore_ascii_case("auto") {
+        return Ok(Precision::fastest());
+    }
+    text.parse().map_err(|_: blapose_model::ModelError| {
+        format!("unknown weight precision {text:?} (expected f32, f16, bf16 or auto)")
+    })
 }
 
 /// Parse `--open-timeout`: a [`parse_duration`] above zero (a zero
@@ -655,7 +662,11 @@ mod tests {
         let Err(err) = Cli::try_parse_from(["blapose-server", "--weight-precision", "f8"]) else {
             panic!("f8 is refused");
         };
-        assert!(err.to_string().contains("f32 or f16"), "{err}");
+        assert!(err.to_string().contains("f32, f16, bf16 or auto"), "{err}");
+        let cli = Cli::try_parse_from(["blapose-server", "--weight-precision", "bf16"]).unwrap();
+        assert_eq!(cli.into_config().weight_precision, Precision::Bf16);
+        let cli = Cli::try_parse_from(["blapose-server", "--weight-precision", "auto"]).unwrap();
+        assert_eq!(cli.into_config().weight_precision, Precision::fastest());
     }
 
     #[test]

@@ -51,9 +51,13 @@ struct Args {
     /// Instruction set of the fast path (scalar, avx2, avx512); default: best available.
     #[arg(long)]
     isa: Option<String>,
-    /// Storage precision of the fast path's GRU weights (f32 or f16).
+    /// Storage precision of the fast path's GRU weights (f32, f16 or bf16).
     #[arg(long, default_value = "f32")]
     precision: String,
+    /// With `--precision bf16`: the bf16 unit (amx, avx512bf16); default:
+    /// AMX where the CPU and OS allow it.
+    #[arg(long)]
+    bf16_unit: Option<String>,
     /// Timed runs; the reported number is their median.
     #[arg(long, default_value_t = 1)]
     repeats: usize,
@@ -97,6 +101,7 @@ fn main() -> Result<()> {
         threads: args.threads,
         isa: Some(isa),
         precision: args.precision.parse::<Precision>()?,
+        bf16_unit: args.bf16_unit.as_deref().map(str::parse).transpose()?,
     };
     let mut rates = Vec::with_capacity(args.repeats);
     let cpu_start = process_cpu_seconds();
@@ -140,12 +145,32 @@ fn main() -> Result<()> {
             "candle"
         };
         println!(
-            "mode=online path={:?} batch={} threads={} steps={} isa={isa_s} precision={}",
-            args.path, args.batch, args.threads, args.steps, args.precision
+            "mode=online path={:?} batch={} threads={} steps={} isa={isa_s} precision={}{}",
+            args.path,
+            args.batch,
+            args.threads,
+            args.steps,
+            args.precision,
+            bf16_note(opts)
         );
     }
     println!("frames_per_second={median:.0}");
     Ok(())
+}
+
+/// ` bf16_unit=<unit>` for bf16 runs (the unit the engine picked).
+fn bf16_note(opts: EngineOptions) -> String {
+    if opts.precision != Precision::Bf16 {
+        return String::new();
+    }
+    match LoadedWeights::random(ModelKind::Gru, 1)
+        .ok()
+        .and_then(|w| OnlineGruEngine::with_options(&w, opts).ok())
+        .and_then(|e| e.bf16_unit())
+    {
+        Some(unit) => format!(" bf16_unit={unit}"),
+        None => String::new(),
+    }
 }
 
 fn online_fast(args: &Args, opts: EngineOptions) -> Result<(usize, f64)> {

@@ -21,6 +21,7 @@
 //! lengths sum to the subject's true summed length), which reads the truth
 //! and so scores the regression's proportions alone.
 
+use blapose_model::Precision;
 use blapose_core::camera::Camera;
 use blapose_core::BoneLengths;
 use blapose_model::stature::StatureLines;
@@ -73,7 +74,7 @@ fn mean_error(pred: &[BoneLengths], trials: &[EvalSequence]) -> Result<f64, Trai
 impl RealCheck<'_> {
     /// A benchmark model's error on the trials, mm.
     pub fn model_error(&self, model: &BenchModel<'_>) -> Result<f64, TrainError> {
-        let estimator = network_estimator(model.kind, model.weights)?;
+        let estimator = network_estimator(model.kind, model.weights, Precision::F32)?;
         let est = if model.input == BenchInput::Calibration {
             let mut trials = self.trials.clone();
             calibrate(model.weights, &mut trials, self.camera)?;

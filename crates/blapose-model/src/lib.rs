@@ -27,7 +27,9 @@ pub mod weights;
 
 pub use averaging::RunningMean;
 pub use error::ModelError;
-pub use fast::{EngineOptions, Isa, OfflineBiGruEngine, OnlineGruEngine, Precision, StepScratch};
+pub use fast::{
+    Bf16Unit, EngineOptions, Isa, OfflineBiGruEngine, OnlineGruEngine, Precision, StepScratch,
+};
 pub use input::{Framing, ModelInput};
 pub use reference::{BoneLengthBiGru, BoneLengthGru};
 pub use weights::{LoadedWeights, WeightsMetadata};

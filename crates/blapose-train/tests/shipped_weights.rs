@@ -64,7 +64,7 @@ fn shipped_weights_reproduce_the_model_card() {
         };
         let weights =
             blapose_model::weights::load(models.join(file), kind).expect("shipped weights load");
-        let est = network_estimator(kind, &weights).unwrap();
+        let est = network_estimator(kind, &weights, blapose_model::Precision::F32).unwrap();
         // The camera-aware pair as a calibrated session is served.
         let mut trials = trials.clone();
         if key.contains("rectified") {

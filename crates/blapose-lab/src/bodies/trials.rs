@@ -7,6 +7,7 @@
 //! built once, read by every row); what the rows make of them is
 //! [`super::run`]'s.
 
+use blapose_model::Precision;
 use blapose_core::{BoneLengths, Keypoints2d, Pose};
 use blapose_model::input::{ModelInput, ViewCalibration};
 use blapose_train::ansur_split::Person;
@@ -154,7 +155,7 @@ pub fn estimate(model: &BenchModel<'_>, trials: &[Trial]) -> Result<Vec<BoneLeng
         .iter()
         .map(|t| t.stream(&contract))
         .collect::<Result<Vec<_>, _>>()?;
-    let est = network_estimator(model.kind, model.weights)?.estimate(&streams)?;
+    let est = network_estimator(model.kind, model.weights, Precision::F32)?.estimate(&streams)?;
     Ok(est.into_iter().map(|e| e.lengths).collect())
 }
 

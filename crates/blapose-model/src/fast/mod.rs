@@ -6,7 +6,9 @@
 //! Both are built from [`crate::LoadedWeights`], repack the weights once
 //! (`pack`) and run the fused panel kernel (`kernel`) in the best
 //! instruction set of the CPU ([`Isa`]). They agree with the reference
-//! candle models to 1e-4 (tests in `tests/fast_agreement.rs`).
+//! candle models to 1e-4 (tests in `tests/fast_agreement.rs`). With
+//! [`Precision::Bf16`] the GRU products run on the CPU's bfloat16 units
+//! ([`Bf16Unit`]: AMX tiles where the CPU and OS allow, else AVX512-BF16).
 
 pub(crate) mod kernel;
 pub mod linalg;
@@ -17,7 +19,7 @@ pub(crate) mod pack;
 
 /// The instruction set, shared with blapose-lifters' kernels (see
 /// [`blapose_core::isa`] for why it lives there).
-pub use blapose_core::isa::{Isa, IsaError};
+pub use blapose_core::isa::{Bf16Unit, Isa, IsaError};
 pub use offline::OfflineBiGruEngine;
 pub use online::{OnlineGruEngine, StepScratch};
 pub use pack::Precision;
@@ -33,6 +35,10 @@ pub struct EngineOptions {
     pub isa: Option<Isa>,
     /// Storage precision of the GRU weights.
     pub precision: Precision,
+    /// With [`Precision::Bf16`]: the bf16 unit; `None` picks AMX where the
+    /// CPU has it and the OS grants it, else AVX512-BF16. Ignored for other
+    /// precisions.
+    pub bf16_unit: Option<Bf16Unit>,
 }
 
 impl Default for EngineOptions {
@@ -41,6 +47,7 @@ impl Default for EngineOptions {
             threads: 1,
             isa: None,
             precision: Precision::F32,
+            bf16_unit: None,
         }
     }
 }
@@ -57,6 +64,52 @@ impl EngineOptions {
     fn resolved_isa(&self) -> Result<Isa, ModelError> {
         Ok(self.isa.unwrap_or_else(Isa::detect).require()?)
     }
+
+    /// The bf16 unit the engine runs on (`None` unless the precision is
+    /// bf16), or why bf16 cannot run here.
+    fn resolved_bf16(&self, isa: Isa) -> Result<Option<Bf16Unit>, ModelError> {
+        if self.precision != Precision::Bf16 {
+            return Ok(None);
+        }
+        if isa != Isa::Avx512 {
+            return Err(ModelError::Config(format!(
+                "bf16 weights need the avx512 instruction set (asked for {isa})"
+            )));
+        }
+        let missing = |unit: Bf16Unit| {
+            unit.missing_feature().map(|f| {
+                ModelError::Config(format!(
+                    "bf16 weights on {unit} need {f}, which this CPU lacks"
+                ))
+            })
+        };
+        if let Some(e) = missing(Bf16Unit::Avx512Bf16) {
+            return Err(e);
+        }
+        match self.bf16_unit {
+            Some(Bf16Unit::Avx512Bf16) => Ok(Some(Bf16Unit::Avx512Bf16)),
+            Some(Bf16Unit::Amx) => {
+                if let Some(e) = missing(Bf16Unit::Amx) {
+                    return Err(e);
+                }
+                amx_permission()
+                    .map(|()| Some(Bf16Unit::Amx))
+                    .map_err(|e| ModelError::Config(format!("cannot use AMX: {e}")))
+            }
+            None => Ok(Some(match amx_permission() {
+                Ok(()) => Bf16Unit::Amx,
+                Err(_) => Bf16Unit::Avx512Bf16,
+            })),
+        }
+    }
+}
+
+/// Whether this process may use AMX tiles (asked of the OS once).
+fn amx_permission() -> Result<(), String> {
+    #[cfg(target_arch = "x86_64")]
+    return kernel::amx::permission();
+    #[cfg(not(target_arch = "x86_64"))]
+    Err("AMX needs x86-64".into())
 }
 
 /// A dedicated rayon pool for `threads > 1` (None: run on the caller).

@@ -10,11 +10,16 @@
 //! pre-activations. The forward and backward directions are independent
 //! until the final concatenation, so with two threads each runs on its own
 //! core without any synchronization per frame.
+//!
+//! With [`crate::fast::Precision::Bf16`] the recurrent panels are bf16 and
+//! each frame's state is rounded to bf16 for the product, which runs on
+//! `vdpbf16ps` (one row: an AMX tile would be 1/16 used); the input
+//! projection stays the f32 GEMM.
 
 use super::kernel::{self, TileArgs};
 use super::linalg::matmul;
 use super::pack::{PackedEmbed, PackedGru, PackedHead, LANES, PANELS};
-use super::{build_pool, check_finite, EngineOptions, Isa};
+use super::{build_pool, check_finite, Bf16Unit, EngineOptions, Isa};
 use crate::names::{GruNames, EMBED_BIAS, EMBED_WEIGHT, FC_WEIGHT};
 use crate::{
     LoadedWeights, ModelError, ModelKind, EMBED_DIM, GATES, HIDDEN, INPUT_DIM, OUTPUT_DIM,
@@ -26,6 +31,8 @@ const CHUNK: usize = 256;
 /// The fast offline (bidirectional GRU) model.
 pub struct OfflineBiGruEngine {
     isa: Isa,
+    /// Whether the recurrent panels are bf16 (run on `vdpbf16ps`).
+    bf16: bool,
     threads: usize,
     pool: Option<rayon::ThreadPool>,
     embed: PackedEmbed,
@@ -69,6 +76,7 @@ impl OfflineBiGruEngine {
     pub fn with_options(weights: &LoadedWeights, opts: EngineOptions) -> Result<Self, ModelError> {
         crate::expect_kind(ModelKind::BiGru, weights.kind())?;
         let isa = opts.resolved_isa()?;
+        let bf16 = opts.resolved_bf16(isa)?.is_some();
         let threads = opts.threads;
         let names = GruNames::for_kind(ModelKind::BiGru);
         let mut proj = [Vec::new(), Vec::new()];
@@ -97,6 +105,7 @@ impl OfflineBiGruEngine {
             .map_err(|_| ModelError::Config("expected two GRU directions".into()))?;
         Ok(Self {
             isa,
+            bf16,
             threads: threads.max(1),
             pool: build_pool(threads, "blapose-offline")?,
             embed: PackedEmbed::new(&weights.values(EMBED_WEIGHT)?, &weights.values(EMBED_BIAS)?),
@@ -177,6 +186,7 @@ impl OfflineBiGruEngine {
         let mut pre = vec![0.0; CHUNK * GATES];
         let mut h = vec![0.0f32; HIDDEN];
         let mut h_next = vec![0.0f32; HIDDEN];
+        let mut h16 = vec![0u16; if self.bf16 { HIDDEN } else { 0 }];
         let chunks = steps.div_ceil(CHUNK);
         let mut reverse = false;
         for c in 0..chunks {
@@ -202,6 +212,11 @@ impl OfflineBiGruEngine {
                 let t = if d == 0 { s } else { n - 1 - s };
                 let pre_t = &pre[t * GATES..(t + 1) * GATES];
                 reverse = !reverse;
+                #[cfg(target_arch = "x86_64")]
+                if self.bf16 {
+                    // SAFETY: `resolved_bf16` confirmed AVX512-BF16.
+                    unsafe { kernel::bf16::pack_rows(1, 0, |_| &[][..], |_| &h[..], &mut h16) };
+                }
                 let mut run_panel = |p: usize| {
                     let args = TileArgs {
                         w: gru.panel_ptr(p),
@@ -227,7 +242,15 @@ impl OfflineBiGruEngine {
                     // 1536 pre-activations of this frame, `out`
                     // has 16 floats from `p * 16`; the panel holds
                     // `512 * 48` aligned floats (k_in = 0); no output layer.
-                    unsafe { kernel::run(self.isa, 1, &args) };
+                    // bf16: the panel is a paired bf16 one, `h16` the 512
+                    // bf16 inputs of the one row, AVX512-BF16 confirmed.
+                    unsafe {
+                        if self.bf16 {
+                            kernel::run_bf16(Bf16Unit::Avx512Bf16, 1, &args, h16.as_ptr(), HIDDEN);
+                        } else {
+                            kernel::run(self.isa, 1, &args);
+                        }
+                    }
                 };
                 if reverse {
                     (0..PANELS).rev().for_each(&mut run_panel);

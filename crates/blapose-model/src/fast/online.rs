@@ -27,6 +27,10 @@
 //!    everything is finite are the states copied over the caller's and the
 //!    outputs written.
 //!
+//! With [`Precision::Bf16`] step 2 packs each GRU's inputs row-major in
+//! bf16 instead and step 3 runs the bf16 kernels (`kernel::run_bf16`: AMX
+//! tiles, 16 rows per block, or `vdpbf16ps`); everything else is shared.
+//!
 //! At batch 1 the step is bound by streaming the 9.4 MB of f32 weights from
 //! L3, so the panel order alternates between calls: the panels used last
 //! in one call are used first in the next, while they are still in L2.
@@ -38,8 +42,8 @@
 use std::ops::Range;
 
 use super::kernel::{self, TileArgs, BLOCK_ACC, BLOCK_WBUF};
-use super::pack::{AlignedBuf, PackedEmbed, PackedGru, PackedHead, LANES, PANELS};
-use super::{build_pool, check_finite, EngineOptions, Isa, Precision};
+use super::pack::{AlignedBuf, AlignedBuf16, PackedEmbed, PackedGru, PackedHead, LANES, PANELS};
+use super::{build_pool, check_finite, Bf16Unit, EngineOptions, Isa, Precision};
 use crate::names::{GruNames, EMBED_BIAS, EMBED_WEIGHT, FC_WEIGHT};
 use crate::{
     LoadedWeights, ModelError, ModelKind, EMBED_DIM, HIDDEN, INPUT_DIM, OUTPUT_DIM, STATE_DIM,
@@ -51,6 +55,8 @@ const ITEMS: usize = 2 * PANELS;
 /// The fast online (two-GRU) model.
 pub struct OnlineGruEngine {
     isa: Isa,
+    /// The bf16 unit when the weights are bf16.
+    bf16: Option<Bf16Unit>,
     threads: usize,
     pool: Option<rayon::ThreadPool>,
     embed: PackedEmbed,
@@ -62,9 +68,16 @@ impl std::fmt::Debug for OnlineGruEngine {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("OnlineGruEngine")
             .field("isa", &self.isa)
+            .field("bf16", &self.bf16)
             .field("threads", &self.threads)
             .finish_non_exhaustive()
     }
+}
+
+/// Rows of bf16 packed inputs a batch needs per GRU: AMX reads whole
+/// blocks of 16 rows.
+fn bf16_rows(batch: usize) -> usize {
+    batch.next_multiple_of(16)
 }
 
 /// Reusable buffers for [`OnlineGruEngine::step`].
@@ -74,6 +87,9 @@ pub struct StepScratch {
     threads: usize,
     embedded: Vec<f32>,
     packed: Vec<f32>,
+    /// bf16 engines: per GRU, `bf16_rows(batch)` rows of 768 bf16 inputs
+    /// (empty until a bf16 engine needs it).
+    packed16: AlignedBuf16,
     new_state: AlignedBuf,
     partial_out: Vec<f32>,
     /// Per thread: the blocked kernel's partial sums (`batch * BLOCK_ACC`).
@@ -93,6 +109,7 @@ impl StepScratch {
             threads,
             embedded: vec![0.0; batch * EMBED_DIM],
             packed: vec![0.0; 2 * batch * (EMBED_DIM + HIDDEN)],
+            packed16: AlignedBuf16::zeros(0),
             new_state: AlignedBuf::zeros(ITEMS * batch * LANES),
             partial_out: vec![0.0; ITEMS * batch * OUTPUT_DIM],
             block_acc: AlignedBuf::zeros(threads * batch * BLOCK_ACC),
@@ -106,11 +123,15 @@ impl StepScratch {
         self.batch
     }
 
-    fn ensure(&mut self, batch: usize, threads: usize) {
+    fn ensure(&mut self, batch: usize, threads: usize, bf16: bool) {
         if batch > self.batch || threads > self.threads {
             let reverse = self.reverse;
             *self = StepScratch::new(batch.max(self.batch), threads.max(self.threads));
             self.reverse = reverse;
+        }
+        let need16 = 2 * bf16_rows(self.batch) * (EMBED_DIM + HIDDEN);
+        if bf16 && self.packed16.as_slice().len() < need16 {
+            self.packed16 = AlignedBuf16::zeros(need16);
         }
     }
 }
@@ -158,6 +179,8 @@ struct StepCtx<'a> {
     batch: usize,
     /// Per GRU: the kernel's packed inputs, `batch * 768` floats.
     packed: [&'a [f32]; 2],
+    /// bf16 engines, per GRU: `bf16_rows(batch)` rows of 768 bf16 inputs.
+    packed16: [&'a [u16]; 2],
     hidden: &'a [f32],
     reverse: bool,
 }
@@ -184,6 +207,7 @@ impl OnlineGruEngine {
     pub fn with_options(weights: &LoadedWeights, opts: EngineOptions) -> Result<Self, ModelError> {
         crate::expect_kind(ModelKind::Gru, weights.kind())?;
         let isa = opts.resolved_isa()?;
+        let bf16 = opts.resolved_bf16(isa)?;
         let threads = opts.threads;
         let pack = |n: &GruNames| -> Result<PackedGru, ModelError> {
             Ok(PackedGru::new(
@@ -196,6 +220,7 @@ impl OnlineGruEngine {
         let [na, nb] = GruNames::for_kind(ModelKind::Gru);
         Ok(Self {
             isa,
+            bf16,
             threads: threads.max(1),
             pool: build_pool(threads, "blapose-online")?,
             embed: PackedEmbed::new(&weights.values(EMBED_WEIGHT)?, &weights.values(EMBED_BIAS)?),
@@ -211,11 +236,13 @@ impl OnlineGruEngine {
 
     /// The storage precision of the GRU weights.
     pub fn precision(&self) -> Precision {
-        if self.grus[0].is_half() {
-            Precision::F16
-        } else {
-            Precision::F32
-        }
+        self.grus[0].precision()
+    }
+
+    /// The bf16 unit the products run on (`None` unless the precision is
+    /// [`Precision::Bf16`]).
+    pub fn bf16_unit(&self) -> Option<Bf16Unit> {
+        self.bf16
     }
 
     /// Worker threads per step.
@@ -232,7 +259,9 @@ impl OnlineGruEngine {
 
     /// Scratch sized for batches up to `max_batch` on this engine.
     pub fn scratch(&self, max_batch: usize) -> StepScratch {
-        StepScratch::new(max_batch, self.threads)
+        let mut scratch = StepScratch::new(max_batch, self.threads);
+        scratch.ensure(max_batch.max(1), self.threads, self.bf16.is_some());
+        scratch
     }
 
     /// Advance `B = inputs.len() / 34` sessions by one frame.
@@ -269,7 +298,7 @@ impl OnlineGruEngine {
             }
         }
         check_finite(inputs, INPUT_DIM)?;
-        scratch.ensure(batch, self.threads);
+        scratch.ensure(batch, self.threads, self.bf16.is_some());
         scratch.reverse = !scratch.reverse;
         // One pool entry per step: inside it the phases fork with
         // `rayon::join`, which allocates nothing (each `install` from outside
@@ -300,24 +329,53 @@ impl OnlineGruEngine {
 
         let k_total = EMBED_DIM + HIDDEN;
         let embedded = &scratch.embedded[..batch * EMBED_DIM];
-        let (packed_a, packed_b) =
-            scratch.packed[..2 * batch * k_total].split_at_mut(batch * k_total);
-        let pack = |g: usize, packed: &mut [f32]| {
-            kernel::pack_rows(
-                self.isa,
-                batch,
-                EMBED_DIM,
-                |b| &embedded[b * EMBED_DIM..(b + 1) * EMBED_DIM],
-                |b| &hidden[b * STATE_DIM + g * HIDDEN..b * STATE_DIM + (g + 1) * HIDDEN],
-                packed,
-            );
-        };
-        self.per_gru(|| pack(0, packed_a), || pack(1, packed_b));
+        let rows16 = bf16_rows(batch);
+        if self.bf16.is_some() {
+            let (packed_a, packed_b) = scratch.packed16.as_mut_slice()[..2 * rows16 * k_total]
+                .split_at_mut(rows16 * k_total);
+            let pack = |g: usize, packed: &mut [u16]| {
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: the engine holds a bf16 unit only after
+                // `resolved_bf16` confirmed AVX512-BF16.
+                unsafe {
+                    kernel::bf16::pack_rows(
+                        batch,
+                        EMBED_DIM,
+                        |b| &embedded[b * EMBED_DIM..(b + 1) * EMBED_DIM],
+                        |b| &hidden[b * STATE_DIM + g * HIDDEN..b * STATE_DIM + (g + 1) * HIDDEN],
+                        packed,
+                    );
+                }
+                #[cfg(not(target_arch = "x86_64"))]
+                let _ = (g, packed);
+            };
+            self.per_gru(|| pack(0, packed_a), || pack(1, packed_b));
+        } else {
+            let (packed_a, packed_b) =
+                scratch.packed[..2 * batch * k_total].split_at_mut(batch * k_total);
+            let pack = |g: usize, packed: &mut [f32]| {
+                kernel::pack_rows(
+                    self.isa,
+                    batch,
+                    EMBED_DIM,
+                    |b| &embedded[b * EMBED_DIM..(b + 1) * EMBED_DIM],
+                    |b| &hidden[b * STATE_DIM + g * HIDDEN..b * STATE_DIM + (g + 1) * HIDDEN],
+                    packed,
+                );
+            };
+            self.per_gru(|| pack(0, packed_a), || pack(1, packed_b));
+        }
 
         let (packed_a, packed_b) = scratch.packed[..2 * batch * k_total].split_at(batch * k_total);
+        let packed16 = if self.bf16.is_some() {
+            scratch.packed16.as_slice()[..2 * rows16 * k_total].split_at(rows16 * k_total)
+        } else {
+            (&[][..], &[][..])
+        };
         let ctx = StepCtx {
             batch,
             packed: [packed_a, packed_b],
+            packed16: [packed16.0, packed16.1],
             hidden,
             reverse: scratch.reverse,
         };
@@ -414,6 +472,13 @@ impl OnlineGruEngine {
             .packed
             .iter()
             .all(|p| p.len() == batch * (EMBED_DIM + HIDDEN)));
+        assert!(
+            self.bf16.is_none()
+                || ctx
+                    .packed16
+                    .iter()
+                    .all(|p| p.len() == bf16_rows(batch) * (EMBED_DIM + HIDDEN))
+        );
         assert_eq!(ctx.hidden.len(), batch * STATE_DIM);
         let first = items.start;
         let mut run_item = |i: usize| {
@@ -450,8 +515,22 @@ impl OnlineGruEngine {
             // output weights come from the packers with their full sizes and
             // 64-byte alignment; `self.isa` was checked at construction;
             // k_in = 256 is a multiple of the block size; `acc` and `wbuf`
-            // are this thread's aligned blocked-kernel buffers.
-            unsafe { kernel::run_blocked(self.isa, batch, &args, acc, wbuf) };
+            // are this thread's aligned blocked-kernel buffers. bf16: the
+            // panel is a paired bf16 one (the engine's precision),
+            // `packed16[g]` holds `bf16_rows(batch)` rows of 768 bf16 inputs
+            // (checked above) and the unit was confirmed at construction.
+            unsafe {
+                match self.bf16 {
+                    Some(unit) => kernel::run_bf16(
+                        unit,
+                        batch,
+                        &args,
+                        ctx.packed16[g].as_ptr(),
+                        EMBED_DIM + HIDDEN,
+                    ),
+                    None => kernel::run_blocked(self.isa, batch, &args, acc, wbuf),
+                }
+            };
         };
         if ctx.reverse {
             items.rev().for_each(&mut run_item);

@@ -13,7 +13,10 @@ use blapose_core::pose::flip_bone_lengths;
 use blapose_core::skeleton::NUM_BONES;
 use blapose_core::BoneLengths;
 use blapose_model::input::ModelInput;
-use blapose_model::{LoadedWeights, OfflineBiGruEngine, OnlineGruEngine, RunningMean, STATE_DIM};
+use blapose_model::{
+    EngineOptions, LoadedWeights, OfflineBiGruEngine, OnlineGruEngine, Precision, RunningMean,
+    STATE_DIM,
+};
 use rayon::prelude::*;
 
 use super::{Estimate, LengthEstimator, CURVE_FRAMES};
@@ -24,6 +27,14 @@ use crate::synth::FRAME_DIM;
 /// Streams stepped together by the online evaluation.
 const ONLINE_GROUP: usize = 32;
 
+/// One evaluation thread's engine options at `precision`.
+fn engine_options(precision: Precision) -> EngineOptions {
+    EngineOptions {
+        precision,
+        ..EngineOptions::threads(1)
+    }
+}
+
 /// The offline Bi-GRU over whole sequences.
 pub struct BiGruEstimator {
     engine: OfflineBiGruEngine,
@@ -32,8 +43,14 @@ pub struct BiGruEstimator {
 impl BiGruEstimator {
     /// From Bi-GRU weights.
     pub fn new(weights: &LoadedWeights) -> Result<Self, TrainError> {
+        Self::with_precision(weights, Precision::F32)
+    }
+
+    /// From Bi-GRU weights stored at `precision` in the engine (to score a
+    /// serving precision against f32).
+    pub fn with_precision(weights: &LoadedWeights, precision: Precision) -> Result<Self, TrainError> {
         Ok(Self {
-            engine: OfflineBiGruEngine::new(weights, 1)?,
+            engine: OfflineBiGruEngine::with_options(weights, engine_options(precision))?,
         })
     }
 }
@@ -132,8 +149,14 @@ pub struct GruEstimator {
 impl GruEstimator {
     /// From GRU weights.
     pub fn new(weights: &LoadedWeights) -> Result<Self, TrainError> {
+        Self::with_precision(weights, Precision::F32)
+    }
+
+    /// From GRU weights stored at `precision` in the engine (to score a
+    /// serving precision against f32).
+    pub fn with_precision(weights: &LoadedWeights, precision: Precision) -> Result<Self, TrainError> {
         Ok(Self {
-            engine: OnlineGruEngine::new(weights, 1)?,
+            engine: OnlineGruEngine::with_options(weights, engine_options(precision))?,
             state_frames: None,
         })
     }

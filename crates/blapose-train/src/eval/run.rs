@@ -21,6 +21,7 @@ use std::path::{Path, PathBuf};
 use blapose_core::camera::Camera;
 use blapose_core::BoneLengths;
 use blapose_data::h36m::{H36m, Parts, ALL_SUBJECTS, TRAIN_SUBJECTS};
+use blapose_model::Precision;
 use blapose_model::{LoadedWeights, ModelKind};
 use serde::Serialize;
 
@@ -73,6 +74,10 @@ pub struct EvalRunArgs {
     /// Data root (default: $BLAPOSE_DATA or ../shared/data).
     #[arg(long)]
     pub data: Option<PathBuf>,
+    /// Storage precision of the fast engines' GRU weights (f32, f16 or
+    /// bf16), to score a serving precision against f32.
+    #[arg(long, default_value = "f32")]
+    pub precision: Precision,
 }
 
 /// What a run reads besides its trials: the data, the true lengths and
@@ -211,14 +216,16 @@ impl EvalData {
 }
 
 /// The protocol's estimator of a network of `kind`: the offline Bi-GRU
-/// over whole trials, or the online GRU's running mean.
+/// over whole trials, or the online GRU's running mean, its weights stored
+/// at `precision` in the engine.
 pub fn network_estimator(
     kind: ModelKind,
     weights: &LoadedWeights,
+    precision: Precision,
 ) -> Result<Box<dyn LengthEstimator>, TrainError> {
     Ok(match kind {
-        ModelKind::BiGru => Box::new(BiGruEstimator::new(weights)?),
-        ModelKind::Gru => Box::new(GruEstimator::new(weights)?),
+        ModelKind::BiGru => Box::new(BiGruEstimator::with_precision(weights, precision)?),
+        ModelKind::Gru => Box::new(GruEstimator::with_precision(weights, precision)?),
     })
 }
 

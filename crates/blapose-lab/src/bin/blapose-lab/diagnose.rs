@@ -111,9 +111,12 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
     let score = |trials| {
         let estimator: Box<dyn LengthEstimator> = match kind {
             ModelKind::Gru => {
-                Box::new(GruEstimator::new(&weights)?.with_state_frames(a.state_frames))
+                Box::new(
+                    GruEstimator::with_precision(&weights, a.run.precision)?
+                        .with_state_frames(a.state_frames),
+                )
             }
-            ModelKind::BiGru => network_estimator(kind, &weights)?,
+            ModelKind::BiGru => network_estimator(kind, &weights, a.run.precision)?,
         };
         data.score(kind, estimator, &weights, weights_path, trials)
     };

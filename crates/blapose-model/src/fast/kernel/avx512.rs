@@ -231,7 +231,11 @@ tile1_fn!(tile1_h, ld_f16, u16);
 /// input part of `n`.
 #[inline]
 #[target_feature(enable = "avx512f,avx2,fma")]
-unsafe fn epilogue<const BT: usize>(a: &TileArgs, acc: &[[__m512; 3]; BT], ni: &[__m512; BT]) {
+pub(crate) unsafe fn epilogue<const BT: usize>(
+    a: &TileArgs,
+    acc: &[[__m512; 3]; BT],
+    ni: &[__m512; BT],
+) {
     let b_r = _mm512_loadu_ps(a.bias);
     let b_z = _mm512_loadu_ps(a.bias.add(LANES));
     let b_ni = _mm512_loadu_ps(a.bias.add(2 * LANES));

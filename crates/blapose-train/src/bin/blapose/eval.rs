@@ -41,7 +41,7 @@ pub fn run(a: EvalArgs) -> Result<()> {
     );
     let kind = ModelKind::from(a.model);
     let weights = blapose_model::weights::load(&a.weights, kind)?;
-    let estimator = network_estimator(kind, &weights)?;
+    let estimator = network_estimator(kind, &weights, a.run.precision)?;
     let report = data.score(kind, estimator, &weights, &a.weights, trials)?;
     println!("{}", markdown(&report));
     println!("{}", model_pass(&report));
