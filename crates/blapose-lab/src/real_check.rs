@@ -21,10 +21,10 @@
 //! lengths sum to the subject's true summed length), which reads the truth
 //! and so scores the regression's proportions alone.
 
-use blapose_model::Precision;
 use blapose_core::camera::Camera;
 use blapose_core::BoneLengths;
 use blapose_model::stature::StatureLines;
+use blapose_model::Precision;
 use serde::Serialize;
 
 use blapose_train::dataset::EvalSequence;

@@ -7,9 +7,9 @@
 //! built once, read by every row); what the rows make of them is
 //! [`super::run`]'s.
 
-use blapose_model::Precision;
 use blapose_core::{BoneLengths, Keypoints2d, Pose};
 use blapose_model::input::{ModelInput, ViewCalibration};
+use blapose_model::Precision;
 use blapose_train::ansur_split::Person;
 use blapose_train::camera_range::{draw_camera_seeing, DrawnCamera};
 use blapose_train::dataset::EvalSequence;

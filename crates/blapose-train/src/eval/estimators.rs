@@ -48,7 +48,10 @@ impl BiGruEstimator {
 
     /// From Bi-GRU weights stored at `precision` in the engine (to score a
     /// serving precision against f32).
-    pub fn with_precision(weights: &LoadedWeights, precision: Precision) -> Result<Self, TrainError> {
+    pub fn with_precision(
+        weights: &LoadedWeights,
+        precision: Precision,
+    ) -> Result<Self, TrainError> {
         Ok(Self {
             engine: OfflineBiGruEngine::with_options(weights, engine_options(precision))?,
         })
@@ -154,7 +157,10 @@ impl GruEstimator {
 
     /// From GRU weights stored at `precision` in the engine (to score a
     /// serving precision against f32).
-    pub fn with_precision(weights: &LoadedWeights, precision: Precision) -> Result<Self, TrainError> {
+    pub fn with_precision(
+        weights: &LoadedWeights,
+        precision: Precision,
+    ) -> Result<Self, TrainError> {
         Ok(Self {
             engine: OnlineGruEngine::with_options(weights, engine_options(precision))?,
             state_frames: None,

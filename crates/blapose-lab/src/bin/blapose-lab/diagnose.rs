@@ -110,12 +110,10 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
     let weights = blapose_model::weights::load(weights_path, kind)?;
     let score = |trials| {
         let estimator: Box<dyn LengthEstimator> = match kind {
-            ModelKind::Gru => {
-                Box::new(
-                    GruEstimator::with_precision(&weights, a.run.precision)?
-                        .with_state_frames(a.state_frames),
-                )
-            }
+            ModelKind::Gru => Box::new(
+                GruEstimator::with_precision(&weights, a.run.precision)?
+                    .with_state_frames(a.state_frames),
+            ),
             ModelKind::BiGru => network_estimator(kind, &weights, a.run.precision)?,
         };
         data.score(kind, estimator, &weights, weights_path, trials)
