@@ -282,10 +282,9 @@ fn the_strategies_reach_prepare_and_answer() {
 /// principal point is f32::MAX pixels (finite, so accepted) without a
 /// camera height passes validation for the contracts that do not scale to
 /// the floor, and preparation then feeds non-finite inputs to the model.
-/// Validation should refuse such a principal point (INVALID_ARGUMENT
-/// naming camera.principal_y) as it refuses non-finite ones.
+/// Validation now refuses a principal point beyond any image
+/// (`blapose_core::level::MAX_PRINCIPAL_ABS`) as it refuses non-finite ones.
 #[test]
-#[ignore = "server bug: validate::camera accepts a principal point of f32::MAX and prepare::sequence then yields non-finite model inputs (server/src/validate.rs owner)"]
 fn regression_huge_principal_point_prepares_finite_inputs_or_is_refused() {
     let req = pb::AdjustSequenceRequest {
         input_format: Some(pb::InputFormat {

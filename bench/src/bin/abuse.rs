@@ -12,11 +12,10 @@
 //! Every case that has a victim measures a *healthy client*: its own
 //! connection and session, one frame at a time, its round trips timed
 //! alone (the baseline) and again while the abuse runs; its p99 must stay
-//! within 2x of the baseline's (with a 2 ms floor: loopback round trips are
-//! a fraction of a millisecond, and scheduler noise on a small machine is
-//! not what this checks) in one of up to three measurements (a busy
-//! two-core machine puts a 4-5 ms p99 into some runs with or without
-//! abuse). The server's resident memory (VmRSS from /proc)
+//! within 2x of the baseline's, with a 5 ms floor (loopback round trips
+//! are a fraction of a millisecond, and a busy two-core machine puts a 4-5
+//! ms p99 into runs with or without abuse: server/README.md), in one of up
+//! to three measurements. The server's resident memory (VmRSS from /proc)
 //! must grow at most 64 MB during one connection's abuse.
 //!
 //! - `streams`: one HTTP/2 connection opens many streams, each a session;
@@ -278,6 +277,11 @@ fn rss(pid: u32) -> Result<u64> {
 const MAX_RSS_GROWTH: u64 = 64 << 20;
 const HEALTHY_FRAMES: usize = 300;
 
+/// The least p99 bound: server/README.md measured a 4-5 ms p99 on the
+/// two-core VM with and without abuse (its cores shared by server, abuser
+/// and client), so a bound below it checks the scheduler, not the server.
+const P99_FLOOR: Duration = Duration::from_millis(5);
+
 /// Measurements of the healthy client under abuse: the p99 may be off in
 /// one of them on a busy two-core machine (server/README.md: p99 of 4-5 ms
 /// with and without abuse there), so up to this many are taken.
@@ -287,7 +291,7 @@ const TRIES: usize = 3;
 /// bound (at most [`TRIES`] times); the check of the best measurement.
 async fn check_latency(url: &str, header: Option<&str>, baseline: &[Duration]) -> Result<()> {
     let base = p99(baseline);
-    let bound = (2 * base).max(Duration::from_millis(2));
+    let bound = (2 * base).max(P99_FLOOR);
     let ms = |d: Duration| d.as_secs_f64() * 1e3;
     let mut seen = Vec::new();
     for _ in 0..TRIES {

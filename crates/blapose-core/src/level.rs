@@ -208,6 +208,14 @@ pub enum CalibrationError {
         /// The focal lengths given.
         focal: [f64; 2],
     },
+    /// The principal point lies beyond any image (more than
+    /// [`MAX_PRINCIPAL_ABS`] from the origin): rectifying through it
+    /// leaves the finite numbers.
+    #[error("the principal point {principal:?} is beyond any image (at most {MAX_PRINCIPAL_ABS} from the origin)")]
+    PrincipalOutOfRange {
+        /// The principal point given.
+        principal: [f64; 2],
+    },
     /// The image size has a zero side.
     #[error("image size must be positive, got {width}x{height}")]
     InvalidImageSize {
@@ -265,8 +273,15 @@ pub fn check_calibration(
     if dot(&up, &up).sqrt() <= MIN_UP_NORM {
         return Err(CalibrationError::ZeroUp { up });
     }
+    if principal.iter().any(|p| p.abs() > MAX_PRINCIPAL_ABS) {
+        return Err(CalibrationError::PrincipalOutOfRange { principal });
+    }
     Ok(())
 }
+
+/// Largest magnitude of a principal point coordinate (pixels or normalized
+/// units): the bound the protocol puts on keypoint values.
+pub const MAX_PRINCIPAL_ABS: f64 = 1e6;
 
 /// Check a calibration's image size: both sides positive.
 pub fn check_image_size(width: u32, height: u32) -> Result<(), CalibrationError> {

@@ -63,6 +63,9 @@ pub enum CameraError {
     /// A focal length is not positive.
     #[error("focal lengths must be > 0, got {0:?}")]
     Focal([f32; 2]),
+    /// The principal point lies beyond any image.
+    #[error("principal point {0:?} is beyond any image (at most {max} from the origin)", max = blapose_core::level::MAX_PRINCIPAL_ABS)]
+    Principal([f32; 2]),
     /// The height is outside [`MIN_CAMERA_HEIGHT`]..=[`MAX_CAMERA_HEIGHT`].
     #[error("height {0} m is not a camera height of {MIN_CAMERA_HEIGHT} to {MAX_CAMERA_HEIGHT} m (leave it out when unknown)")]
     Height(f32),
@@ -101,6 +104,7 @@ impl CameraError {
         match self {
             CameraError::NonFinite { field } => field,
             CameraError::ZeroUp(_) => "up",
+            CameraError::Principal(_) => "principal",
             CameraError::Focal(_) => "focal",
             CameraError::Height(_) => "height",
             CameraError::Distortion(_) => "distortion",
@@ -117,6 +121,9 @@ impl CameraError {
             CalibrationError::NonFinite { field } => CameraError::NonFinite { field },
             CalibrationError::ZeroUp { .. } => CameraError::ZeroUp(calibration.up),
             CalibrationError::InvalidFocal { .. } => CameraError::Focal(calibration.focal),
+            CalibrationError::PrincipalOutOfRange { .. } => {
+                CameraError::Principal(calibration.principal)
+            }
             CalibrationError::InvalidImageSize { width, height } => {
                 CameraError::ImageSize { width, height }
             }
