@@ -138,10 +138,13 @@ def test_request_token_and_resume_elsewhere(start_server, seq) -> None:
             assert r.info.resumed and r.info.frames_seen == 13 and r.affinity == affinity
             nxt = r.send(seq.keypoints_2d[13], seq.pose_3d[13])
             assert nxt.frame_index == 13 and nxt.frames_seen == 14
-        # Raw bytes work too (from the token as of frame 13, on B where it is closed now).
-        with cb.resume(sid, token=token.token) as r2:
+        # Closing a session ends its tokens where it lived: B, which closed it, refuses the token.
+        with pytest.raises(blapose.FailedPrecondition, match="closed"):
+            cb.resume(sid, token=token)
+        # Raw bytes work too: A still holds the detached session, and a resume with a token
+        # continues from the token's state (frame 13).
+        with ca.resume(sid, token=token.token, affinity=affinity) as r2:
             assert r2.info.frames_seen == 13
-        ca.close_session(sid, affinity=affinity)
     assert [r.frames_seen for r in first] == list(range(1, 14))
 
 

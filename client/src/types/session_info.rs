@@ -132,19 +132,9 @@ impl SessionSummary {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::types::wire::tests::calibration;
     use crate::types::wire::ToProto;
     use blapose_core::layouts::KeypointLayout;
-
-    fn calibration() -> CameraCalibration {
-        CameraCalibration {
-            up: [0.01, -0.98, 0.2],
-            focal: [1145.5, 1146.25],
-            principal: [512.5, 515.0],
-            image_size: Some((1000, 1002)),
-            height: Some(1.75),
-            distortion: None,
-        }
-    }
 
     #[test]
     fn session_info_carries_the_camera_family() {

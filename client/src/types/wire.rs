@@ -159,7 +159,7 @@ pub(crate) fn optional_lengths(values: &[f32]) -> Result<Option<BoneLengths>, Cl
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use blapose_core::layouts::KeypointLayout;
     use blapose_core::{Sex, NUM_JOINTS};
@@ -215,7 +215,8 @@ mod tests {
         assert!(keypoints_only.to_proto().pose_3d.is_empty());
     }
 
-    fn calibration() -> CameraCalibration {
+    /// A calibration every test of the client's types shares.
+    pub(crate) fn calibration() -> CameraCalibration {
         CameraCalibration {
             up: [0.01, -0.98, 0.2],
             focal: [1145.5, 1146.25],
