@@ -242,9 +242,37 @@ impl Client {
     {
         let after = self.config.request_timeout;
         match tokio::time::timeout(after, fut).await {
-            Ok(r) => Ok(r?.into_inner()),
+            Ok(Ok(r)) => Ok(r.into_inner()),
+            Ok(Err(status)) => Err(self.explain_transport_error(status).await),
             Err(_) => Err(ClientError::Timeout { what, after }),
         }
+    }
+
+    /// A plaintext call whose connection failed: when the port speaks TLS,
+    /// say so. The server's GOAWAY says it too, but the connection's close
+    /// can reach the client first, so the port is asked directly
+    /// ([`blapose_tls::probe`], a connection of its own).
+    async fn explain_transport_error(&self, status: tonic::Status) -> ClientError {
+        let plaintext =
+            self.config.endpoint.starts_with("http://") && self.config.tls.ca_cert_pem.is_none();
+        let transport = matches!(
+            status.code(),
+            tonic::Code::Unavailable | tonic::Code::Cancelled | tonic::Code::Unknown
+        ) && !status.message().contains("speaks TLS");
+        if plaintext && transport {
+            if let Ok(uri) = self.config.endpoint.parse::<tonic::codegen::http::Uri>() {
+                if let (Some(host), Some(port)) = (uri.host(), uri.port_u16()) {
+                    if blapose_tls::probe(host, port).await == blapose_tls::Speaks::Tls {
+                        return ClientError::Status(tonic::Status::unavailable(format!(
+                            "the server at {host}:{port} speaks TLS: connect with https:// and \
+                             --tls-ca ({})",
+                            status.message()
+                        )));
+                    }
+                }
+            }
+        }
+        ClientError::Status(status)
     }
 
     /// What the server runs (models, layouts, limits).
