@@ -22,6 +22,7 @@ pub mod level;
 pub mod metrics;
 pub mod missing;
 pub mod model_kind;
+pub mod motion;
 pub mod person;
 pub mod pose;
 pub mod skeleton;

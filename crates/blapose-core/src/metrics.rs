@@ -234,6 +234,40 @@ pub fn mpjve(pred: &[Pose], gt: &[Pose]) -> Result<f64, MetricError> {
     Ok(sum / ((pred.len() - 1) * NUM_JOINTS) as f64)
 }
 
+/// Acceleration error: mean over frames `1..T-1` and joints of
+/// `|(pred[t+1] - 2 pred[t] + pred[t-1]) - (gt[t+1] - 2 gt[t] + gt[t-1])|`
+/// (input units per frame²). Needs three frames.
+pub fn accel_error(pred: &[Pose], gt: &[Pose]) -> Result<f64, MetricError> {
+    check_pair(pred, gt, 3)?;
+    let mut sum = 0.0;
+    for t in 1..pred.len() - 1 {
+        for j in 0..NUM_JOINTS {
+            let d: [f64; 3] = std::array::from_fn(|i| {
+                let a = |s: &[Pose]| {
+                    s[t + 1][j][i] as f64 - 2.0 * s[t][j][i] as f64 + s[t - 1][j][i] as f64
+                };
+                a(pred) - a(gt)
+            });
+            sum += (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        }
+    }
+    Ok(sum / ((pred.len() - 2) * NUM_JOINTS) as f64)
+}
+
+/// Mean root position error (MRPE): the mean distance between predicted
+/// and true root positions (input units).
+pub fn mrpe(pred: &[[f64; 3]], gt: &[[f64; 3]]) -> Result<f64, MetricError> {
+    check_pair(pred, gt, 1)?;
+    let sum: f64 = pred
+        .iter()
+        .zip(gt)
+        .map(|(p, g)| {
+            ((p[0] - g[0]).powi(2) + (p[1] - g[1]).powi(2) + (p[2] - g[2]).powi(2)).sqrt()
+        })
+        .sum();
+    Ok(sum / pred.len() as f64)
+}
+
 /// Mean absolute bone-length error, per bone and overall (input units).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct BoneLengthError {

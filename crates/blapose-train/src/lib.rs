@@ -39,6 +39,7 @@ pub mod fastnet;
 pub mod lengths;
 pub mod lifter;
 pub mod loader;
+pub mod motion_eval;
 pub mod noise;
 pub mod plot;
 pub mod run;

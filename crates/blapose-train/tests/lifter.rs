@@ -389,6 +389,7 @@ fn eval_adjust_fixture_gives_known_numbers() {
             gru: Some(&gru),
             bigru: Some(&bigru),
             training_mean: Some(&training_mean),
+            motion: None,
         },
     )
     .unwrap();

@@ -10,13 +10,15 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Result;
+use blapose_core::motion::{served_causal, served_offline};
 use blapose_data::h36m::{H36m, Parts, TRAIN_SUBJECTS};
 use blapose_model::ModelKind;
 use blapose_train::dataset::{mean_subject_lengths, subject_lengths};
-use blapose_train::eval_adjust::{evaluate_lifter, markdown, LengthEstimates};
+use blapose_train::eval_adjust::{evaluate_lifter, markdown, LengthEstimates, MotionSetup};
 use blapose_train::lifter::data::{lifter_sequences, LifterSequence};
 use blapose_train::lifter::predict::StreamLifter;
 use blapose_train::lifter::weights as lifter_weights;
+use blapose_train::motion_eval::{Scene, H36M_RATE_HZ};
 
 use crate::common::known_subjects;
 
@@ -45,6 +47,10 @@ pub struct EvalAdjustArgs {
     /// Turn test-time flip off.
     #[arg(long)]
     no_flip: bool,
+    /// Skip the motion metrics and methods (acceleration, root placement,
+    /// foot skating; `gru_motion`, `bigru_motion`, `ground_truth_lengths`).
+    #[arg(long)]
+    no_motion: bool,
     /// Data root (default: $BLAPOSE_DATA or ../shared/data).
     #[arg(long)]
     data: Option<PathBuf>,
@@ -68,13 +74,18 @@ pub fn run(a: EvalAdjustArgs) -> Result<()> {
         lifters.insert(name, (p.clone(), l));
     }
     let t0 = Instant::now();
-    let mut trials = {
+    let (trials, scenes) = {
         let h36m = H36m::load(&root, &subjects, Parts::ALL)?;
-        lifter_sequences(&h36m, &subjects)?
+        let mut trials = lifter_sequences(&h36m, &subjects)?;
+        if a.every > 1 {
+            trials = trials.into_iter().step_by(a.every).collect();
+        }
+        let scenes = trials
+            .iter()
+            .map(|t| Scene::build(&h36m, t))
+            .collect::<Result<Vec<_>, _>>()?;
+        (trials, scenes)
     };
-    if a.every > 1 {
-        trials = trials.into_iter().step_by(a.every).collect();
-    }
     anyhow::ensure!(!trials.is_empty(), "no trials for {}", a.subjects.join(","));
     eprintln!(
         "loaded {} trials ({} frames) in {:.1}s",
@@ -105,7 +116,14 @@ pub fn run(a: EvalAdjustArgs) -> Result<()> {
         "bone-length estimates (online GRU running, offline Bi-GRU): {:.1}s",
         t.elapsed().as_secs_f64()
     );
-    let adjusters = estimates.adjusters();
+    let mut adjusters = estimates.adjusters();
+    if !a.no_motion {
+        adjusters.motion = Some(MotionSetup {
+            scenes: &scenes,
+            causal: served_causal(H36M_RATE_HZ),
+            offline: served_offline(H36M_RATE_HZ),
+        });
+    }
     let mut reports = BTreeMap::new();
     for (name, (path, l)) in &lifters {
         let t = Instant::now();
