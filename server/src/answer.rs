@@ -190,17 +190,9 @@ pub fn sequence_response(
     }
 }
 
-/// A whole sequence answered with its subject's lengths (no model runs).
-pub fn subject_sequence(
-    model: ModelKind,
-    poses: &[Pose],
-    subject: &SessionSubject,
-) -> Result<pb::AdjustSequenceResponse, Status> {
-    let adjusted = bones::adjust_sequence(poses, &subject.lengths)
-        .map_err(|e| Status::internal(format!("adjustment failed: {e}")))?;
-    Ok(sequence_response(
-        model,
-        &adjusted,
-        &subject.lengths.repeat(adjusted.len()),
-    ))
+/// A whole sequence's poses rebuilt with its subject's lengths (no model
+/// runs).
+pub fn subject_frames(poses: &[Pose], subject: &SessionSubject) -> Result<Vec<Pose>, Status> {
+    bones::adjust_sequence(poses, &subject.lengths)
+        .map_err(|e| Status::internal(format!("adjustment failed: {e}")))
 }

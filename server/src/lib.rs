@@ -53,6 +53,7 @@ pub mod error;
 mod fakes;
 pub mod metrics;
 pub mod models;
+pub mod motion;
 pub mod offline;
 pub mod prepare;
 pub mod quota;

@@ -4,8 +4,8 @@
 //! whole sequence at once: [`crate::validate`], [`crate::prepare`] (missing
 //! joints held, the frames read through the request's camera as the
 //! camera-aware models' input contract says), the model (the Bi-GRU over
-//! the whole sequence, or the online GRU step by step), and
-//! [`crate::answer`].
+//! the whole sequence, or the online GRU step by step), [`crate::answer`],
+//! and when the request asks for it the offline [`crate::motion`] stage.
 //!
 //! The model runs on tokio's blocking pool, never on an async worker, and at
 //! most `compute_threads` run at once (a semaphore) so offline work cannot
@@ -27,9 +27,19 @@ use crate::answer;
 use crate::backend::{Backend, BackendError, INPUT_DIM, OUTPUT_DIM, STATE_DIM};
 use crate::metrics;
 use crate::models::ModelProvider;
+use crate::motion;
 use crate::prepare::{self, PreparedSequence};
 use crate::session::RunningMean;
 use crate::validate;
+
+/// What the motion stage of a request reads (kept from validation).
+struct MotionInput {
+    rate: f64,
+    spec: crate::session::InputFormat,
+    view: Option<blapose_model::input::ViewCalibration>,
+    keypoints: Vec<f32>,
+    present: Vec<bool>,
+}
 
 /// Result of an offline request.
 #[derive(Debug, Clone, PartialEq)]
@@ -106,21 +116,54 @@ impl OfflineRunner {
         stature: &StatureModel,
     ) -> Result<pb::AdjustSequenceResponse, Status> {
         let contract = self.provider.camera_aware().map(|m| m.model_input());
+        let motion_rate = motion::options(req.motion.as_ref())?;
         let seq = validate::sequence(req, contract.as_ref()).map_err(|e| e.to_status())?;
         let subject = validate::subject(req.subject.as_ref()).map_err(|e| e.to_status())?;
-        if let Some(subject) = subject {
-            // Every frame gets the subject's lengths; no model needs to run.
-            let subject = answer::subject(subject, stature);
-            return answer::subject_sequence(seq.model, &seq.poses, &subject);
+        // What the motion stage reads: the keypoints as validated, before
+        // the model's preparation changes them.
+        let motion_input = match motion_rate {
+            Some(rate) => Some(MotionInput {
+                rate,
+                spec: validate::input_format(req.input_format.as_ref())
+                    .map_err(|e| e.to_status())?,
+                view: seq.camera.as_ref().map(|c| c.view.clone()),
+                keypoints: seq.inputs.clone(),
+                present: seq.present.clone(),
+            }),
+            None => None,
+        };
+        let (model, done) = match subject {
+            Some(subject) => {
+                // Every frame gets the subject's lengths; no model needs to run.
+                let subject = answer::subject(subject, stature);
+                let poses = answer::subject_frames(&seq.poses, &subject)?;
+                let lengths = vec![subject.lengths; poses.len()];
+                (seq.model, AdjustedSequence { poses, lengths })
+            }
+            None => {
+                let seq = prepare::sequence(seq, contract.as_ref()).map_err(|e| e.to_status())?;
+                let model = seq.model;
+                (model, self.adjust(seq).await?)
+            }
+        };
+        let mut response = answer::sequence_response(model, &done.poses, done.lengths.as_flattened());
+        if let Some(input) = motion_input {
+            let moved = tokio::task::spawn_blocking(move || {
+                motion::sequence(
+                    &done.poses,
+                    &done.lengths,
+                    input.rate,
+                    &input.spec,
+                    input.view.as_ref(),
+                    &input.keypoints,
+                    &input.present,
+                )
+            })
+            .await
+            .map_err(|e| Status::internal(format!("motion worker failed: {e}")))??;
+            motion::fill_response(&mut response, &moved);
         }
-        let seq = prepare::sequence(seq, contract.as_ref()).map_err(|e| e.to_status())?;
-        let model = seq.model;
-        let done = self.adjust(seq).await?;
-        Ok(answer::sequence_response(
-            model,
-            &done.poses,
-            done.lengths.as_flattened(),
-        ))
+        Ok(response)
     }
 
     /// Predict lengths for a prepared sequence and adjust its poses.

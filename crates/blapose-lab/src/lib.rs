@@ -16,7 +16,9 @@
 //! - [`diagnose`]: the eval diagnostics (trials joined mid-way, rectified
 //!   without the contract, the online state restarted);
 //!   [`joint_dropout`]: lost joints; [`stature_proxy`]: statures where
-//!   nobody measured one, to score the stature regression on Human3.6M.
+//!   nobody measured one, to score the stature regression on Human3.6M;
+//! - [`motion_sweep`]: every candidate motion filter on the training
+//!   subjects, from which the served ones were chosen.
 
 // Numeric code indexes several parallel buffers with one loop variable,
 // as the training library does.
@@ -26,5 +28,6 @@ pub mod bodies;
 pub mod diagnose;
 pub mod height_fusion;
 pub mod joint_dropout;
+pub mod motion_sweep;
 pub mod real_check;
 pub mod stature_proxy;

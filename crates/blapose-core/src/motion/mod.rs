@@ -116,39 +116,49 @@ pub enum OfflineSmoothing {
     Rts(KalmanParams),
 }
 
-/// The state of one [`CausalSmoothing`] over a fixed set of channels.
+/// One [`CausalSmoothing`] running over a set of channels sampled
+/// together (bone directions, a root, 2D keypoints).
 #[derive(Debug, Clone, PartialEq)]
-enum Bank {
+pub enum ChannelFilter {
+    /// One Euro filters.
+    #[doc(hidden)]
     OneEuro(OneEuroBank),
+    /// Kalman filters.
+    #[doc(hidden)]
     Kalman(KalmanBank),
 }
 
-impl Bank {
-    fn new(smoothing: CausalSmoothing, rate_hz: f64) -> Self {
+impl ChannelFilter {
+    /// Fresh filters at `rate_hz` (they take their channel count from the
+    /// first sample).
+    pub fn new(smoothing: CausalSmoothing, rate_hz: f64) -> Self {
         match smoothing {
-            CausalSmoothing::OneEuro(p) => Bank::OneEuro(OneEuroBank::new(p, rate_hz)),
-            CausalSmoothing::Kalman(p) => Bank::Kalman(KalmanBank::new(p, rate_hz)),
+            CausalSmoothing::OneEuro(p) => ChannelFilter::OneEuro(OneEuroBank::new(p, rate_hz)),
+            CausalSmoothing::Kalman(p) => ChannelFilter::Kalman(KalmanBank::new(p, rate_hz)),
         }
     }
 
-    fn step(&mut self, x: &mut [f64]) {
+    /// Filter one sample of every channel in place.
+    pub fn step(&mut self, x: &mut [f64]) {
         match self {
-            Bank::OneEuro(b) => b.step(x),
-            Bank::Kalman(b) => b.step(x),
+            ChannelFilter::OneEuro(b) => b.step(x),
+            ChannelFilter::Kalman(b) => b.step(x),
         }
     }
 
-    fn state(&self) -> Vec<f64> {
+    /// The state as numbers.
+    pub fn state(&self) -> Vec<f64> {
         match self {
-            Bank::OneEuro(b) => b.state(),
-            Bank::Kalman(b) => b.state(),
+            ChannelFilter::OneEuro(b) => b.state(),
+            ChannelFilter::Kalman(b) => b.state(),
         }
     }
 
-    fn with_state(self, state: &[f64]) -> Option<Self> {
+    /// Continue from [`Self::state`]; `None` when it does not fit.
+    pub fn with_state(self, state: &[f64]) -> Option<Self> {
         Some(match self {
-            Bank::OneEuro(b) => Bank::OneEuro(b.with_state(state)?),
-            Bank::Kalman(b) => Bank::Kalman(b.with_state(state)?),
+            ChannelFilter::OneEuro(b) => ChannelFilter::OneEuro(b.with_state(state)?),
+            ChannelFilter::Kalman(b) => ChannelFilter::Kalman(b.with_state(state)?),
         })
     }
 }
@@ -188,8 +198,8 @@ fn values_as_directions(v: &[f64; DIRECTION_CHANNELS]) -> BoneDirections {
 #[derive(Debug, Clone, PartialEq)]
 pub struct CausalMotion {
     config: CausalMotionConfig,
-    directions: Option<Bank>,
-    root: Option<Bank>,
+    directions: Option<ChannelFilter>,
+    root: Option<ChannelFilter>,
 }
 
 /// A [`CausalMotion`]'s state as numbers, for session tokens.
@@ -206,8 +216,8 @@ impl CausalMotion {
     pub fn new(config: CausalMotionConfig) -> Self {
         Self {
             config,
-            directions: config.directions.map(|s| Bank::new(s, config.rate_hz)),
-            root: config.root.map(|s| Bank::new(s, config.rate_hz)),
+            directions: config.directions.map(|s| ChannelFilter::new(s, config.rate_hz)),
+            root: config.root.map(|s| ChannelFilter::new(s, config.rate_hz)),
         }
     }
 
@@ -269,9 +279,9 @@ impl CausalMotion {
             directions: self
                 .directions
                 .as_ref()
-                .map(Bank::state)
+                .map(ChannelFilter::state)
                 .unwrap_or_default(),
-            root: self.root.as_ref().map(Bank::state).unwrap_or_default(),
+            root: self.root.as_ref().map(ChannelFilter::state).unwrap_or_default(),
         }
     }
 
@@ -279,7 +289,7 @@ impl CausalMotion {
     /// does not fit the settings.
     pub fn restore(config: CausalMotionConfig, state: &MotionState) -> Option<Self> {
         let fresh = Self::new(config);
-        let restore = |bank: Option<Bank>, s: &[f64]| -> Option<Option<Bank>> {
+        let restore = |bank: Option<ChannelFilter>, s: &[f64]| -> Option<Option<ChannelFilter>> {
             match bank {
                 Some(b) => Some(Some(b.with_state(s)?)),
                 None if s.is_empty() => Some(None),

@@ -6,10 +6,13 @@
 //!
 //! - `bodies` ([`bodies`]): the many-bodies cross-camera benchmark;
 //! - `diagnose` ([`diagnose`]): `blapose eval`'s run with the research
-//!   diagnostics around it.
+//!   diagnostics around it;
+//! - `motion` ([`motion`]): the candidate motion filters on training
+//!   subjects.
 
 mod bodies;
 mod diagnose;
+mod motion;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
@@ -39,12 +42,17 @@ enum Command {
     /// joints lost, or the stature regression on each subject's stature
     /// proxy.
     Diagnose(Box<diagnose::DiagnoseArgs>),
+    /// Every candidate motion filter (causal and offline, directions, root,
+    /// feet, 2D before lifting) on held-out training trials, beside the
+    /// baselines: how the served motion stages were chosen.
+    Motion(Box<motion::MotionArgs>),
 }
 
 fn main() -> Result<()> {
     match Cli::parse().command {
         Command::Bodies(args) => bodies::run(*args),
         Command::Diagnose(args) => diagnose::run(*args),
+        Command::Motion(args) => motion::run(*args),
     }
 }
 

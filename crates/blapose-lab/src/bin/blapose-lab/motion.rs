@@ -1,0 +1,201 @@
+//! `blapose-lab motion`: every candidate motion filter on subjects the
+//! choice may be made on ([`blapose_lab::motion_sweep`]), as one markdown
+//! table (and JSON). Why a command of its own: it loads the lifter and
+//! both bone-length models and lifts each trial once for all candidates.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{ensure, Result};
+use blapose_core::motion::CausalMotionConfig;
+use blapose_data::h36m::{H36m, Parts, TEST_SUBJECTS, TRAIN_SUBJECTS};
+use blapose_lab::motion_sweep::{
+    causal_direction_candidates, causal_root_candidates, offline_candidates, prefiltered, root_joint_sets,
+    Row, Sweep,
+};
+use blapose_model::ModelKind;
+use blapose_train::dataset::{mean_subject_lengths, subject_lengths};
+use blapose_train::eval_adjust::{LengthEstimates, MethodReport};
+use blapose_train::lifter::data::{lifter_sequences, LifterSequence};
+use blapose_train::lifter::predict::StreamLifter;
+use blapose_train::lifter::weights as lifter_weights;
+use blapose_train::motion_eval::Scene;
+
+/// Arguments of `blapose-lab motion`.
+#[derive(clap::Args, Debug)]
+pub struct MotionArgs {
+    /// The lifter whose motion is filtered.
+    #[arg(long, default_value = "models/lifter_videopose27_causal.safetensors")]
+    lifter_weights: PathBuf,
+    /// Online GRU weights.
+    #[arg(long, default_value = "models/bone_length_gru.safetensors")]
+    gru_weights: PathBuf,
+    /// Offline Bi-GRU weights.
+    #[arg(long, default_value = "models/bone_length_bigru.safetensors")]
+    bigru_weights: PathBuf,
+    /// Subjects to choose on (training subjects only: S9/S11 are refused).
+    #[arg(long, default_value = "S1,S5,S6,S7,S8", value_delimiter = ',')]
+    subjects: Vec<String>,
+    /// Every k-th trial (the held-out split).
+    #[arg(long, default_value_t = 8)]
+    every: usize,
+    /// Write every row as JSON here.
+    #[arg(long)]
+    json: Option<PathBuf>,
+    /// Data root (default: $BLAPOSE_DATA or ../shared/data).
+    #[arg(long)]
+    data: Option<PathBuf>,
+}
+
+fn line(group: &str, name: &str, m: &MethodReport) -> String {
+    let c = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.2}"));
+    format!(
+        "| {group} | {name} | {:.2} | {:.2} | {} | {} | {} |\n",
+        m.avg.mpjpe_mm,
+        m.avg.mpjve_mm.unwrap_or(f64::NAN),
+        c(m.motion.accel_error_mm),
+        c(m.motion.mrpe_mm),
+        c(m.motion.foot_skate_mm),
+    )
+}
+
+/// `blapose-lab motion`.
+pub fn run(a: MotionArgs) -> Result<()> {
+    for s in &a.subjects {
+        ensure!(
+            TRAIN_SUBJECTS.contains(&s.as_str()),
+            "{s}: choose on training subjects only ({}; never {})",
+            TRAIN_SUBJECTS.join(","),
+            TEST_SUBJECTS.join(",")
+        );
+    }
+    let root = blapose_data::data_root(a.data.clone());
+    let subjects: Vec<&str> = a.subjects.iter().map(String::as_str).collect();
+    let t0 = Instant::now();
+    let (trials, scenes) = {
+        let h36m = H36m::load(&root, &subjects, Parts::ALL)?;
+        let trials: Vec<LifterSequence> =
+            lifter_sequences(&h36m, &subjects)?.into_iter().step_by(a.every.max(1)).collect();
+        let scenes = trials.iter().map(|t| Scene::build(&h36m, t)).collect::<Result<Vec<_>, _>>()?;
+        (trials, scenes)
+    };
+    let training_mean = {
+        let h36m = H36m::load(&root, &TRAIN_SUBJECTS, Parts::POSES)?;
+        mean_subject_lengths(&subject_lengths(&h36m), &TRAIN_SUBJECTS)
+    };
+    let mut estimates = LengthEstimates::compute(
+        &trials,
+        Some(&blapose_model::weights::load(&a.gru_weights, ModelKind::Gru)?),
+        Some(&blapose_model::weights::load(&a.bigru_weights, ModelKind::BiGru)?),
+    )?;
+    estimates.training_mean = training_mean;
+    eprintln!(
+        "{} trials ({} frames), estimates in {:.1}s",
+        trials.len(),
+        trials.iter().map(|t| t.frames()).sum::<usize>(),
+        t0.elapsed().as_secs_f64()
+    );
+    let loaded = lifter_weights::load(&a.lifter_weights)?;
+    let lifter = StreamLifter::new(&loaded)?;
+    let sweep = Sweep {
+        trials: &trials,
+        scenes: &scenes,
+        adjusters: estimates.adjusters(),
+    };
+    let lifted = sweep.lift_all(&|s| lifter.lift(&s.trial, true))?;
+    eprintln!("lifted in {:.1}s", t0.elapsed().as_secs_f64());
+    let (served_causal, served_offline) = Sweep::served();
+    let mut rows: Vec<(String, Row)> = Vec::new();
+    let mut push = |group: &str, name: String, report: Option<MethodReport>| {
+        if let Some(report) = report {
+            rows.push((
+                group.to_string(),
+                Row {
+                    candidate: name,
+                    report,
+                },
+            ));
+        }
+    };
+    // Baselines, and the served stages.
+    let served = sweep.evaluate(&lifted, &scenes, served_causal, served_offline)?;
+    push("baseline", "before (lifter as it is)".into(), Some(served.before.clone()));
+    push("baseline", "gru (no motion stage)".into(), served.gru.clone());
+    push("baseline", "bigru (no motion stage)".into(), served.bigru.clone());
+    push("baseline", "true lengths (oracle)".into(), served.ground_truth_lengths.clone());
+    push("served", "gru_motion".into(), served.gru_motion.clone());
+    push("served", "bigru_motion".into(), served.bigru_motion.clone());
+    for (name, directions) in causal_direction_candidates() {
+        let causal = CausalMotionConfig {
+            directions,
+            ..served_causal
+        };
+        let r = sweep.evaluate(&lifted, &scenes, causal, served_offline)?;
+        push("causal directions", name, r.gru_motion);
+        eprintln!("{:.0}s", t0.elapsed().as_secs_f64());
+    }
+    for (name, root_filter) in causal_root_candidates() {
+        let causal = CausalMotionConfig {
+            root: root_filter,
+            ..served_causal
+        };
+        let r = sweep.evaluate(&lifted, &scenes, causal, served_offline)?;
+        push("causal root", name, r.gru_motion);
+    }
+    for (name, weights) in root_joint_sets() {
+        let weighted: Vec<Scene> = scenes
+            .iter()
+            .map(|s| {
+                let mut s = s.clone();
+                for r in &mut s.rays {
+                    r.1 = weights;
+                }
+                s
+            })
+            .collect();
+        let r = sweep.evaluate(&lifted, &weighted, served_causal, served_offline)?;
+        push("root joints", format!("{name} (causal)"), r.gru_motion);
+        push("root joints", format!("{name} (offline)"), r.bigru_motion);
+    }
+    for (name, offline) in offline_candidates() {
+        let r = sweep.evaluate(&lifted, &scenes, served_causal, offline)?;
+        push("offline", name, r.bigru_motion);
+    }
+    eprintln!("filters in {:.1}s", t0.elapsed().as_secs_f64());
+    for (name, smoothing) in causal_direction_candidates()
+        .into_iter()
+        .filter(|(n, _)| n == "one-euro min 1 Hz beta 0.5" || n == "kalman q 1 r 4e-4" || n == "kalman q 3 r 1.6e-3")
+    {
+        let Some(smoothing) = smoothing else { continue };
+        let pre = sweep.lift_all(&|s| {
+            let mut trial = s.trial.clone();
+            trial.input = prefiltered(&trial.input, smoothing);
+            lifter.lift(&trial, true)
+        })?;
+        let plain = CausalMotionConfig {
+            directions: None,
+            ..served_causal
+        };
+        let r = sweep.evaluate(&pre, &scenes, plain, served_offline)?;
+        push("2D before lifting", format!("{name} (then gru)"), r.gru_motion);
+        let r = sweep.evaluate(&pre, &scenes, served_causal, served_offline)?;
+        push("2D before lifting", format!("{name} + served directions"), r.gru_motion);
+    }
+    let mut md = String::from(
+        "| group | candidate | MPJPE (mm) | MPJVE (mm/frame) | accel (mm/frame²) | MRPE (mm) | foot skate (mm/frame) |\n\
+         |---|---|---|---|---|---|---|\n",
+    );
+    for (g, r) in &rows {
+        md.push_str(&line(g, &r.candidate, &r.report));
+    }
+    println!("{md}");
+    eprintln!("done in {:.1}s", t0.elapsed().as_secs_f64());
+    if let Some(p) = &a.json {
+        let json: Vec<_> = rows
+            .iter()
+            .map(|(g, r)| serde_json::json!({"group": g, "candidate": r.candidate, "report": r.report}))
+            .collect();
+        std::fs::write(p, serde_json::to_string_pretty(&json)?)?;
+    }
+    Ok(())
+}
