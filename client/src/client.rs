@@ -78,6 +78,22 @@ pub struct OfflineAdjustment {
     pub adjusted: Vec<Pose>,
     /// Bone lengths applied to each frame.
     pub bone_lengths: Vec<BoneLengths>,
+    /// With the motion stage: what it placed.
+    pub placement: Option<Placement>,
+}
+
+/// Where the offline motion stage put the person.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Placement {
+    /// Each frame's pelvis in camera space (metres; x right, y down, z
+    /// forward).
+    pub roots: Vec<[f32; 3]>,
+    /// The root was placed through an assumed focal length (no
+    /// calibration was sent): positions scale with the true one.
+    pub focal_assumed: bool,
+    /// Each frame's pose in world coordinates (z up, the floor at 0), when
+    /// the calibration had a camera height.
+    pub world: Option<Vec<Pose>>,
 }
 
 /// A whole sequence for the offline RPC, already flattened.
@@ -97,6 +113,9 @@ pub struct SequenceInput<'a> {
     /// Optional stature (and sex): `Some` answers every frame with the
     /// stature regression's lengths.
     pub subject: Option<Subject>,
+    /// Optional motion stage at this many frames per second (0: 50):
+    /// directions smoothed, the root placed, feet held.
+    pub motion: Option<f32>,
 }
 
 impl<'a> SequenceInput<'a> {
@@ -109,6 +128,7 @@ impl<'a> SequenceInput<'a> {
             poses_3d: &seq.pose_3d,
             camera: seq.camera,
             subject: seq.subject,
+            motion: None,
         }
     }
 
@@ -142,6 +162,10 @@ impl<'a> SequenceInput<'a> {
             poses_3d: self.poses_3d.as_flattened().as_flattened().to_vec(),
             camera: self.camera.as_ref().map(ToProto::to_proto),
             subject: self.subject.as_ref().map(ToProto::to_proto),
+            motion: self.motion.map(|frame_rate_hz| pb::MotionOptions {
+                enabled: true,
+                frame_rate_hz,
+            }),
         })
     }
 }
@@ -440,10 +464,39 @@ fn offline_from_proto(
         .chunks_exact(16)
         .map(|c| lengths_from_flat(c, "bone_lengths"))
         .collect::<Result<Vec<_>, _>>()?;
+    let placement = if resp.root_positions.is_empty() {
+        None
+    } else {
+        if resp.root_positions.len() != t * 3
+            || !(resp.world_poses_3d.is_empty() || resp.world_poses_3d.len() == t * 51)
+        {
+            return Err(ClientError::Protocol(format!(
+                "AdjustSequence answered {} root values and {} world pose values for {t} frames",
+                resp.root_positions.len(),
+                resp.world_poses_3d.len()
+            )));
+        }
+        let world = if resp.world_poses_3d.is_empty() {
+            None
+        } else {
+            Some(
+                resp.world_poses_3d
+                    .chunks_exact(51)
+                    .map(|c| pose_from_flat(c, "world_poses_3d"))
+                    .collect::<Result<Vec<_>, _>>()?,
+            )
+        };
+        Some(Placement {
+            roots: resp.root_positions.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect(),
+            focal_assumed: resp.focal_assumed,
+            world,
+        })
+    };
     Ok(OfflineAdjustment {
         model,
         adjusted,
         bone_lengths,
+        placement,
     })
 }
 

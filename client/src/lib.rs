@@ -44,10 +44,13 @@ pub mod session;
 pub mod types;
 
 pub use blapose_core::metrics::{evaluate, Evaluation, PoseMetrics};
-pub use client::{Client, OfflineAdjustment, SequenceInput, SessionOptions};
+pub use client::{Client, OfflineAdjustment, Placement, SequenceInput, SessionOptions};
 pub use config::{new_affinity_key, ClientConfig, TlsOptions, AFFINITY_HEADER, DEFAULT_SERVER};
 pub use error::ClientError;
-pub use replay::{adjust_offline, replay, replay_across, replay_session, Adjusted, ReplayOptions};
+pub use replay::{
+    adjust_offline, adjust_offline_with_motion, replay, replay_across, replay_session, Adjusted,
+    ReplayOptions,
+};
 pub use sequence::{Sequence, SequenceError};
 pub use session::{EventReceiver, FrameRejection, FrameSender, Session, SessionEvent};
 pub use types::{

@@ -22,9 +22,9 @@ use blapose_core::{BoneLengths, Pose};
 use tokio::sync::Semaphore;
 
 use blapose_core::ModelKind;
-use blapose_data::replay::{write_adjusted, CameraCalibration, Sequence, SequenceError};
+use blapose_data::replay::{write_adjusted_placed, CameraCalibration, Sequence, SequenceError};
 
-use crate::client::{Client, SequenceInput, SessionOptions};
+use crate::client::{Client, Placement, SequenceInput, SessionOptions};
 use crate::config::new_affinity_key;
 use crate::error::ClientError;
 use crate::session::{EventReceiver, Session, SessionEvent};
@@ -88,14 +88,30 @@ pub struct Adjusted {
     /// offline answer does not echo it, so there it is the one sent (a
     /// server refuses a calibration it cannot serve).
     pub camera: Option<CameraCalibration>,
+    /// Where the offline motion stage placed the person (offline calls
+    /// that asked for it; `None` otherwise).
+    pub placement: Option<Placement>,
 }
 
 impl Adjusted {
+    /// The adjusted poses moved to their placed roots (camera space), when
+    /// the motion stage placed them; else the poses as answered.
+    pub fn placed_poses(&self) -> Vec<Pose> {
+        match &self.placement {
+            Some(p) => blapose_core::motion::place(
+                &self.adjusted,
+                &p.roots.iter().map(|r| r.map(f64::from)).collect::<Vec<_>>(),
+            ),
+            None => self.adjusted.clone(),
+        }
+    }
+
     /// Write the result as `blapose-client --out` does: `adjusted_3d`,
     /// `bone_lengths` and, when the server lifted the poses, its poses as
     /// `lifted_3d` (see [`write_adjusted`]).
     pub fn write_npz(&self, path: impl AsRef<std::path::Path>) -> Result<(), SequenceError> {
-        write_adjusted(path, &self.adjusted, &self.bone_lengths, &self.lifted)
+        let roots = self.placement.as_ref().map_or(&[][..], |p| &p.roots[..]);
+        write_adjusted_placed(path, &self.adjusted, &self.bone_lengths, &self.lifted, roots)
     }
 
     /// Frames per second of the exchange.
@@ -317,6 +333,7 @@ impl Answers {
             elapsed: started.elapsed(),
             session: Some(summary),
             resumes: 0,
+            placement: None,
             camera: info.camera,
         }
     }
@@ -540,8 +557,23 @@ pub async fn adjust_offline(
     seq: &Sequence,
     model: ModelKind,
 ) -> Result<Adjusted, ClientError> {
+    adjust_offline_with_motion(client, seq, model, None).await
+}
+
+/// [`adjust_offline`] with the server's offline motion stage at `motion`
+/// frames per second (`Some(0.0)`: 50; `None`: no motion stage): the poses
+/// smoothed and their feet held, and [`Adjusted::placement`] set.
+pub async fn adjust_offline_with_motion(
+    client: &Client,
+    seq: &Sequence,
+    model: ModelKind,
+    motion: Option<f32>,
+) -> Result<Adjusted, ClientError> {
     let started = Instant::now();
-    let input = SequenceInput::from_sequence(seq);
+    let input = SequenceInput {
+        motion,
+        ..SequenceInput::from_sequence(seq)
+    };
     let result = client.adjust_sequence(input, model).await?;
     Ok(Adjusted {
         model: result.model,
@@ -554,6 +586,7 @@ pub async fn adjust_offline(
         session: None,
         resumes: 0,
         camera: seq.camera,
+        placement: result.placement,
     })
 }
 

@@ -187,6 +187,7 @@ pub fn sequence_response(
         model: pb::Model::from(model) as i32,
         adjusted_poses_3d: poses.iter().flatten().flatten().copied().collect(),
         bone_lengths: lengths.to_vec(),
+        ..Default::default()
     }
 }
 

@@ -15,7 +15,7 @@
 //! A joint the client marked missing gets no weight in the root solve.
 
 use blapose_core::layouts::Coordinates;
-use blapose_core::motion::root::{FloorFrame, Rays, ASSUMED_FOCAL_PER_SIDE};
+use blapose_core::motion::root::{FloorFrame, Rays, ASSUMED_FOCAL_PER_SIDE, ROOT_JOINT_WEIGHTS};
 use blapose_core::motion::{offline_motion, place, served_offline, Viewing, DEFAULT_RATE_HZ};
 use blapose_core::{BoneLengths, Pose, NUM_JOINTS};
 use blapose_model::input::ViewCalibration;
@@ -105,7 +105,7 @@ impl RayCamera {
                 None => ideal,
             }
         });
-        let weights = std::array::from_fn(|j| if present[j] { 1.0 } else { 0.0 });
+        let weights = std::array::from_fn(|j| if present[j] { ROOT_JOINT_WEIGHTS[j] } else { 0.0 });
         (rays, weights)
     }
 }

@@ -20,10 +20,12 @@
 
 use std::collections::HashMap;
 
+use blapose_core::motion::fir::FirFit;
 use blapose_core::motion::kalman::KalmanParams;
 use blapose_core::motion::one_euro::OneEuroParams;
 use blapose_core::motion::{
-    served_causal, served_offline, CausalMotionConfig, ChannelFilter, CausalSmoothing, OfflineMotionConfig,
+    direction_values, served_causal, served_offline, CausalMotionConfig, ChannelFilter,
+    DIRECTION_CHANNELS, CausalSmoothing, OfflineMotionConfig,
     OfflineSmoothing,
 };
 use blapose_core::skeleton::NUM_JOINTS;
@@ -153,6 +155,35 @@ pub fn prefiltered(input: &[f32], smoothing: CausalSmoothing) -> Vec<f32> {
         .collect()
 }
 
+/// The normal equations of the learned causal filter
+/// ([`blapose_core::motion::fir`]) over `trials`: the lifter's poses
+/// (`lifted`) adjusted with `lengths` (per trial and frame), against the
+/// true directions.
+pub fn fir_fit(
+    trials: &[LifterSequence],
+    lifted: &Lifted,
+    lengths: &[Vec<blapose_core::BoneLengths>],
+) -> Result<FirFit, TrainError> {
+    use blapose_core::bones::{adjust_sequence_per_frame, ZeroBonePolicy};
+    let mut fit = FirFit::default();
+    for (t, l) in trials.iter().zip(lengths) {
+        let pred = lifted
+            .get(&key(t))
+            .ok_or_else(|| TrainError::Data("trial not lifted".into()))?;
+        let adjusted = adjust_sequence_per_frame(pred, l, ZeroBonePolicy::KeepInput)?;
+        let mut input = Vec::new();
+        let mut target = Vec::new();
+        for (p, g) in adjusted.iter().zip(&t.target) {
+            if let (Some(x), Some(y)) = (direction_values(p), direction_values(g)) {
+                input.extend(x);
+                target.extend(y);
+            }
+        }
+        fit.add(&input, &target, DIRECTION_CHANNELS);
+    }
+    Ok(fit)
+}
+
 /// Everything the sweep reuses across candidates.
 pub struct Sweep<'a> {
     /// The trials.
@@ -163,7 +194,8 @@ pub struct Sweep<'a> {
     pub adjusters: Adjusters<'a>,
 }
 
-type Lifted = HashMap<(String, String, String), Vec<Pose>>;
+/// Lifted poses by trial.
+pub type Lifted = HashMap<(String, String, String), Vec<Pose>>;
 
 fn key(t: &LifterSequence) -> (String, String, String) {
     (t.trial.subject.clone(), t.trial.sequence.clone(), t.trial.camera.clone())

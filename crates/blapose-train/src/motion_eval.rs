@@ -20,7 +20,7 @@
 use blapose_core::camera::{denormalize_screen, Camera};
 use blapose_core::metrics::{accel_error, mrpe, MM_PER_M};
 use blapose_core::motion::feet::{detect_contacts, foot_skate, ContactParams};
-use blapose_core::motion::root::{solve_root, Rays};
+use blapose_core::motion::root::{solve_root, Rays, ROOT_JOINT_WEIGHTS};
 use blapose_core::motion::{place, CausalMotion, CausalMotionConfig, Viewing};
 use blapose_core::skeleton::{NUM_JOINTS, ROOT};
 use blapose_core::Pose;
@@ -38,7 +38,8 @@ pub const H36M_RATE_HZ: f64 = 50.0;
 pub struct Scene {
     /// Pelvis in camera space per frame (metres).
     pub root: Vec<[f64; 3]>,
-    /// Viewing rays and joint weights per frame (every joint weight 1).
+    /// Viewing rays and joint weights per frame (the served
+    /// [`ROOT_JOINT_WEIGHTS`]).
     pub rays: Vec<(Rays, [f64; NUM_JOINTS])>,
     /// World up in camera coordinates (unit).
     pub up: [f64; 3],
@@ -87,7 +88,7 @@ impl Scene {
             .input
             .chunks_exact(FRAME_DIM)
             .take(n)
-            .map(|kp| (rays_from_normalized(kp, cam), [1.0; NUM_JOINTS]))
+            .map(|kp| (rays_from_normalized(kp, cam), ROOT_JOINT_WEIGHTS))
             .collect();
         // World z is up; its camera-space direction is R's third column.
         let up = std::array::from_fn(|i| cam.rotation[i][2]);

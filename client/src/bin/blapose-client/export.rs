@@ -55,7 +55,7 @@ impl IoArgs {
             .last()
             .context("cannot export: the sequence has no poses")?;
         let fps = fps.map_or(DEFAULT_FPS, f64::from);
-        let mut motion = Motion::new(&result.adjusted, lengths, fps)?;
+        let mut motion = Motion::new(&result.placed_poses(), lengths, fps)?;
         if let Some(up) = up {
             motion = motion.with_up(up.map(f64::from))?;
         }

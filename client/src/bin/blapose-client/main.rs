@@ -15,7 +15,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result};
 use blapose_client::{
-    adjust_offline, evaluate, replay_across, Adjusted, Client, ClientConfig, KeypointLayout,
+    adjust_offline_with_motion, evaluate, replay_across, Adjusted, Client, ClientConfig, KeypointLayout,
     ModelKind, ReplayOptions, Sequence, Sex, Subject, TlsOptions, DEFAULT_SERVER,
 };
 use clap::builder::{PossibleValue, PossibleValuesParser, TypedValueParser};
@@ -124,6 +124,13 @@ enum Command {
         /// online model run causally, as a stream would).
         #[arg(long, default_value = "bigru", value_parser = parse_model)]
         model: ModelKind,
+        /// Run the server's offline motion stage: bone directions smoothed
+        /// zero-phase, the pelvis placed in camera space from the keypoints
+        /// (through the file's calibration with --camera, else an assumed
+        /// focal length), planted feet held. The exports then move through
+        /// space, and --out gains root_3d (T x 3).
+        #[arg(long)]
+        motion: bool,
     },
     /// Print what the server runs: models, parameters, weights, limits.
     Info {
@@ -377,6 +384,19 @@ fn finish(io: &IoArgs, seq: &Sequence, result: &Adjusted) -> Result<()> {
         let mm: Vec<String> = last.iter().map(|l| format!("{:.0}", l * 1000.0)).collect();
         println!("final bone lengths (mm): {}", mm.join(" "));
     }
+    if let Some(p) = &result.placement {
+        let (first, last) = (p.roots[0], p.roots[p.roots.len() - 1]);
+        let travel: f32 = p
+            .roots
+            .windows(2)
+            .map(|w| (0..3).map(|i| (w[1][i] - w[0][i]).powi(2)).sum::<f32>().sqrt())
+            .sum();
+        println!(
+            "motion: pelvis placed from ({:.2}, {:.2}, {:.2}) m to ({:.2}, {:.2}, {:.2}) m in camera space, {travel:.2} m travelled{}",
+            first[0], first[1], first[2], last[0], last[1], last[2],
+            if p.focal_assumed { " (focal length assumed: no calibration sent)" } else { "" }
+        );
+    }
     if let Some(out) = &io.out {
         result.write_npz(out)?;
         println!("wrote {}", out.display());
@@ -455,11 +475,12 @@ async fn run(cli: Cli) -> Result<()> {
             )
             .await
         }
-        Command::Adjust { io, model } => {
+        Command::Adjust { io, model, motion } => {
             let loaded = io.load()?;
             io.check_exports()?;
             let client = connect(&cli.connection).await?;
-            let result = adjust_offline(&client, &loaded.0, model).await?;
+            let rate = motion.then(|| loaded.0.fps.unwrap_or(0.0));
+            let result = adjust_offline_with_motion(&client, &loaded.0, model, rate).await?;
             finish(&io, &loaded.0, &result)?;
             io.write_exports(&result, loaded.0.fps, loaded.1)?;
             io.write_html(&client, cli.connection.first_server()?, &loaded, &result)

@@ -20,6 +20,16 @@ use crate::skeleton::{NUM_JOINTS, ROOT};
 /// degenerate (keypoints mislabelled, a pose from another person).
 pub const MIN_ROOT_DEPTH: f64 = 0.1;
 
+/// How much each joint counts in the served root solve: every joint but
+/// the neck/nose and the head, whose 2D detections (a head top, an
+/// interpolated neck) are furthest from the skeleton's joints. Chosen on
+/// held-out training trials among four joint sets (`blapose-lab motion`):
+/// it placed the root 7 % (streamed) to 10 % (offline) closer than all
+/// joints.
+pub const ROOT_JOINT_WEIGHTS: [f64; NUM_JOINTS] = [
+    1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0,
+];
+
 /// Viewing rays of the 17 joints: undistorted image-plane coordinates
 /// `(X/Z, Y/Z)` (pixels minus the principal point, over the focal length).
 pub type Rays = [[f64; 2]; NUM_JOINTS];

@@ -44,6 +44,8 @@ pub const KEY_BONE_LENGTHS: &str = "bone_lengths";
 /// Output key: the server lifter's poses before adjustment `(T, 17, 3)`
 /// (only when the server lifted them).
 pub const KEY_LIFTED: &str = "lifted_3d";
+/// Output key: the pelvis the motion stage placed, `T x 3`, camera space.
+pub const KEY_ROOT: &str = "root_3d";
 /// Key of the optional stature `()` or `(1,)`, metres.
 pub const KEY_SUBJECT_HEIGHT: &str = "subject_height";
 /// Key of the optional sex `()` or `(1,)`: 1 female, 2 male (needs

@@ -66,6 +66,6 @@ pub mod subject;
 pub use camera::{CameraCalibration, CameraError};
 pub use error::SequenceError;
 pub use keys::*;
-pub use output::{read_adjusted, read_lifted, write_adjusted};
+pub use output::{read_adjusted, read_lifted, write_adjusted, write_adjusted_placed};
 pub use sequence::{FrameInput, Sequence, DEFAULT_MAX_FRAMES};
 pub use subject::Subject;

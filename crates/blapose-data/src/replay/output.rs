@@ -10,7 +10,7 @@ use blapose_core::skeleton::NUM_BONES;
 use blapose_core::{BoneLengths, Pose};
 
 use super::error::SequenceError;
-use super::keys::{KEY_ADJUSTED, KEY_BONE_LENGTHS, KEY_LIFTED};
+use super::keys::{KEY_ADJUSTED, KEY_BONE_LENGTHS, KEY_LIFTED, KEY_ROOT};
 use crate::npz::{read_npz, write_npz, Array, Npz};
 
 /// Write an adjustment result: `adjusted_3d` `(T, 17, 3)`, `bone_lengths`
@@ -23,7 +23,26 @@ pub fn write_adjusted(
     bone_lengths: &[BoneLengths],
     lifted: &[Pose],
 ) -> Result<(), SequenceError> {
+    write_adjusted_placed(path, adjusted, bone_lengths, lifted, &[])
+}
+
+/// [`write_adjusted`], plus each frame's placed pelvis ([`KEY_ROOT`],
+/// `T x 3`, camera space, metres) when `roots` is not empty (it must then
+/// have one row per frame).
+pub fn write_adjusted_placed(
+    path: impl AsRef<Path>,
+    adjusted: &[Pose],
+    bone_lengths: &[BoneLengths],
+    lifted: &[Pose],
+    roots: &[[f32; 3]],
+) -> Result<(), SequenceError> {
     let path = path.as_ref();
+    if !roots.is_empty() && roots.len() != adjusted.len() {
+        return Err(SequenceError::OutputMismatch {
+            poses: adjusted.len(),
+            lengths: roots.len(),
+        });
+    }
     if adjusted.len() != bone_lengths.len() {
         return Err(SequenceError::OutputMismatch {
             poses: adjusted.len(),
@@ -49,6 +68,10 @@ pub fn write_adjusted(
     );
     if !lifted.is_empty() {
         npz.insert(KEY_LIFTED, Array::from_poses(lifted));
+    }
+    if !roots.is_empty() {
+        let flat = roots.as_flattened().to_vec();
+        npz.insert(KEY_ROOT, Array::new(vec![roots.len(), 3], flat).map_err(npz_err)?);
     }
     write_npz(path, &npz).map_err(npz_err)
 }

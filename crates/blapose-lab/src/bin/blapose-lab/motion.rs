@@ -7,14 +7,15 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{ensure, Result};
-use blapose_core::motion::CausalMotionConfig;
+use blapose_core::motion::{CausalMotionConfig, CausalSmoothing};
 use blapose_data::h36m::{H36m, Parts, TEST_SUBJECTS, TRAIN_SUBJECTS};
 use blapose_lab::motion_sweep::{
-    causal_direction_candidates, causal_root_candidates, offline_candidates, prefiltered, root_joint_sets,
+    causal_direction_candidates, causal_root_candidates, fir_fit, offline_candidates, prefiltered, root_joint_sets,
     Row, Sweep,
 };
 use blapose_model::ModelKind;
 use blapose_train::dataset::{mean_subject_lengths, subject_lengths};
+use blapose_train::eval::GruEstimator;
 use blapose_train::eval_adjust::{LengthEstimates, MethodReport};
 use blapose_train::lifter::data::{lifter_sequences, LifterSequence};
 use blapose_train::lifter::predict::StreamLifter;
@@ -72,12 +73,16 @@ pub fn run(a: MotionArgs) -> Result<()> {
     let root = blapose_data::data_root(a.data.clone());
     let subjects: Vec<&str> = a.subjects.iter().map(String::as_str).collect();
     let t0 = Instant::now();
-    let (trials, scenes) = {
+    // The selection split: every k-th trial; the learned filter is fitted
+    // on the trials half-way between them.
+    let every = a.every.max(2);
+    let (trials, fit_trials, scenes) = {
         let h36m = H36m::load(&root, &subjects, Parts::ALL)?;
-        let trials: Vec<LifterSequence> =
-            lifter_sequences(&h36m, &subjects)?.into_iter().step_by(a.every.max(1)).collect();
+        let all: Vec<LifterSequence> = lifter_sequences(&h36m, &subjects)?;
+        let trials: Vec<LifterSequence> = all.iter().step_by(every).cloned().collect();
+        let fit_trials: Vec<LifterSequence> = all.iter().skip(every / 2).step_by(every).cloned().collect();
         let scenes = trials.iter().map(|t| Scene::build(&h36m, t)).collect::<Result<Vec<_>, _>>()?;
-        (trials, scenes)
+        (trials, fit_trials, scenes)
     };
     let training_mean = {
         let h36m = H36m::load(&root, &TRAIN_SUBJECTS, Parts::POSES)?;
@@ -104,6 +109,19 @@ pub fn run(a: MotionArgs) -> Result<()> {
     };
     let lifted = sweep.lift_all(&|s| lifter.lift(&s.trial, true))?;
     eprintln!("lifted in {:.1}s", t0.elapsed().as_secs_f64());
+    let fit = {
+        let fit_sweep = Sweep {
+            trials: &fit_trials,
+            scenes: &[],
+            adjusters: estimates.adjusters(),
+        };
+        let lifted = fit_sweep.lift_all(&|s| lifter.lift(&s.trial, true))?;
+        let gru = GruEstimator::new(&blapose_model::weights::load(&a.gru_weights, ModelKind::Gru)?)?;
+        let inputs: Vec<_> = fit_trials.iter().map(|t| t.trial.clone()).collect();
+        let lengths = gru.running_estimates(&inputs)?;
+        fir_fit(&fit_trials, &lifted, &lengths)?
+    };
+    eprintln!("fitted in {:.1}s", t0.elapsed().as_secs_f64());
     let (served_causal, served_offline) = Sweep::served();
     let mut rows: Vec<(String, Row)> = Vec::new();
     let mut push = |group: &str, name: String, report: Option<MethodReport>| {
@@ -125,7 +143,14 @@ pub fn run(a: MotionArgs) -> Result<()> {
     push("baseline", "true lengths (oracle)".into(), served.ground_truth_lengths.clone());
     push("served", "gru_motion".into(), served.gru_motion.clone());
     push("served", "bigru_motion".into(), served.bigru_motion.clone());
-    for (name, directions) in causal_direction_candidates() {
+    let mut candidates = causal_direction_candidates();
+    for (v, acc) in [(0.0, 0.0), (1.0, 0.0), (4.0, 0.0), (0.0, 4.0), (4.0, 4.0), (4.0, 16.0), (16.0, 16.0), (16.0, 64.0), (64.0, 64.0)] {
+        if let Some(taps) = fit.solve(v, acc) {
+            candidates.push((format!("learned fir velocity {v} accel {acc}"), Some(CausalSmoothing::Fir(taps))));
+            eprintln!("fir {v} {acc}: {:?}", taps.0);
+        }
+    }
+    for (name, directions) in candidates {
         let causal = CausalMotionConfig {
             directions,
             ..served_causal
