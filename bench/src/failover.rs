@@ -218,6 +218,7 @@ mod tests {
             }),
             resumes,
             camera: None,
+            placement: None,
         }
     }
 

@@ -487,7 +487,11 @@ fn offline_from_proto(
             )
         };
         Some(Placement {
-            roots: resp.root_positions.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect(),
+            roots: resp
+                .root_positions
+                .chunks_exact(3)
+                .map(|c| [c[0], c[1], c[2]])
+                .collect(),
             focal_assumed: resp.focal_assumed,
             world,
         })

@@ -111,7 +111,13 @@ impl Adjusted {
     /// `lifted_3d` (see [`write_adjusted`]).
     pub fn write_npz(&self, path: impl AsRef<std::path::Path>) -> Result<(), SequenceError> {
         let roots = self.placement.as_ref().map_or(&[][..], |p| &p.roots[..]);
-        write_adjusted_placed(path, &self.adjusted, &self.bone_lengths, &self.lifted, roots)
+        write_adjusted_placed(
+            path,
+            &self.adjusted,
+            &self.bone_lengths,
+            &self.lifted,
+            roots,
+        )
     }
 
     /// Frames per second of the exchange.

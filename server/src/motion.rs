@@ -69,7 +69,10 @@ impl RayCamera {
                 let (w, h) = (v.image_size.0 as f64, v.image_size.1 as f64);
                 Self {
                     focal: v.focal.map(|f| f / w * 2.0),
-                    principal: [v.principal[0] / w * 2.0 - 1.0, v.principal[1] / w * 2.0 - h / w],
+                    principal: [
+                        v.principal[0] / w * 2.0 - 1.0,
+                        v.principal[1] / w * 2.0 - h / w,
+                    ],
                     lens: v.lens,
                     assumed: false,
                 }
@@ -105,7 +108,13 @@ impl RayCamera {
                 None => ideal,
             }
         });
-        let weights = std::array::from_fn(|j| if present[j] { ROOT_JOINT_WEIGHTS[j] } else { 0.0 });
+        let weights = std::array::from_fn(|j| {
+            if present[j] {
+                ROOT_JOINT_WEIGHTS[j]
+            } else {
+                0.0
+            }
+        });
         (rays, weights)
     }
 }
@@ -186,5 +195,12 @@ pub fn fill_response(resp: &mut pb::AdjustSequenceResponse, m: &SequenceMotion) 
         .map(|&v| v as f32)
         .collect();
     resp.focal_assumed = m.focal_assumed;
-    resp.world_poses_3d = m.world.iter().flatten().flatten().flatten().copied().collect();
+    resp.world_poses_3d = m
+        .world
+        .iter()
+        .flatten()
+        .flatten()
+        .flatten()
+        .copied()
+        .collect();
 }

@@ -146,7 +146,8 @@ impl OfflineRunner {
                 (model, self.adjust(seq).await?)
             }
         };
-        let mut response = answer::sequence_response(model, &done.poses, done.lengths.as_flattened());
+        let mut response =
+            answer::sequence_response(model, &done.poses, done.lengths.as_flattened());
         if let Some(input) = motion_input {
             let moved = tokio::task::spawn_blocking(move || {
                 motion::sequence(

@@ -517,6 +517,7 @@ mod tests {
             poses_3d: standing_pose().repeat(3),
             camera: None,
             subject: None,
+            motion: None,
         };
         let clean = prepared(&req, None).unwrap().inputs;
         // Joint 5 lost in frame 1, joint 2 lost in frame 0.
@@ -573,6 +574,7 @@ mod tests {
             poses_3d: standing_pose().repeat(2),
             camera: None,
             subject: None,
+            motion: None,
         };
         let plain = prepared(&req, Some(&ANY_CAMERA)).unwrap();
         req.camera = Some(calibration());

@@ -992,6 +992,7 @@ pub(crate) mod tests {
             poses_3d: standing_pose().repeat(3),
             camera: None,
             subject: None,
+            motion: None,
         };
         let ok = sequence(&req, None).unwrap();
         assert_eq!(ok.model, ModelKind::BiGru);

@@ -150,6 +150,7 @@ fn sequence_request() -> impl Strategy<Value = pb::AdjustSequenceRequest> {
                         poses_3d,
                         camera: camera.clone(),
                         subject,
+                        motion: None,
                     }
                 })
         })
@@ -312,6 +313,7 @@ fn regression_huge_principal_point_prepares_finite_inputs_or_is_refused() {
             distortion: Vec::new(),
         }),
         subject: None,
+        motion: None,
     };
     for contract in contracts() {
         let Ok(valid) = validate::sequence(&req, contract.as_ref()) else {

@@ -257,6 +257,7 @@ fn sequence_request(n: u64, camera: Option<pb::CameraCalibration>) -> pb::Adjust
         poses_3d: frames.iter().flat_map(|f| f.pose_3d.clone()).collect(),
         camera,
         subject: None,
+        motion: None,
     }
 }
 
@@ -828,6 +829,7 @@ async fn auth_token_and_message_size_are_enforced() {
         poses_3d: vec![0.0; 510],
         camera: None,
         subject: None,
+        motion: None,
     };
     let err = authed.adjust_sequence(big).await.unwrap_err();
     assert_eq!(err.code(), Code::OutOfRange, "{}", err.message());

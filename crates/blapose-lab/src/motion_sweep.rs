@@ -24,9 +24,8 @@ use blapose_core::motion::fir::FirFit;
 use blapose_core::motion::kalman::KalmanParams;
 use blapose_core::motion::one_euro::OneEuroParams;
 use blapose_core::motion::{
-    direction_values, served_causal, served_offline, CausalMotionConfig, ChannelFilter,
-    DIRECTION_CHANNELS, CausalSmoothing, OfflineMotionConfig,
-    OfflineSmoothing,
+    direction_values, served_causal, served_offline, CausalMotionConfig, CausalSmoothing,
+    ChannelFilter, OfflineMotionConfig, OfflineSmoothing, DIRECTION_CHANNELS,
 };
 use blapose_core::skeleton::NUM_JOINTS;
 use blapose_core::Pose;
@@ -65,7 +64,10 @@ fn one_euro(min_cutoff_hz: f64, beta: f64) -> CausalSmoothing {
 pub fn causal_direction_candidates() -> Vec<(String, Option<CausalSmoothing>)> {
     let mut v: Vec<(String, Option<CausalSmoothing>)> = vec![("none".into(), None)];
     for (mc, beta) in [(0.5, 0.5), (1.0, 0.5), (1.0, 2.0), (2.0, 1.0), (3.0, 2.0)] {
-        v.push((format!("one-euro min {mc} Hz beta {beta}"), Some(one_euro(mc, beta))));
+        v.push((
+            format!("one-euro min {mc} Hz beta {beta}"),
+            Some(one_euro(mc, beta)),
+        ));
     }
     for q in [0.3, 1.0, 3.0, 10.0] {
         for r in [1e-4, 4e-4, 1.6e-3] {
@@ -98,7 +100,10 @@ pub fn offline_candidates() -> Vec<(String, OfflineMotionConfig)> {
     for cutoff_hz in [1.5, 2.0, 3.0, 4.0, 6.0] {
         v.push((
             format!("directions butterworth 4 {cutoff_hz} Hz"),
-            dirs(Some(OfflineSmoothing::Butterworth { order: 4, cutoff_hz })),
+            dirs(Some(OfflineSmoothing::Butterworth {
+                order: 4,
+                cutoff_hz,
+            })),
         ));
     }
     for window_s in [0.3, 0.5, 0.7] {
@@ -120,12 +125,27 @@ pub fn offline_candidates() -> Vec<(String, OfflineMotionConfig)> {
     }
     for (name, root) in [
         ("root none", None),
-        ("root butterworth 4 0.5 Hz", Some(OfflineSmoothing::Butterworth { order: 4, cutoff_hz: 0.5 })),
-        ("root butterworth 4 2 Hz", Some(OfflineSmoothing::Butterworth { order: 4, cutoff_hz: 2.0 })),
+        (
+            "root butterworth 4 0.5 Hz",
+            Some(OfflineSmoothing::Butterworth {
+                order: 4,
+                cutoff_hz: 0.5,
+            }),
+        ),
+        (
+            "root butterworth 4 2 Hz",
+            Some(OfflineSmoothing::Butterworth {
+                order: 4,
+                cutoff_hz: 2.0,
+            }),
+        ),
     ] {
         v.push((name.into(), OfflineMotionConfig { root, ..base }));
     }
-    v.push(("feet not held".into(), OfflineMotionConfig { feet: None, ..base }));
+    v.push((
+        "feet not held".into(),
+        OfflineMotionConfig { feet: None, ..base },
+    ));
     v
 }
 
@@ -136,9 +156,15 @@ pub fn root_joint_sets() -> Vec<(&'static str, [f64; NUM_JOINTS])> {
     };
     vec![
         ("all joints", [1.0; NUM_JOINTS]),
-        ("limbs and hips", only(&[1, 2, 3, 4, 5, 6, 11, 12, 13, 14, 15, 16])),
+        (
+            "limbs and hips",
+            only(&[1, 2, 3, 4, 5, 6, 11, 12, 13, 14, 15, 16]),
+        ),
         ("legs and shoulders", only(&[1, 2, 3, 4, 5, 6, 11, 14])),
-        ("no head", only(&[0, 1, 2, 3, 4, 5, 6, 7, 8, 11, 12, 13, 14, 15, 16])),
+        (
+            "no head",
+            only(&[0, 1, 2, 3, 4, 5, 6, 7, 8, 11, 12, 13, 14, 15, 16]),
+        ),
     ]
 }
 
@@ -198,7 +224,11 @@ pub struct Sweep<'a> {
 pub type Lifted = HashMap<(String, String, String), Vec<Pose>>;
 
 fn key(t: &LifterSequence) -> (String, String, String) {
-    (t.trial.subject.clone(), t.trial.sequence.clone(), t.trial.camera.clone())
+    (
+        t.trial.subject.clone(),
+        t.trial.sequence.clone(),
+        t.trial.camera.clone(),
+    )
 }
 
 impl Sweep<'_> {

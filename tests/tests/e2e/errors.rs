@@ -401,6 +401,7 @@ async fn bad_offline_requests_are_invalid_argument() {
         poses_3d: seq.pose_3d.as_flattened().as_flattened().to_vec(),
         camera: None,
         subject: None,
+        motion: None,
     };
     client
         .adjust_sequence_raw(good.clone())

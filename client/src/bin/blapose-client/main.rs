@@ -15,8 +15,8 @@ use std::time::Duration;
 
 use anyhow::{Context, Result};
 use blapose_client::{
-    adjust_offline_with_motion, evaluate, replay_across, Adjusted, Client, ClientConfig, KeypointLayout,
-    ModelKind, ReplayOptions, Sequence, Sex, Subject, TlsOptions, DEFAULT_SERVER,
+    adjust_offline_with_motion, evaluate, replay_across, Adjusted, Client, ClientConfig,
+    KeypointLayout, ModelKind, ReplayOptions, Sequence, Sex, Subject, TlsOptions, DEFAULT_SERVER,
 };
 use clap::builder::{PossibleValue, PossibleValuesParser, TypedValueParser};
 use clap::{Args, Parser, Subcommand};
@@ -389,7 +389,12 @@ fn finish(io: &IoArgs, seq: &Sequence, result: &Adjusted) -> Result<()> {
         let travel: f32 = p
             .roots
             .windows(2)
-            .map(|w| (0..3).map(|i| (w[1][i] - w[0][i]).powi(2)).sum::<f32>().sqrt())
+            .map(|w| {
+                (0..3)
+                    .map(|i| (w[1][i] - w[0][i]).powi(2))
+                    .sum::<f32>()
+                    .sqrt()
+            })
             .sum();
         println!(
             "motion: pelvis placed from ({:.2}, {:.2}, {:.2}) m to ({:.2}, {:.2}, {:.2}) m in camera space, {travel:.2} m travelled{}",
@@ -579,9 +584,12 @@ mod tests {
                 io: IoArgs {
                     layout: Some(KeypointLayout::Sh16),
                     ..
-                }
+                },
+                motion: false,
             }
         ));
+        let cli = Cli::try_parse_from(["blapose-client", "adjust", "x.npz", "--motion"]).unwrap();
+        assert!(matches!(cli.command, Command::Adjust { motion: true, .. }));
         assert!(
             Cli::try_parse_from(["blapose-client", "adjust", "x.npz", "--model", "lstm"]).is_err()
         );

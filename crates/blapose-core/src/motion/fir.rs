@@ -62,7 +62,7 @@ impl FirBank {
 
     /// Restore [`Self::state`]; `None` unless it is whole histories.
     pub fn with_state(mut self, state: &[f64]) -> Option<Self> {
-        if state.len() % FIR_TAPS != 0 {
+        if !state.len().is_multiple_of(FIR_TAPS) {
             return None;
         }
         self.history = state.to_vec();
@@ -129,7 +129,9 @@ impl FirFit {
     /// without data.
     pub fn solve(&self, velocity_weight: f64, accel_weight: f64) -> Option<FirTaps> {
         let w = [1.0, velocity_weight, accel_weight];
-        let a = (0..3).fold(DMatrix::zeros(FIR_TAPS, FIR_TAPS), |m, i| m + &self.normal[i] * w[i]);
+        let a = (0..3).fold(DMatrix::zeros(FIR_TAPS, FIR_TAPS), |m, i| {
+            m + &self.normal[i] * w[i]
+        });
         let b = (0..3).fold(DVector::zeros(FIR_TAPS), |v, i| v + &self.rhs[i] * w[i]);
         let x = a.cholesky()?.solve(&b);
         Some(FirTaps(std::array::from_fn(|k| x[k])))
@@ -143,7 +145,9 @@ mod tests {
     #[test]
     fn the_fit_recovers_a_known_filter_and_the_bank_applies_it() {
         // Target = a 3-tap moving average of the input.
-        let input: Vec<f64> = (0..400).map(|t| ((t * 37 % 101) as f64 / 50.0 - 1.0) + 0.01 * t as f64).collect();
+        let input: Vec<f64> = (0..400)
+            .map(|t| ((t * 37 % 101) as f64 / 50.0 - 1.0) + 0.01 * t as f64)
+            .collect();
         let mut target = input.clone();
         for t in 0..input.len() {
             let x = |s: usize| input[t.saturating_sub(s)];

@@ -244,7 +244,9 @@ impl CausalMotion {
     pub fn new(config: CausalMotionConfig) -> Self {
         Self {
             config,
-            directions: config.directions.map(|s| ChannelFilter::new(s, config.rate_hz)),
+            directions: config
+                .directions
+                .map(|s| ChannelFilter::new(s, config.rate_hz)),
             root: config.root.map(|s| ChannelFilter::new(s, config.rate_hz)),
         }
     }
@@ -309,7 +311,11 @@ impl CausalMotion {
                 .as_ref()
                 .map(ChannelFilter::state)
                 .unwrap_or_default(),
-            root: self.root.as_ref().map(ChannelFilter::state).unwrap_or_default(),
+            root: self
+                .root
+                .as_ref()
+                .map(ChannelFilter::state)
+                .unwrap_or_default(),
         }
     }
 
@@ -399,6 +405,9 @@ pub fn smooth_sequence(
         .collect())
 }
 
+/// A placed pelvis: camera space, metres.
+pub type Root = [f64; 3];
+
 /// What the offline motion stage does with a whole recording.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct OfflineMotionConfig {
@@ -443,7 +452,7 @@ pub fn offline_motion(
     lengths: &[BoneLengths],
     config: &OfflineMotionConfig,
     viewing: Option<Viewing>,
-) -> Result<(Vec<Pose>, Option<Vec<[f64; 3]>>), BoneError> {
+) -> Result<(Vec<Pose>, Option<Vec<Root>>), BoneError> {
     let mut out = match config.directions {
         Some(method) => smooth_sequence(poses, lengths, method, config.rate_hz)?,
         None => poses.to_vec(),
@@ -517,7 +526,7 @@ mod tests {
     use crate::bones::bone_lengths;
 
     fn pose(t: usize, jitter: f32) -> Pose {
-        let s = if t % 2 == 0 { jitter } else { -jitter };
+        let s = if t.is_multiple_of(2) { jitter } else { -jitter };
         std::array::from_fn(|j| {
             let j = j as f32;
             [

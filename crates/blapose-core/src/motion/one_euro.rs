@@ -75,7 +75,7 @@ impl OneEuroBank {
 
     /// Restore [`Self::state`]; `None` when its length is odd.
     pub fn with_state(mut self, state: &[f64]) -> Option<Self> {
-        if state.len() % 2 != 0 {
+        if !state.len().is_multiple_of(2) {
             return None;
         }
         let (v, s) = state.split_at(state.len() / 2);

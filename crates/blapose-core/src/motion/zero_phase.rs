@@ -12,6 +12,8 @@
 
 use std::f64::consts::PI;
 
+use nalgebra::{DMatrix, DVector};
+
 /// One second-order section `b0 + b1 z^-1 + b2 z^-2 / 1 + a1 z^-1 + a2 z^-2`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct Section {
@@ -82,33 +84,6 @@ pub fn butterworth_filtfilt(x: &mut [f64], order: usize, cutoff_hz: f64, rate_hz
     x.copy_from_slice(&ext[pad..pad + x.len()]);
 }
 
-/// Solve the small dense system `a x = b` (Gaussian elimination with
-/// partial pivoting); `None` when singular.
-fn solve(mut a: Vec<Vec<f64>>, mut b: Vec<f64>) -> Option<Vec<f64>> {
-    let n = b.len();
-    for col in 0..n {
-        let pivot = (col..n).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
-        if a[pivot][col].abs() < 1e-12 {
-            return None;
-        }
-        a.swap(col, pivot);
-        b.swap(col, pivot);
-        for row in col + 1..n {
-            let f = a[row][col] / a[col][col];
-            for k in col..n {
-                a[row][k] -= f * a[col][k];
-            }
-            b[row] -= f * b[col];
-        }
-    }
-    let mut x = vec![0.0; n];
-    for row in (0..n).rev() {
-        let s: f64 = (row + 1..n).map(|k| a[row][k] * x[k]).sum();
-        x[row] = (b[row] - s) / a[row][row];
-    }
-    Some(x)
-}
-
 /// Weights that give the least-squares polynomial of degree `degree`
 /// through `window` equally spaced samples, evaluated at sample `at`.
 fn savgol_weights(window: usize, degree: usize, at: usize) -> Option<Vec<f64>> {
@@ -118,15 +93,11 @@ fn savgol_weights(window: usize, degree: usize, at: usize) -> Option<Vec<f64>> {
         (0..=degree).map(|p| u.powi(p as i32)).collect()
     };
     let rows: Vec<Vec<f64>> = (0..window).map(powers).collect();
-    let normal: Vec<Vec<f64>> = (0..=degree)
-        .map(|p| {
-            (0..=degree)
-                .map(|q| rows.iter().map(|r| r[p] * r[q]).sum())
-                .collect()
-        })
-        .collect();
+    let a = DMatrix::from_fn(window, degree + 1, |i, p| rows[i][p]);
     // Weights w_i = powers(at)^T (A^T A)^-1 powers(i).
-    let coeffs = solve(normal, powers(at))?;
+    let coeffs = (a.transpose() * &a)
+        .lu()
+        .solve(&DVector::from_vec(powers(at)))?;
     Some(
         rows.iter()
             .map(|r| r.iter().zip(&coeffs).map(|(a, b)| a * b).sum())
@@ -155,8 +126,8 @@ pub fn savitzky_golay(x: &mut [f64], window: usize, degree: usize) {
     let Some(centre) = savgol_weights(window, degree, half) else {
         return;
     };
-    for t in half..src.len() - half {
-        x[t] = apply(&centre, t - half);
+    for (t, v) in x.iter_mut().enumerate().take(src.len() - half).skip(half) {
+        *v = apply(&centre, t - half);
     }
     for k in 0..half {
         if let Some(w) = savgol_weights(window, degree, k) {

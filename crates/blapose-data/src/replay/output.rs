@@ -71,7 +71,10 @@ pub fn write_adjusted_placed(
     }
     if !roots.is_empty() {
         let flat = roots.as_flattened().to_vec();
-        npz.insert(KEY_ROOT, Array::new(vec![roots.len(), 3], flat).map_err(npz_err)?);
+        npz.insert(
+            KEY_ROOT,
+            Array::new(vec![roots.len(), 3], flat).map_err(npz_err)?,
+        );
     }
     write_npz(path, &npz).map_err(npz_err)
 }

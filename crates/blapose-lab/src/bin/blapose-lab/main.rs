@@ -111,6 +111,19 @@ mod tests {
     }
 
     #[test]
+    fn motion_refuses_the_test_subjects_before_loading_anything() {
+        let cli = Cli::try_parse_from(["blapose-lab", "motion", "--subjects", "S1,S9"]).unwrap();
+        let Command::Motion(args) = cli.command else {
+            panic!("not motion")
+        };
+        let err = motion::run(*args).unwrap_err().to_string();
+        assert!(
+            err.contains("S9: choose on training subjects only"),
+            "{err}"
+        );
+    }
+
+    #[test]
     fn the_stature_proxy_takes_its_source_and_defaults_to_the_calibrated_proxy() {
         let source = |args: &[&str]| {
             let mut all = vec!["blapose-lab", "diagnose", "--stature-proxy"];
@@ -118,7 +131,7 @@ mod tests {
             let cli = Cli::try_parse_from(all).ok()?;
             match cli.command {
                 Command::Diagnose(a) => Some(a.stature_source),
-                Command::Bodies(_) => None,
+                Command::Bodies(_) | Command::Motion(_) => None,
             }
         };
         assert_eq!(source(&[]), Some(StatureSource::CalibratedProxy));

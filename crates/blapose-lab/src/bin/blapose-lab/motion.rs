@@ -10,8 +10,8 @@ use anyhow::{ensure, Result};
 use blapose_core::motion::{CausalMotionConfig, CausalSmoothing};
 use blapose_data::h36m::{H36m, Parts, TEST_SUBJECTS, TRAIN_SUBJECTS};
 use blapose_lab::motion_sweep::{
-    causal_direction_candidates, causal_root_candidates, fir_fit, offline_candidates, prefiltered, root_joint_sets,
-    Row, Sweep,
+    causal_direction_candidates, causal_root_candidates, fir_fit, offline_candidates, prefiltered,
+    root_joint_sets, Row, Sweep,
 };
 use blapose_model::ModelKind;
 use blapose_train::dataset::{mean_subject_lengths, subject_lengths};
@@ -80,8 +80,12 @@ pub fn run(a: MotionArgs) -> Result<()> {
         let h36m = H36m::load(&root, &subjects, Parts::ALL)?;
         let all: Vec<LifterSequence> = lifter_sequences(&h36m, &subjects)?;
         let trials: Vec<LifterSequence> = all.iter().step_by(every).cloned().collect();
-        let fit_trials: Vec<LifterSequence> = all.iter().skip(every / 2).step_by(every).cloned().collect();
-        let scenes = trials.iter().map(|t| Scene::build(&h36m, t)).collect::<Result<Vec<_>, _>>()?;
+        let fit_trials: Vec<LifterSequence> =
+            all.iter().skip(every / 2).step_by(every).cloned().collect();
+        let scenes = trials
+            .iter()
+            .map(|t| Scene::build(&h36m, t))
+            .collect::<Result<Vec<_>, _>>()?;
         (trials, fit_trials, scenes)
     };
     let training_mean = {
@@ -90,8 +94,14 @@ pub fn run(a: MotionArgs) -> Result<()> {
     };
     let mut estimates = LengthEstimates::compute(
         &trials,
-        Some(&blapose_model::weights::load(&a.gru_weights, ModelKind::Gru)?),
-        Some(&blapose_model::weights::load(&a.bigru_weights, ModelKind::BiGru)?),
+        Some(&blapose_model::weights::load(
+            &a.gru_weights,
+            ModelKind::Gru,
+        )?),
+        Some(&blapose_model::weights::load(
+            &a.bigru_weights,
+            ModelKind::BiGru,
+        )?),
     )?;
     estimates.training_mean = training_mean;
     eprintln!(
@@ -116,7 +126,10 @@ pub fn run(a: MotionArgs) -> Result<()> {
             adjusters: estimates.adjusters(),
         };
         let lifted = fit_sweep.lift_all(&|s| lifter.lift(&s.trial, true))?;
-        let gru = GruEstimator::new(&blapose_model::weights::load(&a.gru_weights, ModelKind::Gru)?)?;
+        let gru = GruEstimator::new(&blapose_model::weights::load(
+            &a.gru_weights,
+            ModelKind::Gru,
+        )?)?;
         let inputs: Vec<_> = fit_trials.iter().map(|t| t.trial.clone()).collect();
         let lengths = gru.running_estimates(&inputs)?;
         fir_fit(&fit_trials, &lifted, &lengths)?
@@ -137,16 +150,45 @@ pub fn run(a: MotionArgs) -> Result<()> {
     };
     // Baselines, and the served stages.
     let served = sweep.evaluate(&lifted, &scenes, served_causal, served_offline)?;
-    push("baseline", "before (lifter as it is)".into(), Some(served.before.clone()));
-    push("baseline", "gru (no motion stage)".into(), served.gru.clone());
-    push("baseline", "bigru (no motion stage)".into(), served.bigru.clone());
-    push("baseline", "true lengths (oracle)".into(), served.ground_truth_lengths.clone());
+    push(
+        "baseline",
+        "before (lifter as it is)".into(),
+        Some(served.before.clone()),
+    );
+    push(
+        "baseline",
+        "gru (no motion stage)".into(),
+        served.gru.clone(),
+    );
+    push(
+        "baseline",
+        "bigru (no motion stage)".into(),
+        served.bigru.clone(),
+    );
+    push(
+        "baseline",
+        "true lengths (oracle)".into(),
+        served.ground_truth_lengths.clone(),
+    );
     push("served", "gru_motion".into(), served.gru_motion.clone());
     push("served", "bigru_motion".into(), served.bigru_motion.clone());
     let mut candidates = causal_direction_candidates();
-    for (v, acc) in [(0.0, 0.0), (1.0, 0.0), (4.0, 0.0), (0.0, 4.0), (4.0, 4.0), (4.0, 16.0), (16.0, 16.0), (16.0, 64.0), (64.0, 64.0)] {
+    for (v, acc) in [
+        (0.0, 0.0),
+        (1.0, 0.0),
+        (4.0, 0.0),
+        (0.0, 4.0),
+        (4.0, 4.0),
+        (4.0, 16.0),
+        (16.0, 16.0),
+        (16.0, 64.0),
+        (64.0, 64.0),
+    ] {
         if let Some(taps) = fit.solve(v, acc) {
-            candidates.push((format!("learned fir velocity {v} accel {acc}"), Some(CausalSmoothing::Fir(taps))));
+            candidates.push((
+                format!("learned fir velocity {v} accel {acc}"),
+                Some(CausalSmoothing::Fir(taps)),
+            ));
             eprintln!("fir {v} {acc}: {:?}", taps.0);
         }
     }
@@ -187,10 +229,9 @@ pub fn run(a: MotionArgs) -> Result<()> {
         push("offline", name, r.bigru_motion);
     }
     eprintln!("filters in {:.1}s", t0.elapsed().as_secs_f64());
-    for (name, smoothing) in causal_direction_candidates()
-        .into_iter()
-        .filter(|(n, _)| n == "one-euro min 1 Hz beta 0.5" || n == "kalman q 1 r 4e-4" || n == "kalman q 3 r 1.6e-3")
-    {
+    for (name, smoothing) in causal_direction_candidates().into_iter().filter(|(n, _)| {
+        n == "one-euro min 1 Hz beta 0.5" || n == "kalman q 1 r 4e-4" || n == "kalman q 3 r 1.6e-3"
+    }) {
         let Some(smoothing) = smoothing else { continue };
         let pre = sweep.lift_all(&|s| {
             let mut trial = s.trial.clone();
@@ -202,9 +243,17 @@ pub fn run(a: MotionArgs) -> Result<()> {
             ..served_causal
         };
         let r = sweep.evaluate(&pre, &scenes, plain, served_offline)?;
-        push("2D before lifting", format!("{name} (then gru)"), r.gru_motion);
+        push(
+            "2D before lifting",
+            format!("{name} (then gru)"),
+            r.gru_motion,
+        );
         let r = sweep.evaluate(&pre, &scenes, served_causal, served_offline)?;
-        push("2D before lifting", format!("{name} + served directions"), r.gru_motion);
+        push(
+            "2D before lifting",
+            format!("{name} + served directions"),
+            r.gru_motion,
+        );
     }
     let mut md = String::from(
         "| group | candidate | MPJPE (mm) | MPJVE (mm/frame) | accel (mm/frame²) | MRPE (mm) | foot skate (mm/frame) |\n\
