@@ -16,6 +16,7 @@ use clap::builder::TypedValueParser;
 use clap::{Parser, ValueEnum};
 
 use crate::token::SessionKey;
+use crate::transport::{ConnectionLimits, TlsFiles};
 
 /// Where a model's weights come from.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
@@ -43,15 +44,6 @@ pub enum LogFormat {
     Text,
     /// One JSON object per line (for log collectors).
     Json,
-}
-
-/// TLS certificate chain and private key, both PEM files.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct TlsFiles {
-    /// Certificate chain (PEM).
-    pub cert: PathBuf,
-    /// Private key (PEM).
-    pub key: PathBuf,
 }
 
 /// Weights of the camera-aware (rectified) model pair.
@@ -114,7 +106,7 @@ pub struct ServerConfig {
     pub max_header_list_bytes: u32,
     /// Connections held at once, all peers together, and from one IP
     /// address; the deadline for a new one's TLS handshake and preface.
-    pub connection_limits: crate::transport::ConnectionLimits,
+    pub connection_limits: ConnectionLimits,
     /// Optional TLS.
     pub tls: Option<TlsFiles>,
     /// Optional bearer token required on blapose.v1 calls.
@@ -164,7 +156,7 @@ impl Default for ServerConfig {
             weight_precision: Precision::F16,
             max_concurrent_streams: DEFAULT_MAX_CONCURRENT_STREAMS,
             max_header_list_bytes: DEFAULT_MAX_HEADER_LIST_BYTES,
-            connection_limits: crate::transport::ConnectionLimits {
+            connection_limits: ConnectionLimits {
                 max_connections: DEFAULT_MAX_CONNECTIONS,
                 max_connections_per_peer: DEFAULT_MAX_CONNECTIONS_PER_PEER,
                 handshake_timeout: Duration::from_secs(DEFAULT_HANDSHAKE_TIMEOUT_S),
@@ -498,7 +490,7 @@ impl Cli {
             weight_precision: self.weight_precision,
             max_concurrent_streams: self.max_concurrent_streams,
             max_header_list_bytes: self.max_header_list_bytes,
-            connection_limits: crate::transport::ConnectionLimits {
+            connection_limits: ConnectionLimits {
                 max_connections: self.max_connections,
                 max_connections_per_peer: self.max_connections_per_peer,
                 handshake_timeout: self.handshake_timeout,

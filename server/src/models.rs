@@ -31,14 +31,13 @@ use sha2::{Digest, Sha256};
 use crate::backend::{Backend, BackendError, SequenceBackend};
 use crate::config::WeightsSource;
 use crate::engine;
-use crate::error::ServerError;
 
 /// The stature model sessions and requests with a subject are answered
 /// with: `models/stature_regression.json` (written by `blapose
 /// fit-stature`), embedded.
-pub fn embedded_stature_model() -> Result<StatureModel, ServerError> {
+pub fn embedded_stature_model() -> Result<StatureModel, WeightsError> {
     StatureModel::from_json(include_str!("../../models/stature_regression.json"))
-        .map_err(|e| ServerError::Stature(e.to_string()))
+        .map_err(|e| WeightsError::Stature(e.to_string()))
 }
 
 /// `pub fn $name() -> Option<&'static [u8]>`: the weights file `build.rs`
@@ -208,6 +207,12 @@ pub enum WeightsError {
         /// The cause.
         cause: TrainedLifterError,
     },
+    /// No engine could be built for the weights.
+    #[error("model backend: {0}")]
+    Backend(#[from] BackendError),
+    /// The embedded stature model does not load.
+    #[error("stature model: {0}")]
+    Stature(String),
 }
 
 /// Weights of one model plus where they came from.
@@ -413,7 +418,7 @@ impl WeightsProvider {
         bigru: &WeightsSource,
         threads: usize,
         precision: Precision,
-    ) -> Result<Self, ServerError> {
+    ) -> Result<Self, WeightsError> {
         let gru = LoadedModel::load(gru, ModelKind::Gru, family)?;
         let bigru = LoadedModel::load(bigru, ModelKind::BiGru, family)?;
         if gru.input != bigru.input {
@@ -422,8 +427,7 @@ impl WeightsProvider {
                 bigru: bigru.origin,
                 gru_input: Box::new(gru.input),
                 bigru_input: Box::new(bigru.input),
-            }
-            .into());
+            });
         }
         let online = engine::online_engine(&gru.weights, threads, precision)?;
         let offline = engine::offline_engine(&bigru.weights, threads, precision)?;

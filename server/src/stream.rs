@@ -34,16 +34,16 @@ use tonic::{Status, Streaming};
 use tracing::Instrument;
 
 use crate::answer::{self, frame_error};
-use crate::batch::{FrameJob, StepResult};
+use crate::frame::{FrameJob, StepResult};
 use crate::metrics;
 use crate::prepare;
 use crate::quota::ClientId;
 use crate::restore_check;
-use crate::service::AppState;
 use crate::session::{
     Attachment, Ownership, Session, SessionConfig, SessionError, SessionSnapshot, StateCopy,
     MAX_LABEL_BYTES,
 };
+use crate::state::AppState;
 use crate::token::PortableState;
 use crate::validate;
 

@@ -27,7 +27,7 @@
 //! ```text
 //! offset size  field
 //! 0      4     magic "BLPT"
-//! 4      1     version (2)
+//! 4      1     version (3)
 //! 5      1     flags: bit 0 camera calibration present, bit 1 lifter window
 //!              present, bit 2 subject present
 //! 6      16    session id
