@@ -31,8 +31,9 @@
 //! needs the previous frame's outcome, so it runs after the queue) ->
 //! [`step`] (the batched GRU step) -> [`answer`] (lengths, adjustment,
 //! token snapshots). The types the stages pass live in [`frame`].
-//! [`stream`] drives a streamed frame through them, [`offline`] a whole
-//! sequence (`AdjustSequence`, which shares prepare and answer).
+//! [`stream`] drives a streamed frame through them (after [`attach`] has
+//! opened, resumed or restored its session), [`offline`] a whole sequence
+//! (`AdjustSequence`, which shares prepare and answer).
 //!
 //! Around them: [`server`] (the wiring: listeners, services, tasks),
 //! [`config`] (flags and [`ServerConfig`]), [`session`] (store, TTL,
@@ -62,6 +63,7 @@ pub mod step;
 pub mod answer;
 
 // What the stages pass, and who drives frames through them.
+pub mod attach;
 pub mod frame;
 pub mod offline;
 pub mod stream;

@@ -17,8 +17,9 @@ use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status, Streaming};
 
+use crate::attach::session_status;
 use crate::state::AppState;
-use crate::stream::{self, session_status};
+use crate::stream;
 use crate::validate;
 
 /// The tonic service.
