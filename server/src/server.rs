@@ -129,6 +129,8 @@ pub async fn spawn(
         let Some(p) = p else { continue };
         tracing::info!(
             camera_aware,
+            weight_precision = %p.precision().precision,
+            why = p.precision().reason,
             gru = %p.gru().origin,
             gru_sha256 = %p.gru().sha256,
             bigru = %p.bigru().origin,

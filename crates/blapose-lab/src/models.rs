@@ -62,12 +62,9 @@ impl BenchModel<'_> {
     /// rectified keypoints with a calibration). Weights whose contract
     /// does not read what `input` gives are refused.
     pub fn contract(&self) -> Result<ModelInput, TrainError> {
-        let given = match self.input {
-            BenchInput::None => ModelInput::screen(),
-            BenchInput::Calibration => ModelInput::level(),
-        };
-        let contract = self.weights.meta.input.unwrap_or(given);
-        if contract.framing.needs_calibration() != given.framing.needs_calibration() {
+        let calibrated = self.input == BenchInput::Calibration;
+        let contract = self.weights.meta.input_contract(calibrated);
+        if contract.framing.needs_calibration() != calibrated {
             return Err(TrainError::InvalidArgument(format!(
                 "{}: its weights read {:?} keypoints, but the benchmark gives them input {:?}",
                 self.path, contract.framing, self.input
