@@ -419,7 +419,7 @@ async fn run(cli: Cli) -> Result<()> {
             server_lifter,
         } => {
             let loaded = io.load()?;
-            io.check_exports()?;
+            io.check_exports(loaded.0.len())?;
             let seq = &loaded.0;
             let clients = connect_all(&cli.connection).await?;
             let bar = progress_bar(seq.len());
@@ -453,17 +453,19 @@ async fn run(cli: Cli) -> Result<()> {
                 &loaded,
                 &result,
             )
-            .await
+            .await?;
+            io.refused_exports(seq.len())
         }
         Command::Adjust { io, model } => {
             let loaded = io.load()?;
-            io.check_exports()?;
+            io.check_exports(loaded.0.len())?;
             let client = connect(&cli.connection).await?;
             let result = adjust_offline(&client, &loaded.0, model).await?;
             finish(&io, &loaded.0, &result)?;
             io.write_exports(&result, loaded.0.fps, loaded.1)?;
             io.write_html(&client, cli.connection.first_server()?, &loaded, &result)
-                .await
+                .await?;
+            io.refused_exports(loaded.0.len())
         }
         Command::Info { raw } => {
             let client = connect(&cli.connection).await?;
