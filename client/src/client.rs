@@ -436,9 +436,23 @@ impl Client {
         msg: pb::AdjustSequenceRequest,
     ) -> Result<pb::AdjustSequenceResponse, ClientError> {
         let mut stub = self.stub();
+        let frames = msg.num_frames;
         let req = self.request(msg);
-        self.deadline("AdjustSequence", stub.adjust_sequence(req))
+        match self
+            .deadline("AdjustSequence", stub.adjust_sequence(req))
             .await
+        {
+            Err(ClientError::Status(s))
+                if s.code() == tonic::Code::OutOfRange
+                    && s.message().contains("message length too large") =>
+            {
+                Err(ClientError::MessageTooLarge {
+                    frames,
+                    detail: s.message().to_string(),
+                })
+            }
+            other => other,
+        }
     }
 }
 

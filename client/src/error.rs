@@ -38,6 +38,19 @@ pub enum ClientError {
     /// e.g. that the server speaks TLS).
     #[error("server returned {}: {}{}", .0.code(), .0.message(), causes(.0))]
     Status(#[from] tonic::Status),
+    /// A whole-sequence request over the server's message size limit
+    /// (OUT_OF_RANGE): says which limit and what to do.
+    #[error(
+        "the {frames}-frame sequence is one message too large for the server ({detail}): \
+         raise the server's --max-message-bytes (BLAPOSE_MAX_MESSAGE_BYTES; ModelInfo reports \
+         it), or stream the file with `blapose-client replay`, which sends one frame per message"
+    )]
+    MessageTooLarge {
+        /// Frames in the request.
+        frames: u32,
+        /// The server's message (the request's size and the limit).
+        detail: String,
+    },
     /// A call did not finish within its deadline.
     #[error("{what} timed out after {after:?}")]
     Timeout {
@@ -101,6 +114,7 @@ impl ClientError {
         match self {
             ClientError::Status(s) => Some(s.code()),
             ClientError::FrameRejected { code, .. } => Some(*code),
+            ClientError::MessageTooLarge { .. } => Some(tonic::Code::OutOfRange),
             _ => None,
         }
     }

@@ -430,7 +430,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         blapose.write_html(
             args.html, res.pose_3d, res.adjusted_3d, fps=res.fps, title=Path(args.video).name,
             before_label=f"lifted ({res.lifter})", after_label="adjusted",
-            info={"lifter": res.lifter, "detector": "mediapipe pose (complexity 1)", "frames": res.stats["kept"]},
+            # the page shows the frame count itself ("frames: T"); the video's count is another
+            info={"lifter": res.lifter, "detector": "mediapipe pose (complexity 1)",
+                  "video": f"{res.frames_read} frames read, {res.stats['kept']} with a person"},
         )  # fmt: skip
     exported = []
     # A stream's lengths change as its estimate converges; a skeleton's cannot, so the

@@ -93,6 +93,8 @@ def test_rest_pose_and_lengths(tmp_path):
     text, _ = export.bvh_text(np.stack([pose, pose]), lengths)
     names, parents, offsets, _, frames = _parse_bvh(text)
     assert np.abs(frames).max() < 1e-5  # the rest pose is all zeros
+    # zeros as Rust writes them: "0.000000", never "-0.000000"
+    assert "-0.000000" not in text.split("MOTION\n")[1]
     world = {}
     for j, n in enumerate(names):
         world[n] = offsets[j] + (world[names[parents[j]]] if parents[j] is not None else 0)

@@ -99,4 +99,7 @@ def test_video_to_poses_end_to_end(start_server, tmp_path: Path) -> None:
 
     report = blapose.report.read_html_data(html)
     assert report["frames"] == t
+    # the page prints "frames: T" itself; the header lines do not repeat it
+    assert [k for k, _ in report["info"]] == ["lifter", "detector", "video"]
+    assert dict(report["info"])["video"] == f"{FRAMES - 2} frames read, {t} with a person"
     assert np.asarray(report["before"]).size == t * 17 * 3 and np.asarray(report["after"]).size == t * 17 * 3

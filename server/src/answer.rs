@@ -23,7 +23,7 @@ use tokio::sync::oneshot;
 use tonic::Status;
 
 use crate::backend::OUTPUT_DIM;
-use crate::batch::{FrameJob, StepError, StepOutput, StepResult};
+use crate::frame::{FrameJob, StepError, StepOutput, StepResult};
 use crate::metrics;
 use crate::session::{SessionState, SessionSubject, StateCopy};
 use crate::validate::ValidSubject;

@@ -5,8 +5,9 @@
 //! read once either way), so frames from all streams wait in one queue and
 //! one thread runs them together. This module is only that queue and its
 //! rule; what a batch goes through once taken is the other stages'
-//! ([`crate::prepare`], [`crate::step`], [`crate::answer`]), which the
-//! worker thread given to [`Batcher::start`] runs. The rules:
+//! ([`crate::prepare`] -> [`crate::step`] -> [`crate::answer`]), which the
+//! batcher thread ([`crate::pipeline`], the worker given to
+//! [`Batcher::start`]) runs in that order. The rules:
 //!
 //! * **At most one frame per session per batch**: a session's next frame
 //!   needs the hidden state (and the held joints and lifter window) its
@@ -21,17 +22,18 @@
 //! * **Explicit backpressure**: a full queue refuses the frame
 //!   ([`SubmitError::QueueFull`] -> RESOURCE_EXHAUSTED); nothing is dropped
 //!   silently. Every accepted frame is answered exactly once through its
-//!   oneshot ([`StepResult`]), including at shutdown (the queue is drained
-//!   first).
+//!   oneshot ([`StepResult`](crate::frame::StepResult)), including at
+//!   shutdown (the queue is drained first).
 //! * **Off the async runtime**: the worker is the batcher's own OS thread,
 //!   never a tokio worker.
 //!
-//! What waits here is a validated frame already in the model's coordinates
-//! ([`FrameJob`]). The rest of its preparation (missing joints held at
-//! their last detection, the server lifter's pose, rectification) reads the
-//! state its session's *previous* frame leaves, which is only known once
-//! that frame has been through its step, so [`crate::prepare`] finishes it
-//! when its batch is taken.
+//! What waits here is a validated frame ([`FrameJob`]): its keypoints in
+//! normalized screen coordinates, as the client's frame was checked. The
+//! rest of its preparation (missing joints held at their last detection,
+//! the server lifter's pose, the camera the model reads it through) reads
+//! the state its session's *previous* frame leaves, which is only known
+//! once that frame has been through its step, so [`crate::prepare`] does
+//! it when its batch is taken.
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -39,12 +41,8 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use blapose_core::{BoneLengths, Keypoints2d, Pose, NUM_JOINTS};
-use tokio::sync::oneshot;
-
-use crate::backend::INPUT_DIM;
+use crate::frame::FrameJob;
 use crate::quota::{ClientId, QuotaError};
-use crate::session::{Session, StateCopy};
 
 /// Batching limits.
 #[derive(Debug, Clone, Copy)]
@@ -56,98 +54,6 @@ pub struct BatcherConfig {
     /// Most frames waiting at once, all sessions together (>= 1).
     pub queue_capacity: usize,
 }
-
-/// One frame to run.
-#[derive(Debug)]
-pub struct FrameJob {
-    /// Its session.
-    pub session: Arc<Session>,
-    /// The epoch of the stream that sent it.
-    pub epoch: u64,
-    /// Normalized Human3.6M-17 keypoints, joint-major (x, y); a missing
-    /// joint's pair is a placeholder, replaced by its held position
-    /// ([`blapose_core::missing::HeldJoints`]) when the frame runs.
-    pub input: [f32; INPUT_DIM],
-    /// Which joints were detected.
-    pub present: [bool; NUM_JOINTS],
-    /// Lift the pose from the session's window and `input` with the server
-    /// lifter (the session must have been opened lifting).
-    pub lift: bool,
-    /// Copy the session's state into the answer ([`StepOutput::state`])
-    /// when this frame makes its frames seen a multiple of this (0: never);
-    /// the copy is taken under the same lock as the update, so it is
-    /// exactly the state after this frame (for periodic session tokens).
-    pub state_every: u64,
-    /// Where the answer goes.
-    pub reply: oneshot::Sender<StepResult>,
-}
-
-impl FrameJob {
-    /// The frame's keypoints (its model input) as a keypoint frame: what
-    /// the server lifter's window holds.
-    pub fn keypoints(&self) -> Keypoints2d {
-        std::array::from_fn(|j| [self.input[2 * j], self.input[2 * j + 1]])
-    }
-}
-
-/// A processed frame.
-#[derive(Debug, Clone, PartialEq)]
-pub struct StepOutput {
-    /// The lengths the session answers with after this frame
-    /// ([`SessionConfig::served`](crate::session::SessionConfig::served):
-    /// its running-mean estimate, or its subject's); `None` for a frame
-    /// without a detected joint before any frame was read (no estimate
-    /// yet).
-    pub lengths: Option<BoneLengths>,
-    /// Frames processed in the session, this one included.
-    pub frames_seen: u64,
-    /// The server lifter's pose for this frame (root at 0), for a lifting
-    /// frame; `None` when the client sent the pose.
-    pub lifted: Option<Pose>,
-    /// The session's state right after this frame, when the job asked for
-    /// it ([`FrameJob::state_every`]).
-    pub state: Option<Box<StateCopy>>,
-}
-
-/// Why an accepted frame was not processed. The session is unchanged.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum StepError {
-    /// Another stream resumed the session, or it was closed, after the frame
-    /// was queued.
-    #[error("the session was resumed by another stream or closed before this frame ran")]
-    Superseded,
-    /// The model failed on the whole batch.
-    #[error("the model failed: {0}")]
-    Model(String),
-    /// The model produced NaN or infinity for this frame.
-    #[error(
-        "the model produced a non-finite result for this frame; the session state was not updated"
-    )]
-    NonFinite,
-    /// The server lifter failed on this frame.
-    #[error("the server lifter failed: {0}; the session state was not updated")]
-    Lifter(String),
-    /// The server lifter's pose cannot be adjusted (non-finite, out of
-    /// bounds or a zero-length bone).
-    #[error("the server lifter produced a pose that cannot be adjusted ({0}); the session state was not updated")]
-    LiftedPose(String),
-}
-
-impl StepError {
-    /// The gRPC code this error is reported with.
-    pub fn code(&self) -> tonic::Code {
-        match self {
-            StepError::Superseded => tonic::Code::Aborted,
-            StepError::Model(_)
-            | StepError::NonFinite
-            | StepError::Lifter(_)
-            | StepError::LiftedPose(_) => tonic::Code::Internal,
-        }
-    }
-}
-
-/// Result of one frame.
-pub type StepResult = Result<StepOutput, StepError>;
 
 /// Why a frame was refused at submission (it was never queued).
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]

@@ -16,6 +16,7 @@ use clap::builder::TypedValueParser;
 use clap::{Parser, ValueEnum};
 
 use crate::token::SessionKey;
+use crate::transport::{ConnectionLimits, TlsFiles};
 
 /// Where a model's weights come from.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
@@ -43,15 +44,6 @@ pub enum LogFormat {
     Text,
     /// One JSON object per line (for log collectors).
     Json,
-}
-
-/// TLS certificate chain and private key, both PEM files.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct TlsFiles {
-    /// Certificate chain (PEM).
-    pub cert: PathBuf,
-    /// Private key (PEM).
-    pub key: PathBuf,
 }
 
 /// Weights of the camera-aware (rectified) model pair.
@@ -103,8 +95,8 @@ pub struct ServerConfig {
     /// Threads the model backend may use for one batched step and for
     /// offline requests.
     pub compute_threads: usize,
-    /// Storage precision of the GRU weights in the fast engines (f16, the
-    /// default, halves the bytes streamed per step; arithmetic stays f32).
+    /// Storage precision of the GRU weights in the fast engines (by
+    /// default the fastest on this CPU, [`Precision::fastest`]).
     pub weight_precision: Precision,
     /// HTTP/2 streams one connection may have open at once (advertised in
     /// SETTINGS_MAX_CONCURRENT_STREAMS; beyond it, REFUSED_STREAM).
@@ -114,7 +106,7 @@ pub struct ServerConfig {
     pub max_header_list_bytes: u32,
     /// Connections held at once, all peers together, and from one IP
     /// address; the deadline for a new one's TLS handshake and preface.
-    pub connection_limits: crate::transport::ConnectionLimits,
+    pub connection_limits: ConnectionLimits,
     /// Optional TLS.
     pub tls: Option<TlsFiles>,
     /// Optional bearer token required on blapose.v1 calls.
@@ -161,10 +153,10 @@ impl Default for ServerConfig {
             open_timeout: Duration::from_secs(DEFAULT_OPEN_TIMEOUT_S),
             max_inflight_per_stream: DEFAULT_MAX_INFLIGHT,
             compute_threads: DEFAULT_COMPUTE_THREADS,
-            weight_precision: Precision::F16,
+            weight_precision: Precision::fastest(),
             max_concurrent_streams: DEFAULT_MAX_CONCURRENT_STREAMS,
             max_header_list_bytes: DEFAULT_MAX_HEADER_LIST_BYTES,
-            connection_limits: crate::transport::ConnectionLimits {
+            connection_limits: ConnectionLimits {
                 max_connections: DEFAULT_MAX_CONNECTIONS,
                 max_connections_per_peer: DEFAULT_MAX_CONNECTIONS_PER_PEER,
                 handshake_timeout: Duration::from_secs(DEFAULT_HANDSHAKE_TIMEOUT_S),
@@ -297,14 +289,14 @@ pub struct Cli {
           value_parser = clap::value_parser!(u32).range(1..=256).map(|v| v as usize))]
     pub compute_threads: usize,
 
-    /// Storage precision of the GRU weights: f16 (the default: lengths
-    /// within ~1e-5 m of f32, 1.5-2x the batch-1 step rate, which is bound
-    /// by streaming the weights; arithmetic stays f32), f32 (agrees with
-    /// the reference to ~1e-6), bf16 (bf16 weights and matrix inputs on
-    /// the CPU's bf16 units, AMX or AVX512-BF16; the fastest for batches;
-    /// refused at start on CPUs without AVX512-BF16) or auto (bf16 where
-    /// the CPU has AVX512-BF16, else f16).
-    #[arg(long, env = "BLAPOSE_WEIGHT_PRECISION", default_value = "f16", value_parser = parse_precision)]
+    /// Storage precision of the GRU weights: auto (the default: what
+    /// serves fastest on this CPU, bf16 with AMX, f16 elsewhere, AMD Zen 4
+    /// included; the choice and why are in the start-up log and
+    /// ModelInfo), f16 (lengths within ~1e-5 m of f32; arithmetic stays
+    /// f32), bf16 (bf16 weights and matrix inputs on the CPU's bf16 units,
+    /// AMX or AVX512-BF16; refused at start on CPUs without AVX512-BF16) or
+    /// f32 (agrees with the reference to ~1e-6; only on request).
+    #[arg(long, env = "BLAPOSE_WEIGHT_PRECISION", default_value = "auto", value_parser = parse_precision)]
     pub weight_precision: Precision,
 
     /// Log format.
@@ -498,7 +490,7 @@ impl Cli {
             weight_precision: self.weight_precision,
             max_concurrent_streams: self.max_concurrent_streams,
             max_header_list_bytes: self.max_header_list_bytes,
-            connection_limits: crate::transport::ConnectionLimits {
+            connection_limits: ConnectionLimits {
                 max_connections: self.max_connections,
                 max_connections_per_peer: self.max_connections_per_peer,
                 handshake_timeout: self.handshake_timeout,
@@ -525,7 +517,8 @@ pub fn parse_session_key(text: &str) -> Result<SessionKey, String> {
     SessionKey::parse(text).map_err(|e| e.to_string())
 }
 
-/// Parse `f32`, `f16`, `bf16` or `auto` ([`Precision::fastest`] on this CPU).
+/// Parse `f32`, `f16`, `bf16` or `auto` ([`Precision::fastest`] on this
+/// CPU, [`blapose_model::PrecisionChoice`]).
 pub fn parse_precision(text: &str) -> Result<Precision, String> {
     if text.trim().eq_ignore_ascii_case("auto") {
         return Ok(Precision::fastest());
@@ -667,6 +660,13 @@ mod tests {
         assert_eq!(cli.into_config().weight_precision, Precision::Bf16);
         let cli = Cli::try_parse_from(["blapose-server", "--weight-precision", "auto"]).unwrap();
         assert_eq!(cli.into_config().weight_precision, Precision::fastest());
+        // auto is the default, of the flags and of an embedded server.
+        let cli = Cli::try_parse_from(["blapose-server"]).unwrap();
+        assert_eq!(cli.into_config().weight_precision, Precision::fastest());
+        assert_eq!(
+            ServerConfig::default().weight_precision,
+            Precision::fastest()
+        );
     }
 
     #[test]

@@ -32,7 +32,4 @@ pub enum ServerError {
     /// A background task failed.
     #[error("server task failed: {0}")]
     Task(String),
-    /// The embedded stature model does not load.
-    #[error("stature model: {0}")]
-    Stature(String),
 }

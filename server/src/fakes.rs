@@ -1,7 +1,7 @@
 //! Test support for the batcher's stages: a fake online model whose state
 //! reveals lost, repeated, reordered or mixed-up frames, a small random
 //! server lifter, and frames to feed them. Shared by the unit tests of
-//! [`crate::batch`], [`crate::prepare`] and [`crate::step`].
+//! [`crate::batch`], [`crate::prepare`], [`crate::step`] and [`crate::pipeline`].
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -12,7 +12,8 @@ use blapose_core::NUM_JOINTS;
 use tokio::sync::oneshot;
 
 use crate::backend::{Backend, BackendError, INPUT_DIM, OUTPUT_DIM, STATE_DIM};
-use crate::batch::{Batcher, BatcherConfig, FrameJob, StepResult};
+use crate::batch::{Batcher, BatcherConfig};
+use crate::frame::{FrameJob, StepResult};
 use crate::models::LoadedLifter;
 use crate::session::{Coordinates, InputFormat, Session, SessionConfig};
 use crate::step::OnlineBackends;
@@ -34,7 +35,7 @@ pub(crate) fn start_with_lifter<B: Backend>(
         default: fake,
         camera_aware: None,
     };
-    crate::step::start(backends, config, lifter)
+    crate::pipeline::start(backends, config, lifter)
 }
 
 /// A fake model: the new state is `h + x[0]` in every slot, the

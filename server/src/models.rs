@@ -24,21 +24,23 @@ use blapose_lifters::{TrainedLifter, TrainedLifterError};
 use blapose_model::input::ModelInput;
 use blapose_model::stature::StatureModel;
 use blapose_model::weights::{self, LoadedWeights};
-use blapose_model::{ModelError, ModelKind, OfflineBiGruEngine, OnlineGruEngine, Precision};
+use blapose_model::{
+    CpuFeatures, ModelError, ModelKind, OfflineBiGruEngine, OnlineGruEngine, Precision,
+    PrecisionChoice,
+};
 use blapose_proto::v1 as pb;
 use sha2::{Digest, Sha256};
 
 use crate::backend::{Backend, BackendError, SequenceBackend};
 use crate::config::WeightsSource;
 use crate::engine;
-use crate::error::ServerError;
 
 /// The stature model sessions and requests with a subject are answered
 /// with: `models/stature_regression.json` (written by `blapose
 /// fit-stature`), embedded.
-pub fn embedded_stature_model() -> Result<StatureModel, ServerError> {
+pub fn embedded_stature_model() -> Result<StatureModel, WeightsError> {
     StatureModel::from_json(include_str!("../../models/stature_regression.json"))
-        .map_err(|e| ServerError::Stature(e.to_string()))
+        .map_err(|e| WeightsError::Stature(e.to_string()))
 }
 
 /// `pub fn $name() -> Option<&'static [u8]>`: the weights file `build.rs`
@@ -107,14 +109,9 @@ impl Family {
         }
     }
 
-    /// What weights loaded for this family read when they record no input
-    /// contract: screen coordinates, or plain rectified keypoints from any
-    /// camera.
-    pub const fn default_input(self) -> ModelInput {
-        match self {
-            Self::Default => ModelInput::screen(),
-            Self::CameraAware => ModelInput::level(),
-        }
+    /// Whether this family's models read a camera calibration.
+    pub const fn calibrated(self) -> bool {
+        matches!(self, Self::CameraAware)
     }
 
     /// Suffix of the model names and weight files of this family.
@@ -208,6 +205,12 @@ pub enum WeightsError {
         /// The cause.
         cause: TrainedLifterError,
     },
+    /// No engine could be built for the weights.
+    #[error("model backend: {0}")]
+    Backend(#[from] BackendError),
+    /// The embedded stature model does not load.
+    #[error("stature model: {0}")]
+    Stature(String),
 }
 
 /// Weights of one model plus where they came from.
@@ -272,7 +275,7 @@ impl LoadedModel {
                 });
             }
         }
-        let input = weights.meta.input.unwrap_or(family.default_input());
+        let input = weights.meta.input_contract(family.calibrated());
         Ok(Self {
             weights,
             origin,
@@ -381,11 +384,10 @@ pub trait ModelProvider: Send + Sync + 'static {
     }
     /// What these models read (their weights' input contract); what the
     /// camera-aware family's is decides how a calibration is read.
-    /// Default: plain rectified keypoints from any camera
-    /// ([`ModelInput::level`]), what camera-aware weights that record no
-    /// contract are taken to read.
+    /// Default: what camera-aware weights that record no contract are
+    /// taken to read ([`blapose_model::WeightsMetadata::input_contract`]).
     fn model_input(&self) -> ModelInput {
-        ModelInput::level()
+        blapose_model::WeightsMetadata::new(ModelKind::Gru).input_contract(true)
     }
 }
 
@@ -398,8 +400,16 @@ pub struct WeightsProvider {
     bigru: LoadedModel,
     online: Arc<OnlineGruEngine>,
     offline: Arc<OfflineBiGruEngine>,
+    /// The GRU weights' precision in the engines, and why.
+    precision: PrecisionChoice,
     camera_aware: Option<Arc<WeightsProvider>>,
 }
+
+/// `ModelInfo` metadata: the precision the server's engines store the GRU
+/// weights at (`--weight-precision`), beside the file's own metadata.
+pub const PRECISION_KEY: &str = "served_weight_precision";
+/// `ModelInfo` metadata: why that precision ([`PrecisionChoice::reason`]).
+pub const PRECISION_REASON_KEY: &str = "served_weight_precision_reason";
 
 /// Scratch preallocated per online backend (it grows if a batch is larger).
 const SCRATCH_BATCH: usize = 64;
@@ -413,7 +423,7 @@ impl WeightsProvider {
         bigru: &WeightsSource,
         threads: usize,
         precision: Precision,
-    ) -> Result<Self, ServerError> {
+    ) -> Result<Self, WeightsError> {
         let gru = LoadedModel::load(gru, ModelKind::Gru, family)?;
         let bigru = LoadedModel::load(bigru, ModelKind::BiGru, family)?;
         if gru.input != bigru.input {
@@ -422,8 +432,7 @@ impl WeightsProvider {
                 bigru: bigru.origin,
                 gru_input: Box::new(gru.input),
                 bigru_input: Box::new(bigru.input),
-            }
-            .into());
+            });
         }
         let online = engine::online_engine(&gru.weights, threads, precision)?;
         let offline = engine::offline_engine(&bigru.weights, threads, precision)?;
@@ -433,6 +442,7 @@ impl WeightsProvider {
             bigru,
             online,
             offline,
+            precision: PrecisionChoice::requested(precision, CpuFeatures::detect()),
             camera_aware: None,
         })
     }
@@ -442,6 +452,11 @@ impl WeightsProvider {
     pub fn with_camera_aware(mut self, camera_aware: WeightsProvider) -> Self {
         self.camera_aware = Some(Arc::new(camera_aware));
         self
+    }
+
+    /// The precision the engines store the GRU weights at, and why.
+    pub fn precision(&self) -> PrecisionChoice {
+        self.precision
     }
 
     /// The camera-aware models, if loaded.
@@ -477,6 +492,16 @@ impl ModelProvider for WeightsProvider {
             self.gru.describe(self.family),
             self.bigru.describe(self.family),
         ];
+        for model in &mut models {
+            let precision = self.precision;
+            model.metadata.extend([
+                (PRECISION_KEY.to_string(), precision.precision.to_string()),
+                (
+                    PRECISION_REASON_KEY.to_string(),
+                    precision.reason.to_string(),
+                ),
+            ]);
+        }
         if let Some(camera_aware) = &self.camera_aware {
             models.extend(camera_aware.describe());
         }
@@ -543,7 +568,14 @@ mod tests {
             let loaded =
                 LoadedModel::load(&WeightsSource::File(path.clone()), ModelKind::Gru, family)
                     .unwrap();
-            assert_eq!(loaded.input, family.default_input());
+            assert_eq!(
+                loaded.input,
+                random.meta.input_contract(family.calibrated())
+            );
+            assert_eq!(
+                loaded.input.framing.needs_calibration(),
+                family.calibrated()
+            );
         }
         let _ = std::fs::remove_dir_all(&dir);
         // The shipped files record what they read; each family's pair agrees.

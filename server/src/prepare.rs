@@ -16,7 +16,7 @@
 //! session's pose comes from the lifter's window of the session's earlier
 //! frames ([`lift`]). Both depend on which earlier frames were *accepted*,
 //! known only once the previous frame has been through its step, so they
-//! run on the batcher thread when a batch is taken ([`crate::step`]), where
+//! run on the batcher thread when a batch is taken ([`crate::pipeline`]), where
 //! a session's frames are processed strictly one after another. Each
 //! lifting row's window plus its new frame is copied out (the session's
 //! window is not touched), all of a batch's windows run through the lifter
@@ -39,7 +39,8 @@ use blapose_proto::v1 as pb;
 
 use crate::answer;
 use crate::backend::BackendError;
-use crate::batch::{FrameJob, Queued, StepError, StepResult};
+use crate::batch::Queued;
+use crate::frame::{FrameJob, StepError, StepResult};
 use crate::metrics;
 use crate::models::LoadedLifter;
 use crate::session::{InputFormat, SessionCamera};

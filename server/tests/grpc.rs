@@ -1096,6 +1096,14 @@ async fn real_engines_serve_random_weights_from_files() {
             m.metadata.get("format").map(String::as_str),
             Some("blapose-bone-length")
         );
+        // The precision the server chose (auto, by default) and why.
+        let fastest = blapose_model::Precision::fastest().to_string();
+        assert_eq!(
+            m.metadata.get(blapose_server::models::PRECISION_KEY),
+            Some(&fastest)
+        );
+        let why = &m.metadata[blapose_server::models::PRECISION_REASON_KEY];
+        assert!(why.starts_with("auto: the CPU has"), "{why}");
     }
     // Random weights may predict negative lengths, so only the protocol and
     // the state are checked here: one answer per frame, frames counted.

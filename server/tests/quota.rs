@@ -104,7 +104,7 @@ async fn limits_are_flags_with_env_variables_and_defaults() {
     assert_eq!(cfg.max_sessions_per_client, None);
     assert_eq!(cfg.max_frames_per_session, 128);
     assert_eq!(cfg.token_ttl, Duration::from_secs(3600));
-    let limits = blapose_server::service::limits(&cfg);
+    let limits = blapose_server::state::limits(&cfg);
     assert_eq!(limits.sessions_per_client, 2048);
     assert_eq!(limits.queued_per_client, cfg.queue_capacity / 2);
     // A small table is not split.

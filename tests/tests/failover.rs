@@ -1,4 +1,4 @@
-//! Failover across replicas (issue 23, item 4): two in-process servers
+//! Failover across replicas: two in-process servers
 //! with the shipped weights share a session key; `replay_across` streams a
 //! shipped example to server A, A shuts down mid-stream (its sessions end
 //! with it), and the client library resumes the session on server B from

@@ -51,9 +51,11 @@ struct Args {
     /// Instruction set of the fast path (scalar, avx2, avx512); default: best available.
     #[arg(long)]
     isa: Option<String>,
-    /// Storage precision of the fast path's GRU weights (f32, f16 or bf16).
-    #[arg(long, default_value = "f32")]
-    precision: String,
+    /// Storage precision of the fast path's GRU weights: auto (the
+    /// default: the fastest on this CPU, as the server picks it: bf16 with
+    /// AMX, else f16), f32, f16 or bf16.
+    #[arg(long, default_value = "auto", value_parser = blapose_server::config::parse_precision)]
+    precision: Precision,
     /// With `--precision bf16`: the bf16 unit (amx, avx512bf16); default:
     /// AMX where the CPU and OS allow it.
     #[arg(long)]
@@ -100,7 +102,7 @@ fn main() -> Result<()> {
     let opts = EngineOptions {
         threads: args.threads,
         isa: Some(isa),
-        precision: args.precision.parse::<Precision>()?,
+        precision: args.precision,
         bf16_unit: args.bf16_unit.as_deref().map(str::parse).transpose()?,
     };
     let mut rates = Vec::with_capacity(args.repeats);

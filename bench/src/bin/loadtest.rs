@@ -88,7 +88,8 @@ struct Args {
     /// With --spawn: threads of one batched GRU step.
     #[arg(long, requires = "spawn")]
     compute_threads: Option<usize>,
-    /// With --spawn: storage precision of the GRU weights (f32, f16, bf16 or auto).
+    /// With --spawn: storage precision of the GRU weights (f32, f16, bf16 or
+    /// auto; default: auto, as the server's).
     #[arg(long, requires = "spawn", value_parser = blapose_server::config::parse_precision)]
     weight_precision: Option<blapose_model::Precision>,
 }

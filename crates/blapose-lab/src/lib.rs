@@ -12,7 +12,8 @@
 //!   people on S9/S11 motion through the wide cameras), its baselines and
 //!   size oracles; [`real_check`]: its rows on the training subjects' own
 //!   detections; [`height_fusion`]: its networks combined with a known
-//!   stature;
+//!   stature; [`models`]: the models these benchmarks score and the
+//!   contract each is fed through;
 //! - [`diagnose`]: the eval diagnostics (trials joined mid-way, rectified
 //!   without the contract, the online state restarted);
 //!   [`joint_dropout`]: lost joints; [`stature_proxy`]: statures where
@@ -28,6 +29,7 @@ pub mod bodies;
 pub mod diagnose;
 pub mod height_fusion;
 pub mod joint_dropout;
+pub mod models;
 pub mod motion_sweep;
 pub mod real_check;
 pub mod stature_proxy;

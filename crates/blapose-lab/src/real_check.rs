@@ -32,7 +32,7 @@ use blapose_train::eval::run::network_estimator;
 use blapose_train::eval::{calibrate, trial_error_mm, LengthEstimator};
 use blapose_train::TrainError;
 
-use crate::bodies::{BenchInput, BenchModel};
+use crate::models::{BenchInput, BenchModel};
 use crate::stature_proxy::matched_lengths;
 
 /// The training subjects' real trials, and how to find their cameras.

@@ -28,7 +28,8 @@ pub mod weights;
 pub use averaging::RunningMean;
 pub use error::ModelError;
 pub use fast::{
-    Bf16Unit, EngineOptions, Isa, OfflineBiGruEngine, OnlineGruEngine, Precision, StepScratch,
+    Bf16Unit, CpuFeatures, EngineOptions, Isa, OfflineBiGruEngine, OnlineGruEngine, Precision,
+    PrecisionChoice, StepScratch,
 };
 pub use input::{Framing, ModelInput};
 pub use reference::{BoneLengthBiGru, BoneLengthGru};

@@ -71,6 +71,21 @@ pub struct WeightsMetadata {
 }
 
 impl WeightsMetadata {
+    /// What these weights read, the one place that decides it: the input
+    /// contract they record, or for weights that record none (older or
+    /// converted files) the default for what they are fed: screen
+    /// coordinates ([`ModelInput::screen`]), or with a camera calibration
+    /// (`calibrated`) plain rectified keypoints from any camera
+    /// ([`ModelInput::level`]). The server, the evaluation and the
+    /// benchmarks all read a contract through this.
+    pub fn input_contract(&self, calibrated: bool) -> ModelInput {
+        self.input.unwrap_or(if calibrated {
+            ModelInput::level()
+        } else {
+            ModelInput::screen()
+        })
+    }
+
     /// Metadata for `kind` with the paper's input conventions and empty
     /// provenance fields.
     pub fn new(kind: ModelKind) -> Self {
@@ -353,4 +368,21 @@ pub fn load(path: impl AsRef<Path>, expected: ModelKind) -> Result<LoadedWeights
         source,
     })?;
     load_bytes(&bytes, expected)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_input_contract_is_the_recorded_one_or_the_default_for_what_is_fed() {
+        let mut meta = WeightsMetadata::new(ModelKind::Gru);
+        assert_eq!(meta.input, None);
+        assert_eq!(meta.input_contract(false), ModelInput::screen());
+        assert_eq!(meta.input_contract(true), ModelInput::level());
+        let recorded = ModelInput::from_training(true, true, true);
+        meta.input = Some(recorded);
+        assert_eq!(meta.input_contract(false), recorded);
+        assert_eq!(meta.input_contract(true), recorded);
+    }
 }

@@ -44,7 +44,7 @@ use blapose_core::skeleton::NUM_BONES;
 use blapose_core::BoneLengths;
 
 use crate::error::TrainError;
-use crate::lengths::TrainingLengthStats;
+use crate::training_lengths::TrainingLengthStats;
 
 /// How a bone's raw length is computed from ANSUR columns (millimetres).
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -3,7 +3,8 @@
 //! beyond the shipped evaluation (the many-bodies benchmark, its oracles,
 //! the eval diagnostics) lives above it, in `blapose-lab`.
 //!
-//! - [`lengths`], [`ansur`]: what bone lengths synthetic sequences get;
+//! - [`lengths`], [`ansur`]: what bone lengths synthetic sequences get,
+//!   both from the training subjects' [`training_lengths`];
 //! - [`ansur_split`]: the held-out ANSUR people training never draws;
 //! - [`camera_range`]: the wide camera distribution the camera-aware
 //!   models are trained through;
@@ -46,5 +47,6 @@ pub mod run;
 pub mod stature;
 pub mod synth;
 pub mod train;
+pub mod training_lengths;
 
 pub use error::TrainError;

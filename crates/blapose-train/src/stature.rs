@@ -2,8 +2,9 @@
 //! this person's bones, given their height (and sex)?".
 //!
 //! Why: a user who knows the person's stature already knows most of their
-//! absolute size (see DESIGN.md, "What the estimate can know"); what the 2D
-//! stream can add is the *proportions* given that height. So a model that
+//! absolute size (a body of size L at distance Z through a lens of focal
+//! f appears as f·L/Z, so uncalibrated 2D shows proportions, not size);
+//! what the 2D stream can add is the *proportions* given that height. So a model that
 //! takes the height as input is only worth shipping if it beats the answer
 //! that ignores the video altogether: an ordinary least-squares line per
 //! bone, `length_b = a_b + s_b * stature`, fitted over the survey. With sex

@@ -418,7 +418,9 @@ def bvh_text(poses, lengths=None, *, fps: float = 50.0, up: Optional[Sequence[fl
     L = _locals(_solve(P))
     deg = np.round(np.degrees(_euler(L)), 6)
     root = np.round(P[:, 0], 6)
-    values = np.concatenate([root, deg.reshape(len(P), -1)], axis=1)
+    # + 0.0 turns the -0.0 that rounding leaves into 0.0, printed "0.000000" as Rust's writer
+    # prints it (never "-0.000000")
+    values = np.concatenate([root, deg.reshape(len(P), -1)], axis=1) + 0.0
     body = "\n".join(" ".join(f"{v:.6f}" for v in row) for row in values)
     steps = _step_angles(L) if len(L) > 1 else np.zeros((0, len(RIG)))
     if steps.size:
@@ -540,7 +542,7 @@ def write_c3d(path: PathLike, poses, lengths=None, *, fps: float = 50.0,
 def trc_text(poses, lengths=None, *, fps: float = 50.0, up: Optional[Sequence[float]] = None, name: str = "") -> str:
     """The TRC file's text (see :func:`write_trc`)."""
     fps = _check_fps(fps)
-    mm = _markers_mm(poses, lengths, up)
+    mm = _markers_mm(poses, lengths, up) + 0.0  # no "-0.0000", as Rust writes it (see bvh_text)
     frames = len(mm)
     head = [
         f"PathFileType\t4\t(X/Y/Z)\t{name}",

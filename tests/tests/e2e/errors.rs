@@ -360,6 +360,13 @@ async fn oversize_messages_are_out_of_range() {
         .await
         .expect_err("too big");
     assert_eq!(err.code(), Some(Code::OutOfRange), "{err}");
+    // The error says which limit and what to do (not only tonic's "decoded
+    // message length too large").
+    let text = err.to_string();
+    assert!(text.contains("1000-frame sequence"), "{text}");
+    assert!(text.contains("the limit is: 65536"), "{text}");
+    assert!(text.contains("--max-message-bytes"), "{text}");
+    assert!(text.contains("blapose-client replay"), "{text}");
     // A smaller one on the same connection is fine.
     let small = synthetic_sequence(36, 50, KeypointLayout::H36m17);
     blapose_client::adjust_offline(&client, &small, blapose_client::ModelKind::BiGru)

@@ -9,8 +9,9 @@
 //! (the output says so). The up direction is the file's `camera_up` when it
 //! has one (whether or not `--camera` sends it), else the camera's `-y`.
 
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 use blapose_client::Adjusted;
+use blapose_export::c3d::MAX_FRAMES as C3D_MAX_FRAMES;
 use blapose_export::{check_path, save, Format, Motion};
 
 use crate::IoArgs;
@@ -31,12 +32,41 @@ impl IoArgs {
         .collect()
     }
 
-    /// Fail before any work when an export path cannot be written.
-    pub(crate) fn check_exports(&self) -> Result<()> {
+    /// Fail before any work when an export path cannot be written; warn,
+    /// also before any work, when a sequence of `frames` frames is too long
+    /// for a C3D ([`Self::refused_exports`]).
+    pub(crate) fn check_exports(&self, frames: usize) -> Result<()> {
         for (_, path) in self.exports() {
             check_path(path)?;
         }
+        if let Some(why) = self.c3d_refusal(frames) {
+            eprintln!("warning: {why}");
+        }
         Ok(())
+    }
+
+    /// Why the C3D asked for cannot hold `frames` frames (`None`: it can,
+    /// or none was asked for).
+    fn c3d_refusal(&self, frames: usize) -> Option<String> {
+        let path = self.c3d.as_deref()?;
+        (frames > C3D_MAX_FRAMES).then(|| {
+            format!(
+                "--c3d {}: a C3D holds at most {C3D_MAX_FRAMES} frames and the sequence has \
+                 {frames}; every other file is written, the C3D is not (cut the sequence to \
+                 {C3D_MAX_FRAMES} frames for a C3D, or use --trc: the same markers, no limit)",
+                path.display()
+            )
+        })
+    }
+
+    /// After every other output is written: an error when a file asked for
+    /// was skipped (a C3D too long for the format), so the exit status says
+    /// so.
+    pub(crate) fn refused_exports(&self, frames: usize) -> Result<()> {
+        match self.c3d_refusal(frames) {
+            Some(why) => bail!(why),
+            None => Ok(()),
+        }
     }
 
     /// Write the files asked for from `result` (`fps` and `up`: the file's).
@@ -46,7 +76,12 @@ impl IoArgs {
         fps: Option<f32>,
         up: Option<[f32; 3]>,
     ) -> Result<()> {
-        let files = self.exports();
+        let refused = self.c3d_refusal(result.adjusted.len()).is_some();
+        let files: Vec<_> = self
+            .exports()
+            .into_iter()
+            .filter(|(format, _)| !(refused && *format == Format::C3d))
+            .collect();
         if files.is_empty() {
             return Ok(());
         }
@@ -103,23 +138,28 @@ mod tests {
         }
     }
 
+    /// `command` asked for a BVH, a C3D and a TRC.
+    fn all_three(command: &str) -> crate::IoArgs {
+        io(&[
+            "blapose-client",
+            command,
+            "x.npz",
+            "--bvh",
+            "a.bvh",
+            "--c3d",
+            "a.c3d",
+            "--trc",
+            "a.trc",
+        ])
+    }
+
     #[test]
     fn export_flags_parse_and_bad_paths_fail_first() {
         for command in ["replay", "adjust"] {
-            let io = io(&[
-                "blapose-client",
-                command,
-                "x.npz",
-                "--bvh",
-                "a.bvh",
-                "--c3d",
-                "a.c3d",
-                "--trc",
-                "a.trc",
-            ]);
+            let io = all_three(command);
             assert_eq!(io.bvh, Some(PathBuf::from("a.bvh")));
             assert_eq!(io.exports().len(), 3);
-            assert!(io.check_exports().is_ok());
+            assert!(io.check_exports(1).is_ok());
         }
         let io = io(&[
             "blapose-client",
@@ -128,11 +168,28 @@ mod tests {
             "--c3d",
             "/nonexistent-dir/a.c3d",
         ]);
-        let e = io.check_exports().unwrap_err().to_string();
+        let e = io.check_exports(1).unwrap_err().to_string();
         assert_eq!(
             e,
             "cannot write /nonexistent-dir/a.c3d: its directory does not exist"
         );
         assert!(Cli::try_parse_from(["blapose-client", "info", "--bvh", "a.bvh"]).is_err());
+    }
+
+    #[test]
+    fn a_sequence_too_long_for_a_c3d_is_named_before_anything_runs() {
+        let three = all_three("adjust");
+        assert!(three.check_exports(65_535).is_ok());
+        assert!(three.refused_exports(65_535).is_ok());
+        // Over the limit: a warning first, the run goes on, every other
+        // file is written, and the exit status is an error naming the limit
+        // and what to do.
+        assert!(three.check_exports(65_536).is_ok());
+        let e = three.refused_exports(65_536).unwrap_err().to_string();
+        assert!(e.contains("at most 65535 frames"), "{e}");
+        assert!(e.contains("the sequence has 65536"), "{e}");
+        assert!(e.contains("--trc"), "{e}");
+        let without = io(&["blapose-client", "adjust", "x.npz", "--bvh", "a.bvh"]);
+        assert!(without.refused_exports(1_000_000).is_ok());
     }
 }

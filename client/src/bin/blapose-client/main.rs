@@ -444,7 +444,7 @@ async fn run(cli: Cli) -> Result<()> {
             server_lifter,
         } => {
             let loaded = io.load()?;
-            io.check_exports()?;
+            io.check_exports(loaded.0.len())?;
             let seq = &loaded.0;
             let clients = connect_all(&cli.connection).await?;
             let bar = progress_bar(seq.len());
@@ -478,18 +478,20 @@ async fn run(cli: Cli) -> Result<()> {
                 &loaded,
                 &result,
             )
-            .await
+            .await?;
+            io.refused_exports(seq.len())
         }
         Command::Adjust { io, model, motion } => {
             let loaded = io.load()?;
-            io.check_exports()?;
+            io.check_exports(loaded.0.len())?;
             let client = connect(&cli.connection).await?;
             let rate = motion.then(|| loaded.0.fps.unwrap_or(0.0));
             let result = adjust_offline_with_motion(&client, &loaded.0, model, rate).await?;
             finish(&io, &loaded.0, &result)?;
             io.write_exports(&result, loaded.0.fps, loaded.1)?;
             io.write_html(&client, cli.connection.first_server()?, &loaded, &result)
-                .await
+                .await?;
+            io.refused_exports(loaded.0.len())
         }
         Command::Info { raw } => {
             let client = connect(&cli.connection).await?;

@@ -56,6 +56,7 @@
 //! result files), [`error`] ([`SequenceError`]).
 
 pub mod camera;
+mod camera_keys;
 pub mod error;
 pub mod keys;
 pub mod output;

@@ -61,9 +61,7 @@ use std::time::Instant;
 use blapose_core::bones::summed_length;
 use blapose_core::BoneLengths;
 use blapose_data::ansur::Sex;
-use blapose_model::input::ModelInput;
 use blapose_model::stature::StatureLines;
-use blapose_model::{LoadedWeights, ModelKind};
 use blapose_train::ansur_split::{is_held_out, Person};
 use blapose_train::camera_range::{wide_cameras, CameraRange};
 use blapose_train::dataset::{decompose_sequence, subject_lengths};
@@ -71,12 +69,12 @@ use blapose_train::noise::ResidualBank;
 use blapose_train::stature::StatureRegression;
 use blapose_train::synth::MotionSequence;
 use blapose_train::TrainError;
-use serde::Serialize;
 
 pub use report::{markdown, BodiesReport, TrialInfo};
 pub use score::{mean_body, Baseline, BaselineName, Row, RowInput, RowModel};
 pub use trials::{build_trials, Trial};
 
+pub use crate::models::{BenchInput, BenchModel, SHIPPED_MODELS};
 use crate::real_check::RealCheck;
 use references::{fused_row, size_oracle_rows, stature_rows, FusionData};
 use score::{baseline, row};
@@ -108,75 +106,6 @@ impl Default for BodiesConfig {
             limit: None,
             cameras: wide_cameras(),
         }
-    }
-}
-
-/// Which keypoints a benchmark model reads (its rows' `input`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "lowercase")]
-pub enum BenchInput {
-    /// Normalized keypoints, no calibration (the default pair).
-    None,
-    /// Keypoints prepared with the camera's calibration (the camera-aware
-    /// pair).
-    Calibration,
-}
-
-/// The shipped models the benchmark scores, in row order: each model kind
-/// with the input it reads and its weights file under `models/`.
-pub const SHIPPED_MODELS: [(ModelKind, BenchInput, &str); 4] = [
-    (
-        ModelKind::Gru,
-        BenchInput::None,
-        "bone_length_gru.safetensors",
-    ),
-    (
-        ModelKind::BiGru,
-        BenchInput::None,
-        "bone_length_bigru.safetensors",
-    ),
-    (
-        ModelKind::Gru,
-        BenchInput::Calibration,
-        "bone_length_gru_rectified.safetensors",
-    ),
-    (
-        ModelKind::BiGru,
-        BenchInput::Calibration,
-        "bone_length_bigru_rectified.safetensors",
-    ),
-];
-
-/// A model to score: its kind, which keypoints it reads, its weights.
-pub struct BenchModel<'a> {
-    /// Online GRU or offline Bi-GRU.
-    pub kind: ModelKind,
-    /// Which keypoints.
-    pub input: BenchInput,
-    /// The weights.
-    pub weights: &'a LoadedWeights,
-    /// Where they came from (for the report).
-    pub path: String,
-}
-
-impl BenchModel<'_> {
-    /// What the model reads: its weights' input contract (weights that
-    /// record none read as `input` says: screen coordinates, or plain
-    /// rectified keypoints with a calibration). Weights whose contract
-    /// does not read what `input` gives are refused.
-    pub fn contract(&self) -> Result<ModelInput, TrainError> {
-        let given = match self.input {
-            BenchInput::None => ModelInput::screen(),
-            BenchInput::Calibration => ModelInput::level(),
-        };
-        let contract = self.weights.meta.input.unwrap_or(given);
-        if contract.framing.needs_calibration() != given.framing.needs_calibration() {
-            return Err(TrainError::InvalidArgument(format!(
-                "{}: its weights read {:?} keypoints, but the benchmark gives them input {:?}",
-                self.path, contract.framing, self.input
-            )));
-        }
-        Ok(contract)
     }
 }
 

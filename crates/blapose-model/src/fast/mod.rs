@@ -9,7 +9,9 @@
 //! candle models to 1e-4 (tests in `tests/fast_agreement.rs`). With
 //! [`Precision::Bf16`] the GRU products run on the CPU's bfloat16 units
 //! ([`Bf16Unit`]: AMX tiles where the CPU and OS allow, else AVX512-BF16).
+//! Which precision serves fastest on a CPU is [`PrecisionChoice`]'s.
 
+mod choice;
 pub(crate) mod kernel;
 pub mod linalg;
 pub(crate) mod math;
@@ -20,6 +22,7 @@ pub(crate) mod pack;
 /// The instruction set, shared with blapose-lifters' kernels (see
 /// [`blapose_core::isa`] for why it lives there).
 pub use blapose_core::isa::{Bf16Unit, Isa, IsaError};
+pub use choice::{CpuFeatures, PrecisionChoice};
 pub use offline::OfflineBiGruEngine;
 pub use online::{OnlineGruEngine, StepScratch};
 pub use pack::Precision;

@@ -143,17 +143,6 @@ impl Precision {
             Precision::Bf16 => "bf16",
         }
     }
-
-    /// The fastest precision on this CPU that keeps the accuracy bar (mean
-    /// bone-length error within 0.02 mm of f32 on Human3.6M S9/S11): bf16
-    /// where the CPU has AVX512-BF16, else f16.
-    pub fn fastest() -> Precision {
-        if crate::fast::Bf16Unit::Avx512Bf16.is_available() {
-            Precision::Bf16
-        } else {
-            Precision::F16
-        }
-    }
 }
 
 impl std::fmt::Display for Precision {

@@ -12,7 +12,6 @@ use blapose_core::camera::Camera;
 use blapose_core::pose::flip_bone_lengths;
 use blapose_core::skeleton::NUM_BONES;
 use blapose_core::BoneLengths;
-use blapose_model::input::ModelInput;
 use blapose_model::{
     EngineOptions, LoadedWeights, OfflineBiGruEngine, OnlineGruEngine, Precision, RunningMean,
     STATE_DIM,
@@ -121,7 +120,8 @@ impl<E: LengthEstimator> LengthEstimator for FlipAveraged<E> {
 /// prepared as the weights' input contract says ([`prepare_streams`]:
 /// rectified with the camera, scaled to the floor when they were trained
 /// so). Weights that record no contract are taken to read plain
-/// rectified keypoints ([`ModelInput::level`]); calibration-free weights
+/// rectified keypoints
+/// ([`blapose_model::WeightsMetadata::input_contract`]); calibration-free weights
 /// read no calibration and are refused. `camera(subject, id)` finds each
 /// trial's calibration.
 pub fn calibrate<'a>(
@@ -129,7 +129,7 @@ pub fn calibrate<'a>(
     trials: &mut [EvalSequence],
     camera: impl Fn(&str, &str) -> Option<&'a Camera>,
 ) -> Result<(), TrainError> {
-    let input = weights.meta.input.unwrap_or(ModelInput::level());
+    let input = weights.meta.input_contract(true);
     if !input.framing.needs_calibration() {
         return Err(TrainError::InvalidArgument(
             "these weights read keypoints as the camera gave them (input contract: screen); \

@@ -26,6 +26,13 @@ use serde::{Deserialize, Serialize};
 use super::OUTPUT_DIM;
 use crate::error::TrainError;
 
+/// MPJPE loss (metres) of `(B, OUTPUT_DIM)` predictions.
+pub fn mpjpe_loss(pred: &Tensor, target: &Tensor) -> Result<Tensor, TrainError> {
+    let b = pred.dim(0)?;
+    let d = (pred - target)?.reshape((b, OUTPUT_DIM / 3, 3))?;
+    Ok((d.sqr()?.sum(2)? + 1e-12)?.sqrt()?.mean_all()?)
+}
+
 /// The training objective of a lifter run (`finetune --objective`; the
 /// same spelling in a run's configuration).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
@@ -114,7 +121,7 @@ impl AdjustmentGraph {
         let l_dir = ((dirs.clone() - true_dirs)?.sqr()?.sum(2)? + NORM_FLOOR)?
             .sqrt()?
             .mean_all()?;
-        let l_mpjpe = super::train::mpjpe_loss(&self.rebuild(&dirs, lengths)?, target)?;
+        let l_mpjpe = mpjpe_loss(&self.rebuild(&dirs, lengths)?, target)?;
         let (d, m) = (
             f64::from(l_dir.to_scalar::<f32>()?),
             f64::from(l_mpjpe.to_scalar::<f32>()?),

@@ -30,7 +30,7 @@ use candle_nn::VarMap;
 use serde::{Deserialize, Serialize};
 
 use super::data::{held_out_samples, random_batch, training_samples, LifterSequence, SampleIndex};
-use super::objective::{AdjustmentGraph, Objective};
+use super::objective::{mpjpe_loss, AdjustmentGraph, Objective};
 use super::predict::predict_samples;
 use super::weights::{self, named_tensors};
 use super::{LifterArch, LifterNet, OUTPUT_DIM};
@@ -143,13 +143,6 @@ pub struct LifterTrainOutcome {
     pub steps_run: u64,
     /// Last logged training loss (mm).
     pub train_loss_mm: f64,
-}
-
-/// MPJPE loss (metres) of `(B, OUTPUT_DIM)` predictions.
-pub fn mpjpe_loss(pred: &Tensor, target: &Tensor) -> Result<Tensor, TrainError> {
-    let b = pred.dim(0)?;
-    let d = (pred - target)?.reshape((b, OUTPUT_DIM / 3, 3))?;
-    Ok((d.sqr()?.sum(2)? + 1e-12)?.sqrt()?.mean_all()?)
 }
 
 /// The trainable variables (batch-norm running statistics excluded), in

@@ -34,7 +34,7 @@ pub struct TrainArgs {
     #[arg(long, default_value_t = 0.0)]
     ansur_spread: f32,
     /// ansur only: which survey people to draw from: `train` leaves out the
-    /// held-out split of the many-bodies benchmark (`eval --benchmark
+    /// held-out split of the many-bodies benchmark (`blapose-lab
     /// bodies`); `all` draws from everyone, the shipped weights' recipe.
     #[arg(long, value_enum, default_value_t = AnsurPeople::Train)]
     ansur_people: AnsurPeople,

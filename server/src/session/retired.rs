@@ -11,7 +11,8 @@ use std::time::Duration;
 use tokio::time::Instant;
 
 use crate::metrics;
-use crate::session::{SessionError, SessionId};
+use crate::session::error::SessionError;
+use crate::session::id::SessionId;
 
 #[derive(Debug, Clone, Copy)]
 struct Retired {

@@ -41,24 +41,27 @@
 //! ([`sample_rng`]), so a batch is the same whatever the thread count and a
 //! resumed run sees exactly the batches it would have seen.
 
-use std::sync::Arc;
-
 use blapose_core::bones::rebuild;
-use blapose_core::camera::{Camera, NormalizedIntrinsics};
+use blapose_core::camera::NormalizedIntrinsics;
 use blapose_core::level::LevelCamera;
 use blapose_core::pose::flip_keypoints_normalized;
 use blapose_core::skeleton::{NUM_BONES, NUM_JOINTS};
 use blapose_core::{BoneDirections, BoneLengths, Keypoints2d, Pose};
-use blapose_model::input::{ContractError, InputCamera, ModelInput, ViewCalibration};
+use blapose_model::input::InputCamera;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
 
 use crate::camera_range::{draw_camera_seeing, wide_cameras};
 use crate::error::TrainError;
-use crate::lengths::{normal_f32, LengthSampler};
+use crate::lengths::LengthSampler;
 use crate::noise::{apply_residual, residual_at, MetricResidual, NoiseKind, ResidualBank};
+
+mod config;
+mod motion;
+
+pub use config::{ShiftPlane, SynthConfig};
+pub use motion::{lowest_height, rebuild_on_floor, MotionSequence};
 
 /// Values per input frame.
 pub const FRAME_DIM: usize = NUM_JOINTS * 2;
@@ -67,233 +70,6 @@ pub const MAX_SHIFT_TRIES: usize = 16;
 /// How often a wide camera is re-drawn to frame a window before the sample
 /// falls back to a recorded camera.
 pub const WIDE_CAMERA_TRIES: usize = 50;
-
-/// One training sequence of a training subject, pre-decomposed.
-#[derive(Debug, Clone)]
-pub struct MotionSequence {
-    /// Subject, e.g. `"S1"`.
-    pub subject: String,
-    /// Sequence name, e.g. `"Walking 1"`.
-    pub action: String,
-    /// World-space root (pelvis) position per frame, metres.
-    pub roots: Vec<[f32; 3]>,
-    /// Unit bone directions per frame (world space).
-    pub dirs: Vec<BoneDirections>,
-    /// The subject's bone lengths (mean over the sequence).
-    pub lengths: BoneLengths,
-    /// The subject's cameras.
-    pub cameras: Arc<Vec<Camera>>,
-}
-
-impl MotionSequence {
-    /// Number of frames.
-    pub fn len(&self) -> usize {
-        self.roots.len()
-    }
-
-    /// True when there are no frames.
-    pub fn is_empty(&self) -> bool {
-        self.roots.is_empty()
-    }
-
-    /// Root position and directions at fractional frame `u`.
-    pub fn at(&self, u: f32) -> ([f32; 3], BoneDirections) {
-        let last = self.len() - 1;
-        let u = u.clamp(0.0, last as f32);
-        let i = (u.floor() as usize).min(last);
-        let k = (i + 1).min(last);
-        let a = u - i as f32;
-        let lerp3 = |p: [f32; 3], q: [f32; 3]| std::array::from_fn(|c| p[c] * (1.0 - a) + q[c] * a);
-        let root = lerp3(self.roots[i], self.roots[k]);
-        let dirs = std::array::from_fn(|b| {
-            let d: [f32; 3] = lerp3(self.dirs[i][b], self.dirs[k][b]);
-            let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-            // Opposite directions in consecutive frames (never seen in
-            // mocap) would interpolate through zero: keep frame i's.
-            if n > 1e-6 {
-                d.map(|v| v / n)
-            } else {
-                self.dirs[i][b]
-            }
-        });
-        (root, dirs)
-    }
-}
-
-/// The world height (`z`, up in Human3.6M) of a pose's lowest joint.
-pub fn lowest_height(pose: &Pose) -> f32 {
-    pose.iter().map(|j| j[2]).fold(f32::INFINITY, f32::min)
-}
-
-/// [`rebuild`] with `lengths`, then lifted (or lowered) so that its
-/// lowest joint is as high as in the pose rebuilt with the `original`
-/// lengths: feet on the floor stay on it, a jump stays a jump.
-pub fn rebuild_on_floor(
-    root: [f32; 3],
-    dirs: &BoneDirections,
-    lengths: &BoneLengths,
-    original: &BoneLengths,
-) -> Pose {
-    let mut pose = rebuild(root, dirs, lengths);
-    let lift = lowest_height(&rebuild(root, dirs, original)) - lowest_height(&pose);
-    pose.iter_mut().for_each(|j| j[2] += lift);
-    pose
-}
-
-/// In which space the per-window 3D shift is drawn (`--shift-plane`; the
-/// same spelling in a run's configuration).
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize, clap::ValueEnum,
-)]
-#[serde(rename_all = "lowercase")]
-pub enum ShiftPlane {
-    /// `N(0, std)` on all three camera axes (the paper's reference code).
-    #[default]
-    Camera,
-    /// `N(0, std)` on the two horizontal world axes (Human3.6M's world
-    /// `z` is up): the person stays on the floor.
-    Ground,
-}
-
-impl ShiftPlane {
-    /// The flag spelling.
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::Camera => "camera",
-            Self::Ground => "ground",
-        }
-    }
-
-    /// A shift drawn with `rng`, in `cam`'s coordinates.
-    fn draw<R: Rng + ?Sized>(self, cam: &Camera, std: f32, rng: &mut R) -> [f32; 3] {
-        match self {
-            Self::Camera => [
-                normal_f32(rng, std),
-                normal_f32(rng, std),
-                normal_f32(rng, std),
-            ],
-            Self::Ground => {
-                let w = [normal_f32(rng, std) as f64, normal_f32(rng, std) as f64];
-                // A direction: rotate only, `R (w, 0)`.
-                cam.rotation
-                    .map(|row| (row[0] * w[0] + row[1] * w[1]) as f32)
-            }
-        }
-    }
-}
-
-impl std::fmt::Display for ShiftPlane {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.name())
-    }
-}
-
-/// Knobs of the augmentation (see the module docs).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct SynthConfig {
-    /// Output frames per sample (`T`).
-    pub seq_len: usize,
-    /// Smallest playback stride (source frames per output frame).
-    pub stride_min: f32,
-    /// Largest playback stride.
-    pub stride_max: f32,
-    /// Standard deviation of each component of the 3D shift, metres.
-    pub shift_std: f32,
-    /// Where the shift is drawn.
-    pub shift_plane: ShiftPlane,
-    /// The root must stay at least this deep in front of the camera, metres.
-    pub min_depth: f32,
-    /// Probability of a horizontal flip.
-    pub flip_prob: f32,
-    /// Detector-noise model.
-    pub noise: NoiseKind,
-    /// Keep the lowest joint at its original height in every frame (see
-    /// the module docs, step 3).
-    pub floor_contact: bool,
-    /// Turn each window about the vertical through its first root by a
-    /// uniform random yaw (see [`turn_about_vertical`]).
-    pub random_yaw: bool,
-    /// Give the keypoints as the camera's level twin would see them
-    /// ([`blapose_core::level`]; such models need the camera's calibration).
-    pub rectify: bool,
-    /// Rectified keypoints further scaled, frame by frame, by the camera's
-    /// height over the lowest joint's drop below the horizon
-    /// ([`LevelCamera::scaled_to_floor`]): the body at a fixed metric
-    /// scale, whatever the camera.
-    pub floor_scaled: bool,
-    /// Probability that a sample is seen through a camera drawn from the
-    /// wide distribution ([`crate::camera_range::wide_cameras`]) instead of
-    /// a recorded Human3.6M camera (0: recorded cameras only).
-    pub wide_cameras: f32,
-}
-
-impl Default for SynthConfig {
-    fn default() -> Self {
-        Self {
-            seq_len: 64,
-            stride_min: 50.0 / 60.0,
-            stride_max: 2.0,
-            shift_std: 0.5,
-            shift_plane: ShiftPlane::Camera,
-            min_depth: 1.5,
-            flip_prob: 0.5,
-            noise: NoiseKind::Residual,
-            floor_contact: false,
-            random_yaw: false,
-            rectify: false,
-            floor_scaled: false,
-            wide_cameras: 0.0,
-        }
-    }
-}
-
-impl SynthConfig {
-    /// What a network trained on these samples reads: the input contract
-    /// the trainer records in its weights ([`blapose_model::input`]).
-    pub fn model_input(&self) -> ModelInput {
-        ModelInput::from_training(self.rectify, self.floor_scaled, self.wide_cameras > 0.0)
-    }
-
-    /// The camera a sample seen through `cam` (Human3.6M convention, a
-    /// pinhole: the lens is applied by the projection) is read through,
-    /// as the contract prepares a served session's keypoints
-    /// ([`ModelInput::camera`]): `Ok(None)` when the keypoints are read as
-    /// the camera gives them, an error when `cam` does not rectify.
-    fn input_camera(&self, cam: &Camera) -> Result<Option<InputCamera>, ContractError> {
-        self.model_input()
-            .camera(&ViewCalibration::from_camera(cam))
-    }
-
-    /// Check the knobs.
-    pub fn validate(&self) -> Result<(), TrainError> {
-        let bad = |m: &str| Err(TrainError::InvalidArgument(m.to_string()));
-        if self.seq_len == 0 {
-            return bad("seq_len must be positive");
-        }
-        if self.floor_scaled && !self.rectify {
-            return bad("floor scaling needs rectified keypoints (--rectify)");
-        }
-        if !(self.stride_min > 0.0
-            && self.stride_max >= self.stride_min
-            && self.stride_max.is_finite())
-        {
-            return bad("need 0 < stride_min <= stride_max");
-        }
-        if !(self.shift_std >= 0.0 && self.shift_std.is_finite()) {
-            return bad("shift_std must be finite and >= 0");
-        }
-        if self.min_depth.is_nan() || self.min_depth <= 0.0 {
-            return bad("min_depth must be positive");
-        }
-        if !(0.0..=1.0).contains(&self.flip_prob) {
-            return bad("flip_prob must be in [0, 1]");
-        }
-        if !(0.0..=1.0).contains(&self.wide_cameras) {
-            return bad("wide_cameras must be in [0, 1]");
-        }
-        Ok(())
-    }
-}
 
 /// Where the synthetic samples come from: the training sequences, the
 /// residual bank and the length sampler.
@@ -774,6 +550,7 @@ pub fn flip_input(input: &[f32]) -> Vec<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use blapose_core::camera::Camera;
 
     fn tilted_camera() -> Camera {
         // Looking along world +y, tilted down by ~0.3 rad about x.

@@ -6,19 +6,18 @@ use std::fmt;
 
 use rand::TryRngCore;
 
-use crate::session::SessionError;
-
 /// An unguessable session id (128 random bits).
 #[derive(Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct SessionId([u8; 16]);
 
 impl SessionId {
-    /// A fresh id from the operating system's CSPRNG.
-    pub fn random() -> Result<Self, SessionError> {
+    /// A fresh id from the operating system's CSPRNG; `Err` says why the
+    /// random source failed.
+    pub fn random() -> Result<Self, String> {
         let mut bytes = [0u8; 16];
         rand::rngs::OsRng
             .try_fill_bytes(&mut bytes)
-            .map_err(|e| SessionError::Rng(e.to_string()))?;
+            .map_err(|e| e.to_string())?;
         Ok(Self(bytes))
     }
 

@@ -1,363 +1,20 @@
-//! Sessions: the per-stream state the online model carries between frames,
-//! and the store that owns them.
-//!
-//! A session is the GRU's hidden state (2 x 512 floats), the running sum of
-//! the per-frame length predictions, the number of frames seen and the input
-//! format fixed at open. A session whose poses the server lifts also holds
-//! the lifter's window of recent normalized keypoints; it is allocated only
-//! for such sessions, so the others cost (almost) what they always did.
-//!
-//! A session outlives its stream on purpose: when a connection drops, the
-//! session is *detached* and kept for the TTL so the client can resume it by
-//! id with its state (the lifter's window included) intact. Expiry follows
-//! mini-redis's `Db`: detached sessions sit in an ordered set of deadlines,
-//! and one purge task sleeps until the earliest deadline (woken early when an
-//! earlier one appears) instead of scanning the whole store on a timer.
-//!
-//! Ownership of a session by a stream is an *epoch*: every open or resume
-//! bumps it, and work stamped with an older epoch (frames of a stream that
-//! was taken over) is refused. The epoch lives in the same mutex as the
-//! hidden state, so "resume" and "a batch finishing" can never interleave
-//! halfway. A `watch` channel tells the attached stream when its epoch is no
-//! longer current.
-//!
-//! Ids are 128 random bits from the operating system's CSPRNG, rendered as
-//! 32 lowercase hex characters: knowing an id is the only credential needed
-//! to resume a session, so it must be unguessable.
-//!
-//! Each session counts against the client that opened it
-//! ([`crate::quota`]), so one client filling its share of the table leaves
-//! the rest to the others. A session that ends (closed, or evicted after
-//! its TTL) is *remembered* for the session token TTL: a closed one so its
-//! tokens cannot revive it, an evicted one with the frames it had seen so
-//! that an older token cannot roll it back (see `server/README.md`,
-//! "Session tokens").
+//! The session store: the table of sessions, their idle TTL and its purge
+//! task, per-client counts, and open, resume, restore and close.
 
 use std::collections::{BTreeSet, HashMap};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
 
-use blapose_core::missing::HeldJoints;
-use blapose_core::BoneLengths;
-use blapose_lifters::SlidingWindow;
-use blapose_model::input::InputCamera;
-use blapose_proto::v1 as pb;
-use tokio::sync::{watch, Notify};
+use tokio::sync::Notify;
 use tokio::time::Instant;
 
 use crate::metrics;
 use crate::quota::{ClientId, QuotaError};
-use crate::retired::Memory;
-
-/// Floats of recurrent state per session (two GRUs x 512).
-pub const STATE_DIM: usize = blapose_model::STATE_DIM;
-
-pub use crate::session_id::SessionId;
-
-/// How a session's 2D keypoints are expressed (the client library's type
-/// too, so both ends mean the same thing).
-pub use blapose_core::layouts::Coordinates;
-
-/// What a session was opened with, fixed for its life: the keypoints'
-/// layout and units (blapose-core's definition, shared with the client).
-pub use blapose_core::layouts::InputFormat;
-
-/// A session's camera: the calibration as the client sent it (echoed on
-/// open and resume, carried by session tokens) and the camera the
-/// camera-aware model reads the session's keypoints through
-/// ([`crate::prepare::session_camera`]).
-#[derive(Debug, Clone, PartialEq)]
-pub struct SessionCamera {
-    /// As sent in `OpenSession.camera`.
-    pub calibration: pb::CameraCalibration,
-    /// What the camera-aware model's input contract makes of it (`None`
-    /// for a contract that reads screen coordinates).
-    pub input: Option<InputCamera>,
-}
-
-/// A session's (or request's) subject: the person's stature and sex as
-/// sent, and the lengths the stature model gives them, which the session
-/// answers with.
-#[derive(Debug, Clone, PartialEq)]
-pub struct SessionSubject {
-    /// As sent in `OpenSession.subject`.
-    pub subject: pb::Subject,
-    /// The stature regression's lengths for it.
-    pub lengths: BoneLengths,
-}
-
-/// Immutable description of a session.
-#[derive(Debug, Clone)]
-pub struct SessionConfig {
-    /// Input format of every frame.
-    pub input: InputFormat,
-    /// Free-form client label for logs (truncated).
-    pub label: String,
-    /// `Some(frames)`: the server lifts this session's poses with a lifter
-    /// whose window holds `frames` frames; `None`: the client sends them.
-    pub lifter_frames: Option<usize>,
-    /// `Some`: the camera-aware model serves the session, fed its keypoints
-    /// through this camera; `None`: the default model.
-    pub camera: Option<SessionCamera>,
-    /// `Some`: the session answers with its subject's stature-regression
-    /// lengths instead of the model's running estimate.
-    pub subject: Option<SessionSubject>,
-}
-
-impl SessionConfig {
-    /// Whether the server lifts this session's poses.
-    pub fn lifting(&self) -> bool {
-        self.lifter_frames.is_some()
-    }
-
-    /// The lengths the session answers with, given its model's running
-    /// estimate: its subject's when it has one.
-    pub fn served(&self, estimate: Option<BoneLengths>) -> Option<BoneLengths> {
-        match &self.subject {
-            Some(s) => Some(s.lengths),
-            None => estimate,
-        }
-    }
-}
-
-/// Longest client label kept, in bytes.
-pub const MAX_LABEL_BYTES: usize = 128;
-
-/// The online estimate: the mean of every per-frame length prediction so
-/// far (the BLAPose reference's online rule), blapose-model's one
-/// definition of it.
-pub use blapose_model::RunningMean;
-
-/// Mutable per-session model state; only the batcher writes `hidden` and
-/// `lengths`.
-#[derive(Debug)]
-pub struct SessionState {
-    /// Current owner; work stamped with another epoch is refused.
-    pub epoch: u64,
-    /// Set once the session is closed or evicted.
-    pub closed: bool,
-    /// GRU hidden states, `STATE_DIM` floats.
-    pub hidden: Box<[f32]>,
-    /// Running-mean length estimate and frames seen.
-    pub lengths: RunningMean,
-    /// The server lifter's window of this session's accepted frames
-    /// (normalized Human3.6M-17 keypoints); `None` unless the session lifts.
-    /// Only the batcher pushes to it, together with `hidden` and `lengths`.
-    pub window: Option<Box<SlidingWindow>>,
-    /// Each joint's last detected position (normalized Human3.6M-17), what
-    /// a missing joint is read as ([`blapose_core::missing`]).
-    pub held: HeldJoints,
-    /// Frames answered without a detected joint: they changed nothing
-    /// else, and count among the frames seen.
-    pub skipped: u64,
-    /// Frames seen in the newest session token issued (or restored) here:
-    /// once the session ends, an older token is refused as a rollback.
-    pub newest_token: u64,
-}
-
-impl SessionState {
-    /// Frames processed: those the model read, and those without a
-    /// detected joint.
-    pub fn frames_seen(&self) -> u64 {
-        self.lengths.count() + self.skipped
-    }
-
-    /// The running-mean length estimate; `None` before the first frame.
-    pub fn estimate(&self) -> Option<BoneLengths> {
-        self.lengths.mean()
-    }
-
-    /// Whether work stamped with `epoch` may still change this session.
-    pub fn accepts(&self, epoch: u64) -> bool {
-        !self.closed && self.epoch == epoch
-    }
-
-    /// A copy of the model state (what a session token carries).
-    pub fn copy_state(&self) -> StateCopy {
-        StateCopy {
-            hidden: self.hidden.clone(),
-            lengths: self.lengths,
-            window: self.window.as_deref().map(|w| w.iter().copied().collect()),
-            held: self.held,
-            skipped: self.skipped,
-        }
-    }
-}
-
-/// A copy of a session's model state at one moment: what a session token
-/// holds besides the session's fixed configuration.
-#[derive(Debug, Clone, PartialEq)]
-pub struct StateCopy {
-    /// GRU hidden states, `STATE_DIM` floats.
-    pub hidden: Box<[f32]>,
-    /// Running mean and frames seen.
-    pub lengths: RunningMean,
-    /// The lifter window's frames, oldest first (lifting sessions).
-    pub window: Option<Vec<blapose_core::Keypoints2d>>,
-    /// Each joint's last detected position.
-    pub held: HeldJoints,
-    /// Frames answered without a detected joint.
-    pub skipped: u64,
-}
-
-impl StateCopy {
-    /// Frames processed in this state ([`SessionState::frames_seen`]).
-    pub fn frames_seen(&self) -> u64 {
-        self.lengths.count() + self.skipped
-    }
-}
-
-/// Who owns a session now, as the attached stream watches it.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Ownership {
-    /// Current epoch.
-    pub epoch: u64,
-    /// Closed (by CloseSession or eviction).
-    pub closed: bool,
-}
-
-/// One session. Shared (`Arc`) between the store, its stream and queued
-/// frames.
-#[derive(Debug)]
-pub struct Session {
-    id: SessionId,
-    key: u64,
-    config: SessionConfig,
-    client: ClientId,
-    state: Mutex<SessionState>,
-    owner: watch::Sender<Ownership>,
-}
-
-impl Session {
-    fn new(id: SessionId, key: u64, config: SessionConfig, client: ClientId) -> Self {
-        let state = SessionState {
-            epoch: 1,
-            closed: false,
-            hidden: vec![0.0; STATE_DIM].into_boxed_slice(),
-            lengths: RunningMean::new(),
-            window: config
-                .lifter_frames
-                .map(|frames| Box::new(SlidingWindow::new(frames))),
-            held: HeldJoints::default(),
-            skipped: 0,
-            newest_token: 0,
-        };
-        let (owner, _) = watch::channel(Ownership {
-            epoch: 1,
-            closed: false,
-        });
-        Self {
-            id,
-            key,
-            config,
-            client,
-            state: Mutex::new(state),
-            owner,
-        }
-    }
-
-    /// Public id.
-    pub fn id(&self) -> SessionId {
-        self.id
-    }
-
-    /// Small process-unique key (cheap to hash; used by the batcher).
-    pub fn key(&self) -> u64 {
-        self.key
-    }
-
-    /// The session's fixed configuration.
-    pub fn config(&self) -> &SessionConfig {
-        &self.config
-    }
-
-    /// The client the session counts against.
-    pub fn client(&self) -> ClientId {
-        self.client
-    }
-
-    /// Lock the model state. A poisoned lock (a panic elsewhere while
-    /// holding it) still yields the state: every writer leaves it consistent
-    /// between statements, so there is nothing to recover.
-    pub fn lock(&self) -> MutexGuard<'_, SessionState> {
-        self.state.lock().unwrap_or_else(PoisonError::into_inner)
-    }
-
-    /// Watch ownership changes (takeover, close).
-    pub fn watch(&self) -> watch::Receiver<Ownership> {
-        self.owner.subscribe()
-    }
-
-    fn publish(&self, st: &SessionState) {
-        self.owner.send_replace(Ownership {
-            epoch: st.epoch,
-            closed: st.closed,
-        });
-    }
-}
-
-/// A snapshot of a session at attach or close time.
-#[derive(Debug, Clone)]
-pub struct SessionSnapshot {
-    /// Frames processed.
-    pub frames_seen: u64,
-    /// Running-mean estimate (`None` before the first frame).
-    pub bone_lengths: Option<BoneLengths>,
-}
-
-/// A stream's claim on a session.
-#[derive(Debug, Clone)]
-pub struct Attachment {
-    /// The session.
-    pub session: Arc<Session>,
-    /// The epoch this stream owns.
-    pub epoch: u64,
-    /// State at attach time.
-    pub snapshot: SessionSnapshot,
-}
-
-/// Why a store operation failed.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-pub enum SessionError {
-    /// The store is full.
-    #[error("the server already holds its maximum of {max} sessions; close unused sessions or retry later")]
-    TooManySessions {
-        /// The limit.
-        max: usize,
-    },
-    /// No such session (never existed, expired, closed, or malformed id).
-    #[error("no session {id:?} (unknown, expired or closed)")]
-    NotFound {
-        /// The id as given.
-        id: String,
-    },
-    /// The OS random source failed.
-    #[error("cannot draw a random session id: {0}")]
-    Rng(String),
-    /// A session token's state does not fit the session it describes.
-    #[error("cannot restore the session: {0}")]
-    Restore(String),
-    /// A per-client limit.
-    #[error(transparent)]
-    Quota(#[from] QuotaError),
-    /// The session was closed here: its tokens ended with it.
-    #[error("session {id} was closed: its session tokens ended with it; open a new session")]
-    Closed {
-        /// The session.
-        id: SessionId,
-    },
-    /// The token is older than the newest this server issued for it.
-    #[error("the session token for {id} is as of {token} frames, older than the newest token this server issued for it ({held} frames): a session is never rolled back; resume with its latest token")]
-    Rollback {
-        /// The session.
-        id: SessionId,
-        /// Frames seen in the token.
-        token: u64,
-        /// Frames this server last held.
-        held: u64,
-    },
-}
+use crate::session::error::SessionError;
+use crate::session::id::SessionId;
+use crate::session::retired::Memory;
+use crate::session::state::{load, Attachment, Session, SessionConfig, SessionSnapshot, StateCopy};
 
 #[derive(Debug)]
 struct Entry {
@@ -473,7 +130,7 @@ fn mark_closed(session: &Session) -> SessionSnapshot {
     session.publish(&st);
     SessionSnapshot {
         frames_seen: st.frames_seen(),
-        bone_lengths: session.config.served(st.estimate()),
+        bone_lengths: session.config().served(st.estimate()),
     }
 }
 
@@ -556,7 +213,7 @@ impl SessionStore {
         client: ClientId,
         per_client: usize,
     ) -> Result<Attachment, SessionError> {
-        let id = SessionId::random()?;
+        let id = SessionId::random().map_err(SessionError::Rng)?;
         let key = self.shared.next_key.fetch_add(1, Ordering::Relaxed);
         let session = Arc::new(Session::new(id, key, config, client));
         let mut inner = self.shared.lock();
@@ -601,7 +258,7 @@ impl SessionStore {
                 load(&mut st, &state)?;
                 attachment.snapshot = SessionSnapshot {
                     frames_seen: st.frames_seen(),
-                    bone_lengths: session.config.served(st.estimate()),
+                    bone_lengths: session.config().served(st.estimate()),
                 };
             }
             return Ok(attachment);
@@ -628,7 +285,7 @@ impl SessionStore {
         let st = session.lock();
         let snapshot = SessionSnapshot {
             frames_seen: st.frames_seen(),
-            bone_lengths: session.config.served(st.estimate()),
+            bone_lengths: session.config().served(st.estimate()),
         };
         drop(st);
         Ok(Attachment {
@@ -660,7 +317,7 @@ impl SessionStore {
             epoch: st.epoch,
             snapshot: SessionSnapshot {
                 frames_seen: st.frames_seen(),
-                bone_lengths: session.config.served(st.estimate()),
+                bone_lengths: session.config().served(st.estimate()),
             },
         };
         drop(st);
@@ -713,43 +370,6 @@ impl SessionStore {
     }
 }
 
-/// Load a copy of a session's state (a token's) into `st`.
-fn load(st: &mut SessionState, state: &StateCopy) -> Result<(), SessionError> {
-    if state.hidden.len() != STATE_DIM {
-        return Err(SessionError::Restore(format!(
-            "a hidden state of {} floats, expected {STATE_DIM}",
-            state.hidden.len()
-        )));
-    }
-    match (st.window.as_deref_mut(), &state.window) {
-        (Some(window), Some(frames)) => {
-            if frames.len() > window.frames() {
-                return Err(SessionError::Restore(format!(
-                    "a lifter window of {} frames, the lifter holds {}",
-                    frames.len(),
-                    window.frames()
-                )));
-            }
-            *window = SlidingWindow::new(window.frames());
-            for frame in frames {
-                window.push(*frame);
-            }
-        }
-        (None, None) => {}
-        _ => {
-            return Err(SessionError::Restore(
-                "the lifter window does not match the session's configuration".into(),
-            ))
-        }
-    }
-    st.hidden.copy_from_slice(&state.hidden);
-    st.lengths = state.lengths;
-    st.held = state.held;
-    st.skipped = state.skipped;
-    st.newest_token = state.frames_seen();
-    Ok(())
-}
-
 fn truncate(s: &str, max: usize) -> String {
     let mut end = s.len().min(max);
     while !s.is_char_boundary(end) {
@@ -778,6 +398,7 @@ async fn purge_task(shared: Arc<Shared>) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::session::{Coordinates, InputFormat};
     use blapose_core::layouts::KeypointLayout;
     use blapose_core::NUM_BONES;
 
