@@ -36,6 +36,10 @@ pub struct SessionOptions<'a> {
     /// The person's stature (and sex): `Some` answers with the stature
     /// regression's lengths for it ([`Subject`]).
     pub subject: Option<Subject>,
+    /// `Some(frames per second)` (0: 50) runs the causal motion stage on
+    /// every answer: directions smoothed, the pelvis placed
+    /// ([`AdjustedFrame::root`](crate::AdjustedFrame::root)).
+    pub motion: Option<f32>,
 }
 
 impl<'a> SessionOptions<'a> {
@@ -55,6 +59,10 @@ impl<'a> SessionOptions<'a> {
             // The library keeps them (EventReceiver::latest_token).
             session_tokens: true,
             subject: self.subject.as_ref().map(ToProto::to_proto),
+            motion: self.motion.map(|frame_rate_hz| pb::MotionOptions {
+                enabled: true,
+                frame_rate_hz,
+            }),
         }
     }
 }

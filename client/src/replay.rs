@@ -43,6 +43,9 @@ pub struct ReplayOptions {
     /// Send keypoints only and let the server's lifter produce the poses
     /// (the server must run one).
     pub server_lifter: bool,
+    /// `Some(frames per second)` (0: 50): open the session with the causal
+    /// motion stage ([`SessionOptions::motion`]).
+    pub motion: Option<f32>,
 }
 
 impl Default for ReplayOptions {
@@ -52,6 +55,7 @@ impl Default for ReplayOptions {
             window: 64,
             label: None,
             server_lifter: false,
+            motion: None,
         }
     }
 }
@@ -196,6 +200,7 @@ pub async fn replay_across(
         server_lifter: options.server_lifter,
         camera: seq.camera,
         subject: seq.subject,
+        motion: options.motion,
     };
     let session = first_client
         .open_session_with(seq.input_format, &session_options)
@@ -308,6 +313,8 @@ struct Answers {
     adjusted: Vec<Pose>,
     lengths: Vec<BoneLengths>,
     lifted: Vec<Pose>,
+    /// Placed roots (motion sessions), one per answer that carried one.
+    roots: Vec<([f32; 3], bool)>,
 }
 
 impl Answers {
@@ -320,6 +327,7 @@ impl Answers {
             adjusted: Vec::with_capacity(total),
             lengths: Vec::with_capacity(total),
             lifted: Vec::new(),
+            roots: Vec::new(),
         })
     }
 
@@ -329,6 +337,15 @@ impl Answers {
     }
 
     fn finish(self, info: &SessionInfo, summary: SessionSummary, started: Instant) -> Adjusted {
+        // Placed only when every answer was.
+        let placement =
+            (!self.roots.is_empty() && self.roots.len() == self.adjusted.len()).then(|| {
+                Placement {
+                    focal_assumed: self.roots.iter().any(|r| r.1),
+                    roots: self.roots.iter().map(|r| r.0).collect(),
+                    world: None,
+                }
+            });
         Adjusted {
             model: info.model,
             first_frame: self.first,
@@ -339,7 +356,7 @@ impl Answers {
             elapsed: started.elapsed(),
             session: Some(summary),
             resumes: 0,
-            placement: None,
+            placement,
             camera: info.camera,
         }
     }
@@ -522,6 +539,7 @@ async fn stream_frames(
                 answers.lifted.extend(frame.lifted.map(|l| l.pose));
                 answers.adjusted.push(frame.pose);
                 answers.lengths.push(frame.bone_lengths);
+                answers.roots.extend(frame.root);
                 progress(answers.adjusted.len());
             }
             // A token sent right after this answer is as of it.

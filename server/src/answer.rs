@@ -54,6 +54,7 @@ pub fn skipped(job: &FrameJob, st: &mut SessionState) -> StepOutput {
         frames_seen,
         lifted: None,
         state: due_state(job, st, frames_seen),
+        motion: None,
     }
 }
 
@@ -71,24 +72,48 @@ pub fn commit(job: &FrameJob, hidden: &[f32], lengths: &[f32], lifted: Option<Po
     if !st.accepts(job.epoch) {
         return Err(StepError::Superseded);
     }
+    if job.lift && st.window.is_none() {
+        return Err(StepError::Lifter("the session has no lifter window".into()));
+    }
+    let mut prediction = [0.0f32; OUTPUT_DIM];
+    prediction.copy_from_slice(lengths);
+    let mut running = st.lengths;
+    let estimate = running.push(&prediction);
+    let served = job.session.config().served(Some(estimate));
+    // The motion stage first: it is the one step here that can fail, and
+    // a failed frame must leave the session as it was.
+    let motion = match (&job.session.config().motion, &mut st.motion) {
+        (Some(settings), Some(stage)) => {
+            let pose = job.pose.or(lifted).ok_or_else(|| {
+                StepError::Motion("the frame has neither a client pose nor a lifted one".into())
+            })?;
+            let served = served.unwrap_or(estimate);
+            let adjusted =
+                bones::adjust_pose(&pose, &served).map_err(|e| StepError::Motion(e.to_string()))?;
+            Some(
+                settings
+                    .frame(stage, &adjusted, &served, &job.input, &job.present)
+                    .map_err(|e| StepError::Motion(e.to_string()))?,
+            )
+        }
+        _ => None,
+    };
     if job.lift {
-        let Some(window) = st.window.as_deref_mut() else {
-            return Err(StepError::Lifter("the session has no lifter window".into()));
-        };
-        window.push(job.keypoints());
+        if let Some(window) = st.window.as_deref_mut() {
+            window.push(job.keypoints());
+        }
     }
     st.hidden.copy_from_slice(hidden);
     st.held.remember(&job.input, &job.present);
-    let mut prediction = [0.0f32; OUTPUT_DIM];
-    prediction.copy_from_slice(lengths);
-    let estimate = st.lengths.push(&prediction);
+    st.lengths = running;
     let frames_seen = st.frames_seen();
     let state = due_state(job, &st, frames_seen);
     Ok(StepOutput {
-        lengths: job.session.config().served(Some(estimate)),
+        lengths: served,
         frames_seen,
         lifted: if job.lift { lifted } else { None },
         state,
+        motion,
     })
 }
 
@@ -140,12 +165,26 @@ pub fn frame_response(
     // No estimate yet (a first frame without a detected joint): the pose
     // as it is, with its own lengths.
     let lengths = output.lengths.unwrap_or_else(|| bones::bone_lengths(&pose));
-    match bones::adjust_pose(&pose, &lengths) {
+    let adjusted = match &output.motion {
+        Some(m) => Ok(m.pose),
+        None => bones::adjust_pose(&pose, &lengths),
+    };
+    let motion = output.motion.as_ref();
+    match adjusted {
         Ok(adjusted) => {
             metrics::frame_ok(received.elapsed());
             pb::StreamResponse {
                 kind: Some(Resp::Frame(pb::AdjustedFrame {
                     frame_index,
+                    root_position: motion
+                        .and_then(|m| m.root)
+                        .map(|r| r.iter().map(|&v| v as f32).collect())
+                        .unwrap_or_default(),
+                    focal_assumed: motion.is_some_and(|m| m.focal_assumed),
+                    world_pose_3d: motion
+                        .and_then(|m| m.world)
+                        .map(|w| w.iter().flatten().copied().collect())
+                        .unwrap_or_default(),
                     adjusted_pose_3d: adjusted.iter().flatten().copied().collect(),
                     bone_lengths: lengths.to_vec(),
                     frames_seen: output.frames_seen,

@@ -15,6 +15,7 @@ use tonic::Status;
 
 use crate::answer;
 use crate::metrics;
+use crate::motion::{self, SessionMotion};
 use crate::prepare;
 use crate::quota::ClientId;
 use crate::restore_check;
@@ -22,7 +23,7 @@ use crate::session::{
     Attachment, Session, SessionConfig, SessionError, SessionSnapshot, StateCopy, MAX_LABEL_BYTES,
 };
 use crate::state::AppState;
-use crate::token::PortableState;
+use crate::token::{PortableMotion, PortableState};
 use crate::validate;
 
 /// The attachment, and whether the client asked for periodic session
@@ -64,6 +65,8 @@ pub fn open_or_resume(
             let subject = validate::subject(open.subject.as_ref())
                 .map_err(|e| e.to_status())?
                 .map(|s| answer::subject(s, &state.stature));
+            let motion = motion::options(open.motion.as_ref())?
+                .map(|rate| SessionMotion::new(rate, &input, camera.as_ref().map(|c| &c.view)));
             let label = truncate_label(&open.client_label);
             let attachment = state
                 .store
@@ -74,6 +77,7 @@ pub fn open_or_resume(
                         lifter_frames,
                         camera,
                         subject,
+                        motion,
                     },
                     client,
                     state.limits.sessions_per_client,
@@ -86,6 +90,7 @@ pub fn open_or_resume(
                 server_lifter = open.server_lifter,
                 camera = open.camera.is_some(),
                 subject = open.subject.is_some(),
+                motion = motion.is_some(),
                 "session opened"
             );
             Ok((attachment, open.session_tokens))
@@ -200,6 +205,22 @@ fn restore(
                 "the session token is for a server_lifter session, and this server runs no lifter",
             )),
         };
+    let motion = match &portable.motion {
+        Some(m) => {
+            let rate = motion::options(Some(&pb::MotionOptions {
+                enabled: true,
+                frame_rate_hz: m.rate_hz as f32,
+            }))
+            .map_err(|e| {
+                Status::failed_precondition(format!(
+                    "the session token's motion stage cannot be served here: {}",
+                    e.message()
+                ))
+            })?;
+            rate.map(|r| SessionMotion::new(r, &portable.input, camera.as_ref().map(|c| &c.view)))
+        }
+        None => None,
+    };
     let id = portable.session_id;
     let config = SessionConfig {
         input: portable.input,
@@ -207,6 +228,7 @@ fn restore(
         lifter_frames,
         camera,
         subject,
+        motion,
     };
     let copy = StateCopy {
         hidden: portable.hidden.into_boxed_slice(),
@@ -214,6 +236,7 @@ fn restore(
         window: portable.window.map(|w| w.frames),
         held: portable.held,
         skipped: portable.skipped,
+        motion: portable.motion.map(|m| m.state),
     };
     let attachment = state
         .store
@@ -239,6 +262,7 @@ pub fn seal(state: &AppState, session: &Session, copy: StateCopy) -> Option<(Vec
         None
     };
     let frames_seen = copy.frames_seen();
+    let motion_state = copy.motion.clone();
     let mut portable = PortableState::new(
         session.id(),
         weights,
@@ -249,6 +273,13 @@ pub fn seal(state: &AppState, session: &Session, copy: StateCopy) -> Option<(Vec
         copy,
     );
     portable.subject = config.subject.as_ref().map(|s| s.subject);
+    portable.motion = match (&config.motion, motion_state) {
+        (Some(m), Some(state)) => Some(PortableMotion {
+            rate_hz: m.rate_hz,
+            state,
+        }),
+        _ => None,
+    };
     {
         let mut st = session.lock();
         st.newest_token = st.newest_token.max(frames_seen);
@@ -318,6 +349,12 @@ pub fn opened_response(state: &AppState, a: &Attachment) -> pb::StreamResponse {
                 .map(|c| c.calibration.clone()),
             session_token,
             subject: a.session.config().subject.as_ref().map(|s| s.subject),
+            motion: a
+                .session
+                .config()
+                .motion
+                .as_ref()
+                .map(SessionMotion::to_proto),
         })),
     }
 }

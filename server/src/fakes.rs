@@ -137,6 +137,7 @@ pub(crate) fn session_config() -> SessionConfig {
         lifter_frames: None,
         camera: None,
         subject: None,
+        motion: None,
     }
 }
 
@@ -157,6 +158,7 @@ pub(crate) fn job(
             input,
             present: [true; NUM_JOINTS],
             lift: false,
+            pose: None,
             state_every: 0,
             reply: tx,
         },

@@ -13,6 +13,7 @@ use blapose_core::{BoneLengths, Keypoints2d, Pose, NUM_JOINTS};
 use tokio::sync::oneshot;
 
 use crate::backend::INPUT_DIM;
+use crate::motion::FrameMotion;
 use crate::session::{Session, StateCopy};
 
 /// One frame to run.
@@ -31,6 +32,9 @@ pub struct FrameJob {
     /// Lift the pose from the session's window and `input` with the server
     /// lifter (the session must have been opened lifting).
     pub lift: bool,
+    /// The client's pose (`None` when the server lifts it): what the
+    /// motion stage smooths, for sessions opened with motion.
+    pub pose: Option<Pose>,
     /// Copy the session's state into the answer ([`StepOutput::state`])
     /// when this frame makes its frames seen a multiple of this (0: never);
     /// the copy is taken under the same lock as the update, so it is
@@ -65,6 +69,9 @@ pub struct StepOutput {
     /// The session's state right after this frame, when the job asked for
     /// it ([`FrameJob::state_every`]).
     pub state: Option<Box<StateCopy>>,
+    /// What the motion stage made of the frame (sessions opened with
+    /// motion; `None` for a frame without a detected joint).
+    pub motion: Option<FrameMotion>,
 }
 
 /// Why an accepted frame was not processed. The session is unchanged.
@@ -85,6 +92,9 @@ pub enum StepError {
     /// The server lifter failed on this frame.
     #[error("the server lifter failed: {0}; the session state was not updated")]
     Lifter(String),
+    /// The motion stage could not smooth the frame's pose.
+    #[error("the motion stage failed: {0}; the session state was not updated")]
+    Motion(String),
     /// The server lifter's pose cannot be adjusted (non-finite, out of
     /// bounds or a zero-length bone).
     #[error("the server lifter produced a pose that cannot be adjusted ({0}); the session state was not updated")]
@@ -99,6 +109,7 @@ impl StepError {
             StepError::Model(_)
             | StepError::NonFinite
             | StepError::Lifter(_)
+            | StepError::Motion(_)
             | StepError::LiftedPose(_) => tonic::Code::Internal,
         }
     }

@@ -14,15 +14,16 @@
 //! larger side, the principal point at the centre) and the answer says so.
 //! A joint the client marked missing gets no weight in the root solve.
 
-use blapose_core::layouts::Coordinates;
+use blapose_core::bones::BoneError;
+use blapose_core::layouts::{Coordinates, InputFormat};
 use blapose_core::motion::root::{FloorFrame, Rays, ASSUMED_FOCAL_PER_SIDE, ROOT_JOINT_WEIGHTS};
-use blapose_core::motion::{offline_motion, place, served_offline, Viewing, DEFAULT_RATE_HZ};
+use blapose_core::motion::{
+    offline_motion, place, served_causal, served_offline, CausalMotion, Viewing, DEFAULT_RATE_HZ,
+};
 use blapose_core::{BoneLengths, Pose, NUM_JOINTS};
 use blapose_model::input::ViewCalibration;
 use blapose_proto::v1 as pb;
 use tonic::Status;
-
-use crate::session::InputFormat;
 
 /// Highest frame rate a motion option may state.
 pub const MAX_FRAME_RATE_HZ: f32 = 1000.0;
@@ -119,6 +120,90 @@ impl RayCamera {
     }
 }
 
+/// A session's motion stage settings, fixed at open: its frame rate, how
+/// its keypoints become rays, and its floor when the calibration has a
+/// camera height.
+#[derive(Debug, Clone, Copy)]
+pub struct SessionMotion {
+    /// Frames per second.
+    pub rate_hz: f64,
+    rays: RayCamera,
+    floor: Option<FloorFrame>,
+}
+
+impl SessionMotion {
+    /// The settings of a session in `spec` with this calibration.
+    pub fn new(rate_hz: f64, spec: &InputFormat, view: Option<&ViewCalibration>) -> Self {
+        Self {
+            rate_hz,
+            rays: RayCamera::new(spec, view),
+            floor: floor(view),
+        }
+    }
+
+    /// A fresh causal stage (the served filters at this rate).
+    pub fn stage(&self) -> CausalMotion {
+        CausalMotion::new(served_causal(self.rate_hz))
+    }
+
+    /// As the session answers it in `SessionOpened.motion`.
+    pub fn to_proto(&self) -> pb::MotionOptions {
+        pb::MotionOptions {
+            enabled: true,
+            frame_rate_hz: self.rate_hz as f32,
+        }
+    }
+
+    /// One streamed frame through the session's `stage`: `adjusted`
+    /// (lengths applied) smoothed, its root placed from the frame's
+    /// validated keypoints (`input`, normalized, missing joints' pairs
+    /// ignored through `present`). Errors leave the stage as it was.
+    pub fn frame(
+        &self,
+        stage: &mut CausalMotion,
+        adjusted: &Pose,
+        lengths: &BoneLengths,
+        input: &[f32],
+        present: &[bool],
+    ) -> Result<FrameMotion, BoneError> {
+        let (rays, weights) = self.rays.rays(input, present);
+        let placed = stage.step(adjusted, lengths, Some((&rays, &weights)))?;
+        let world = match (placed.root, self.floor) {
+            (Some(root), Some(floor)) => {
+                let p = place(&[placed.pose], &[root])[0];
+                Some(p.map(|j| floor.to_world(j.map(f64::from)).map(|v| v as f32)))
+            }
+            _ => None,
+        };
+        Ok(FrameMotion {
+            pose: placed.pose,
+            root: placed.root,
+            world,
+            focal_assumed: self.rays.assumed,
+        })
+    }
+}
+
+/// What the causal stage made of one streamed frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FrameMotion {
+    /// The smoothed pose (root-relative as it came).
+    pub pose: Pose,
+    /// The pelvis in camera space, when it could be placed.
+    pub root: Option<[f64; 3]>,
+    /// The placed pose in world coordinates (calibrations with a camera
+    /// height).
+    pub world: Option<Pose>,
+    /// Whether the focal length was assumed.
+    pub focal_assumed: bool,
+}
+
+/// The floor frame of a calibration with a camera height.
+fn floor(view: Option<&ViewCalibration>) -> Option<FloorFrame> {
+    let v = view?;
+    FloorFrame::new(v.up, v.camera_height? as f64).ok()
+}
+
 /// What the motion stage adds to a whole sequence's answer.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SequenceMotion {
@@ -152,10 +237,7 @@ pub fn sequence(
         .zip(present.chunks_exact(NUM_JOINTS))
         .map(|(k, p)| camera.rays(k, p))
         .collect();
-    let floor = view.and_then(|v| {
-        let height = v.camera_height?;
-        FloorFrame::new(v.up, height as f64).ok()
-    });
+    let floor = floor(view);
     // Without a calibration "up" is taken as the image's up (a level
     // camera): only the feet read it.
     let up = view

@@ -156,6 +156,7 @@ mod tests {
                 camera: Some(SessionCamera {
                     calibration: Default::default(),
                     input: ModelInput::level().camera(&view).unwrap(),
+                    view: view.clone(),
                 }),
                 ..session_config()
             })

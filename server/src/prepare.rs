@@ -62,6 +62,7 @@ pub fn session_camera(
     Ok(Some(SessionCamera {
         calibration: valid.calibration,
         input,
+        view: valid.view,
     }))
 }
 

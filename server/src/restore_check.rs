@@ -97,6 +97,12 @@ pub fn check(state: &PortableState, now_ms: u64, ttl: Duration) -> Result<(), Re
             ));
         }
     }
+    if let Some(m) = &state.motion {
+        let values = m.state.directions.iter().chain(&m.state.root);
+        if let Some((i, v)) = values.enumerate().find(|(_, v)| !v.is_finite()) {
+            return Err(field(format!("motion filter state [{i}]"), format!("{v}")));
+        }
+    }
     let count = state.lengths.count();
     for (name, n) in [
         ("frames read", count),

@@ -214,6 +214,8 @@ fn submit(state: &AppState, a: &Attachment, token_every: u64, frame: pb::Frame) 
         input,
         present,
         lift: pose.is_none(),
+        // Only the motion stage reads the pose on the batcher thread.
+        pose: pose.filter(|_| a.session.config().motion.is_some()),
         state_every: token_every,
         reply,
     };

@@ -77,6 +77,7 @@ fn state(camera: bool, lifter: bool) -> PortableState {
             sex: 1,
         }),
         issued_at_ms: blapose_server::token::now_ms(),
+        motion: None,
     }
 }
 

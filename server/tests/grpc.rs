@@ -236,6 +236,7 @@ fn open_with_camera(camera: Option<pb::CameraCalibration>) -> pb::StreamRequest 
             camera,
             session_tokens: false,
             subject: None,
+            motion: None,
         })),
     }
 }

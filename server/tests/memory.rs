@@ -33,6 +33,7 @@ async fn an_idle_session_costs_well_under_16_kib() {
         lifter_frames: None,
         camera: None,
         subject: None,
+        motion: None,
     };
     let mut attachments = Vec::with_capacity(n);
     for _ in 0..n {

@@ -168,3 +168,154 @@ async fn offline_motion_places_the_walker_and_keeps_the_lengths() {
     }
     server.shutdown().await.unwrap();
 }
+
+/// One stream of the walker's frames `range` on a session opened (or
+/// resumed) with `first`; the answers in order, and the session's id and
+/// latest token when `token_after` frames are answered.
+async fn stream(
+    c: &mut PoseAdjustmentClient<tonic::transport::Channel>,
+    first: pb::StreamRequest,
+    frames: &[(Vec<f32>, Vec<f32>)],
+    range: std::ops::Range<usize>,
+    token_after: Option<usize>,
+) -> (Vec<pb::AdjustedFrame>, String, Vec<u8>) {
+    use pb::stream_request::Kind as Req;
+    use pb::stream_response::Kind as Resp;
+    let (tx, rx) = tokio::sync::mpsc::channel(8);
+    tx.send(first).await.unwrap();
+    let mut answers = c
+        .stream(tokio_stream::wrappers::ReceiverStream::new(rx))
+        .await
+        .unwrap()
+        .into_inner();
+    let id = match answers.message().await.unwrap().and_then(|r| r.kind) {
+        Some(Resp::Opened(o)) => o.session_id,
+        other => panic!("{other:?}"),
+    };
+    let (mut out, mut token) = (Vec::new(), Vec::new());
+    for t in range {
+        let (keypoints, pose) = frames[t].clone();
+        let frame = pb::Frame {
+            frame_index: t as u64,
+            keypoints_2d: keypoints,
+            pose_3d: pose,
+            confidence: vec![],
+        };
+        tx.send(pb::StreamRequest {
+            kind: Some(Req::Frame(frame)),
+        })
+        .await
+        .unwrap();
+        loop {
+            match answers.message().await.unwrap().and_then(|r| r.kind) {
+                Some(Resp::Frame(f)) => {
+                    out.push(f);
+                    break;
+                }
+                Some(Resp::Token(_)) => continue,
+                other => panic!("{other:?}"),
+            }
+        }
+        if token_after == Some(out.len()) {
+            tx.send(pb::StreamRequest {
+                kind: Some(Req::TokenRequest(pb::TokenRequest {})),
+            })
+            .await
+            .unwrap();
+            token = loop {
+                match answers.message().await.unwrap().and_then(|r| r.kind) {
+                    Some(Resp::Token(tk)) => break tk.token,
+                    other => panic!("{other:?}"),
+                }
+            };
+        }
+    }
+    (out, id, token)
+}
+
+/// The walker's frames, `(keypoints, pose)`, from the offline request.
+fn walker_frames() -> Vec<(Vec<f32>, Vec<f32>)> {
+    let r = request(None);
+    r.keypoints_2d
+        .chunks(34)
+        .zip(r.poses_3d.chunks(51))
+        .map(|(k, p)| (k.to_vec(), p.to_vec()))
+        .collect()
+}
+
+fn open(motion: bool) -> pb::StreamRequest {
+    pb::StreamRequest {
+        kind: Some(pb::stream_request::Kind::Open(pb::OpenSession {
+            input_format: request(None).input_format,
+            session_tokens: true,
+            motion: motion.then_some(pb::MotionOptions {
+                enabled: true,
+                frame_rate_hz: 50.0,
+            }),
+            ..Default::default()
+        })),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn streamed_motion_is_causal_keeps_lengths_and_continues_bit_exactly_from_a_token() {
+    let key = blapose_server::token::SessionKey::new(&[7u8; 32]).unwrap();
+    let config = || blapose_server::ServerConfig {
+        metrics_addr: None,
+        session_key: Some(key.clone()),
+        ..Default::default()
+    };
+    let mut servers = Vec::new();
+    let mut clients = Vec::new();
+    for _ in 0..2 {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let server = blapose_server::spawn(config(), listener).await.unwrap();
+        clients.push(
+            PoseAdjustmentClient::connect(format!("http://{}", server.local_addr()))
+                .await
+                .unwrap(),
+        );
+        servers.push(server);
+    }
+    let frames = walker_frames();
+    let (plain, _, _) = stream(&mut clients[0], open(false), &frames, 0..FRAMES, None).await;
+    assert!(plain
+        .iter()
+        .all(|f| f.root_position.is_empty() && !f.focal_assumed));
+    let (moved, id, token) =
+        stream(&mut clients[0], open(true), &frames, 0..FRAMES, Some(40)).await;
+    // Lengths are the session's, exactly those of the plain session; the
+    // poses have them, and move less.
+    for (m, p) in moved.iter().zip(&plain) {
+        assert_eq!(m.bone_lengths, p.bone_lengths);
+        assert!((length(&m.adjusted_pose_3d, 1, 2) - m.bone_lengths[1]).abs() < 1e-4);
+        assert_eq!(m.root_position.len(), 3);
+        assert!(m.focal_assumed);
+    }
+    let travel = moved[FRAMES - 1].root_position[0] - moved[10].root_position[0];
+    assert!(travel > 1.0, "the pelvis moved {travel} m");
+    // Causal: other frames after frame 60 leave the answers up to it alone.
+    let mut changed = frames.clone();
+    for f in &mut changed[61..] {
+        for v in &mut f.1[3..] {
+            *v += 0.05;
+        }
+    }
+    let (other, _, _) = stream(&mut clients[0], open(true), &changed, 0..FRAMES, None).await;
+    assert_eq!(other[..=60], moved[..=60]);
+    assert_ne!(other[61..], moved[61..]);
+    // A second server restores the session from the token taken after 40
+    // frames and answers the rest exactly as the first did.
+    let resume = pb::StreamRequest {
+        kind: Some(pb::stream_request::Kind::Resume(pb::ResumeSession {
+            session_id: id,
+            session_token: token,
+            session_tokens: true,
+        })),
+    };
+    let (rest, _, _) = stream(&mut clients[1], resume, &frames, 40..FRAMES, None).await;
+    assert_eq!(rest[..], moved[40..]);
+    for s in servers {
+        s.shutdown().await.unwrap();
+    }
+}

@@ -173,6 +173,7 @@ fn open(kind: Kind) -> pb::StreamRequest {
             camera: matches!(kind, Kind::Camera).then(calibration),
             session_tokens: true,
             subject: matches!(kind, Kind::Subject).then_some(SUBJECT),
+            motion: None,
         })),
     }
 }

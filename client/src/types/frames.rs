@@ -25,6 +25,9 @@ pub struct AdjustedFrame {
     /// `None` when the client sent the pose. (Boxed: most sessions send
     /// their poses, and their answers stay small.)
     pub lifted: Option<Box<LiftedPose>>,
+    /// With the motion stage: the pelvis in camera space (metres) and
+    /// whether it was placed through an assumed focal length.
+    pub root: Option<([f32; 3], bool)>,
 }
 
 /// The pose a server lifter produced for a frame, before adjustment.
@@ -53,7 +56,19 @@ impl AdjustedFrame {
                 )))
             }
         };
+        let root = match msg.root_position.as_slice() {
+            [] => None,
+            [x, y, z] => Some(([*x, *y, *z], msg.focal_assumed)),
+            other => {
+                return Err(ClientError::Protocol(format!(
+                    "frame {}: root_position has {} values, expected 3",
+                    msg.frame_index,
+                    other.len()
+                )))
+            }
+        };
         Ok(AdjustedFrame {
+            root,
             frame_index: msg.frame_index,
             pose: pose_from_flat(&msg.adjusted_pose_3d, "adjusted_pose_3d")?,
             bone_lengths: lengths_from_flat(&msg.bone_lengths, "bone_lengths")?,

@@ -6,12 +6,14 @@
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 
 use blapose_core::missing::HeldJoints;
+use blapose_core::motion::{CausalMotion, MotionState};
 use blapose_core::BoneLengths;
 use blapose_lifters::SlidingWindow;
-use blapose_model::input::InputCamera;
+use blapose_model::input::{InputCamera, ViewCalibration};
 use blapose_proto::v1 as pb;
 use tokio::sync::watch;
 
+use crate::motion::SessionMotion;
 use crate::quota::ClientId;
 use crate::session::error::SessionError;
 use crate::session::id::SessionId;
@@ -38,6 +40,9 @@ pub struct SessionCamera {
     /// What the camera-aware model's input contract makes of it (`None`
     /// for a contract that reads screen coordinates).
     pub input: Option<InputCamera>,
+    /// Its checked view (intrinsics, lens, up, height): what the motion
+    /// stage places the person through.
+    pub view: ViewCalibration,
 }
 
 /// A session's (or request's) subject: the person's stature and sex as
@@ -67,6 +72,9 @@ pub struct SessionConfig {
     /// `Some`: the session answers with its subject's stature-regression
     /// lengths instead of the model's running estimate.
     pub subject: Option<SessionSubject>,
+    /// `Some`: the causal motion stage runs on every answer
+    /// ([`crate::motion`]).
+    pub motion: Option<SessionMotion>,
 }
 
 impl SessionConfig {
@@ -118,6 +126,8 @@ pub struct SessionState {
     /// Frames seen in the newest session token issued (or restored) here:
     /// once the session ends, an older token is refused as a rollback.
     pub newest_token: u64,
+    /// The causal motion stage's filters (sessions opened with motion).
+    pub motion: Option<CausalMotion>,
 }
 
 impl SessionState {
@@ -145,6 +155,7 @@ impl SessionState {
             window: self.window.as_deref().map(|w| w.iter().copied().collect()),
             held: self.held,
             skipped: self.skipped,
+            motion: self.motion.as_ref().map(CausalMotion::state),
         }
     }
 }
@@ -163,6 +174,8 @@ pub struct StateCopy {
     pub held: HeldJoints,
     /// Frames answered without a detected joint.
     pub skipped: u64,
+    /// The motion stage's filter state (sessions opened with motion).
+    pub motion: Option<MotionState>,
 }
 
 impl StateCopy {
@@ -206,6 +219,7 @@ impl Session {
             held: HeldJoints::default(),
             skipped: 0,
             newest_token: 0,
+            motion: config.motion.as_ref().map(SessionMotion::stage),
         };
         let (owner, _) = watch::channel(Ownership {
             epoch: 1,
@@ -310,6 +324,19 @@ pub(crate) fn load(st: &mut SessionState, state: &StateCopy) -> Result<(), Sessi
             ))
         }
     }
+    st.motion = match (&st.motion, &state.motion) {
+        (Some(stage), Some(filters)) => Some(
+            CausalMotion::restore(*stage.config(), filters).ok_or_else(|| {
+                SessionError::Restore("the motion state does not fit the motion stage".into())
+            })?,
+        ),
+        (None, None) => None,
+        _ => {
+            return Err(SessionError::Restore(
+                "the motion state does not match the session's configuration".into(),
+            ))
+        }
+    };
     st.hidden.copy_from_slice(&state.hidden);
     st.lengths = state.lengths;
     st.held = state.held;

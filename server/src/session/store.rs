@@ -412,6 +412,7 @@ mod tests {
             lifter_frames: None,
             camera: None,
             subject: None,
+            motion: None,
         }
     }
 

@@ -29,7 +29,7 @@
 //! 0      4     magic "BLPT"
 //! 4      1     version (3)
 //! 5      1     flags: bit 0 camera calibration present, bit 1 lifter window
-//!              present, bit 2 subject present
+//!              present, bit 2 subject present, bit 3 motion stage present
 //! 6      16    session id
 //! 22     32    SHA-256 of the session family's online GRU weights
 //! 54     8     issued at (u64, milliseconds since the Unix epoch)
@@ -47,6 +47,8 @@
 //! [camera] 2+c length (u16) and the prost encoding of the CameraCalibration
 //! [subject] 4+1 stature (f32, metres) and sex (u8: 0 unspecified, 1 female,
 //!          2 male)
+//! [motion] 8   frame rate (f64), then the direction filter's and the root
+//!          4+8n filter's state, each a count (u32) and f64 values
 //! [lifter] 32  SHA-256 of the lifter weights
 //!          2+2 receptive field, frames held w (u16 each)
 //!          136w the window's frames, oldest first (17 x 2 f32 each)
@@ -70,6 +72,7 @@
 
 use blapose_core::layouts::{Coordinates, KeypointLayout};
 use blapose_core::missing::HeldJoints;
+use blapose_core::motion::MotionState;
 use blapose_core::{Keypoints2d, NUM_BONES, NUM_JOINTS};
 use blapose_proto::v1 as pb;
 use prost::Message;
@@ -90,6 +93,21 @@ pub const MAC_BYTES: usize = 32;
 const FLAG_CAMERA: u8 = 1;
 const FLAG_LIFTER: u8 = 2;
 const FLAG_SUBJECT: u8 = 4;
+const FLAG_MOTION: u8 = 8;
+
+/// Most filter values a token's motion section may hold per filter (the
+/// served filters hold 99 and 9).
+const MAX_MOTION_VALUES: usize = 4096;
+
+/// A motion session's stage in a token: its frame rate and its filters'
+/// state.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PortableMotion {
+    /// Frames per second the stage runs at.
+    pub rate_hz: f64,
+    /// The filters' state.
+    pub state: MotionState,
+}
 const FRAME_FLOATS: usize = NUM_JOINTS * 2;
 
 /// Why a token was refused or a key not accepted.
@@ -161,6 +179,8 @@ pub struct PortableState {
     pub skipped: u64,
     /// The subject as opened.
     pub subject: Option<pb::Subject>,
+    /// The motion stage, for a session opened with motion.
+    pub motion: Option<PortableMotion>,
     /// When the token was issued (milliseconds since the Unix epoch).
     pub issued_at_ms: u64,
 }
@@ -208,6 +228,7 @@ impl PortableState {
             held: state.held,
             skipped: state.skipped,
             subject: None,
+            motion: None,
             issued_at_ms: now_ms(),
         }
     }
@@ -233,6 +254,9 @@ impl PortableState {
         }
         if self.subject.is_some() {
             flags |= FLAG_SUBJECT;
+        }
+        if self.motion.is_some() {
+            flags |= FLAG_MOTION;
         }
         out.push(flags);
         out.extend_from_slice(self.session_id.as_bytes());
@@ -287,6 +311,15 @@ impl PortableState {
         if let Some(subject) = &self.subject {
             out.extend_from_slice(&subject.height_m.to_le_bytes());
             out.push(u8::try_from(subject.sex).unwrap_or(u8::MAX));
+        }
+        if let Some(m) = &self.motion {
+            out.extend_from_slice(&m.rate_hz.to_le_bytes());
+            for values in [&m.state.directions, &m.state.root] {
+                out.extend_from_slice(&(values.len() as u32).to_le_bytes());
+                for v in values.iter() {
+                    out.extend_from_slice(&v.to_le_bytes());
+                }
+            }
         }
         if let Some(w) = &self.window {
             out.extend_from_slice(&w.lifter_id);
@@ -379,7 +412,7 @@ fn decode_body(body: &[u8]) -> Result<PortableState, TokenError> {
     let bad = |what: String| TokenError::Malformed(what);
     let mut r = Reader { bytes: body, at: 6 };
     let flags = body[5];
-    if flags & !(FLAG_CAMERA | FLAG_LIFTER | FLAG_SUBJECT) != 0 {
+    if flags & !(FLAG_CAMERA | FLAG_LIFTER | FLAG_SUBJECT | FLAG_MOTION) != 0 {
         return Err(bad(format!("unknown flags {flags:#x}")));
     }
     let session_id = SessionId::from_bytes(r.array("the session id")?);
@@ -442,6 +475,29 @@ fn decode_body(body: &[u8]) -> Result<PortableState, TokenError> {
     } else {
         None
     };
+    let motion = if flags & FLAG_MOTION != 0 {
+        let rate_hz = f64::from_le_bytes(r.array("the motion frame rate")?);
+        let mut filter = |what: &str| -> Result<Vec<f64>, TokenError> {
+            let n = r.u32(what)? as usize;
+            if n > MAX_MOTION_VALUES {
+                return Err(bad(format!(
+                    "{what}: {n} values, at most {MAX_MOTION_VALUES}"
+                )));
+            }
+            Ok(r.take(n * 8, what)?
+                .chunks_exact(8)
+                .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes")))
+                .collect())
+        };
+        let directions = filter("the motion direction filter")?;
+        let root = filter("the motion root filter")?;
+        Some(PortableMotion {
+            rate_hz,
+            state: MotionState { directions, root },
+        })
+    } else {
+        None
+    };
     let window = if flags & FLAG_LIFTER != 0 {
         let lifter_id = r.array("the lifter hash")?;
         let receptive_field = usize::from(r.u16("the receptive field")?);
@@ -482,6 +538,7 @@ fn decode_body(body: &[u8]) -> Result<PortableState, TokenError> {
         held,
         skipped,
         subject,
+        motion,
         issued_at_ms,
     })
 }
@@ -539,6 +596,7 @@ mod tests {
                 sex: 1,
             }),
             issued_at_ms: 1_780_000_000_000,
+            motion: None,
         }
     }
 

@@ -39,6 +39,7 @@ fn open_request(
             camera: None,
             session_tokens: false,
             subject: None,
+            motion: None,
         })),
     }
 }

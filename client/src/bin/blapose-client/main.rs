@@ -453,6 +453,7 @@ async fn run(cli: Cli) -> Result<()> {
                 window,
                 label,
                 server_lifter,
+                motion: None,
             };
             let result =
                 replay_across(&clients, seq, &options, |n| bar.set_position(n as u64)).await;
