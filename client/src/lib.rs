@@ -38,6 +38,7 @@
 pub mod client;
 pub mod config;
 pub mod error;
+pub mod offline;
 pub mod replay;
 pub mod sequence;
 pub mod session;
@@ -47,15 +48,13 @@ pub use blapose_core::metrics::{evaluate, Evaluation, PoseMetrics};
 pub use client::{Client, OfflineAdjustment, Placement, SequenceInput, SessionOptions};
 pub use config::{new_affinity_key, ClientConfig, TlsOptions, AFFINITY_HEADER, DEFAULT_SERVER};
 pub use error::ClientError;
-pub use replay::{
-    adjust_offline, adjust_offline_with_motion, replay, replay_across, replay_session, Adjusted,
-    ReplayOptions,
-};
+pub use offline::{adjust_offline, adjust_offline_with_motion};
+pub use replay::{replay, replay_across, replay_session, Adjusted, ReplayOptions};
 pub use sequence::{Sequence, SequenceError};
 pub use session::{EventReceiver, FrameRejection, FrameSender, Session, SessionEvent};
 pub use types::{
     AdjustedFrame, CameraCalibration, CameraError, Coordinates, FrameInput, InputFormat,
     KeypointLayout, LiftedPose, LifterDescription, ModelDescription, ModelInfo, ModelKind,
-    SessionInfo, SessionSummary, SessionToken, Sex, Subject, ToProto, MAX_CAMERA_HEIGHT,
-    MIN_CAMERA_HEIGHT,
+    PlacedRoot, SessionInfo, SessionSummary, SessionToken, Sex, Subject, ToProto,
+    MAX_CAMERA_HEIGHT, MIN_CAMERA_HEIGHT,
 };

@@ -24,11 +24,11 @@ use tokio::sync::Semaphore;
 use blapose_core::ModelKind;
 use blapose_data::replay::{write_adjusted_placed, CameraCalibration, Sequence, SequenceError};
 
-use crate::client::{Client, Placement, SequenceInput, SessionOptions};
+use crate::client::{Client, Placement, SessionOptions};
 use crate::config::new_affinity_key;
 use crate::error::ClientError;
 use crate::session::{EventReceiver, Session, SessionEvent};
-use crate::types::{SessionInfo, SessionSummary, SessionToken};
+use crate::types::{PlacedRoot, SessionInfo, SessionSummary, SessionToken};
 
 /// How to stream a sequence.
 #[derive(Debug, Clone)]
@@ -314,7 +314,7 @@ struct Answers {
     lengths: Vec<BoneLengths>,
     lifted: Vec<Pose>,
     /// Placed roots (motion sessions), one per answer that carried one.
-    roots: Vec<([f32; 3], bool)>,
+    roots: Vec<PlacedRoot>,
 }
 
 impl Answers {
@@ -341,8 +341,8 @@ impl Answers {
         let placement =
             (!self.roots.is_empty() && self.roots.len() == self.adjusted.len()).then(|| {
                 Placement {
-                    focal_assumed: self.roots.iter().any(|r| r.1),
-                    roots: self.roots.iter().map(|r| r.0).collect(),
+                    focal_assumed: self.roots.iter().any(|r| r.focal_assumed),
+                    roots: self.roots.iter().map(|r| r.position).collect(),
                     world: None,
                 }
             });
@@ -539,7 +539,7 @@ async fn stream_frames(
                 answers.lifted.extend(frame.lifted.map(|l| l.pose));
                 answers.adjusted.push(frame.pose);
                 answers.lengths.push(frame.bone_lengths);
-                answers.roots.extend(frame.root);
+                answers.roots.extend(frame.root.map(|r| *r));
                 progress(answers.adjusted.len());
             }
             // A token sent right after this answer is as of it.
@@ -572,46 +572,6 @@ fn pacer(fps: Option<f64>) -> Option<tokio::time::Interval> {
         .and_then(|f| Duration::try_from_secs_f64(1.0 / f).ok())
         .filter(|period| !period.is_zero())
         .map(tokio::time::interval)
-}
-
-/// Adjust `seq` with one `AdjustSequence` call (with `seq.camera` and
-/// `seq.subject`, if any).
-pub async fn adjust_offline(
-    client: &Client,
-    seq: &Sequence,
-    model: ModelKind,
-) -> Result<Adjusted, ClientError> {
-    adjust_offline_with_motion(client, seq, model, None).await
-}
-
-/// [`adjust_offline`] with the server's offline motion stage at `motion`
-/// frames per second (`Some(0.0)`: 50; `None`: no motion stage): the poses
-/// smoothed and their feet held, and [`Adjusted::placement`] set.
-pub async fn adjust_offline_with_motion(
-    client: &Client,
-    seq: &Sequence,
-    model: ModelKind,
-    motion: Option<f32>,
-) -> Result<Adjusted, ClientError> {
-    let started = Instant::now();
-    let input = SequenceInput {
-        motion,
-        ..SequenceInput::from_sequence(seq)
-    };
-    let result = client.adjust_sequence(input, model).await?;
-    Ok(Adjusted {
-        model: result.model,
-        first_frame: 0,
-        adjusted: result.adjusted,
-        bone_lengths: result.bone_lengths,
-        lifter: None,
-        lifted: Vec::new(),
-        elapsed: started.elapsed(),
-        session: None,
-        resumes: 0,
-        camera: seq.camera,
-        placement: result.placement,
-    })
 }
 
 #[cfg(test)]

@@ -222,11 +222,9 @@ async fn stream(
             })
             .await
             .unwrap();
-            token = loop {
-                match answers.message().await.unwrap().and_then(|r| r.kind) {
-                    Some(Resp::Token(tk)) => break tk.token,
-                    other => panic!("{other:?}"),
-                }
+            token = match answers.message().await.unwrap().and_then(|r| r.kind) {
+                Some(Resp::Token(tk)) => tk.token,
+                other => panic!("{other:?}"),
             };
         }
     }

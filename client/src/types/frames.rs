@@ -25,9 +25,18 @@ pub struct AdjustedFrame {
     /// `None` when the client sent the pose. (Boxed: most sessions send
     /// their poses, and their answers stay small.)
     pub lifted: Option<Box<LiftedPose>>,
-    /// With the motion stage: the pelvis in camera space (metres) and
-    /// whether it was placed through an assumed focal length.
-    pub root: Option<([f32; 3], bool)>,
+    /// With the motion stage: where it placed the pelvis. (Boxed, like
+    /// `lifted`, to keep plain answers small.)
+    pub root: Option<Box<PlacedRoot>>,
+}
+
+/// Where the motion stage placed a frame's pelvis.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PlacedRoot {
+    /// Camera space, metres (x right, y down, z forward).
+    pub position: [f32; 3],
+    /// Placed through an assumed focal length (no calibration sent).
+    pub focal_assumed: bool,
 }
 
 /// The pose a server lifter produced for a frame, before adjustment.
@@ -58,7 +67,10 @@ impl AdjustedFrame {
         };
         let root = match msg.root_position.as_slice() {
             [] => None,
-            [x, y, z] => Some(([*x, *y, *z], msg.focal_assumed)),
+            [x, y, z] => Some(Box::new(PlacedRoot {
+                position: [*x, *y, *z],
+                focal_assumed: msg.focal_assumed,
+            })),
             other => {
                 return Err(ClientError::Protocol(format!(
                     "frame {}: root_position has {} values, expected 3",

@@ -36,7 +36,7 @@ pub use blapose_data::replay::{
 };
 pub use blapose_proto::convert::{layout_from_proto, layout_to_proto};
 
-pub use frames::{AdjustedFrame, LiftedPose};
+pub use frames::{AdjustedFrame, LiftedPose, PlacedRoot};
 pub use info::{LifterDescription, ModelDescription, ModelInfo};
 pub use session_info::{SessionInfo, SessionSummary, SessionToken};
 pub use wire::{camera_from_proto, subject_from_proto, ToProto};
