@@ -104,3 +104,21 @@ def test_local_adjust_pose_matches_server(server: Server) -> None:
         results = list(s.stream(seq.frames()))
     for r, pose in zip(results[::10], seq.pose_3d[::10]):
         np.testing.assert_allclose(blapose.adjust_pose(pose, r.bone_lengths), r.adjusted, rtol=0, atol=TOL)
+
+
+def test_motion_adjust_sequence_equals_cli_adjust_motion(server: Server, tmp_path: Path) -> None:
+    example = next(p for p in EXAMPLES if "walk" in p.stem)
+    ref, seq = cli_reference(server, example, tmp_path, "adjust", "--camera", "--motion")
+    assert seq.camera is not None
+    with blapose.Client(server.url) as client:
+        plain = client.adjust_sequence(seq.keypoints_2d, seq.pose_3d, layout=seq.layout, image_size=seq.image_size)
+        res = client.adjust_sequence(
+            seq.keypoints_2d, seq.pose_3d, layout=seq.layout, image_size=seq.image_size, camera=seq.camera, motion=50
+        )
+    assert plain.root_positions is None and res.root_positions is not None
+    assert res.root_positions.shape == (seq.num_frames, 3) and not res.focal_assumed
+    np.testing.assert_allclose(res.adjusted, ref["adjusted_3d"], rtol=0, atol=TOL)
+    np.testing.assert_allclose(res.root_positions, ref["root_3d"], rtol=0, atol=TOL)
+    # The walk moves 3-5 m through space (the capture walks 4.0 m).
+    travel = float(np.linalg.norm(res.root_positions[-1] - res.root_positions[0]))
+    assert 3.0 <= travel <= 5.0, travel

@@ -381,6 +381,7 @@ def sequence_request(
     camera: Optional[Camera],
     confidence,
     subject: Optional[pb.Subject] = None,
+    motion: Optional[float] = None,
 ) -> Tuple[pb.AdjustSequenceRequest, int]:
     value, joints = layout_value(layout)
     kp = np.asarray(keypoints, dtype=np.float32)
@@ -402,14 +403,21 @@ def sequence_request(
         req.camera.CopyFrom(camera.to_proto())
     if subject is not None:
         req.subject.CopyFrom(subject)
+    if motion is not None:
+        req.motion.CopyFrom(pb.MotionOptions(enabled=True, frame_rate_hz=float(motion)))
     return req, t
 
 
 def sequence_result(resp: pb.AdjustSequenceResponse, t: int) -> SequenceResult:
+    roots = np.asarray(resp.root_positions, dtype=np.float32).reshape(t, 3) if resp.root_positions else None
+    world = np.asarray(resp.world_poses_3d, dtype=np.float32).reshape(t, 17, 3) if resp.world_poses_3d else None
     return SequenceResult(
         adjusted=np.asarray(resp.adjusted_poses_3d, dtype=np.float32).reshape(t, 17, 3),
         bone_lengths=np.asarray(resp.bone_lengths, dtype=np.float32).reshape(t, 16),
         model=model_name(resp.model),
+        root_positions=roots,
+        focal_assumed=resp.focal_assumed,
+        world_poses=world,
     )
 
 

@@ -103,6 +103,7 @@ class Client:
         confidence: Optional[ArrayLike] = None,
         height: Optional[float] = None,
         sex: Optional[str] = None,
+        motion: Optional[float] = None,
     ) -> SequenceResult:
         """Adjust a whole sequence in one call (see :meth:`blapose.Client.adjust_sequence`)."""
         return await self._run(
@@ -116,6 +117,7 @@ class Client:
             confidence=confidence,
             height=height,
             sex=sex,
+            motion=motion,
         )
 
     async def close_session(self, session_id: str, *, affinity: Optional[str] = None) -> ClosedSession:

@@ -186,6 +186,7 @@ class Client:
         confidence: Optional[ArrayLike] = None,
         height: Optional[float] = None,
         sex: Optional[str] = None,
+        motion: Optional[float] = None,
     ) -> SequenceResult:
         """Adjust a whole sequence in one call (``AdjustSequence``).
 
@@ -201,12 +202,15 @@ class Client:
             height: the person's stature in metres (1.0 to 2.3): every frame then
                 gets the stature regression's lengths for it.
             sex: ``"female"`` or ``"male"``, with ``height``.
+            motion: the input's frames per second (0 for 50) to run the server's offline
+                motion stage: directions smoothed, the pelvis placed
+                (``root_positions``), planted feet held.
 
         Returns:
             :class:`SequenceResult` with ``adjusted`` (T, 17, 3) and ``bone_lengths`` (T, 16).
         """
         req, t = c.sequence_request(
-            keypoints, poses, layout, image_size, model, camera, confidence, c.subject_proto(height, sex)
+            keypoints, poses, layout, image_size, model, camera, confidence, c.subject_proto(height, sex), motion
         )
         return c.sequence_result(self._unary("AdjustSequence", req), t)
 

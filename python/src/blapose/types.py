@@ -267,11 +267,19 @@ class SequenceResult:
         adjusted: ``(T, 17, 3)`` adjusted poses.
         bone_lengths: ``(T, 16)`` lengths applied to each frame (all rows equal for the Bi-GRU).
         model: ``"bigru"`` or ``"gru"``.
+        root_positions: with ``motion``, ``(T, 3)`` pelvis positions in camera space
+            (metres; x right, y down, z forward), else None.
+        focal_assumed: the root was placed through an assumed focal length (no camera).
+        world_poses: with ``motion`` and a camera with a height, ``(T, 17, 3)`` poses in
+            the world (z up, the floor at 0), else None.
     """
 
     adjusted: np.ndarray
     bone_lengths: np.ndarray
     model: Optional[str]
+    root_positions: Optional[np.ndarray] = None
+    focal_assumed: bool = False
+    world_poses: Optional[np.ndarray] = None
 
 
 @dataclass(frozen=True)

@@ -93,7 +93,7 @@ class TokenRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class OpenSession(_message.Message):
-    __slots__ = ("input_format", "model", "client_label", "server_lifter", "camera", "session_tokens", "subject")
+    __slots__ = ("input_format", "model", "client_label", "server_lifter", "camera", "session_tokens", "subject", "motion")
     INPUT_FORMAT_FIELD_NUMBER: _ClassVar[int]
     MODEL_FIELD_NUMBER: _ClassVar[int]
     CLIENT_LABEL_FIELD_NUMBER: _ClassVar[int]
@@ -101,6 +101,7 @@ class OpenSession(_message.Message):
     CAMERA_FIELD_NUMBER: _ClassVar[int]
     SESSION_TOKENS_FIELD_NUMBER: _ClassVar[int]
     SUBJECT_FIELD_NUMBER: _ClassVar[int]
+    MOTION_FIELD_NUMBER: _ClassVar[int]
     input_format: InputFormat
     model: Model
     client_label: str
@@ -108,7 +109,8 @@ class OpenSession(_message.Message):
     camera: CameraCalibration
     session_tokens: bool
     subject: Subject
-    def __init__(self, input_format: _Optional[_Union[InputFormat, _Mapping]] = ..., model: _Optional[_Union[Model, str]] = ..., client_label: _Optional[str] = ..., server_lifter: _Optional[bool] = ..., camera: _Optional[_Union[CameraCalibration, _Mapping]] = ..., session_tokens: _Optional[bool] = ..., subject: _Optional[_Union[Subject, _Mapping]] = ...) -> None: ...
+    motion: MotionOptions
+    def __init__(self, input_format: _Optional[_Union[InputFormat, _Mapping]] = ..., model: _Optional[_Union[Model, str]] = ..., client_label: _Optional[str] = ..., server_lifter: _Optional[bool] = ..., camera: _Optional[_Union[CameraCalibration, _Mapping]] = ..., session_tokens: _Optional[bool] = ..., subject: _Optional[_Union[Subject, _Mapping]] = ..., motion: _Optional[_Union[MotionOptions, _Mapping]] = ...) -> None: ...
 
 class Subject(_message.Message):
     __slots__ = ("height_m", "sex")
@@ -167,7 +169,7 @@ class SessionToken(_message.Message):
     def __init__(self, token: _Optional[bytes] = ..., frames_seen: _Optional[int] = ...) -> None: ...
 
 class SessionOpened(_message.Message):
-    __slots__ = ("session_id", "resumed", "frames_seen", "bone_lengths", "input_format", "model", "session_ttl_ms", "lifter", "camera", "session_token", "subject")
+    __slots__ = ("session_id", "resumed", "frames_seen", "bone_lengths", "input_format", "model", "session_ttl_ms", "lifter", "camera", "session_token", "subject", "motion")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     RESUMED_FIELD_NUMBER: _ClassVar[int]
     FRAMES_SEEN_FIELD_NUMBER: _ClassVar[int]
@@ -179,6 +181,7 @@ class SessionOpened(_message.Message):
     CAMERA_FIELD_NUMBER: _ClassVar[int]
     SESSION_TOKEN_FIELD_NUMBER: _ClassVar[int]
     SUBJECT_FIELD_NUMBER: _ClassVar[int]
+    MOTION_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     resumed: bool
     frames_seen: int
@@ -190,23 +193,30 @@ class SessionOpened(_message.Message):
     camera: CameraCalibration
     session_token: bytes
     subject: Subject
-    def __init__(self, session_id: _Optional[str] = ..., resumed: _Optional[bool] = ..., frames_seen: _Optional[int] = ..., bone_lengths: _Optional[_Iterable[float]] = ..., input_format: _Optional[_Union[InputFormat, _Mapping]] = ..., model: _Optional[_Union[Model, str]] = ..., session_ttl_ms: _Optional[int] = ..., lifter: _Optional[str] = ..., camera: _Optional[_Union[CameraCalibration, _Mapping]] = ..., session_token: _Optional[bytes] = ..., subject: _Optional[_Union[Subject, _Mapping]] = ...) -> None: ...
+    motion: MotionOptions
+    def __init__(self, session_id: _Optional[str] = ..., resumed: _Optional[bool] = ..., frames_seen: _Optional[int] = ..., bone_lengths: _Optional[_Iterable[float]] = ..., input_format: _Optional[_Union[InputFormat, _Mapping]] = ..., model: _Optional[_Union[Model, str]] = ..., session_ttl_ms: _Optional[int] = ..., lifter: _Optional[str] = ..., camera: _Optional[_Union[CameraCalibration, _Mapping]] = ..., session_token: _Optional[bytes] = ..., subject: _Optional[_Union[Subject, _Mapping]] = ..., motion: _Optional[_Union[MotionOptions, _Mapping]] = ...) -> None: ...
 
 class AdjustedFrame(_message.Message):
-    __slots__ = ("frame_index", "adjusted_pose_3d", "bone_lengths", "frames_seen", "lifter", "lifted_pose_3d")
+    __slots__ = ("frame_index", "adjusted_pose_3d", "bone_lengths", "frames_seen", "lifter", "lifted_pose_3d", "root_position", "focal_assumed", "world_pose_3d")
     FRAME_INDEX_FIELD_NUMBER: _ClassVar[int]
     ADJUSTED_POSE_3D_FIELD_NUMBER: _ClassVar[int]
     BONE_LENGTHS_FIELD_NUMBER: _ClassVar[int]
     FRAMES_SEEN_FIELD_NUMBER: _ClassVar[int]
     LIFTER_FIELD_NUMBER: _ClassVar[int]
     LIFTED_POSE_3D_FIELD_NUMBER: _ClassVar[int]
+    ROOT_POSITION_FIELD_NUMBER: _ClassVar[int]
+    FOCAL_ASSUMED_FIELD_NUMBER: _ClassVar[int]
+    WORLD_POSE_3D_FIELD_NUMBER: _ClassVar[int]
     frame_index: int
     adjusted_pose_3d: _containers.RepeatedScalarFieldContainer[float]
     bone_lengths: _containers.RepeatedScalarFieldContainer[float]
     frames_seen: int
     lifter: str
     lifted_pose_3d: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, frame_index: _Optional[int] = ..., adjusted_pose_3d: _Optional[_Iterable[float]] = ..., bone_lengths: _Optional[_Iterable[float]] = ..., frames_seen: _Optional[int] = ..., lifter: _Optional[str] = ..., lifted_pose_3d: _Optional[_Iterable[float]] = ...) -> None: ...
+    root_position: _containers.RepeatedScalarFieldContainer[float]
+    focal_assumed: bool
+    world_pose_3d: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, frame_index: _Optional[int] = ..., adjusted_pose_3d: _Optional[_Iterable[float]] = ..., bone_lengths: _Optional[_Iterable[float]] = ..., frames_seen: _Optional[int] = ..., lifter: _Optional[str] = ..., lifted_pose_3d: _Optional[_Iterable[float]] = ..., root_position: _Optional[_Iterable[float]] = ..., focal_assumed: _Optional[bool] = ..., world_pose_3d: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class FrameError(_message.Message):
     __slots__ = ("frame_index", "code", "message")
@@ -243,7 +253,7 @@ class CloseSessionResponse(_message.Message):
     def __init__(self, frames_seen: _Optional[int] = ..., bone_lengths: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class AdjustSequenceRequest(_message.Message):
-    __slots__ = ("input_format", "model", "num_frames", "keypoints_2d", "confidence", "poses_3d", "camera", "subject")
+    __slots__ = ("input_format", "model", "num_frames", "keypoints_2d", "confidence", "poses_3d", "camera", "subject", "motion")
     INPUT_FORMAT_FIELD_NUMBER: _ClassVar[int]
     MODEL_FIELD_NUMBER: _ClassVar[int]
     NUM_FRAMES_FIELD_NUMBER: _ClassVar[int]
@@ -252,6 +262,7 @@ class AdjustSequenceRequest(_message.Message):
     POSES_3D_FIELD_NUMBER: _ClassVar[int]
     CAMERA_FIELD_NUMBER: _ClassVar[int]
     SUBJECT_FIELD_NUMBER: _ClassVar[int]
+    MOTION_FIELD_NUMBER: _ClassVar[int]
     input_format: InputFormat
     model: Model
     num_frames: int
@@ -260,17 +271,32 @@ class AdjustSequenceRequest(_message.Message):
     poses_3d: _containers.RepeatedScalarFieldContainer[float]
     camera: CameraCalibration
     subject: Subject
-    def __init__(self, input_format: _Optional[_Union[InputFormat, _Mapping]] = ..., model: _Optional[_Union[Model, str]] = ..., num_frames: _Optional[int] = ..., keypoints_2d: _Optional[_Iterable[float]] = ..., confidence: _Optional[_Iterable[float]] = ..., poses_3d: _Optional[_Iterable[float]] = ..., camera: _Optional[_Union[CameraCalibration, _Mapping]] = ..., subject: _Optional[_Union[Subject, _Mapping]] = ...) -> None: ...
+    motion: MotionOptions
+    def __init__(self, input_format: _Optional[_Union[InputFormat, _Mapping]] = ..., model: _Optional[_Union[Model, str]] = ..., num_frames: _Optional[int] = ..., keypoints_2d: _Optional[_Iterable[float]] = ..., confidence: _Optional[_Iterable[float]] = ..., poses_3d: _Optional[_Iterable[float]] = ..., camera: _Optional[_Union[CameraCalibration, _Mapping]] = ..., subject: _Optional[_Union[Subject, _Mapping]] = ..., motion: _Optional[_Union[MotionOptions, _Mapping]] = ...) -> None: ...
+
+class MotionOptions(_message.Message):
+    __slots__ = ("enabled", "frame_rate_hz")
+    ENABLED_FIELD_NUMBER: _ClassVar[int]
+    FRAME_RATE_HZ_FIELD_NUMBER: _ClassVar[int]
+    enabled: bool
+    frame_rate_hz: float
+    def __init__(self, enabled: _Optional[bool] = ..., frame_rate_hz: _Optional[float] = ...) -> None: ...
 
 class AdjustSequenceResponse(_message.Message):
-    __slots__ = ("model", "adjusted_poses_3d", "bone_lengths")
+    __slots__ = ("model", "adjusted_poses_3d", "bone_lengths", "root_positions", "focal_assumed", "world_poses_3d")
     MODEL_FIELD_NUMBER: _ClassVar[int]
     ADJUSTED_POSES_3D_FIELD_NUMBER: _ClassVar[int]
     BONE_LENGTHS_FIELD_NUMBER: _ClassVar[int]
+    ROOT_POSITIONS_FIELD_NUMBER: _ClassVar[int]
+    FOCAL_ASSUMED_FIELD_NUMBER: _ClassVar[int]
+    WORLD_POSES_3D_FIELD_NUMBER: _ClassVar[int]
     model: Model
     adjusted_poses_3d: _containers.RepeatedScalarFieldContainer[float]
     bone_lengths: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, model: _Optional[_Union[Model, str]] = ..., adjusted_poses_3d: _Optional[_Iterable[float]] = ..., bone_lengths: _Optional[_Iterable[float]] = ...) -> None: ...
+    root_positions: _containers.RepeatedScalarFieldContainer[float]
+    focal_assumed: bool
+    world_poses_3d: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, model: _Optional[_Union[Model, str]] = ..., adjusted_poses_3d: _Optional[_Iterable[float]] = ..., bone_lengths: _Optional[_Iterable[float]] = ..., root_positions: _Optional[_Iterable[float]] = ..., focal_assumed: _Optional[bool] = ..., world_poses_3d: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class ModelInfoRequest(_message.Message):
     __slots__ = ()
