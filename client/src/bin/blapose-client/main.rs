@@ -110,6 +110,12 @@ enum Command {
         /// poses.
         #[arg(long)]
         server_lifter: bool,
+        /// Open the session with the causal motion stage: each answer's
+        /// bone directions smoothed from the frames so far, the pelvis
+        /// placed in camera space. The exports then move through space,
+        /// and --out gains root_3d (T x 3).
+        #[arg(long)]
+        motion: bool,
     },
     /// Adjust a replay file with one offline call (Bi-GRU by default).
     ///
@@ -442,6 +448,7 @@ async fn run(cli: Cli) -> Result<()> {
             window,
             label,
             server_lifter,
+            motion,
         } => {
             let loaded = io.load()?;
             io.check_exports(loaded.0.len())?;
@@ -453,7 +460,7 @@ async fn run(cli: Cli) -> Result<()> {
                 window,
                 label,
                 server_lifter,
-                motion: None,
+                motion: motion.then(|| seq.fps.unwrap_or(0.0)),
             };
             let result =
                 replay_across(&clients, seq, &options, |n| bar.set_position(n as u64)).await;
@@ -593,6 +600,8 @@ mod tests {
         ));
         let cli = Cli::try_parse_from(["blapose-client", "adjust", "x.npz", "--motion"]).unwrap();
         assert!(matches!(cli.command, Command::Adjust { motion: true, .. }));
+        let cli = Cli::try_parse_from(["blapose-client", "replay", "x.npz", "--motion"]).unwrap();
+        assert!(matches!(cli.command, Command::Replay { motion: true, .. }));
         assert!(
             Cli::try_parse_from(["blapose-client", "adjust", "x.npz", "--model", "lstm"]).is_err()
         );
