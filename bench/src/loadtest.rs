@@ -79,6 +79,9 @@ pub struct LoadTest {
     pub timeout: Duration,
     /// Directory of `.npz` replay files to send.
     pub examples: PathBuf,
+    /// Open every session with the causal motion stage (at the clips' own
+    /// rate).
+    pub motion: bool,
 }
 
 /// Why a run could not produce a report. Failures *during* the run (a
@@ -116,7 +119,8 @@ impl LoadTest {
     pub async fn run(&self) -> Result<Report, LoadTestError> {
         let started = Instant::now();
         let deadline = started + self.timeout;
-        let workload = Workload::from_dir(&self.examples)?;
+        let mut workload = Workload::from_dir(&self.examples)?;
+        workload.motion = self.motion;
         let machine = report::machine();
 
         let (spawned, url, metrics_url, server_label) = match &self.target {

@@ -195,6 +195,7 @@ async fn a_server_that_goes_away_mid_run_is_counted_not_waited_for() {
         connections: 1,
         timeout: Duration::from_secs(120),
         examples: default_examples_dir(),
+        motion: false,
     };
     let run = tokio::spawn(async move { test.run().await });
     // Shut down once the streams are under way: the model has run steps

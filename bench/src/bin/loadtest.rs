@@ -70,6 +70,10 @@ struct Args {
     /// With --idle: seconds to hold the sessions before the second reading.
     #[arg(long, default_value_t = 1.0)]
     hold: f64,
+    /// Open every session with the causal motion stage (smoothed directions,
+    /// the pelvis placed): its cost against a run without.
+    #[arg(long)]
+    motion: bool,
     /// Directory of .npz replay files to send (default: the workspace's examples/).
     #[arg(long, value_name = "DIR")]
     examples: Option<PathBuf>,
@@ -176,5 +180,6 @@ fn load_test(args: &Args) -> Result<LoadTest> {
             .clamp(1, args.streams),
         timeout: Duration::from_secs_f64(args.timeout),
         examples: args.examples.clone().unwrap_or_else(default_examples_dir),
+        motion: args.motion,
     })
 }

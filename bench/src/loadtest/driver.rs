@@ -20,7 +20,7 @@
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
-use blapose_client::{Client, ClientConfig, ClientError, Session, SessionEvent};
+use blapose_client::{Client, ClientConfig, ClientError, Session, SessionEvent, SessionOptions};
 use blapose_proto::v1 as pb;
 use blapose_server::metrics::code_name;
 use tokio::sync::mpsc;
@@ -141,9 +141,15 @@ pub async fn open_sessions(
     for i in 0..n {
         let client = clients[i % clients.len()].clone();
         let format = workload.clip(i).input_format;
+        let motion = workload.motion.then_some(0.0);
         tasks.spawn(async move {
             let label = format!("loadtest-{i}");
-            (i, client.open_session(format, Some(&label)).await)
+            let options = SessionOptions {
+                label: Some(&label),
+                motion,
+                ..Default::default()
+            };
+            (i, client.open_session_with(format, &options).await)
         });
     }
     let mut opened = Vec::with_capacity(n);

@@ -68,6 +68,8 @@ impl Clip {
 pub struct Workload {
     /// At least one clip, each with at least one frame.
     pub clips: Vec<Clip>,
+    /// Sessions ask for the causal motion stage.
+    pub motion: bool,
 }
 
 impl Workload {
@@ -83,7 +85,10 @@ impl Workload {
                 .unwrap_or_default();
             clips.push(Clip::from_sequence(name, &seq));
         }
-        Ok(Workload { clips })
+        Ok(Workload {
+            clips,
+            motion: false,
+        })
     }
 
     /// The clip stream `i` replays.
