@@ -16,7 +16,6 @@
 
 use std::collections::BTreeMap;
 
-use blapose_core::bones::summed_length;
 use blapose_core::{BoneLengths, Pose};
 use blapose_data::h36m::TRAIN_SUBJECTS;
 use blapose_model::stature::{StatureLines, StatureModel};
@@ -35,10 +34,7 @@ pub const ANKLE_HEIGHT_M: f32 = 0.0696;
 /// error is proportion. `None` when the lines' summed slope is not
 /// positive.
 pub fn matched_stature(lines: &StatureLines, truth: &BoneLengths) -> Option<f32> {
-    let intercept: f64 = lines.intercept.iter().sum();
-    let slope: f64 = lines.slope.iter().sum();
-    let total = summed_length(truth);
-    (slope > 0.0).then(|| ((total - intercept) / slope) as f32)
+    lines.matched_stature(truth)
 }
 
 /// The lengths `lines` give at `truth`'s matched stature

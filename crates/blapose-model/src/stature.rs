@@ -77,6 +77,18 @@ impl StatureLines {
         }
     }
 
+    /// The stature whose lengths on these lines sum to `truth`'s summed
+    /// length: a stature that reads the truth, so the lines get the overall
+    /// size exactly and only proportions are left to them (the stand-in for
+    /// a measured stature where nobody measured one). `None` when the
+    /// summed slope is not positive.
+    pub fn matched_stature(&self, truth: &BoneLengths) -> Option<f32> {
+        let intercept: f64 = self.intercept.iter().sum();
+        let slope: f64 = self.slope.iter().sum();
+        let total = blapose_core::bones::summed_length(truth);
+        (slope > 0.0).then(|| ((total - intercept) / slope) as f32)
+    }
+
     /// The lengths of someone `stature_m` tall.
     pub fn predict(&self, stature_m: f32) -> BoneLengths {
         std::array::from_fn(|b| (self.intercept[b] + self.slope[b] * f64::from(stature_m)) as f32)

@@ -390,6 +390,7 @@ fn eval_adjust_fixture_gives_known_numbers() {
             bigru: Some(&bigru),
             training_mean: Some(&training_mean),
             motion: None,
+            height: None,
         },
     )
     .unwrap();

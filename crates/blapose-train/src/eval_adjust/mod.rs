@@ -33,7 +33,13 @@
 //! * `gru_motion`: `gru` streamed through the served causal motion stage
 //!   (`blapose_core::motion::served_causal`), as a session with the
 //!   camera's calibration is answered;
-//! * `bigru_motion`: `bigru` through the served offline stage.
+//! * `bigru_motion`: `bigru` through the served offline stage;
+//! * `gru_motion_height`: a session that knows the person's stature (its
+//!   stature-regression lengths, as the server answers a subject) through
+//!   the causal stage. Human3.6M publishes no statures: the stature used is
+//!   the one whose regression lengths sum to the subject's true total
+//!   ([`blapose_model::stature::StatureLines::matched_stature`]), so it
+//!   knows the size exactly and leaves the proportions to the regression.
 //!
 //! The pose's own root is kept (it is the origin here). A frame with a zero-length
 //! bone keeps that bone's input offset ([`ZeroBonePolicy::KeepInput`])
@@ -84,6 +90,10 @@ pub struct Adjusters<'a> {
     pub training_mean: Option<&'a BoneLengths>,
     /// Score motion too (and the motion methods).
     pub motion: Option<MotionSetup<'a>>,
+    /// A known stature's lengths per trial (what a session opened with its
+    /// subject's height answers with): scored through the causal motion
+    /// stage as `gru_motion_height`.
+    pub height: Option<&'a [BoneLengths]>,
 }
 
 /// The bone-length estimates an evaluation adjusts with, computed once for
@@ -135,6 +145,7 @@ impl LengthEstimates {
             bigru: self.bigru.as_deref(),
             training_mean: self.training_mean.as_ref(),
             motion: None,
+            height: None,
         }
     }
 }
@@ -157,7 +168,7 @@ fn scored(
 }
 
 /// The methods of a report, in the order [`evaluate_lifter`] scores them.
-const METHODS: usize = 8;
+const METHODS: usize = 9;
 const BEFORE: usize = 0;
 const GRU: usize = 1;
 const BIGRU: usize = 2;
@@ -166,6 +177,7 @@ const LIFTER_MEDIAN: usize = 4;
 const TRUE_LENGTHS: usize = 5;
 const GRU_MOTION: usize = 6;
 const BIGRU_MOTION: usize = 7;
+const GRU_MOTION_HEIGHT: usize = 8;
 
 /// Score one lifter on `trials`; `lift` gives the lifter's poses for a
 /// trial (one per target frame).
@@ -181,6 +193,7 @@ pub fn evaluate_lifter(
         ("gru", adjusters.gru.map(<[_]>::len)),
         ("bigru", adjusters.bigru.map(<[_]>::len)),
         ("scenes", adjusters.motion.map(|m| m.scenes.len())),
+        ("height lengths", adjusters.height.map(<[_]>::len)),
     ] {
         if n.is_some_and(|n| n != trials.len()) {
             return Err(TrainError::InvalidArgument(format!(
@@ -229,6 +242,12 @@ pub fn evaluate_lifter(
                 let adj = adjust_sequence_with(&pred, &tr.trial.gt, ZeroBonePolicy::KeepInput)?;
                 out[TRUE_LENGTHS] = Some(scored(&adj, gt, scene, None)?);
             }
+            if let (Some(h), Some(m), Some(sc)) = (adjusters.height, motion, scene) {
+                let adj = adjust_sequence_with(&pred, &h[i], ZeroBonePolicy::KeepInput)?;
+                let lengths = vec![h[i]; adj.len()];
+                let (poses, roots) = stream_causal(&adj, &lengths, m.causal, sc)?;
+                out[GRU_MOTION_HEIGHT] = Some(scored(&poses, gt, scene, Some(roots))?);
+            }
             Ok(out)
         })
         .collect::<Result<_, _>>()?;
@@ -253,6 +272,7 @@ pub fn evaluate_lifter(
         ground_truth_lengths: report(TRUE_LENGTHS),
         gru_motion: report(GRU_MOTION),
         bigru_motion: report(BIGRU_MOTION),
+        gru_motion_height: report(GRU_MOTION_HEIGHT),
         trials: trials.len(),
         frames: trials.iter().map(LifterSequence::frames).sum(),
         weights: None,

@@ -74,6 +74,9 @@ pub struct LifterReport {
     /// The Bi-GRU through the served offline motion stage.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub bigru_motion: Option<MethodReport>,
+    /// A known stature's regression lengths through the causal stage.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gru_motion_height: Option<MethodReport>,
     /// Trials scored.
     pub trials: usize,
     /// Frames scored.
@@ -208,6 +211,9 @@ fn methods(r: &LifterReport) -> Vec<(&'static str, &MethodReport)> {
     }
     if let Some(g) = &r.gru_motion {
         v.push(("online GRU + causal motion", g));
+    }
+    if let Some(g) = &r.gru_motion_height {
+        v.push(("known stature + causal motion", g));
     }
     if let Some(b) = &r.bigru {
         v.push(("offline Bi-GRU", b));

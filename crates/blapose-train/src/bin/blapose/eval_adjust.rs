@@ -9,9 +9,11 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use blapose_core::motion::{served_causal, served_offline};
+use blapose_core::BoneLengths;
 use blapose_data::h36m::{H36m, Parts, TRAIN_SUBJECTS};
+use blapose_model::stature::StatureModel;
 use blapose_model::ModelKind;
 use blapose_train::dataset::{mean_subject_lengths, subject_lengths};
 use blapose_train::eval_adjust::{evaluate_lifter, markdown, LengthEstimates, MotionSetup};
@@ -47,6 +49,10 @@ pub struct EvalAdjustArgs {
     /// Turn test-time flip off.
     #[arg(long)]
     no_flip: bool,
+    /// The stature regression a known height is answered with (the
+    /// `gru_motion_height` row).
+    #[arg(long, default_value = "models/stature_regression.json")]
+    stature_model: PathBuf,
     /// Skip the motion metrics and methods (acceleration, root placement,
     /// foot skating; `gru_motion`, `bigru_motion`, `ground_truth_lengths`).
     #[arg(long)]
@@ -116,8 +122,25 @@ pub fn run(a: EvalAdjustArgs) -> Result<()> {
         "bone-length estimates (online GRU running, offline Bi-GRU): {:.1}s",
         t.elapsed().as_secs_f64()
     );
+    let height_lengths: Vec<BoneLengths> = if a.no_motion {
+        Vec::new()
+    } else {
+        let text = std::fs::read_to_string(&a.stature_model)
+            .with_context(|| format!("reading {}", a.stature_model.display()))?;
+        let model = StatureModel::from_json(&text)?;
+        trials
+            .iter()
+            .map(|t| {
+                let stature = model.pooled.matched_stature(&t.trial.gt).ok_or_else(|| {
+                    anyhow::anyhow!("the stature model's summed slope is not positive")
+                })?;
+                Ok(model.predict(stature, None))
+            })
+            .collect::<Result<_>>()?
+    };
     let mut adjusters = estimates.adjusters();
     if !a.no_motion {
+        adjusters.height = Some(&height_lengths);
         adjusters.motion = Some(MotionSetup {
             scenes: &scenes,
             causal: served_causal(H36M_RATE_HZ),
