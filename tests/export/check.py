@@ -202,6 +202,8 @@ WALK_M = (3.0, 5.0)
 STANCE_SPEED = 0.3
 STANCE_FRAMES = 5
 STANCE_SLIDE_M = 0.01
+# Where a planted ankle may stand above the floor in world coordinates (m).
+FLOOR_BAND_M = (-0.03, 0.15)
 
 
 def stance_runs(slow):
@@ -239,12 +241,18 @@ def walks(out: Path, blender_json: Path):
         height = max(float(np.ptp(a[s + 1:e + 1, 2])) for s, e in runs)
         slide = max(float(np.linalg.norm(np.diff(a[s + 1:e + 1, :2], axis=0), axis=1).max(initial=0))
                     for s, e in runs)
-        floor = float(np.ptp([np.median(a[s + 1:e + 1, 2]) for s, e in runs]))
+        plants = [float(np.median(a[s + 1:e + 1, 2])) for s, e in runs]
+        floor = float(np.ptp(plants))
         print(f"motion: {joint} planted {len(runs)} times; within a plant it moves at most "
               f"{1000 * height:.1f} mm up or down and {1000 * slide:.1f} mm per frame along the floor; "
               f"the plants' heights differ by {1000 * floor:.0f} mm (depth error)")
         if slide > STANCE_SLIDE_M:
             failures.append(f"{joint}: a planted foot slides {slide:.3f} m per frame")
+        # The walk's calibration has a camera height: the files are in world coordinates,
+        # so a planted ankle stands on the floor (an ankle is about 70 mm above it).
+        print(f"motion: {joint}'s plants stand {', '.join(f'{1000 * h:.0f}' for h in plants)} mm above the floor")
+        if not all(FLOOR_BAND_M[0] <= h <= FLOOR_BAND_M[1] for h in plants):
+            failures.append(f"{joint}: planted at {plants} m, not on the floor")
     for f in failures:
         print(f"FAILED: {f}")
     return 1 if failures else 0

@@ -8,6 +8,9 @@
 //! for a stream its final estimate, and then every frame is re-posed with it
 //! (the output says so). The up direction is the file's `camera_up` when it
 //! has one (whether or not `--camera` sends it), else the camera's `-y`.
+//! With `--motion` the poses are placed at their roots; when the server
+//! also gave world coordinates (a calibration with a camera height), the
+//! files are in the world, the floor at height 0.
 
 use anyhow::{bail, Context, Result};
 use blapose_client::Adjusted;
@@ -90,9 +93,20 @@ impl IoArgs {
             .last()
             .context("cannot export: the sequence has no poses")?;
         let fps = fps.map_or(DEFAULT_FPS, f64::from);
-        let mut motion = Motion::new(&result.placed_poses(), lengths, fps)?;
+        // Placed by the motion stage through a calibration with a camera
+        // height: world coordinates, z up, the floor at 0. Placed without
+        // one: camera space at the placed roots, up as the file says.
+        let world = result.placement.as_ref().and_then(|p| p.world.as_ref());
+        let (poses, up) = match world {
+            Some(world) => (world.clone(), Some([0.0, 0.0, 1.0])),
+            None => (result.placed_poses(), up.map(|u| u.map(f64::from))),
+        };
+        let mut motion = Motion::new(&poses, lengths, fps)?;
         if let Some(up) = up {
-            motion = motion.with_up(up.map(f64::from))?;
+            motion = motion.with_up(up)?;
+        }
+        if world.is_some() {
+            println!("exports in world coordinates (the floor at height 0, from the camera's height and up)");
         }
         let names: Vec<&str> = files.iter().map(|(f, _)| f.name()).collect();
         if result.bone_lengths.iter().all(|l| l == lengths) {
