@@ -207,17 +207,17 @@ fn restore(
         };
     let motion = match &portable.motion {
         Some(m) => {
-            let rate = motion::options(Some(&pb::MotionOptions {
-                enabled: true,
-                frame_rate_hz: m.rate_hz as f32,
-            }))
-            .map_err(|e| {
+            let rate = motion::frame_rate(m.rate_hz as f32).map_err(|e| {
                 Status::failed_precondition(format!(
                     "the session token's motion stage cannot be served here: {}",
                     e.message()
                 ))
             })?;
-            rate.map(|r| SessionMotion::new(r, &portable.input, camera.as_ref().map(|c| &c.view)))
+            Some(SessionMotion::new(
+                rate,
+                &portable.input,
+                camera.as_ref().map(|c| &c.view),
+            ))
         }
         None => None,
     };

@@ -18,7 +18,8 @@ use blapose_core::bones::BoneError;
 use blapose_core::layouts::{Coordinates, InputFormat};
 use blapose_core::motion::root::{FloorFrame, Rays, ASSUMED_FOCAL_PER_SIDE, ROOT_JOINT_WEIGHTS};
 use blapose_core::motion::{
-    offline_motion, place, served_causal, served_offline, CausalMotion, Viewing, DEFAULT_RATE_HZ,
+    offline_motion, place, place_pose, served_causal, served_offline, CausalMotion, Viewing,
+    DEFAULT_RATE_HZ,
 };
 use blapose_core::{BoneLengths, Pose, NUM_JOINTS};
 use blapose_model::input::ViewCalibration;
@@ -32,19 +33,24 @@ pub const MAX_FRAME_RATE_HZ: f32 = 1000.0;
 /// rate that is not a number in (0, [`MAX_FRAME_RATE_HZ`]] is
 /// INVALID_ARGUMENT.
 pub fn options(motion: Option<&pb::MotionOptions>) -> Result<Option<f64>, Status> {
-    let Some(m) = motion.filter(|m| m.enabled) else {
-        return Ok(None);
-    };
-    let rate = m.frame_rate_hz;
+    match motion.filter(|m| m.enabled) {
+        Some(m) => frame_rate(m.frame_rate_hz).map(Some),
+        None => Ok(None),
+    }
+}
+
+/// A stated frame rate as served: 0 is [`DEFAULT_RATE_HZ`]; anything but a
+/// number in (0, [`MAX_FRAME_RATE_HZ`]] is INVALID_ARGUMENT.
+pub fn frame_rate(rate: f32) -> Result<f64, Status> {
     if rate == 0.0 {
-        return Ok(Some(DEFAULT_RATE_HZ));
+        return Ok(DEFAULT_RATE_HZ);
     }
     if !(rate.is_finite() && rate > 0.0 && rate <= MAX_FRAME_RATE_HZ) {
         return Err(Status::invalid_argument(format!(
             "motion.frame_rate_hz must be 0 (50 Hz) or in (0, {MAX_FRAME_RATE_HZ}] frames per second, got {rate}"
         )));
     }
-    Ok(Some(rate as f64))
+    Ok(rate as f64)
 }
 
 /// How a request's keypoints become viewing rays.
@@ -170,7 +176,7 @@ impl SessionMotion {
         let placed = stage.step(adjusted, lengths, Some((&rays, &weights)))?;
         let world = match (placed.root, self.floor) {
             (Some(root), Some(floor)) => {
-                let p = place(&[placed.pose], &[root])[0];
+                let p = place_pose(&placed.pose, &root);
                 Some(p.map(|j| floor.to_world(j.map(f64::from)).map(|v| v as f32)))
             }
             _ => None,

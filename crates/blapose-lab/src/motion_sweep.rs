@@ -214,8 +214,6 @@ pub fn fir_fit(
 pub struct Sweep<'a> {
     /// The trials.
     pub trials: &'a [LifterSequence],
-    /// Their scenes.
-    pub scenes: &'a [Scene],
     /// Lengths to adjust with.
     pub adjusters: Adjusters<'a>,
 }
@@ -231,19 +229,16 @@ fn key(t: &LifterSequence) -> (String, String, String) {
     )
 }
 
-impl Sweep<'_> {
-    /// Every trial lifted by `lift`, cached.
-    pub fn lift_all(
-        &self,
-        lift: &(dyn Fn(&LifterSequence) -> Result<Vec<Pose>, TrainError> + Sync),
-    ) -> Result<Lifted, TrainError> {
-        use rayon::prelude::*;
-        self.trials
-            .par_iter()
-            .map(|t| Ok((key(t), lift(t)?)))
-            .collect()
-    }
+/// Every trial of `trials` lifted by `lift`, cached.
+pub fn lift_all(
+    trials: &[LifterSequence],
+    lift: &(dyn Fn(&LifterSequence) -> Result<Vec<Pose>, TrainError> + Sync),
+) -> Result<Lifted, TrainError> {
+    use rayon::prelude::*;
+    trials.par_iter().map(|t| Ok((key(t), lift(t)?))).collect()
+}
 
+impl Sweep<'_> {
     /// One evaluation over cached poses with these stages and scenes.
     pub fn evaluate(
         &self,

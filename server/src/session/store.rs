@@ -398,23 +398,9 @@ async fn purge_task(shared: Arc<Shared>) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::session::{Coordinates, InputFormat};
-    use blapose_core::layouts::KeypointLayout;
     use blapose_core::NUM_BONES;
 
-    fn config() -> SessionConfig {
-        SessionConfig {
-            input: InputFormat {
-                layout: KeypointLayout::H36m17,
-                coordinates: Coordinates::Normalized,
-            },
-            label: String::new(),
-            lifter_frames: None,
-            camera: None,
-            subject: None,
-            motion: None,
-        }
-    }
+    use crate::fakes::session_config as config;
 
     #[test]
     fn only_lifting_sessions_hold_a_window() {

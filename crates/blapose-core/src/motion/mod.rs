@@ -508,15 +508,18 @@ fn fill_gaps(solved: &[Option<[f64; 3]>]) -> Option<Vec<[f64; 3]>> {
     )
 }
 
+/// A pose moved so that its pelvis is at `root`.
+pub fn place_pose(pose: &Pose, root: &Root) -> Pose {
+    let own = pose[ROOT];
+    pose.map(|j| std::array::from_fn(|i| ((j[i] - own[i]) as f64 + root[i]) as f32))
+}
+
 /// Poses moved so that each one's pelvis is at its root.
-pub fn place(poses: &[Pose], roots: &[[f64; 3]]) -> Vec<Pose> {
+pub fn place(poses: &[Pose], roots: &[Root]) -> Vec<Pose> {
     poses
         .iter()
         .zip(roots)
-        .map(|(p, r)| {
-            let own = p[ROOT];
-            p.map(|j| std::array::from_fn(|i| ((j[i] - own[i]) as f64 + r[i]) as f32))
-        })
+        .map(|(p, r)| place_pose(p, r))
         .collect()
 }
 

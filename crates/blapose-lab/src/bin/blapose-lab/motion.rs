@@ -10,12 +10,11 @@ use anyhow::{ensure, Result};
 use blapose_core::motion::{CausalMotionConfig, CausalSmoothing};
 use blapose_data::h36m::{H36m, Parts, TEST_SUBJECTS, TRAIN_SUBJECTS};
 use blapose_lab::motion_sweep::{
-    causal_direction_candidates, causal_root_candidates, fir_fit, offline_candidates, prefiltered,
-    root_joint_sets, Row, Sweep,
+    causal_direction_candidates, causal_root_candidates, fir_fit, lift_all, offline_candidates,
+    prefiltered, root_joint_sets, Row, Sweep,
 };
 use blapose_model::ModelKind;
 use blapose_train::dataset::{mean_subject_lengths, subject_lengths};
-use blapose_train::eval::GruEstimator;
 use blapose_train::eval_adjust::{LengthEstimates, MethodReport};
 use blapose_train::lifter::data::{lifter_sequences, LifterSequence};
 use blapose_train::lifter::predict::StreamLifter;
@@ -92,17 +91,10 @@ pub fn run(a: MotionArgs) -> Result<()> {
         let h36m = H36m::load(&root, &TRAIN_SUBJECTS, Parts::POSES)?;
         mean_subject_lengths(&subject_lengths(&h36m), &TRAIN_SUBJECTS)
     };
-    let mut estimates = LengthEstimates::compute(
-        &trials,
-        Some(&blapose_model::weights::load(
-            &a.gru_weights,
-            ModelKind::Gru,
-        )?),
-        Some(&blapose_model::weights::load(
-            &a.bigru_weights,
-            ModelKind::BiGru,
-        )?),
-    )?;
+    let gru_weights = blapose_model::weights::load(&a.gru_weights, ModelKind::Gru)?;
+    let bigru_weights = blapose_model::weights::load(&a.bigru_weights, ModelKind::BiGru)?;
+    let mut estimates =
+        LengthEstimates::compute(&trials, Some(&gru_weights), Some(&bigru_weights))?;
     estimates.training_mean = training_mean;
     eprintln!(
         "{} trials ({} frames), estimates in {:.1}s",
@@ -114,24 +106,15 @@ pub fn run(a: MotionArgs) -> Result<()> {
     let lifter = StreamLifter::new(&loaded)?;
     let sweep = Sweep {
         trials: &trials,
-        scenes: &scenes,
         adjusters: estimates.adjusters(),
     };
-    let lifted = sweep.lift_all(&|s| lifter.lift(&s.trial, true))?;
+    let lifted = lift_all(&trials, &|s| lifter.lift(&s.trial, true))?;
     eprintln!("lifted in {:.1}s", t0.elapsed().as_secs_f64());
     let fit = {
-        let fit_sweep = Sweep {
-            trials: &fit_trials,
-            scenes: &[],
-            adjusters: estimates.adjusters(),
-        };
-        let lifted = fit_sweep.lift_all(&|s| lifter.lift(&s.trial, true))?;
-        let gru = GruEstimator::new(&blapose_model::weights::load(
-            &a.gru_weights,
-            ModelKind::Gru,
-        )?)?;
-        let inputs: Vec<_> = fit_trials.iter().map(|t| t.trial.clone()).collect();
-        let lengths = gru.running_estimates(&inputs)?;
+        let lifted = lift_all(&fit_trials, &|s| lifter.lift(&s.trial, true))?;
+        let lengths = LengthEstimates::compute(&fit_trials, Some(&gru_weights), None)?
+            .gru
+            .unwrap_or_default();
         fir_fit(&fit_trials, &lifted, &lengths)?
     };
     eprintln!("fitted in {:.1}s", t0.elapsed().as_secs_f64());
@@ -233,7 +216,7 @@ pub fn run(a: MotionArgs) -> Result<()> {
         n == "one-euro min 1 Hz beta 0.5" || n == "kalman q 1 r 4e-4" || n == "kalman q 3 r 1.6e-3"
     }) {
         let Some(smoothing) = smoothing else { continue };
-        let pre = sweep.lift_all(&|s| {
+        let pre = lift_all(&trials, &|s| {
             let mut trial = s.trial.clone();
             trial.input = prefiltered(&trial.input, smoothing);
             lifter.lift(&trial, true)
