@@ -122,3 +122,22 @@ def test_motion_adjust_sequence_equals_cli_adjust_motion(server: Server, tmp_pat
     # The walk moves 3-5 m through space (the capture walks 4.0 m).
     travel = float(np.linalg.norm(res.root_positions[-1] - res.root_positions[0]))
     assert 3.0 <= travel <= 5.0, travel
+
+
+def test_motion_session_equals_cli_replay_motion(server: Server, tmp_path: Path) -> None:
+    example = next(p for p in EXAMPLES if "walk" in p.stem)
+    ref, seq = cli_reference(server, example, tmp_path, "replay", "--camera", "--motion")
+    rate = float(seq.fps or 0)
+    with blapose.Client(server.url) as client:
+        with client.session(layout=seq.layout, image_size=seq.image_size, camera=seq.camera) as s:
+            plain = list(s.stream(seq.frames()))
+        with client.session(layout=seq.layout, image_size=seq.image_size, camera=seq.camera, motion=rate) as s:
+            moved = list(s.stream(seq.frames()))
+    assert all(r.root is None and r.world is None for r in plain)
+    assert all(r.root is not None and not r.focal_assumed for r in moved)
+    np.testing.assert_allclose(np.stack([r.adjusted for r in moved]), ref["adjusted_3d"], rtol=0, atol=TOL)
+    np.testing.assert_allclose(np.stack([r.root for r in moved]), ref["root_3d"], rtol=0, atol=TOL)
+    # Lengths are the plain session's; the pelvis travels with the walker.
+    np.testing.assert_array_equal(np.stack([r.bone_lengths for r in moved]), np.stack([r.bone_lengths for r in plain]))
+    travel = float(np.linalg.norm(moved[-1].root - moved[0].root))
+    assert 3.0 <= travel <= 5.5, travel

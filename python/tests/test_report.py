@@ -164,3 +164,14 @@ def test_adjust_html_from_the_cli(server: Server, tmp_path: Path) -> None:
     py = report.read_html_data(blapose.write_replay_html(tmp_path / "py.html", seq, res))
     assert dict(py["info"])["model"] == "bigru"
     np.testing.assert_allclose(_flat(py, "after"), _flat(data, "after"), rtol=0, atol=1e-4 + 1e-9)
+
+
+def test_root_path_round_trips_and_bad_roots_are_refused() -> None:
+    seq, after = _example()
+    root = np.cumsum(np.full((seq.num_frames, 3), [0.01, 0.0, 0.002]), axis=0) + [0.0, 0.0, 4.0]
+    data = report.read_html_data(report.render_html(seq.pose_3d, after, root=root))
+    np.testing.assert_allclose(np.reshape(data["root"], (-1, 3)), root, rtol=0, atol=1e-4)
+    assert report.read_html_data(report.render_html(seq.pose_3d, after))["root"] is None
+    for bad in (root[1:], np.full_like(root, np.nan)):
+        with pytest.raises(ValueError, match="root"):
+            report.render_html(seq.pose_3d, after, root=bad)

@@ -59,6 +59,21 @@ async function checkReport(context, file, shotPath) {
     }, id);
     assert(colours >= 50, `${file}: #${id} has only ${colours} distinct colours (blank?)`);
   }
+  // A report of placed motion draws the pelvis path.
+  const hasRoot = await page.evaluate(() => Array.isArray(JSON.parse(document.getElementById("blapose-data").textContent).root));
+  if (hasRoot) {
+    assert(await page.locator("#path-card").isVisible(), `${file}: the pelvis path card is hidden`);
+    const inked = await page.evaluate(() => {
+      const c = document.getElementById("chart-path");
+      const d = c.getContext("2d").getImageData(0, 0, c.width, c.height).data;
+      let n = 0;
+      for (let i = 3; i < d.length; i += 4) if (d[i] > 0) n++;
+      return n;
+    });
+    assert(inked > 200, `${file}: the pelvis path is not drawn (${inked} pixels)`);
+    const hint = await page.locator("#path-hint").textContent();
+    assert(/travelled \d+\.\d+ m/.test(hint), `${file}: no distance travelled (${hint})`);
+  }
 
   // The slider scrubs: moving it changes the frame and the label.
   const label = page.locator("#frame-label");

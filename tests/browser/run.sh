@@ -41,7 +41,8 @@ use_out_dir "${BLAPOSE_REPORT_DIR:-}"
 start_server "$OUT/server.log"
 
 echo "== reports of $EXAMPLE (server $URL)"
-target/release/blapose-client --server "$URL" replay "$EXAMPLE" --html "$OUT/report_rust.html" >/dev/null
+# The Rust report with the motion stage (the pelvis path card), the Python one without.
+target/release/blapose-client --server "$URL" replay "$EXAMPLE" --camera --motion --html "$OUT/report_rust.html" >/dev/null
 "$PY" - "$URL" "$EXAMPLE" "$OUT/report_python.html" <<'PYEOF'
 import sys
 from pathlib import Path
@@ -55,6 +56,7 @@ with blapose.Client(url) as client:
         results = list(s.stream(seq.frames()))
 blapose.write_replay_html(out, seq, results, title=Path(example).name, info={"model": "gru (Python session)"})
 PYEOF
+grep -q '"root":\[' "$OUT/report_rust.html" || { echo "error: the --motion report carries no pelvis path" >&2; exit 1; }
 ls -l "$OUT"/report_*.html | awk '{print "   " $5 " bytes  " $NF}'
 
 echo "== headless Chromium: check both reports"

@@ -30,6 +30,7 @@ pub mod diagnose;
 pub mod height_fusion;
 pub mod joint_dropout;
 pub mod models;
+pub mod motion_refiner;
 pub mod motion_sweep;
 pub mod real_check;
 pub mod stature_proxy;

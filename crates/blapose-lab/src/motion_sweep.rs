@@ -221,7 +221,8 @@ pub struct Sweep<'a> {
 /// Lifted poses by trial.
 pub type Lifted = HashMap<(String, String, String), Vec<Pose>>;
 
-fn key(t: &LifterSequence) -> (String, String, String) {
+/// A trial's key in [`Lifted`].
+pub fn key(t: &LifterSequence) -> (String, String, String) {
     (
         t.trial.subject.clone(),
         t.trial.sequence.clone(),

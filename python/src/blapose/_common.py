@@ -355,6 +355,7 @@ def open_request(
     server_lifter: bool,
     label: Optional[str],
     subject: Optional[pb.Subject] = None,
+    motion: Optional[float] = None,
 ) -> Tuple[pb.StreamRequest, int]:
     value, joints = layout_value(layout)
     fmt = input_format(value, image_size)
@@ -369,7 +370,14 @@ def open_request(
         req.camera.CopyFrom(camera.to_proto())
     if subject is not None:
         req.subject.CopyFrom(subject)
+    if motion is not None:
+        req.motion.CopyFrom(motion_options(motion))
     return pb.StreamRequest(open=req), joints
+
+
+def motion_options(frame_rate_hz: float) -> pb.MotionOptions:
+    """The motion option for a stream or sequence at ``frame_rate_hz`` (0: 50)."""
+    return pb.MotionOptions(enabled=True, frame_rate_hz=float(frame_rate_hz))
 
 
 def sequence_request(
@@ -404,7 +412,7 @@ def sequence_request(
     if subject is not None:
         req.subject.CopyFrom(subject)
     if motion is not None:
-        req.motion.CopyFrom(pb.MotionOptions(enabled=True, frame_rate_hz=float(motion)))
+        req.motion.CopyFrom(motion_options(motion))
     return req, t
 
 

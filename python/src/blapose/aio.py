@@ -138,6 +138,7 @@ class Client:
         max_resumes: int = c.MAX_RESUMES,
         height: Optional[float] = None,
         sex: Optional[str] = None,
+        motion: Optional[float] = None,
     ) -> "Session":
         """Open an online session (see :meth:`blapose.Client.session`)."""
         s = await self._run(
@@ -153,6 +154,7 @@ class Client:
             max_resumes=max_resumes,
             height=height,
             sex=sex,
+            motion=motion,
         )
         return Session(self, s)
 

@@ -261,6 +261,7 @@ class Client:
         max_resumes: int = c.MAX_RESUMES,
         height: Optional[float] = None,
         sex: Optional[str] = None,
+        motion: Optional[float] = None,
     ) -> "Session":
         """Open an online session (a ``Stream`` with ``open``); use it as a context manager.
 
@@ -282,13 +283,16 @@ class Client:
             height: the person's stature in metres (1.0 to 2.3): the session then
                 answers with the stature regression's lengths for it.
             sex: ``"female"`` or ``"male"``, with ``height``.
+            motion: the stream's frames per second (0 for 50) to run the server's causal
+                motion stage: directions smoothed (a learned refiner in server-lifter
+                sessions), the pelvis placed in camera space (``FrameResult.root``).
 
         Raises:
-            InvalidArgument: bad layout/image size/model/camera; ResourceExhausted: too
+            InvalidArgument: bad layout/image size/model/camera/motion; ResourceExhausted: too
             many sessions; Unauthenticated; Unavailable; DeadlineExceeded.
         """
         req, joints = c.open_request(
-            layout, image_size, model, camera, server_lifter, label, c.subject_proto(height, sex)
+            layout, image_size, model, camera, server_lifter, label, c.subject_proto(height, sex), motion
         )
         return Session(self, req, joints, server_lifter, auto_resume, resume_timeout, None, max_resumes)
 

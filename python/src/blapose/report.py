@@ -127,9 +127,15 @@ def report_data(
     info: Union[Mapping[str, Any], Iterable[Tuple[str, Any]], None] = None,
     up: Optional[Sequence[float]] = None,
     compute_metrics: bool = True,
+    root: Any = None,
 ) -> Dict[str, Any]:
     """The JSON object a report page reads (see :func:`write_html` for the arguments)."""
     b = _poses("before", before, None)
+    r = None
+    if root is not None:
+        r = np.asarray(root, dtype=np.float64)
+        if r.shape != (b.shape[0], 3) or not np.all(np.isfinite(r)):
+            raise ValueError(f"root must be ({b.shape[0]}, 3) finite values, got shape {r.shape}")
     a = _poses("after", after, b.shape[0])
     g = None if gt is None else _poses("gt", gt, b.shape[0])
     if fps is not None and not (np.isfinite(fps) and fps > 0):
@@ -156,6 +162,7 @@ def report_data(
         "gt": None if g is None else _flat(g),
         "metrics": table,
         "info": [[str(k), str(v)] for k, v in items],
+        "root": None if r is None else [round(float(v), 4) + 0.0 for v in r.ravel()],
     }
 
 
@@ -187,6 +194,7 @@ def write_html(
     info: Union[Mapping[str, Any], Iterable[Tuple[str, Any]], None] = None,
     up: Optional[Sequence[float]] = None,
     compute_metrics: bool = True,
+    root: Any = None,
 ) -> Path:
     """Write a self-contained HTML report comparing ``before`` and ``after`` poses.
 
@@ -205,6 +213,9 @@ def write_html(
             frame with y down, as lifters and the replay files use).
         compute_metrics: with ``gt``, compute the table (MPJPE, P-MPJPE, bone-length
             error) here as the client does; False leaves it to the page (no P-MPJPE).
+        root: optional ``(T, 3)`` pelvis positions in the poses' axes (a motion
+            answer's ``root_positions``): adds the pelvis path seen from above, so the
+            page shows the person moving through space.
 
     Returns:
         The path written.
@@ -224,6 +235,7 @@ def write_html(
         info=info,
         up=up,
         compute_metrics=compute_metrics,
+        root=root,
     )
     out = Path(path)
     out.write_text(html, encoding="utf-8")
@@ -241,6 +253,15 @@ def _adjusted_poses(adjusted: Union[np.ndarray, SequenceResult, Iterable[FrameRe
     return np.asarray(items)
 
 
+def _roots(adjusted: Any) -> Optional[np.ndarray]:
+    """The pelvis positions a motion answer carries, ``(T, 3)``; None without."""
+    if isinstance(adjusted, SequenceResult):
+        return adjusted.root_positions
+    if isinstance(adjusted, list) and adjusted and all(isinstance(r, FrameResult) and r.root is not None for r in adjusted):
+        return np.stack([r.root for r in adjusted])
+    return None
+
+
 def write_replay_html(
     path: Union[str, Path],
     replay: ReplayFile,
@@ -251,7 +272,13 @@ def write_replay_html(
     ``adjusted`` is a :class:`SequenceResult` (``adjust_sequence``), the
     :class:`FrameResult` list of a session's ``stream``, or a ``(T, 17, 3)`` array.
     ``before`` is the file's ``pose_3d``, ``gt`` its ``gt_3d``, ``fps`` its ``fps``
-    (else 50), ``up`` its camera's up direction; ``kwargs`` go to :func:`write_html`."""
+    (else 50), ``up`` its camera's up direction, ``root`` the answers' pelvis
+    positions when they carry them (``motion``); ``kwargs`` go to :func:`write_html`."""
+    if not isinstance(adjusted, (np.ndarray, SequenceResult)):
+        adjusted = list(adjusted)
+    roots = _roots(adjusted)
+    if roots is not None:
+        kwargs.setdefault("root", roots)
     kwargs.setdefault("gt", replay.gt_3d)
     kwargs.setdefault("fps", replay.fps if replay.fps else 50.0)
     if replay.camera is not None:

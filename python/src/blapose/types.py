@@ -236,7 +236,14 @@ class FrameResult:
         lifter: the server lifter's name, else None.
         recovered: True when the server processed this frame but its answer was
             lost with a dropped connection; the library rebuilt it locally from the
-            resumed session's estimate (see :meth:`blapose.Session.stream`).
+            resumed session's estimate (see :meth:`blapose.Session.stream`); such a
+            frame has no motion fields.
+        root: with ``motion``, ``(3,)`` the pelvis in camera space (metres; x right,
+            y down, z forward), else None. ``adjusted + root`` is the placed pose.
+        world: with ``motion`` and a camera with a height, ``(17, 3)`` the placed pose
+            in world coordinates (floor at 0), else None.
+        focal_assumed: with ``motion`` and no camera: the root was placed through an
+            assumed focal length (the image's larger side), so it scales with the true one.
     """
 
     frame_index: int
@@ -246,6 +253,9 @@ class FrameResult:
     lifted: Optional[np.ndarray] = None
     lifter: Optional[str] = None
     recovered: bool = False
+    root: Optional[np.ndarray] = None
+    world: Optional[np.ndarray] = None
+    focal_assumed: bool = False
 
     @staticmethod
     def from_proto(msg: pb.AdjustedFrame) -> "FrameResult":
@@ -256,6 +266,9 @@ class FrameResult:
             frames_seen=msg.frames_seen,
             lifted=np.asarray(msg.lifted_pose_3d, dtype=np.float32).reshape(17, 3) if len(msg.lifted_pose_3d) else None,
             lifter=msg.lifter or None,
+            root=np.asarray(msg.root_position, dtype=np.float32) if len(msg.root_position) == 3 else None,
+            world=np.asarray(msg.world_pose_3d, dtype=np.float32).reshape(17, 3) if len(msg.world_pose_3d) else None,
+            focal_assumed=msg.focal_assumed,
         )
 
 

@@ -123,6 +123,9 @@ pub struct ReportData {
     pub metrics: Option<Evaluation>,
     /// Extra header lines, `[key, value]`, in order.
     pub info: Vec<(String, String)>,
+    /// The pelvis per frame in the poses' axes, `T * 3` metres rounded to
+    /// 0.1 mm (motion answers): the page draws its path seen from above.
+    pub root: Option<Vec<f64>>,
 }
 
 /// Poses as a flat list in metres, rounded to 0.1 mm (`0.0 + x`: no `-0`).
@@ -176,6 +179,7 @@ impl ReportData {
             gt: gt.map(|g| flat("gt", g)).transpose()?,
             metrics: None,
             info: Vec::new(),
+            root: None,
         })
     }
 
@@ -231,6 +235,26 @@ impl ReportData {
         }
         if let Some(camera) = &result.camera {
             data.info.push(("camera".into(), camera.to_string()));
+        }
+        if let Some(placement) = result
+            .placement
+            .as_ref()
+            .filter(|p| p.roots.len() == data.frames)
+        {
+            data.root = Some(
+                placement
+                    .roots
+                    .iter()
+                    .flatten()
+                    .map(|&v| (f64::from(v) * 1e4).round() / 1e4 + 0.0)
+                    .collect(),
+            );
+            let focal = if placement.focal_assumed {
+                "placed (focal length assumed: distances scale with the true one)"
+            } else {
+                "placed through the calibration"
+            };
+            data.info.push(("motion".into(), focal.into()));
         }
         Ok(data)
     }

@@ -45,6 +45,11 @@ pub struct MotionArgs {
     /// Data root (default: $BLAPOSE_DATA or ../shared/data).
     #[arg(long)]
     data: Option<PathBuf>,
+    /// Measure only the learned refiners (`blapose_lab::motion_refiner`,
+    /// fitted across cameras on recordings with no held-out trial), beside
+    /// the baselines and the served stages.
+    #[arg(long)]
+    refiners: bool,
 }
 
 fn line(group: &str, name: &str, m: &MethodReport) -> String {
@@ -75,7 +80,7 @@ pub fn run(a: MotionArgs) -> Result<()> {
     // The selection split: every k-th trial; the learned filter is fitted
     // on the trials half-way between them.
     let every = a.every.max(2);
-    let (trials, fit_trials, scenes) = {
+    let (trials, fit_trials, scenes, all) = {
         let h36m = H36m::load(&root, &subjects, Parts::ALL)?;
         let all: Vec<LifterSequence> = lifter_sequences(&h36m, &subjects)?;
         let trials: Vec<LifterSequence> = all.iter().step_by(every).cloned().collect();
@@ -85,7 +90,7 @@ pub fn run(a: MotionArgs) -> Result<()> {
             .iter()
             .map(|t| Scene::build(&h36m, t))
             .collect::<Result<Vec<_>, _>>()?;
-        (trials, fit_trials, scenes)
+        (trials, fit_trials, scenes, all)
     };
     let training_mean = {
         let h36m = H36m::load(&root, &TRAIN_SUBJECTS, Parts::POSES)?;
@@ -155,6 +160,19 @@ pub fn run(a: MotionArgs) -> Result<()> {
     );
     push("served", "gru_motion".into(), served.gru_motion.clone());
     push("served", "bigru_motion".into(), served.bigru_motion.clone());
+    if a.refiners {
+        for (group, name, report) in refiner_rows(
+            &sweep,
+            &trials,
+            &across_cameras(&all, &trials),
+            &lifted,
+            &lifter,
+            &scenes,
+        )? {
+            push(group, name, report);
+        }
+        return finish(&rows, a.json.as_deref(), t0);
+    }
     let mut candidates = causal_direction_candidates();
     for (v, acc) in [
         (0.0, 0.0),
@@ -238,16 +256,20 @@ pub fn run(a: MotionArgs) -> Result<()> {
             r.gru_motion,
         );
     }
+    finish(&rows, a.json.as_deref(), t0)
+}
+
+fn finish(rows: &[(String, Row)], json: Option<&std::path::Path>, t0: Instant) -> Result<()> {
     let mut md = String::from(
         "| group | candidate | MPJPE (mm) | MPJVE (mm/frame) | accel (mm/frame²) | MRPE (mm) | foot skate (mm/frame) |\n\
          |---|---|---|---|---|---|---|\n",
     );
-    for (g, r) in &rows {
+    for (g, r) in rows {
         md.push_str(&line(g, &r.candidate, &r.report));
     }
     println!("{md}");
     eprintln!("done in {:.1}s", t0.elapsed().as_secs_f64());
-    if let Some(p) = &a.json {
+    if let Some(p) = json {
         let json: Vec<_> = rows
             .iter()
             .map(|(g, r)| serde_json::json!({"group": g, "candidate": r.candidate, "report": r.report}))
@@ -255,4 +277,94 @@ pub fn run(a: MotionArgs) -> Result<()> {
         std::fs::write(p, serde_json::to_string_pretty(&json)?)?;
     }
     Ok(())
+}
+
+type RefinerRow = (&'static str, String, Option<MethodReport>);
+
+/// Every camera of every other recording (subject and sequence) of `all`
+/// with no trial in `held_out`: the refiner reads camera-space directions,
+/// so it is fitted across cameras and never on a held-out recording.
+fn across_cameras(all: &[LifterSequence], held_out: &[LifterSequence]) -> Vec<LifterSequence> {
+    use std::collections::HashSet;
+    let recording = |t: &LifterSequence| (t.trial.subject.clone(), t.trial.sequence.clone());
+    let held: HashSet<_> = held_out.iter().map(recording).collect();
+    let mut recordings: Vec<_> = all
+        .iter()
+        .map(recording)
+        .filter(|r| !held.contains(r))
+        .collect();
+    recordings.dedup();
+    let chosen: HashSet<_> = recordings.into_iter().step_by(2).collect();
+    all.iter()
+        .filter(|t| chosen.contains(&recording(t)))
+        .cloned()
+        .collect()
+}
+
+/// Learned refiners ([`blapose_lab::motion_refiner`]) of several windows
+/// and weights, fitted on `fit_trials` and applied to the lifted poses of
+/// `trials` before the adjustment: causal ones scored as `gru_motion`,
+/// offline ones (reading later frames) as `bigru_motion`, each with no
+/// other direction filter.
+fn refiner_rows(
+    sweep: &Sweep,
+    trials: &[LifterSequence],
+    fit_trials: &[LifterSequence],
+    lifted: &blapose_lab::motion_sweep::Lifted,
+    lifter: &StreamLifter,
+    scenes: &[Scene],
+) -> Result<Vec<RefinerRow>> {
+    use blapose_core::motion::OfflineMotionConfig;
+    use blapose_lab::motion_refiner::{refine_poses, RefinerFit, RefinerWindow};
+    use blapose_lab::motion_sweep::key;
+    let t0 = Instant::now();
+    let fit_lifted = lift_all(fit_trials, &|s| lifter.lift(&s.trial, true))?;
+    let (served_causal, served_offline) = Sweep::served();
+    let causal_plain = CausalMotionConfig {
+        directions: None,
+        ..served_causal
+    };
+    let offline_plain = OfflineMotionConfig {
+        directions: None,
+        ..served_offline
+    };
+    let window = |past, future, past_2d| RefinerWindow {
+        past,
+        future,
+        past_2d,
+    };
+    let mut rows = Vec::new();
+    for w in [window(8, 0, 0), window(16, 0, 2), window(12, 12, 0)] {
+        let mut fit = RefinerFit::new(w);
+        for t in fit_trials {
+            fit.add(&fit_lifted[&key(t)], &t.trial.input, &t.target);
+        }
+        eprintln!("refiner {w:?} fitted at {:.0}s", t0.elapsed().as_secs_f64());
+        for (v, acc) in [(0.0, 0.0), (4.0, 4.0), (16.0, 16.0), (64.0, 64.0)] {
+            let Some(refiner) = fit.solve(v, acc, 1e-6) else {
+                eprintln!("refiner {w:?} {v} {acc}: singular");
+                continue;
+            };
+            let refined: blapose_lab::motion_sweep::Lifted = trials
+                .iter()
+                .map(|t| {
+                    (
+                        key(t),
+                        refine_poses(&refiner, &lifted[&key(t)], &t.trial.input),
+                    )
+                })
+                .collect();
+            let r = sweep.evaluate(&refined, scenes, causal_plain, offline_plain)?;
+            let name = format!(
+                "refiner past {} future {} 2d {} velocity {v} accel {acc}",
+                w.past, w.future, w.past_2d
+            );
+            if refiner.is_causal() {
+                rows.push(("refiner (causal)", name, r.gru_motion));
+            } else {
+                rows.push(("refiner (offline)", name, r.bigru_motion));
+            }
+        }
+    }
+    Ok(rows)
 }
