@@ -17,12 +17,16 @@
    a callable ``f(keypoints, confidence, image_size) -> (17, 3)`` pose, metres,
    Human3.6M joint order, where ``keypoints`` is the frame's ``(17, 2)`` COCO-17
    pixels and ``confidence`` its ``(17,)`` visibilities;
+   with the server's causal motion stage (``--no-motion`` turns it off): bone
+   directions smoothed and the pelvis placed in camera space through a focal
+   length assumed from the image size;
 5. writes the replay ``.npz`` (the format ``blapose-client replay`` and
-   ``blapose.load_replay`` read; ``pose_3d`` is the lifter's pose), the HTML
-   report (lifted vs adjusted) and, with ``--bvh`` / ``--c3d``, the adjusted
-   motion for Blender and biomechanics tools (``blapose.write_bvh``,
-   ``blapose.write_c3d``: every frame re-posed with the final bone lengths,
-   camera axes made Y up / Z up).
+   ``blapose.load_replay`` read; ``pose_3d`` is the lifter's pose, ``root_3d``
+   the placed pelvis), the HTML report (lifted vs adjusted, and the pelvis path
+   seen from above) and, with ``--bvh`` / ``--c3d``, the adjusted motion for
+   Blender and biomechanics tools (``blapose.write_bvh``, ``blapose.write_c3d``:
+   every frame re-posed with the final bone lengths and moved to its placed
+   pelvis, so the person travels; camera axes made Y up / Z up).
 
 Frames in which MediaPipe finds nobody are skipped: they are not sent (every
 frame sent must hold finite keypoints), and the ``video_frame`` array of the
@@ -224,6 +228,13 @@ class VideoPoses:
     lifter: str
     seconds: float
     stats: dict = field(default_factory=dict)
+    root_3d: Optional[np.ndarray] = None  # (T, 3) the placed pelvis (camera space, metres), with motion
+
+    def placed_3d(self) -> np.ndarray:
+        """The adjusted poses moved to their placed pelvis (as they were without motion)."""
+        if self.root_3d is None:
+            return self.adjusted_3d
+        return self.adjusted_3d + self.root_3d[:, None, :]
 
     def save(self, path) -> Path:
         """The replay ``.npz`` (``blapose.load_replay`` / ``blapose-client replay`` read it)."""
@@ -239,6 +250,7 @@ class VideoPoses:
             adjusted_3d=self.adjusted_3d.astype(np.float32),
             bone_lengths=self.bone_lengths.astype(np.float32),
             video_frame=self.video_frame.astype(np.float32),
+            **({} if self.root_3d is None else {"root_3d": self.root_3d.astype(np.float32)}),
         )
         return out
 
@@ -296,8 +308,12 @@ def video_to_poses(
     token: Optional[str] = None,
     detector: Optional[Callable[[np.ndarray], Optional[Tuple[np.ndarray, np.ndarray]]]] = None,
     progress: Optional[Callable[[int, int, int, float], None]] = None,
+    motion: bool = True,
 ) -> VideoPoses:
     """Detect, lift and adjust every frame of ``video``; see the module docstring.
+
+    ``motion`` runs the server's causal motion stage at the video's frame rate
+    (smoothed directions, the pelvis placed: ``VideoPoses.root_3d``).
 
     ``lifter=None`` uses the server's lifter (``--lifter-weights``); ``detector``
     (default :class:`MediaPipeDetector`) maps an RGB frame to ``(keypoints, confidence)``
@@ -335,8 +351,9 @@ def video_to_poses(
                     f"models/lifter_videopose27_causal.safetensors, or pass a lifter (--lifter MODULE:FUNCTION)"
                 )
             with client.session(
-                layout="coco17", image_size=image_size, model=model, server_lifter=lifter is None, label=str(video)
-            ) as s:
+                layout="coco17", image_size=image_size, model=model, server_lifter=lifter is None, label=str(video),
+                motion=fps if motion else None,
+            ) as s:  # fmt: skip
                 results = list(s.stream(detections()))
                 lifter_name = s.info.lifter or f"client: {getattr(lifter, '__name__', 'lifter')}"
     finally:
@@ -347,10 +364,11 @@ def video_to_poses(
     keep = []
     for k, r in enumerate(results):
         lifted = sent[k][3] if lifter is not None else r.lifted
-        if lifted is not None and np.all(np.isfinite(r.adjusted)) and np.all(np.isfinite(lifted)):
+        placed = not motion or r.root is not None
+        if placed and lifted is not None and np.all(np.isfinite(r.adjusted)) and np.all(np.isfinite(lifted)):
             keep.append((k, lifted))
     # Frames dropped here: answers lost to a dropped connection and rebuilt locally
-    # without the server's lifted pose (see python/README.md); rare.
+    # without the server's lifted pose or the motion stage (see python/README.md); rare.
     n = len(keep)
 
     def stack(values, shape):
@@ -369,6 +387,7 @@ def video_to_poses(
         lifter=lifter_name,
         seconds=seconds,
         stats={"detections": len(sent), "answered": len(results), "kept": n},
+        root_3d=stack([results[k].root for k, _ in keep], (3,)) if motion else None,
     )
 
 
@@ -389,6 +408,11 @@ def main(argv: Optional[List[str]] = None) -> int:
         metavar="MODULE:FUNCTION",
         help="lift here with f(keypoints (17,2), confidence (17,), image_size) -> (17,3) metres, "
         "Human3.6M order, instead of the server's lifter",
+    )
+    ap.add_argument(
+        "--no-motion",
+        action="store_true",
+        help="no motion stage: the lifter's directions as they are, every pose around its own pelvis",
     )
     ap.add_argument("--quiet", action="store_true", help="no progress line")
     args = ap.parse_args(argv)
@@ -413,7 +437,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     try:
         lifter = load_lifter(args.lifter) if args.lifter else None
         res = video_to_poses(args.video, args.server, max_frames=args.max_frames, lifter=lifter, model=args.model,
-                             token=args.token, progress=progress)  # fmt: skip
+                             token=args.token, progress=progress, motion=not args.no_motion)  # fmt: skip
     except MissingDependency as e:
         print(f"\nerror: {e}", file=sys.stderr)
         return 3
@@ -432,23 +456,26 @@ def main(argv: Optional[List[str]] = None) -> int:
             before_label=f"lifted ({res.lifter})", after_label="adjusted",
             # the page shows the frame count itself ("frames: T"); the video's count is another
             info={"lifter": res.lifter, "detector": "mediapipe pose (complexity 1)",
-                  "video": f"{res.frames_read} frames read, {res.stats['kept']} with a person"},
+                  "video": f"{res.frames_read} frames read, {res.stats['kept']} with a person",
+                  **({} if res.root_3d is None else {"motion": "pelvis placed, focal length assumed from the image"})},
+            root=res.root_3d,
         )  # fmt: skip
     exported = []
     # A stream's lengths change as its estimate converges; a skeleton's cannot, so the
     # files re-pose every frame with the final lengths (blapose.export).
     try:
         if args.bvh:
-            report = blapose.write_bvh(args.bvh, res.adjusted_3d, res.bone_lengths[-1], fps=res.fps)
+            report = blapose.write_bvh(args.bvh, res.placed_3d(), res.bone_lengths[-1], fps=res.fps)
             exported.append(f"{args.bvh} (largest frame-to-frame joint rotation {report.max_step_deg:.1f} deg)")
         if args.c3d:
-            blapose.write_c3d(args.c3d, res.adjusted_3d, res.bone_lengths[-1], fps=res.fps)
+            blapose.write_c3d(args.c3d, res.placed_3d(), res.bone_lengths[-1], fps=res.fps)
             exported.append(args.c3d)
     except (OSError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
     fps = res.frames_read / res.seconds if res.seconds > 0 else 0.0
     lengths = res.bone_lengths[-1]
+    travel = float(np.linalg.norm(np.diff(res.root_3d, axis=0), axis=1).sum()) if res.root_3d is not None else 0.0
     print(
         f"{res.frames_read} frames read, {res.stats['detections']} with a person, {res.stats['kept']} adjusted "
         f"(lifter {res.lifter}) in {res.seconds:.1f} s: {fps:.1f} frames/s, "
@@ -456,7 +483,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         "final bone lengths (m): " + " ".join(f"{n}={v:.3f}" for n, v in zip(blapose.BONE_NAMES, lengths)) + "\n"
         f"wrote {args.out}" + (f" and {args.html}" if args.html else "")
         + (f"\nexported {', '.join(exported)}: every frame re-posed with the final bone lengths" if exported else "")
-    )
+        + (f"\nmotion: the pelvis travelled {travel:.2f} m (focal length assumed from the image size)"
+           if res.root_3d is not None else "")
+    )  # fmt: skip
     return 0
 
 

@@ -77,8 +77,11 @@ def test_video_to_poses_end_to_end(start_server, tmp_path: Path) -> None:
     assert replay.keypoints_2d.shape == (t, 17, 2) and replay.pose_3d.shape == (t, 17, 3)
     assert replay.confidence is not None and replay.confidence.shape == (t, 17)
     with np.load(npz) as z:
-        adjusted, lengths, frame = z["adjusted_3d"], z["bone_lengths"], z["video_frame"]
-    assert adjusted.shape == (t, 17, 3) and lengths.shape == (t, 16)
+        adjusted, lengths, frame, root = z["adjusted_3d"], z["bone_lengths"], z["video_frame"], z["root_3d"]
+    assert adjusted.shape == (t, 17, 3) and lengths.shape == (t, 16) and root.shape == (t, 3)
+    # The motion stage (on by default) placed the pelvis in front of the camera.
+    assert np.all(np.isfinite(root)) and np.all(root[:, 2] > 0.5)
+    assert "motion: the pelvis travelled" in run.stdout
     assert not set(BLANK) & set(frame.astype(int).tolist())
     for a in (replay.keypoints_2d, replay.pose_3d, replay.confidence, adjusted, lengths):
         assert np.all(np.isfinite(a))
@@ -87,19 +90,45 @@ def test_video_to_poses_end_to_end(start_server, tmp_path: Path) -> None:
     nose, shoulders = replay.keypoints_2d[:, 0], replay.keypoints_2d[:, 5:7]
     assert np.all(nose[:, 1] < 256) and np.all(shoulders[:, :, 1] > nose[:, None, 1])
     assert np.all((lengths > 0.02) & (lengths < 1.0))
-    # adjusted = the lifted pose's bone directions with the estimated lengths (root kept).
-    for k in (0, t - 1):
-        np.testing.assert_allclose(adjusted[k], blapose.adjust_pose(replay.pose_3d[k], lengths[k]), atol=1e-4)
+    # The motion stage smooths directions only: every adjusted pose has the estimated lengths.
+    parents = np.asarray(blapose.PARENTS[1:])  # bone i ends at joint i + 1
+    for k in range(t):
+        measured = np.linalg.norm(adjusted[k, 1:] - adjusted[k, parents], axis=1)
+        np.testing.assert_allclose(measured, lengths[k], atol=1e-4)
 
-    # The BVH: the adjusted motion re-posed with the final lengths (what tests/export/ checks
+    # The BVH: the placed motion re-posed with the final lengths (what tests/export/ checks
     # in Blender); its text is what blapose.export writes for those arrays.
     assert "every frame re-posed with the final bone lengths" in run.stdout
-    text, _ = blapose.export.bvh_text(adjusted, lengths, fps=25.0)
+    text, _ = blapose.export.bvh_text(adjusted + root[:, None, :], lengths, fps=25.0)
     assert bvh.read_text() == text
 
     report = blapose.report.read_html_data(html)
     assert report["frames"] == t
     # the page prints "frames: T" itself; the header lines do not repeat it
-    assert [k for k, _ in report["info"]] == ["lifter", "detector", "video"]
+    assert [k for k, _ in report["info"]] == ["lifter", "detector", "video", "motion"]
+    np.testing.assert_allclose(np.reshape(report["root"], (t, 3)), root, atol=1e-4)
     assert dict(report["info"])["video"] == f"{FRAMES - 2} frames read, {t} with a person"
     assert np.asarray(report["before"]).size == t * 17 * 3 and np.asarray(report["after"]).size == t * 17 * 3
+
+
+def test_video_to_poses_without_motion(start_server, tmp_path: Path) -> None:
+    cv2, data = _optional_deps()
+    if not LIFTER.exists():
+        pytest.skip(f"{LIFTER} not present")
+    video = tmp_path / "astronaut.avi"
+    make_video(video, cv2, data)
+    srv = start_server("--lifter-weights", str(LIFTER))
+    npz = tmp_path / "poses.npz"
+    run = subprocess.run(
+        [sys.executable, str(EXAMPLE), str(video), "--server", srv.url, "--out", str(npz), "--no-motion",
+         "--max-frames", "12"],
+        check=False, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    replay = blapose.load_replay(npz)
+    with np.load(npz) as z:
+        assert "root_3d" not in z.files
+        adjusted, lengths = z["adjusted_3d"], z["bone_lengths"]
+    # adjusted = the lifted pose's bone directions with the estimated lengths (root kept).
+    for k in (0, replay.num_frames - 1):
+        np.testing.assert_allclose(adjusted[k], blapose.adjust_pose(replay.pose_3d[k], lengths[k]), atol=1e-4)
