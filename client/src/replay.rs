@@ -337,13 +337,14 @@ impl Answers {
     }
 
     fn finish(self, info: &SessionInfo, summary: SessionSummary, started: Instant) -> Adjusted {
-        // Placed only when every answer was.
+        // Placed only when every answer was; in the world only when every
+        // answer was.
         let placement =
             (!self.roots.is_empty() && self.roots.len() == self.adjusted.len()).then(|| {
                 Placement {
                     focal_assumed: self.roots.iter().any(|r| r.focal_assumed),
                     roots: self.roots.iter().map(|r| r.position).collect(),
-                    world: None,
+                    world: self.roots.iter().map(|r| r.world).collect(),
                 }
             });
         Adjusted {

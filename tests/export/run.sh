@@ -94,11 +94,17 @@ ls -l "$OUT/walk.png" | awk '{print "   " $5 " bytes  " $NF}'
 echo "== compare with the adjusted poses"
 "$PY" tests/export/check.py verify "$OUT" "$OUT/blender.json"
 
-echo "== the motion stage: the walk moves through space in Blender (adjust --camera --motion)"
+echo "== the motion stage: the walk moves through space in Blender (adjust and replay --camera --motion)"
 mkdir -p "$OUT/motion"
 $CLIENT adjust examples/cmu_02_02_walk.npz --camera --motion --out "$OUT/motion/walk.npz" \
     --bvh "$OUT/motion/walk.bvh" >"$OUT/motion/walk.log"
-grep "motion:" "$OUT/motion/walk.log" | sed "s/^/   /"
+$CLIENT replay examples/cmu_02_02_walk.npz --camera --motion --out "$OUT/motion/stream_walk.npz" \
+    --bvh "$OUT/motion/stream_walk.bvh" >"$OUT/motion/stream_walk.log"
+for log in walk stream_walk; do
+    grep -q "exports in world coordinates" "$OUT/motion/$log.log" || {
+        echo "error: $log: the exports are not in world coordinates:" >&2; cat "$OUT/motion/$log.log" >&2; exit 1; }
+    grep -E "motion:|world" "$OUT/motion/$log.log" | sed "s/^/   $log: /"
+done
 "$PY" tests/export/check.py motion-job "$OUT/motion" "$OUT/motion/job.json"
 blender -b --factory-startup -P tests/export/blender_import.py -- "$OUT/motion/job.json" >"$OUT/motion/blender.log" 2>&1 || {
     echo "error: blender failed:" >&2; tail -n 30 "$OUT/motion/blender.log" >&2; exit 1; }

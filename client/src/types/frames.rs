@@ -37,6 +37,9 @@ pub struct PlacedRoot {
     pub position: [f32; 3],
     /// Placed through an assumed focal length (no calibration sent).
     pub focal_assumed: bool,
+    /// The placed pose in world coordinates (z up, the floor at 0), when
+    /// the session's calibration has a camera height.
+    pub world: Option<Pose>,
 }
 
 /// The pose a server lifter produced for a frame, before adjustment.
@@ -70,6 +73,11 @@ impl AdjustedFrame {
             [x, y, z] => Some(Box::new(PlacedRoot {
                 position: [*x, *y, *z],
                 focal_assumed: msg.focal_assumed,
+                world: if msg.world_pose_3d.is_empty() {
+                    None
+                } else {
+                    Some(pose_from_flat(&msg.world_pose_3d, "world_pose_3d")?)
+                },
             })),
             other => {
                 return Err(ClientError::Protocol(format!(
