@@ -6,6 +6,10 @@
 //! takes the same time wherever the first difference is, so the token cannot
 //! be recovered byte by byte from response timing. Health and reflection are
 //! deliberately left open so probes and tooling work without the secret.
+//!
+//! The browser transport ([`crate::web`]) checks the same token with
+//! [`BearerAuth::check`]: browsers cannot set headers on a WebSocket, so
+//! there it may also arrive as a subprotocol or a query parameter.
 
 use std::sync::Arc;
 
@@ -35,27 +39,47 @@ fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
     a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 
+impl BearerAuth {
+    /// Whether a token is required at all.
+    pub fn required(&self) -> bool {
+        self.token.is_some()
+    }
+
+    /// Check a presented token (the part after `Bearer `; `None`: none
+    /// presented, `missing` says where it was expected). Refusals are
+    /// counted in `blapose_errors_total{rpc="auth"}`.
+    pub fn check(&self, presented: Option<&[u8]>, missing: &str) -> Result<(), Status> {
+        let Some(token) = &self.token else {
+            return Ok(());
+        };
+        let refused = match presented {
+            None => Status::unauthenticated(missing.to_string()),
+            Some(p) if constant_time_eq(p, token) => return Ok(()),
+            Some(_) => Status::unauthenticated("invalid bearer token"),
+        };
+        crate::metrics::error(tonic::Code::Unauthenticated, "auth");
+        Err(refused)
+    }
+}
+
+/// The token of an `authorization` header value, `Bearer <token>` (the
+/// scheme in any case); `None` for another scheme.
+pub fn bearer_token(value: &[u8]) -> Option<&[u8]> {
+    (value.len() > 7 && value[..7].eq_ignore_ascii_case(b"bearer ")).then(|| &value[7..])
+}
+
 impl Interceptor for BearerAuth {
     fn call(&mut self, request: Request<()>) -> Result<Request<()>, Status> {
-        let Some(token) = &self.token else {
-            return Ok(request);
+        let presented = match request.metadata().get("authorization") {
+            // Another scheme is a wrong token, not a missing one.
+            Some(value) => Some(bearer_token(value.as_bytes()).unwrap_or(b"")),
+            None => None,
         };
-        let Some(value) = request.metadata().get("authorization") else {
-            crate::metrics::error(tonic::Code::Unauthenticated, "auth");
-            return Err(Status::unauthenticated(
-                "missing authorization header (expected: Bearer <token>)",
-            ));
-        };
-        let presented = value.as_bytes();
-        let ok = presented.len() > 7
-            && presented[..7].eq_ignore_ascii_case(b"bearer ")
-            && constant_time_eq(&presented[7..], token);
-        if ok {
-            Ok(request)
-        } else {
-            crate::metrics::error(tonic::Code::Unauthenticated, "auth");
-            Err(Status::unauthenticated("invalid bearer token"))
-        }
+        self.check(
+            presented,
+            "missing authorization header (expected: Bearer <token>)",
+        )?;
+        Ok(request)
     }
 }
 

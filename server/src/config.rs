@@ -17,6 +17,7 @@ use clap::{Parser, ValueEnum};
 
 use crate::token::SessionKey;
 use crate::transport::{ConnectionLimits, TlsFiles};
+use crate::web::config::{WebArgs, WebConfig};
 
 /// Where a model's weights come from.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
@@ -135,6 +136,8 @@ pub struct ServerConfig {
     pub client_header: Option<String>,
     /// Peers whose `client_header` is believed.
     pub trusted_proxies: Vec<std::net::IpAddr>,
+    /// The browser transport (`--web-addr`); `None`: off.
+    pub web: Option<WebConfig>,
 }
 
 impl Default for ServerConfig {
@@ -173,6 +176,7 @@ impl Default for ServerConfig {
             max_queued_frames_per_client: None,
             client_header: None,
             trusted_proxies: Vec::new(),
+            web: None,
         }
     }
 }
@@ -430,6 +434,9 @@ pub struct Cli {
     /// Time a new connection has to finish its TLS handshake and send the HTTP/2 preface.
     #[arg(long, env = "BLAPOSE_HANDSHAKE_TIMEOUT", default_value = "10s", value_parser = parse_open_timeout)]
     pub handshake_timeout: Duration,
+
+    #[command(flatten)]
+    pub web: WebArgs,
 }
 
 /// How `--health-check` connects to a server with TLS on: it verifies the
@@ -507,6 +514,7 @@ impl Cli {
             max_queued_frames_per_client: self.max_queued_frames_per_client,
             client_header: self.client_header,
             trusted_proxies: self.trusted_proxies,
+            web: self.web.into_config(),
         }
     }
 }

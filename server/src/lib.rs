@@ -44,7 +44,9 @@
 //! input contract, providers), [`service`] (the tonic service), [`state`]
 //! (what its handlers share), [`auth`], [`metrics`], [`shutdown`],
 //! [`telemetry`], [`health`] (the `--health-check` probe), [`token`]
-//! (portable session state: session tokens), [`testing`] (test support).
+//! (portable session state: session tokens), [`testing`] (test support),
+//! [`web`] (the browser transport, `--web-addr`: the same stream handler
+//! over a WebSocket, and the live page).
 //!
 //! Embedding (tests, load generators): [`spawn`] starts a server on a bound
 //! listener and returns a [`ServerHandle`]; [`serve`] runs until a future
@@ -94,6 +96,7 @@ pub mod telemetry;
 pub mod testing;
 pub mod token;
 pub mod transport;
+pub mod web;
 
 pub use blapose_model::input::ModelInput;
 pub use config::CameraAwareWeights;
@@ -106,3 +109,4 @@ pub use models::{
 };
 pub use server::{serve, spawn, spawn_with_provider, ServerHandle};
 pub use transport::TlsFiles;
+pub use web::WebConfig;

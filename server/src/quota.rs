@@ -101,6 +101,17 @@ impl Limits {
         }))
     }
 
+    /// The client of a request that is not a gRPC call (the browser
+    /// transport's WebSocket upgrade): `peer`, or `header` on a connection
+    /// from a trusted proxy, as for [`Limits::client`].
+    pub fn client_of(
+        &self,
+        peer: Option<IpAddr>,
+        header: impl Fn(&str) -> Option<String>,
+    ) -> ClientId {
+        ClientId::of(&self.identity(peer, header))
+    }
+
     /// The identity string of a peer (and its headers, read by `header`).
     fn identity(&self, peer: Option<IpAddr>, header: impl Fn(&str) -> Option<String>) -> String {
         if let (Some(name), Some(ip)) = (&self.client_header, peer) {

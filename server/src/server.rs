@@ -38,11 +38,13 @@ use crate::session::SessionStore;
 use crate::state::{self, AppState};
 use crate::step::OnlineBackends;
 use crate::transport;
+use crate::web;
 
 /// A running server.
 #[derive(Debug)]
 pub struct ServerHandle {
     local_addr: SocketAddr,
+    web_addr: Option<SocketAddr>,
     shutdown: CancellationToken,
     /// `None` once the task's result was collected by [`ServerHandle::wait`].
     task: Option<JoinHandle<Result<(), ServerError>>>,
@@ -52,6 +54,11 @@ impl ServerHandle {
     /// The address the gRPC server listens on.
     pub fn local_addr(&self) -> SocketAddr {
         self.local_addr
+    }
+
+    /// The address of the browser transport (`--web-addr`), if on.
+    pub fn web_addr(&self) -> Option<SocketAddr> {
+        self.web_addr
     }
 
     /// Graceful shutdown: stop accepting, answer every frame already
@@ -199,22 +206,47 @@ pub async fn spawn_with_provider(
         .transpose()
         .map_err(ServerError::Tls)?;
     export_limits(&config);
-    let incoming = transport::incoming(
-        listener,
-        transport::ConnectionTable::new(config.connection_limits),
-        tls,
-        shutdown.clone(),
-    );
+    // One table for both listeners: a peer's connections count together.
+    let connections = transport::ConnectionTable::new(config.connection_limits);
+    let web = match &config.web {
+        Some(web_config) => {
+            if config.tls.is_some() {
+                tracing::warn!("the browser transport (--web-addr) speaks plain HTTP, not TLS");
+            }
+            Some(
+                web::start(
+                    web_config,
+                    state.clone(),
+                    BearerAuth::new(config.auth_token.as_deref()),
+                    connections.clone(),
+                    config.connection_limits.handshake_timeout,
+                    shutdown.clone(),
+                )
+                .await?,
+            )
+        }
+        None => None,
+    };
+    let web_addr = web.as_ref().map(|w| w.local_addr);
+    let incoming = transport::incoming(listener, connections, tls, shutdown.clone());
     let token = shutdown.clone();
     let grace = config.shutdown_grace;
     let task = tokio::spawn(async move {
         let signal_health = health.clone();
         let signal_token = token.clone();
-        let server = router.serve_with_incoming_shutdown(incoming, async move {
+        let grpc = router.serve_with_incoming_shutdown(incoming, async move {
             signal_token.cancelled().await;
             tracing::info!("shutting down: draining in-flight frames");
             set_health(&signal_health, ServingStatus::NotServing).await;
         });
+        // Both transports drain (the browser's sockets as streams do).
+        let server = async move {
+            let served = grpc.await;
+            if let Some(web) = web {
+                let _ = web.task.await;
+            }
+            served
+        };
         tokio::pin!(server);
         let served = tokio::select! {
             r = &mut server => r.map_err(ServerError::from),
@@ -237,6 +269,7 @@ pub async fn spawn_with_provider(
     tracing::info!(addr = %local_addr, "serving blapose.v1");
     Ok(ServerHandle {
         local_addr,
+        web_addr,
         shutdown,
         task: Some(task),
     })

@@ -30,7 +30,8 @@ use blapose_proto::v1 as pb;
 use pb::stream_request::Kind as Req;
 use pb::stream_response::Kind as Resp;
 use tokio::sync::{mpsc, oneshot, watch};
-use tonic::{Status, Streaming};
+use tokio_stream::{Stream, StreamExt};
+use tonic::Status;
 use tracing::Instrument;
 
 use crate::answer::{self, frame_error};
@@ -82,18 +83,34 @@ enum End {
     Gone,
 }
 
-/// Drive one stream to completion. Runs as its own task.
+/// The requests of one stream, whatever carries them: tonic's
+/// `Streaming` for gRPC, the WebSocket's decoded messages for the browser
+/// transport ([`crate::web`]). An `Err` ends the stream with that status.
+/// Reading must be cancel-safe (a message is never lost when the read is
+/// dropped half-way), as `StreamExt::next` on both is.
+pub trait Inbound: Stream<Item = Result<pb::StreamRequest, Status>> + Unpin + Send {}
+
+impl<S: Stream<Item = Result<pb::StreamRequest, Status>> + Unpin + Send> Inbound for S {}
+
+/// The next request, `Ok(None)` once the client ended its side.
+async fn message(inbound: &mut impl Inbound) -> Result<Option<pb::StreamRequest>, Status> {
+    inbound.next().await.transpose()
+}
+
+/// Drive one stream to completion: every transport's stream handler. Runs
+/// as its own task; `tx` carries the answers, and the final status, back
+/// to the transport.
 pub async fn run(
     state: Arc<AppState>,
     client: ClientId,
-    mut inbound: Streaming<pb::StreamRequest>,
+    mut inbound: impl Inbound,
     tx: mpsc::Sender<Outbound>,
 ) {
     // A stream that never sends its first message would hold its task and
     // connection slot forever: the open or resume has a deadline.
     let open_timeout = state.open_timeout;
     let first = async {
-        match tokio::time::timeout(open_timeout, inbound.message()).await {
+        match tokio::time::timeout(open_timeout, message(&mut inbound)).await {
             Ok(Ok(None)) if client_cancelled(&tx).await => Err(Status::cancelled(
                 "the client cancelled the stream before its open or resume",
             )),
@@ -317,7 +334,7 @@ async fn frames(
     a: &Attachment,
     token_every: u64,
     asked: bool,
-    inbound: &mut Streaming<pb::StreamRequest>,
+    inbound: &mut impl Inbound,
     tx: &mpsc::Sender<Outbound>,
 ) -> End {
     let cap = state.max_inflight_per_stream.max(1);
@@ -367,7 +384,7 @@ async fn frames(
                     pending.push_back(Pending::Token);
                 }
             }
-            message = inbound.message(),
+            message = message(inbound),
                 if reading && pending.len() < cap && !pending.iter().any(|p| matches!(p, Pending::Token)) =>
             match message {
                 Ok(Some(request)) => match request.kind {
