@@ -137,30 +137,48 @@ fn presented_token(headers: &HeaderMap, query: &HashMap<String, String>) -> Opti
     query.get("token").map(|t| t.as_bytes().to_vec())
 }
 
-/// Run the stream handler on `socket` until both it and the writer end.
+/// How long a closing socket waits for the client's close frame (the
+/// closing handshake) before its connection is dropped.
+const CLOSE_WAIT: Duration = Duration::from_secs(1);
+
+/// Run the stream handler on `socket` until both it and the writer end,
+/// then finish the closing handshake.
 async fn session(endpoint: &Endpoint, client: crate::quota::ClientId, socket: WebSocket) {
-    let (sink, source) = socket.split();
+    let (mut sink, mut source) = socket.split();
     let state = &endpoint.state;
     let (tx, rx) = mpsc::channel(state.max_inflight_per_stream.max(1) + 2);
     let inbound = Box::pin(requests(
-        source,
+        &mut source,
         endpoint.idle_timeout,
         state.max_message_bytes,
     ));
-    tokio::join!(
+    let ((), closed) = tokio::join!(
         stream::run(state.clone(), client, inbound, tx),
-        answers(sink, rx, endpoint.ping_interval, endpoint.idle_timeout),
+        answers(&mut sink, rx, endpoint.ping_interval, endpoint.idle_timeout),
     );
+    if closed {
+        // Read (and drop) what the client still sends until its close
+        // frame: a connection dropped with unread bytes is reset, and the
+        // client might then lose the final status.
+        let _ = tokio::time::timeout(CLOSE_WAIT, async {
+            while let Some(Ok(message)) = source.next().await {
+                if matches!(message, Message::Close(_)) {
+                    break;
+                }
+            }
+        })
+        .await;
+    }
 }
 
 /// The socket's requests, decoded; pings and pongs only keep it alive.
 fn requests(
-    source: SplitStream<WebSocket>,
+    source: &mut SplitStream<WebSocket>,
     idle: Duration,
     max_bytes: usize,
-) -> impl futures_util::Stream<Item = Result<pb::StreamRequest, Status>> + Send {
+) -> impl futures_util::Stream<Item = Result<pb::StreamRequest, Status>> + Send + '_ {
     futures_util::stream::unfold(Some(source), move |source| async move {
-        let mut source = source?;
+        let source = source?;
         loop {
             let Ok(next) = tokio::time::timeout(idle, source.next()).await else {
                 return Some((Err(idle_status(idle)), None));
@@ -207,15 +225,15 @@ fn read_error(e: axum::Error, max_bytes: usize) -> Status {
 }
 
 /// Write the handler's answers, ping while waiting, and end with the
-/// status (or a normal close). Returns early when a write fails or
-/// blocks for `write_timeout`: the handler then sees its channel closed
-/// and ends as for a client that vanished.
+/// status (or a normal close); whether the close frame was sent. Returns
+/// early when a write fails or blocks for `write_timeout`: the handler
+/// then sees its channel closed and ends as for a client that vanished.
 async fn answers(
-    mut sink: SplitSink<WebSocket, Message>,
+    sink: &mut SplitSink<WebSocket, Message>,
     mut rx: mpsc::Receiver<Outbound>,
     ping_every: Duration,
     write_timeout: Duration,
-) {
+) -> bool {
     let mut ping = tokio::time::interval_at(tokio::time::Instant::now() + ping_every, ping_every);
     ping.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let last = loop {
@@ -227,8 +245,8 @@ async fn answers(
             },
             _ = ping.tick() => Message::Ping(Bytes::new()),
         };
-        if send(&mut sink, message, write_timeout).await.is_err() {
-            return;
+        if send(sink, message, write_timeout).await.is_err() {
+            return false;
         }
     };
     let close = match last {
@@ -238,16 +256,18 @@ async fn answers(
         },
         Some(status) => {
             let text = status_text(&status);
-            if send(&mut sink, Message::Text(text.into()), write_timeout)
+            if send(sink, Message::Text(text.into()), write_timeout)
                 .await
                 .is_err()
             {
-                return;
+                return false;
             }
             close_frame(status.code())
         }
     };
-    let _ = send(&mut sink, Message::Close(Some(close)), write_timeout).await;
+    send(sink, Message::Close(Some(close)), write_timeout)
+        .await
+        .is_ok()
 }
 
 async fn send(
@@ -262,7 +282,10 @@ async fn send(
             Err(())
         }
         Err(_) => {
-            tracing::info!(?timeout, "web: a write blocked too long; closing the socket");
+            tracing::info!(
+                ?timeout,
+                "web: a write blocked too long; closing the socket"
+            );
             Err(())
         }
     }
