@@ -7,8 +7,13 @@
 //! are written strictly from the front of that FIFO, so a frame refused at
 //! validation (answered at once) never overtakes an earlier frame still in
 //! the model. The FIFO is bounded (`max_inflight_per_stream`): when it is
-//! full the task stops reading, and HTTP/2 flow control pushes back on the
-//! client instead of the server buffering without limit.
+//! full the task stops reading, and HTTP/2 flow control (on a WebSocket,
+//! TCP's) pushes back on the client instead of the server buffering
+//! without limit.
+//!
+//! Transports: the task reads any [`Inbound`] and writes [`Outbound`]s to
+//! a channel, so the gRPC `Stream` RPC ([`crate::service`]) and the
+//! browser's WebSocket ([`crate::web`]) run this one handler.
 //!
 //! In a session opened with `server_lifter`, frames carry keypoints only;
 //! the batcher lifts each one from the session's window of earlier frames

@@ -77,3 +77,34 @@ impl WebConfig {
         (self.idle_timeout / 3).max(Duration::from_millis(10))
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[test]
+    fn the_browser_transport_is_off_unless_asked() {
+        let cli = crate::Cli::try_parse_from(["blapose-server"]).unwrap();
+        assert_eq!(cli.into_config().web, None);
+        let cli =
+            crate::Cli::try_parse_from(["blapose-server", "--web-addr", "127.0.0.1:8080"]).unwrap();
+        let web = cli.into_config().web.expect("on with --web-addr");
+        assert_eq!(web, WebConfig::new("127.0.0.1:8080".parse().unwrap()));
+        assert_eq!(web.dir, PathBuf::from("web/dist"));
+        assert_eq!(web.ping_interval(), Duration::from_secs(10));
+        let cli = crate::Cli::try_parse_from([
+            "blapose-server",
+            "--web-addr",
+            "0.0.0.0:0",
+            "--web-dir",
+            "/srv/page",
+        ])
+        .unwrap();
+        assert_eq!(
+            cli.into_config().web.map(|w| w.dir),
+            Some(PathBuf::from("/srv/page"))
+        );
+        assert!(crate::Cli::try_parse_from(["blapose-server", "--web-addr", "8080"]).is_err());
+    }
+}
