@@ -291,7 +291,7 @@ async fn a_client_that_vanishes_frees_its_session_and_a_silent_one_is_closed() {
     ws.send(Message::binary(open().encode_to_vec()))
         .await
         .unwrap();
-    tokio::time::sleep(Duration::from_millis(900)).await;
+    tokio::time::sleep(Duration::from_millis(650)).await;
     let (answers, ending) = read_all(&mut ws).await;
     assert!(matches!(answers[..], [Resp::Opened(_)]), "{answers:?}");
     assert_eq!(ending.close, Some(4004), "DEADLINE_EXCEEDED: {ending:?}");
@@ -386,4 +386,69 @@ async fn the_page_is_served_or_the_server_says_how_to_build_it() {
     assert_eq!(get(web_addr(&server), "/../Cargo.toml").await.0 / 100, 4);
     server.shutdown().await.unwrap();
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Read until `n` answers arrived (the socket stays open).
+async fn read_n(ws: &mut Ws, n: usize) -> Vec<Resp> {
+    let mut answers = Vec::new();
+    while answers.len() < n {
+        let message = tokio::time::timeout(Duration::from_secs(10), ws.next())
+            .await
+            .expect("answers within 10 s")
+            .expect("the socket is open")
+            .unwrap();
+        if let Message::Binary(b) = message {
+            answers.extend(pb::StreamResponse::decode(b).unwrap().kind);
+        }
+    }
+    answers
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sessions_and_tokens_are_shared_with_grpc_and_shutdown_drains_sockets() {
+    let key =
+        blapose_server::token::SessionKey::parse("hex:000102030405060708090a0b0c0d0e0f").unwrap();
+    let (server, mut grpc) = start(config(|c| c.session_key = Some(key))).await;
+    // Opened over the socket (with a session token), resumed over gRPC.
+    let mut ws = connect(web_addr(&server), "", &[], &[]).await.unwrap();
+    for r in [open(), frame(0), frame(1)] {
+        ws.send(Message::binary(r.encode_to_vec())).await.unwrap();
+    }
+    let answers = read_n(&mut ws, 3).await;
+    let Resp::Opened(opened) = &answers[0] else {
+        panic!("{answers:?}")
+    };
+    assert!(!opened.session_token.is_empty(), "a token, as on gRPC");
+    drop(ws);
+    let resume = pb::StreamRequest {
+        kind: Some(Req::Resume(pb::ResumeSession {
+            session_id: opened.session_id.clone(),
+            ..Default::default()
+        })),
+    };
+    let answers = exchange(&mut grpc, &[], vec![resume, frame(2), close()])
+        .await
+        .unwrap();
+    let Resp::Opened(resumed) = &answers[0] else {
+        panic!("{answers:?}")
+    };
+    assert!(resumed.resumed);
+    assert_eq!(resumed.frames_seen, 2);
+
+    // Shutdown: the socket's frames are answered, a last token sent (the
+    // stream asked for tokens), then UNAVAILABLE.
+    let mut ws = connect(web_addr(&server), "", &[], &[]).await.unwrap();
+    for r in [open(), frame(0)] {
+        ws.send(Message::binary(r.encode_to_vec())).await.unwrap();
+    }
+    read_n(&mut ws, 2).await;
+    let stopped = tokio::spawn(server.shutdown());
+    let (answers, ending) = read_all(&mut ws).await;
+    assert!(matches!(answers[..], [Resp::Token(_)]), "{answers:?}");
+    assert_eq!(ending.close, Some(4014), "{ending:?}");
+    assert_eq!(
+        ending.status.map(|s| s.0),
+        Some(tonic::Code::Unavailable as i32)
+    );
+    stopped.await.unwrap().unwrap();
 }
