@@ -72,7 +72,13 @@ pub async fn start(
     handshake_timeout: Duration,
     shutdown: CancellationToken,
 ) -> std::io::Result<WebServer> {
-    let listener = TcpListener::bind(config.addr).await?;
+    let addr = config.addr;
+    let listener = TcpListener::bind(addr).await.map_err(|e| {
+        std::io::Error::new(
+            e.kind(),
+            format!("cannot listen on {addr} (--web-addr): {e}"),
+        )
+    })?;
     let local_addr = listener.local_addr()?;
     let tracker = TaskTracker::new();
     let app = Router::new()
