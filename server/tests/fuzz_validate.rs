@@ -18,8 +18,7 @@ use pb::stream_request::Kind as Req;
 use proptest::prelude::*;
 use prost::Message;
 
-#[path = "../../crates/blapose-core/tests/support/fuzz.rs"]
-mod fuzz;
+use blapose_test_support::fuzz;
 
 fn config() -> ProptestConfig {
     fuzz::config(256, 0x7661_6c69_6461)
