@@ -27,9 +27,9 @@ use crate::joint_dropout::DropJointsReport;
 /// the online curve depend on the state's age (`--state-frames`)?
 pub fn state_frames(estimator: GruEstimator, frames: Option<usize>) -> GruEstimator {
     match frames.filter(|&k| k > 0) {
-        Some(k) => {
-            estimator.with_state_restarts(std::sync::Arc::new(move |t: usize| t > 0 && t % k == 0))
-        }
+        Some(k) => estimator.with_state_restarts(std::sync::Arc::new(move |t: usize| {
+            t > 0 && t.is_multiple_of(k)
+        })),
         None => estimator,
     }
 }
