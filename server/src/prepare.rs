@@ -4,12 +4,18 @@
 //! What a set of weights expects (screen coordinates, or keypoints
 //! undistorted and rectified to the camera's level twin and perhaps scaled
 //! to the floor) is written by the trainer into their metadata and read
-//! once at load into a [`ModelInput`]. This module is the only place the
-//! server applies it: a calibration becomes the session's (or request's)
-//! [`InputCamera`] through [`ModelInput::camera`], and every frame is fed
-//! through [`InputCamera::prepare_frames`] ([`model_row`], [`sequence`]).
-//! Streams and `AdjustSequence` share the recipe, so the online and the
-//! offline models read a camera alike.
+//! once at load into a [`ModelInput`]. A calibration becomes the session's
+//! (or request's) [`InputCamera`] through [`ModelInput::camera`] once, as
+//! it is validated ([`validate::camera`]; a session keeps it for its
+//! life), and this module is the only place the server applies it: every
+//! frame is fed through [`InputCamera::prepare_frames`] ([`model_row`],
+//! [`sequence`]). Streams and `AdjustSequence` share the recipe, so the
+//! online and the offline models read a camera alike.
+//!
+//! [`ModelInput`]: blapose_model::input::ModelInput
+//! [`ModelInput::camera`]: blapose_model::input::ModelInput::camera
+//! [`InputCamera`]: blapose_model::input::InputCamera
+//! [`InputCamera::prepare_frames`]: blapose_model::input::InputCamera::prepare_frames
 //!
 //! A stream's preparation also reads the session's past: a missing joint is
 //! read held at its last detection ([`fill_missing`]), and a server-lifter

@@ -13,7 +13,11 @@
 //! [`ModelInput`] and feed the model through [`ModelInput::camera`] and
 //! [`InputCamera::prepare_frames`], so a model is always served what it
 //! was trained on. (The model's output needs no conversion: every shipped
-//! contract predicts metres directly.)
+//! contract predicts metres directly.) A view's lens, in either model
+//! ([`blapose_core::lens`]), is undone here too: on each viewing ray by the
+//! [`InputCamera`] (a served calibration's), or on the picture's pixels by
+//! [`ViewCalibration::undistort_frames`] (what a client does before it
+//! sends, and the evaluation with Human3.6M's cameras).
 //!
 //! Weights written before the contract existed carry the trainer's
 //! `train_config` instead; it is read once, here, into the same struct
