@@ -31,6 +31,7 @@ LAYERS = {
     "blapose-client": 2,
     "blapose-examples": 2,
     "blapose-lab": 3,
+    "blapose-test-support": 3,
     "blapose-bench": 4,
     "blapose-tests": 4,
 }

@@ -3,8 +3,7 @@
 //! (`blapose-client --tls-ca`), and clear errors when the client and the
 //! server disagree about TLS.
 
-#[path = "../../server/tests/support/certs.rs"]
-mod certs;
+use blapose_test_support::certs;
 
 use std::time::Duration;
 

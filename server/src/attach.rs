@@ -16,7 +16,6 @@ use tonic::Status;
 use crate::answer;
 use crate::metrics;
 use crate::motion::{self, SessionMotion};
-use crate::prepare;
 use crate::quota::ClientId;
 use crate::restore_check;
 use crate::session::{
@@ -56,12 +55,9 @@ pub fn open_or_resume(
             } else {
                 None
             };
-            let camera = prepare::session_camera(
-                open.camera.as_ref(),
-                &input,
-                state.camera_models().as_ref(),
-            )
-            .map_err(|e| e.to_status())?;
+            let camera =
+                validate::camera(open.camera.as_ref(), &input, state.camera_models().as_ref())
+                    .map_err(|e| e.to_status())?;
             let subject = validate::subject(open.subject.as_ref())
                 .map_err(|e| e.to_status())?
                 .map(|s| answer::subject(s, &state.stature));
@@ -162,7 +158,7 @@ fn restore(
             truncate_label(&resume.session_id)
         )));
     }
-    let camera = prepare::session_camera(
+    let camera = validate::camera(
         portable.camera.as_ref(),
         &portable.input,
         state.camera_models().as_ref(),

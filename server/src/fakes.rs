@@ -17,7 +17,7 @@ use crate::frame::{FrameJob, StepResult};
 use crate::models::LoadedLifter;
 use crate::session::{Coordinates, InputFormat, Session, SessionConfig};
 use crate::step::OnlineBackends;
-use crate::testing::StepGate;
+use blapose_test_support::StepGate;
 
 /// Start a batcher running `fake` alone (no camera-aware model, no
 /// lifter).

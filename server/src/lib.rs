@@ -44,9 +44,10 @@
 //! input contract, providers), [`service`] (the tonic service), [`state`]
 //! (what its handlers share), [`auth`], [`metrics`], [`shutdown`],
 //! [`telemetry`], [`health`] (the `--health-check` probe), [`token`]
-//! (portable session state: session tokens), [`testing`] (test support),
-//! [`web`] (the browser transport, `--web-addr`: the same stream handler
-//! over a WebSocket, and the live page).
+//! (portable session state: session tokens), [`web`] (the browser
+//! transport, `--web-addr`: the same stream handler over a WebSocket, and
+//! the live page). Test helpers live in the dev-only blapose-test-support
+//! crate, not here.
 //!
 //! Embedding (tests, load generators): [`spawn`] starts a server on a bound
 //! listener and returns a [`ServerHandle`]; [`serve`] runs until a future
@@ -93,7 +94,6 @@ pub mod session;
 pub mod shutdown;
 pub mod state;
 pub mod telemetry;
-pub mod testing;
 pub mod token;
 pub mod transport;
 pub mod web;

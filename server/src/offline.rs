@@ -141,7 +141,7 @@ impl OfflineRunner {
                 (seq.model, AdjustedSequence { poses, lengths })
             }
             None => {
-                let seq = prepare::sequence(seq, contract.as_ref()).map_err(|e| e.to_status())?;
+                let seq = prepare::sequence(seq);
                 let model = seq.model;
                 (model, self.adjust(seq).await?)
             }

@@ -4,12 +4,18 @@
 //! What a set of weights expects (screen coordinates, or keypoints
 //! undistorted and rectified to the camera's level twin and perhaps scaled
 //! to the floor) is written by the trainer into their metadata and read
-//! once at load into a [`ModelInput`]. This module is the only place the
-//! server applies it: a calibration becomes the session's (or request's)
-//! [`InputCamera`] through [`ModelInput::camera`], and every frame is fed
-//! through [`InputCamera::prepare_frames`] ([`model_row`], [`sequence`]).
-//! Streams and `AdjustSequence` share the recipe, so the online and the
-//! offline models read a camera alike.
+//! once at load into a [`ModelInput`]. A calibration becomes the session's
+//! (or request's) [`InputCamera`] through [`ModelInput::camera`] once, as
+//! it is validated ([`validate::camera`]; a session keeps it for its
+//! life), and this module is the only place the server applies it: every
+//! frame is fed through [`InputCamera::prepare_frames`] ([`model_row`],
+//! [`sequence`]). Streams and `AdjustSequence` share the recipe, so the
+//! online and the offline models read a camera alike.
+//!
+//! [`ModelInput`]: blapose_model::input::ModelInput
+//! [`ModelInput::camera`]: blapose_model::input::ModelInput::camera
+//! [`InputCamera`]: blapose_model::input::InputCamera
+//! [`InputCamera::prepare_frames`]: blapose_model::input::InputCamera::prepare_frames
 //!
 //! A stream's preparation also reads the session's past: a missing joint is
 //! read held at its last detection ([`fill_missing`]), and a server-lifter
@@ -34,8 +40,6 @@ use blapose_core::missing::hold_fill_sequence;
 use blapose_core::Pose;
 use blapose_lifters::trained::FRAME_VALUES;
 use blapose_lifters::TrainedLifter;
-use blapose_model::input::{InputCamera, ModelInput};
-use blapose_proto::v1 as pb;
 
 use crate::answer;
 use crate::backend::BackendError;
@@ -43,38 +47,7 @@ use crate::batch::Queued;
 use crate::frame::{FrameJob, StepError, StepResult};
 use crate::metrics;
 use crate::models::LoadedLifter;
-use crate::session::{InputFormat, SessionCamera};
-use crate::validate::{self, InvalidInput, ValidCamera, ValidSequence};
-
-/// The camera a session or request is served with: its calibration checked
-/// ([`validate::camera`]) against `contract` (the camera-aware models';
-/// `None` when the server has none), and the camera the models read it
-/// through.
-pub fn session_camera(
-    calibration: Option<&pb::CameraCalibration>,
-    spec: &InputFormat,
-    contract: Option<&ModelInput>,
-) -> Result<Option<SessionCamera>, InvalidInput> {
-    let Some(valid) = validate::camera(calibration, spec, contract)? else {
-        return Ok(None);
-    };
-    let input = input_camera(&valid, contract)?;
-    Ok(Some(SessionCamera {
-        calibration: valid.calibration,
-        input,
-        view: valid.view,
-    }))
-}
-
-/// The camera `contract` reads a validated calibration through (`None`:
-/// the contract reads screen coordinates).
-fn input_camera(
-    valid: &ValidCamera,
-    contract: Option<&ModelInput>,
-) -> Result<Option<InputCamera>, InvalidInput> {
-    let contract = contract.ok_or(InvalidInput::NoCameraAwareModel)?;
-    Ok(contract.camera(&valid.view)?)
-}
+use crate::validate::{self, ValidSequence};
 
 /// One frame's model input (`out`, [`crate::backend::INPUT_DIM`] values):
 /// the job's keypoints (missing joints already held), through its
@@ -104,12 +77,9 @@ pub struct PreparedSequence {
 
 /// Prepare a validated `AdjustSequence` request for the model: hold
 /// missing joints (at their last detection; before it, at their first),
-/// then feed the frames through the request's camera as `contract` (the
-/// camera-aware models') says.
-pub fn sequence(
-    seq: ValidSequence,
-    contract: Option<&ModelInput>,
-) -> Result<PreparedSequence, InvalidInput> {
+/// then feed the frames through the request's camera (built by
+/// [`validate::camera`] as the camera-aware models' contract says).
+pub fn sequence(seq: ValidSequence) -> PreparedSequence {
     let ValidSequence {
         model,
         mut inputs,
@@ -121,17 +91,15 @@ pub fn sequence(
         hold_fill_sequence(&mut inputs, &present);
     }
     let camera_aware = camera.is_some();
-    if let Some(valid) = camera {
-        if let Some(camera) = input_camera(&valid, contract)? {
-            camera.prepare_frames(&mut inputs);
-        }
+    if let Some(camera) = camera.and_then(|c| c.input) {
+        camera.prepare_frames(&mut inputs);
     }
-    Ok(PreparedSequence {
+    PreparedSequence {
         model,
         inputs,
         poses,
         camera_aware,
-    })
+    }
 }
 
 /// Fill the frame's missing joints from its session's held ones. A frame
@@ -310,10 +278,13 @@ mod tests {
         config, job, lift_job, lifting_config, session_config, start, start_with_lifter,
         test_lifter, window_len, Fake,
     };
-    use crate::session::SessionStore;
+    use crate::session::{InputFormat, SessionStore};
     use crate::validate::tests::{calibration, format, standing_pose, ANY_CAMERA};
+    use crate::validate::InvalidInput;
     use blapose_core::layouts::KeypointLayout;
     use blapose_core::level::LevelCamera;
+    use blapose_model::input::ModelInput;
+    use blapose_proto::v1 as pb;
     use std::sync::atomic::Ordering;
     use std::time::Duration;
 
@@ -436,7 +407,7 @@ mod tests {
         req: &pb::AdjustSequenceRequest,
         contract: Option<&ModelInput>,
     ) -> Result<PreparedSequence, InvalidInput> {
-        sequence(validate::sequence(req, contract)?, contract)
+        validate::sequence(req, contract).map(sequence)
     }
 
     fn pixels() -> InputFormat {
@@ -450,7 +421,7 @@ mod tests {
             ..calibration()
         };
         let floor = ModelInput::from_training(true, true, true);
-        let camera = session_camera(Some(&c), &pixels(), Some(&floor))
+        let camera = validate::camera(Some(&c), &pixels(), Some(&floor))
             .unwrap()
             .unwrap();
         assert_eq!(camera.calibration, c, "echoed as sent");
@@ -458,16 +429,16 @@ mod tests {
             .input
             .expect("a floor-scaled contract reads a camera");
         assert_eq!(input.level().floor_scale_height(), Some(1.5));
-        let plain = session_camera(Some(&c), &pixels(), Some(&ANY_CAMERA))
+        let plain = validate::camera(Some(&c), &pixels(), Some(&ANY_CAMERA))
             .unwrap()
             .unwrap();
         assert_eq!(plain.input.unwrap().level().floor_scale_height(), None);
         // Refusals are the validation's.
         assert_eq!(
-            session_camera(Some(&c), &pixels(), None),
+            validate::camera(Some(&c), &pixels(), None),
             Err(InvalidInput::NoCameraAwareModel)
         );
-        assert_eq!(session_camera(None, &pixels(), Some(&floor)), Ok(None));
+        assert_eq!(validate::camera(None, &pixels(), Some(&floor)), Ok(None));
     }
 
     #[test]
@@ -477,7 +448,7 @@ mod tests {
             ..calibration()
         };
         let camera = |c: pb::CameraCalibration| {
-            session_camera(Some(&c), &pixels(), Some(&ANY_CAMERA))
+            validate::camera(Some(&c), &pixels(), Some(&ANY_CAMERA))
                 .unwrap()
                 .unwrap()
                 .input

@@ -23,8 +23,7 @@ use blapose_server::token::{
 };
 use proptest::prelude::*;
 
-#[path = "../../crates/blapose-core/tests/support/fuzz.rs"]
-mod fuzz;
+use blapose_test_support::fuzz;
 
 const KEY: [u8; 32] = [0x5a; 32];
 

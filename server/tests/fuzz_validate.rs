@@ -18,8 +18,7 @@ use pb::stream_request::Kind as Req;
 use proptest::prelude::*;
 use prost::Message;
 
-#[path = "../../crates/blapose-core/tests/support/fuzz.rs"]
-mod fuzz;
+use blapose_test_support::fuzz;
 
 fn config() -> ProptestConfig {
     fuzz::config(256, 0x7661_6c69_6461)
@@ -176,9 +175,7 @@ fn run_sequence(req: &pb::AdjustSequenceRequest, lengths: f32) {
         REACHED.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let frames = valid.poses.len();
         assert_eq!(valid.inputs.len() % frames.max(1), 0);
-        let Ok(prepared) = prepare::sequence(valid, contract.as_ref()) else {
-            continue;
-        };
+        let prepared = prepare::sequence(valid);
         assert!(
             prepared.inputs.iter().all(|v| v.is_finite()),
             "prepared inputs are finite"
@@ -201,7 +198,7 @@ fn run_stream(req: &pb::StreamRequest, frame: Option<&pb::Frame>) {
     let _ = validate::stream_model(open.model);
     let _ = validate::subject(open.subject.as_ref());
     for contract in contracts() {
-        let _ = prepare::session_camera(open.camera.as_ref(), &spec, contract.as_ref());
+        let _ = validate::camera(open.camera.as_ref(), &spec, contract.as_ref());
     }
     if let Some(frame) = frame {
         if let Ok(valid) = validate::frame(&spec, frame) {
@@ -319,11 +316,10 @@ fn regression_huge_principal_point_prepares_finite_inputs_or_is_refused() {
         let Ok(valid) = validate::sequence(&req, contract.as_ref()) else {
             continue;
         };
-        if let Ok(prepared) = prepare::sequence(valid, contract.as_ref()) {
-            assert!(
-                prepared.inputs.iter().all(|v| v.is_finite()),
-                "contract {contract:?}: non-finite prepared inputs"
-            );
-        }
+        let prepared = prepare::sequence(valid);
+        assert!(
+            prepared.inputs.iter().all(|v| v.is_finite()),
+            "contract {contract:?}: non-finite prepared inputs"
+        );
     }
 }

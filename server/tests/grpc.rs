@@ -12,8 +12,8 @@ use blapose_proto::v1 as pb;
 use blapose_server::backend::{
     Backend, BackendError, SequenceBackend, INPUT_DIM, OUTPUT_DIM, STATE_DIM,
 };
-use blapose_server::testing::StepGate;
 use blapose_server::{ModelInput, ModelProvider, ServerConfig, ServerHandle};
+use blapose_test_support::StepGate;
 use pb::pose_adjustment_client::PoseAdjustmentClient;
 use pb::stream_request::Kind as Req;
 use pb::stream_response::Kind as Resp;

@@ -6,17 +6,16 @@
 //! few seconds in all; while each abuse runs, a well-behaved client on its
 //! own connection must still be answered.
 
-#[path = "support/h2raw.rs"]
-mod h2raw;
+use blapose_test_support::h2raw;
 
 use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use blapose_proto::v1 as pb;
-use blapose_server::testing::ConstantModel;
 use blapose_server::transport::ConnectionLimits;
 use blapose_server::{ServerConfig, ServerHandle};
+use blapose_test_support::ConstantModel;
 use h2raw::Frame;
 use pb::pose_adjustment_client::PoseAdjustmentClient;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};

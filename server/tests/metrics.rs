@@ -5,46 +5,11 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use blapose_proto::v1 as pb;
-use blapose_server::backend::{Backend, BackendError, SequenceBackend, OUTPUT_DIM, STATE_DIM};
-use blapose_server::{ModelProvider, ServerConfig};
+use blapose_server::ServerConfig;
+use blapose_test_support::ConstantModel;
 use pb::stream_request::Kind as Req;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_stream::wrappers::ReceiverStream;
-
-struct Constant;
-
-impl Backend for Constant {
-    fn step(
-        &mut self,
-        _: &[f32],
-        hidden: &mut [f32],
-        out: &mut [f32],
-        batch: usize,
-    ) -> Result<(), BackendError> {
-        assert_eq!(hidden.len(), batch * STATE_DIM);
-        out.fill(0.25);
-        assert_eq!(out.len(), batch * OUTPUT_DIM);
-        Ok(())
-    }
-}
-
-impl SequenceBackend for Constant {
-    fn predict(&mut self, _: &[f32], _: usize) -> Result<[f32; 16], BackendError> {
-        Ok([0.25; 16])
-    }
-}
-
-impl ModelProvider for Constant {
-    fn online(&self) -> Result<Box<dyn Backend>, BackendError> {
-        Ok(Box::new(Constant))
-    }
-    fn offline(&self) -> Result<Box<dyn SequenceBackend>, BackendError> {
-        Ok(Box::new(Constant))
-    }
-    fn describe(&self) -> Vec<pb::ModelDescription> {
-        Vec::new()
-    }
-}
 
 fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")
@@ -72,7 +37,7 @@ async fn prometheus_endpoint_reports_traffic() {
         ..ServerConfig::default()
     };
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let server = blapose_server::spawn_with_provider(config, listener, Arc::new(Constant))
+    let server = blapose_server::spawn_with_provider(config, listener, Arc::new(ConstantModel))
         .await
         .unwrap();
     let before = scrape(metrics_addr).await;

@@ -4,8 +4,7 @@
 //! same file; and clear errors when the health check and the port disagree
 //! about TLS. The client library's side is in `client/tests/tls.rs`.
 
-#[path = "support/certs.rs"]
-mod certs;
+use blapose_test_support::certs;
 
 use std::time::Duration;
 

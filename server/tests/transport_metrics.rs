@@ -4,17 +4,16 @@
 //! connections refused by a limit or closed before HTTP/2, and the limits
 //! in force. Its own test binary: the recorder is process-global.
 
-#[path = "support/h2raw.rs"]
-mod h2raw;
+use blapose_test_support::h2raw;
 
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
 use blapose_proto::v1 as pb;
-use blapose_server::testing::ConstantModel;
 use blapose_server::transport::ConnectionLimits;
 use blapose_server::ServerConfig;
+use blapose_test_support::ConstantModel;
 use pb::stream_request::Kind as Req;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_stream::wrappers::ReceiverStream;

@@ -2,7 +2,7 @@
 # The server's limits under abuse, on loopback, bounded (well under two
 # minutes): each case asserts its limit, the server's memory growth (at most
 # 64 MB from one connection) and a healthy client's latency (p99 within 2x
-# of its baseline, at least 5 ms), with the driver bench/src/bin/abuse.rs:
+# of its baseline, at least 5 ms), with the driver bench/src/bin/abuse/:
 #   streams   many streams on one HTTP/2 connection (--max-concurrent-streams)
 #   sessions  one client opening sessions as fast as it can while another
 #             streams (--max-sessions-per-client, clients told apart by

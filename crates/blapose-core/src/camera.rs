@@ -11,7 +11,9 @@
 //! x_d = x (radial + tan) + p r2;  pixel = f * x_d + c
 //! ```
 //!
-//! (VideoPose3D additionally clamps `x` to `[-1, 1]`; the README's model does
+//! The lens part of that model is [`crate::lens::LensDistortion`] in
+//! [`crate::lens::LensModel::Human36m`] ([`Camera::lens`]), which also
+//! undoes it. (VideoPose3D additionally clamps `x` to `[-1, 1]`; the README's model does
 //! not, and neither do we. Inside the Human3.6M field of view the two agree.)
 //! Points must lie in front of the camera (`z > 0`); for `z <= 0` the model is
 //! meaningless and the result may be non-finite.
@@ -33,6 +35,7 @@
 
 use std::ops::{Add, Div, Mul, Sub};
 
+use crate::lens::LensDistortion;
 use crate::pose::{Keypoints2d, Pose};
 
 /// Why a camera or a projection request is invalid.
@@ -143,31 +146,20 @@ impl<T: Scalar> Intrinsics<T> {
 }
 
 impl Intrinsics<f64> {
+    /// The lens of these intrinsics, in Human3.6M's model.
+    pub fn lens(&self) -> LensDistortion {
+        LensDistortion::human36m(self.radial, self.tangential)
+    }
+
     /// Undo the lens model on one pixel: where a distortion-free camera
     /// with the same focal length and principal point shows the point
-    /// (fixed-point iteration on the lens equation; exact to well under a
+    /// ([`LensDistortion::undistort_pixel`]; exact to well under a
     /// micro-pixel for lenses like Human3.6M's within the image).
     pub fn undistort(&self, pixel: [f64; 2]) -> [f64; 2] {
-        let xd = (pixel[0] - self.principal[0]) / self.focal[0];
-        let yd = (pixel[1] - self.principal[1]) / self.focal[1];
-        let [k1, k2, k3] = self.radial;
-        let [p1, p2] = self.tangential;
-        let (mut x, mut y) = (xd, yd);
-        for _ in 0..UNDISTORT_ITERATIONS {
-            let r2 = x * x + y * y;
-            let s = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)) + p1 * x + p2 * y;
-            x = (xd - p1 * r2) / s;
-            y = (yd - p2 * r2) / s;
-        }
-        [
-            self.focal[0] * x + self.principal[0],
-            self.focal[1] * y + self.principal[1],
-        ]
+        self.lens()
+            .undistort_pixel(self.focal, self.principal, pixel)
     }
 }
-
-/// Fixed-point iterations of [`Intrinsics::undistort`].
-const UNDISTORT_ITERATIONS: usize = 20;
 
 impl Intrinsics<f32> {
     /// Project many camera-space points at once into `out` (same length).
@@ -310,6 +302,11 @@ impl Camera {
             *o = r.map(|row| row[0] * d[0] + row[1] * d[1] + row[2] * d[2]);
         }
         Ok(())
+    }
+
+    /// The camera's lens, in Human3.6M's model.
+    pub fn lens(&self) -> LensDistortion {
+        self.pixel_intrinsics().lens()
     }
 
     /// Intrinsics in pixels.

@@ -1,32 +1,35 @@
-//! Lens distortion of a user's calibrated camera, so keypoints detected in
-//! the raw (distorted) image can be served as they are.
+//! Lens distortion: one type for the two distortion models blapose meets,
+//! so every keypoint seen through a real lens is undone by one function.
 //!
-//! The camera-aware models read geometry: where the feet fall below the
-//! horizon and how far apart joints are. They were trained through
-//! distortion-free cameras, and a wide lens bends exactly the image edges
-//! where feet often are. A calibration may therefore carry the camera's
-//! distortion coefficients in OpenCV's order and model (what
-//! `cv2.calibrateCamera` and most calibration tools report), and every
-//! keypoint is undistorted before it is rectified
-//! ([`crate::level::LevelCamera::with_lens`]).
+//! Why one type: the camera-aware models read geometry (where the feet
+//! fall below the horizon, how far apart joints are) and were trained
+//! through distortion-free cameras, while keypoints come from distorted
+//! pictures: a user's calibrated camera, whose coefficients come in
+//! OpenCV's model and order (what `cv2.calibrateCamera` and most
+//! calibration tools report), and Human3.6M's cameras, whose published
+//! calibration uses another tangential form. Both share the radial part and
+//! the coefficients `k1, k2, k3, p1, p2`; [`LensModel`] names the tangential
+//! form, and [`LensDistortion`] distorts and undistorts with either.
 //!
-//! The model, on a point `(x, y)` of the ideal image plane (pixel minus
-//! principal point, over the focal length), `r2 = x^2 + y^2`:
+//! On a point `(x, y)` of the ideal image plane (pixel minus principal
+//! point, over the focal length), `r2 = x^2 + y^2`,
+//! `radial = 1 + k1 r2 + k2 r2^2 + k3 r2^3`:
 //!
 //! ```text
-//! radial = 1 + k1 r2 + k2 r2^2 + k3 r2^3
-//! x_d = x radial + 2 p1 x y + p2 (r2 + 2 x^2)
-//! y_d = y radial + p1 (r2 + 2 y^2) + 2 p2 x y
+//! OpenCV:     x_d = x radial + 2 p1 x y + p2 (r2 + 2 x^2)
+//!             y_d = y radial + p1 (r2 + 2 y^2) + 2 p2 x y
+//! Human3.6M:  x_d = x (radial + p1 x + p2 y) + p1 r2
+//!             y_d = y (radial + p1 x + p2 y) + p2 r2
 //! ```
 //!
-//! (Human3.6M's own cameras use another tangential form; their model is
-//! [`crate::camera::Intrinsics`].) Undistortion inverts it by fixed-point
-//! iteration, which converges for lenses a calibration tool accepts; a
-//! calibration whose model does not invert over its own image is refused
-//! ([`LensDistortion::check_invertible`]).
-
-/// Fixed-point iterations of [`LensDistortion::undistort`].
-const ITERATIONS: usize = 30;
+//! (Human3.6M's projection itself, generic over `f32` for the training hot
+//! path, is [`crate::camera::Intrinsics::project`].) Undistortion inverts
+//! the model by fixed-point iteration, which converges for lenses a
+//! calibration tool accepts; a calibration whose model does not invert over
+//! its own image is refused ([`LensDistortion::check_invertible`]). A
+//! served calibration's lens is undone on each viewing ray
+//! ([`crate::level::LevelCamera::with_lens`]); a picture's keypoints can
+//! also be undone pixel by pixel ([`LensDistortion::undistort_pixel`]).
 
 /// Largest round-trip error (in units of the focal length) accepted at the
 /// image border by [`LensDistortion::check_invertible`]: 1e-6 of the focal
@@ -50,9 +53,32 @@ pub enum LensError {
     },
 }
 
-/// A camera's lens distortion in OpenCV's model (see the module docs).
+/// Which tangential form a lens's coefficients are in (module docs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum LensModel {
+    /// OpenCV's (and most calibration tools'): what a served calibration
+    /// sends.
+    OpenCv,
+    /// Human3.6M's published camera model ([`crate::camera::Camera`]).
+    Human36m,
+}
+
+impl LensModel {
+    /// Fixed-point iterations of [`LensDistortion::undistort`]: each
+    /// model keeps the count its numbers were first computed with.
+    const fn iterations(self) -> usize {
+        match self {
+            Self::OpenCv => 30,
+            Self::Human36m => 20,
+        }
+    }
+}
+
+/// A camera's lens distortion in one of the [`LensModel`]s.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LensDistortion {
+    /// The tangential form the coefficients are in.
+    pub model: LensModel,
     /// Radial `[k1, k2, k3]`.
     pub radial: [f64; 3],
     /// Tangential `[p1, p2]`.
@@ -60,8 +86,17 @@ pub struct LensDistortion {
 }
 
 impl LensDistortion {
-    /// From OpenCV-ordered coefficients `k1, k2, p1, p2[, k3]`; `None` for
-    /// an empty list (keypoints already undistorted).
+    /// A Human3.6M lens from its calibration's `k` and `p`.
+    pub const fn human36m(radial: [f64; 3], tangential: [f64; 2]) -> Self {
+        Self {
+            model: LensModel::Human36m,
+            radial,
+            tangential,
+        }
+    }
+
+    /// An OpenCV lens from OpenCV-ordered coefficients `k1, k2, p1,
+    /// p2[, k3]`; `None` for an empty list (keypoints already undistorted).
     pub fn from_coefficients(c: &[f64]) -> Result<Option<Self>, LensError> {
         let (radial, tangential) = match *c {
             [] => return Ok(None),
@@ -72,7 +107,11 @@ impl LensDistortion {
         if !c.iter().all(|v| v.is_finite()) {
             return Err(LensError::NonFinite);
         }
-        Ok(Some(Self { radial, tangential }))
+        Ok(Some(Self {
+            model: LensModel::OpenCv,
+            radial,
+            tangential,
+        }))
     }
 
     /// A calibration's lens (`f32` coefficients, as sent), checked as the
@@ -93,16 +132,45 @@ impl LensDistortion {
         Ok(lens)
     }
 
-    /// Where the lens shows the ideal point `[x, y]` (focal-length units).
-    pub fn distort(&self, [x, y]: [f64; 2]) -> [f64; 2] {
+    /// `1 + k1 r2 + k2 r2^2 + k3 r2^3`.
+    #[inline(always)]
+    fn radial_factor(&self, r2: f64) -> f64 {
         let [k1, k2, k3] = self.radial;
+        1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    }
+
+    /// The model at `(x, y)` as `(s, dx, dy)`: the lens shows the point at
+    /// `(x s + dx, y s + dy)` (the form [`Self::undistort`] iterates on).
+    #[inline(always)]
+    fn terms(&self, x: f64, y: f64) -> (f64, f64, f64) {
         let [p1, p2] = self.tangential;
         let r2 = x * x + y * y;
-        let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
-        [
-            x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
-            y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y,
-        ]
+        let radial = self.radial_factor(r2);
+        match self.model {
+            LensModel::OpenCv => (
+                radial,
+                2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+                p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y,
+            ),
+            LensModel::Human36m => (radial + p1 * x + p2 * y, p1 * r2, p2 * r2),
+        }
+    }
+
+    /// Where the lens shows the ideal point `[x, y]` (focal-length units).
+    pub fn distort(&self, [x, y]: [f64; 2]) -> [f64; 2] {
+        let [p1, p2] = self.tangential;
+        let r2 = x * x + y * y;
+        let radial = self.radial_factor(r2);
+        match self.model {
+            LensModel::OpenCv => [
+                x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+                y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y,
+            ],
+            LensModel::Human36m => {
+                let s = radial + p1 * x + p2 * y;
+                [x * s + p1 * r2, y * s + p2 * r2]
+            }
+        }
     }
 
     /// The ideal point the lens shows at `[xd, yd]` (focal-length units).
@@ -110,22 +178,34 @@ impl LensDistortion {
     /// whose iteration leaves the finite numbers is returned as it is
     /// rather than as NaN (a stray detection must not poison a session).
     pub fn undistort(&self, [xd, yd]: [f64; 2]) -> [f64; 2] {
-        let [k1, k2, k3] = self.radial;
-        let [p1, p2] = self.tangential;
         let (mut x, mut y) = (xd, yd);
-        for _ in 0..ITERATIONS {
-            let r2 = x * x + y * y;
-            let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
-            let dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
-            let dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
-            x = (xd - dx) / radial;
-            y = (yd - dy) / radial;
+        for _ in 0..self.model.iterations() {
+            let (s, dx, dy) = self.terms(x, y);
+            x = (xd - dx) / s;
+            y = (yd - dy) / s;
         }
         if x.is_finite() && y.is_finite() {
             [x, y]
         } else {
             [xd, yd]
         }
+    }
+
+    /// [`Self::undistort`] on a pixel of a camera with pixel intrinsics
+    /// `focal` and `principal`: where a distortion-free camera with the
+    /// same intrinsics shows the point.
+    pub fn undistort_pixel(
+        &self,
+        focal: [f64; 2],
+        principal: [f64; 2],
+        pixel: [f64; 2],
+    ) -> [f64; 2] {
+        let seen = [
+            (pixel[0] - principal[0]) / focal[0],
+            (pixel[1] - principal[1]) / focal[1],
+        ];
+        let [x, y] = self.undistort(seen);
+        [focal[0] * x + principal[0], focal[1] * y + principal[1]]
     }
 
     /// Check that undistortion recovers points over the whole image of a

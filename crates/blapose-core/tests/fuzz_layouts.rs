@@ -10,8 +10,7 @@
 use blapose_core::layouts::{Coordinates, KeypointLayout, LayoutError};
 use proptest::prelude::*;
 
-#[path = "support/fuzz.rs"]
-mod fuzz;
+use blapose_test_support::fuzz;
 
 /// The server's bound on a keypoint value (validate::MAX_KEYPOINT_ABS).
 const MAX_ABS: f32 = 1e6;

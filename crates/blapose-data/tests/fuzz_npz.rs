@@ -14,8 +14,7 @@ use blapose_data::npz::{npy_bytes, parse_npy, read_npz_bytes, Array, NpzArchive}
 use blapose_data::replay::{Sequence, DEFAULT_MAX_FRAMES, KEY_CONFIDENCE, KEY_GT_3D};
 use proptest::prelude::*;
 
-#[path = "../../blapose-core/tests/support/fuzz.rs"]
-mod fuzz;
+use blapose_test_support::fuzz;
 
 /// A valid replay file: 3 frames, 17 joints, confidence, ground truth and
 /// a camera, stored or deflated.

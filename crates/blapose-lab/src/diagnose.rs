@@ -2,7 +2,7 @@
 //! evaluation run ([`blapose_train::eval::run`]) with its trials read
 //! otherwise (joined mid-way: [`skipped`]; rectified with their camera
 //! whatever the weights record: [`rectified`]), the online GRU's state
-//! restarted ([`blapose_train::eval::GruEstimator::with_state_frames`]),
+//! restarted every so many frames ([`state_frames`]),
 //! joints lost ([`crate::joint_dropout`]), or the stature regression
 //! scored in a model's place ([`crate::stature_proxy`]).
 //!
@@ -15,12 +15,24 @@
 use blapose_model::input::ModelInput;
 use blapose_train::dataset::{prepare_streams, EvalSequence};
 use blapose_train::eval::run::EvalData;
-use blapose_train::eval::EvalReport;
+use blapose_train::eval::{EvalReport, GruEstimator};
 use blapose_train::synth::FRAME_DIM;
 use blapose_train::TrainError;
 use serde::Serialize;
 
 use crate::joint_dropout::DropJointsReport;
+
+/// `estimator` restarting its hidden state every `frames` frames (`None`
+/// or 0: never), the running mean of its predictions carrying on: does
+/// the online curve depend on the state's age (`--state-frames`)?
+pub fn state_frames(estimator: GruEstimator, frames: Option<usize>) -> GruEstimator {
+    match frames.filter(|&k| k > 0) {
+        Some(k) => estimator.with_state_restarts(std::sync::Arc::new(move |t: usize| {
+            t > 0 && t.is_multiple_of(k)
+        })),
+        None => estimator,
+    }
+}
 
 /// The trial joined `skip` frames in: what a model sees when a client
 /// starts streaming in the middle of a recording. A trial no longer than

@@ -13,7 +13,11 @@
 //! [`ModelInput`] and feed the model through [`ModelInput::camera`] and
 //! [`InputCamera::prepare_frames`], so a model is always served what it
 //! was trained on. (The model's output needs no conversion: every shipped
-//! contract predicts metres directly.)
+//! contract predicts metres directly.) A view's lens, in either model
+//! ([`blapose_core::lens`]), is undone here too: on each viewing ray by the
+//! [`InputCamera`] (a served calibration's), or on the picture's pixels by
+//! [`ViewCalibration::undistort_frames`] (what a client does before it
+//! sends, and the evaluation with Human3.6M's cameras).
 //!
 //! Weights written before the contract existed carry the trainer's
 //! `train_config` instead; it is read once, here, into the same struct
@@ -103,7 +107,9 @@ pub enum ContractError {
 /// One calibrated view, as the contract needs it: the direction of up in
 /// camera coordinates, pinhole intrinsics in pixels of the image the
 /// keypoints are in, the lens (if any) and the camera's height above the
-/// floor (if known).
+/// floor (if known). The lens is either model
+/// ([`blapose_core::lens::LensModel`]): a served calibration's is OpenCV's,
+/// a Human3.6M camera's its own.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ViewCalibration {
     /// World up in camera coordinates (any non-zero length).
@@ -134,6 +140,42 @@ impl ViewCalibration {
             lens: None,
         }
     }
+
+    /// [`Self::from_camera`] with the camera's own lens (Human3.6M's
+    /// model): its keypoints are those of the raw, distorted picture.
+    pub fn from_camera_through_lens(cam: &Camera) -> Self {
+        Self {
+            lens: Some(cam.lens()),
+            ..Self::from_camera(cam)
+        }
+    }
+
+    /// Frames of this view's picture (`17 * 2` normalized screen
+    /// coordinates each) made into those of the distortion-free camera with
+    /// the same intrinsics, in place, pixel by pixel
+    /// ([`LensDistortion::undistort_pixel`]): what a client does before it
+    /// sends undistorted keypoints, and so what the evaluation does to
+    /// Human3.6M's detections. Unchanged without a lens.
+    /// [`ModelInput::camera`] instead undoes the lens on each viewing ray,
+    /// as the server does with a calibration's lens (the two orders agree
+    /// to float rounding; each keeps its own numbers).
+    pub fn undistort_frames(&self, frames: &mut [f32]) {
+        use blapose_core::camera::{denormalize_screen, normalize_screen};
+        let Some(lens) = &self.lens else {
+            return;
+        };
+        let (width, height) = self.image_size;
+        for xy in frames.chunks_exact_mut(2) {
+            let px = denormalize_screen([xy[0], xy[1]], width, height);
+            let u = lens.undistort_pixel(
+                self.focal,
+                self.principal,
+                [f64::from(px[0]), f64::from(px[1])],
+            );
+            let n = normalize_screen([u[0] as f32, u[1] as f32], width, height);
+            xy.copy_from_slice(&n);
+        }
+    }
 }
 
 /// The camera a model reads one view through: the view's level twin,
@@ -148,6 +190,14 @@ impl InputCamera {
     /// coordinates of the view) turned into the model's input, in place.
     pub fn prepare_frames(&self, frames: &mut [f32]) {
         self.level.rectify_frames(frames);
+    }
+
+    /// This camera with keypoints seen through `lens`, undone on each
+    /// viewing ray before rectifying ([`LevelCamera::with_lens`]).
+    pub fn with_lens(self, lens: LensDistortion) -> Self {
+        Self {
+            level: self.level.with_lens(lens),
+        }
     }
 
     /// The level twin (with lens and floor scaling) behind this camera.
@@ -259,11 +309,11 @@ impl ModelInput {
             ),
             _ => level,
         };
-        let level = match view.lens {
-            Some(lens) => level.with_lens(lens),
-            None => level,
-        };
-        Ok(Some(InputCamera { level }))
+        let camera = InputCamera { level };
+        Ok(Some(match view.lens {
+            Some(lens) => camera.with_lens(lens),
+            None => camera,
+        }))
     }
 
     /// Whether `view` lies inside the cameras the weights were trained

@@ -104,21 +104,16 @@ pub fn prepare_streams<'a>(
 /// Undo each stream's lens distortion: its keypoints (normalized screen
 /// coordinates of the camera's image) become what a distortion-free
 /// camera with the same intrinsics shows, the pinhole picture the
-/// rectification and the served protocol assume.
+/// rectification and the served protocol assume. The input contract's
+/// step for a client that undistorts its own keypoints
+/// ([`ViewCalibration::undistort_frames`] with the camera's lens).
 pub fn undistort_streams<'a>(
     streams: &mut [EvalSequence],
     camera: &impl Fn(&str, &str) -> Option<&'a Camera>,
 ) -> Result<(), TrainError> {
-    use blapose_core::camera::{denormalize_screen, normalize_screen};
     for t in streams {
-        let cam = stream_camera(camera, t)?;
-        let k = cam.pixel_intrinsics();
-        for xy in t.input.chunks_exact_mut(2) {
-            let px = denormalize_screen([xy[0], xy[1]], cam.width, cam.height);
-            let u = k.undistort([f64::from(px[0]), f64::from(px[1])]);
-            let n = normalize_screen([u[0] as f32, u[1] as f32], cam.width, cam.height);
-            xy.copy_from_slice(&n);
-        }
+        ViewCalibration::from_camera_through_lens(stream_camera(camera, t)?)
+            .undistort_frames(&mut t.input);
     }
     Ok(())
 }

@@ -5,13 +5,13 @@
 
 use blapose_core::BoneLengths;
 use blapose_model::{LoadedWeights, ModelKind};
+use blapose_test_support::trials::random_trials;
 use blapose_train::dataset::EvalSequence;
 use blapose_train::eval::{
     evaluate, summarize, Estimate, GruEstimator, LengthEstimator, CURVE_FRAMES,
 };
 use blapose_train::fastnet::FastNet;
 use blapose_train::TrainError;
-use rand::{Rng, SeedableRng};
 
 fn trial(subject: &str, sequence: &str, gt: f32, frames: usize, marker: f32) -> EvalSequence {
     let mut input = vec![0.0f32; frames * 34];
@@ -94,22 +94,6 @@ fn aggregation_matches_hand_computation() {
     );
 }
 
-/// Trials of random keypoints, `lens` frames each.
-fn random_trials(seed: u64, lens: &[usize]) -> Vec<EvalSequence> {
-    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-    lens.iter()
-        .map(|&n| EvalSequence {
-            subject: "S9".into(),
-            sequence: "Walking 1".into(),
-            camera: "c".into(),
-            input: (0..n * 34)
-                .map(|_| rng.random_range(-0.8f32..0.8))
-                .collect(),
-            gt: [0.2; 16],
-        })
-        .collect()
-}
-
 #[test]
 fn online_estimate_is_the_running_mean_of_the_reference_network() {
     let w = LoadedWeights::random(ModelKind::Gru, 3).unwrap();
@@ -140,49 +124,4 @@ fn online_estimate_is_the_running_mean_of_the_reference_network() {
             }
         }
     }
-}
-
-#[test]
-fn restarting_the_state_averages_the_predictions_of_fresh_segments() {
-    let w = LoadedWeights::random(ModelKind::Gru, 5).unwrap();
-    let net = FastNet::from_tensors(ModelKind::Gru, w.tensors()).unwrap();
-    let est = GruEstimator::new(&w).unwrap().with_state_frames(Some(4));
-    let trials = random_trials(2, &[10, 4, 3]);
-    let out = est.estimate(&trials).unwrap();
-    let plain = GruEstimator::new(&w).unwrap().estimate(&trials).unwrap();
-    for ((t, e), p) in trials.iter().zip(&out).zip(&plain) {
-        let n = t.frames();
-        // Segments of 4 frames, each run from a fresh state.
-        let mut sums = [0.0f32; 16];
-        for start in (0..n).step_by(4) {
-            let len = 4.min(n - start);
-            let per = net.predict_per_frame(&t.input[start * 34..(start + len) * 34], 1, len);
-            for f in 0..len {
-                for j in 0..16 {
-                    sums[j] += per[f * 16 + j];
-                }
-            }
-        }
-        for j in 0..16 {
-            assert!(
-                (e.lengths[j] - sums[j] / n as f32).abs() < 1e-4,
-                "segment means differ"
-            );
-        }
-        if n > 4 {
-            assert_ne!(e.lengths, p.lengths, "a restart changes a long trial");
-        } else {
-            assert_eq!(e.lengths, p.lengths, "a short trial never restarts");
-        }
-    }
-    assert_eq!(
-        GruEstimator::new(&w)
-            .unwrap()
-            .with_state_frames(Some(0))
-            .estimate(&trials)
-            .unwrap()[0]
-            .lengths,
-        plain[0].lengths,
-        "0 means never"
-    );
 }

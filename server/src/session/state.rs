@@ -32,7 +32,7 @@ pub use blapose_core::layouts::InputFormat;
 /// A session's camera: the calibration as the client sent it (echoed on
 /// open and resume, carried by session tokens) and the camera the
 /// camera-aware model reads the session's keypoints through
-/// ([`crate::prepare::session_camera`]).
+/// ([`crate::validate::camera`], built once when the calibration arrives).
 #[derive(Debug, Clone, PartialEq)]
 pub struct SessionCamera {
     /// As sent in `OpenSession.camera`.

@@ -27,7 +27,7 @@ use blapose_proto::convert::{model_from_proto, sex_from_proto};
 use blapose_proto::v1 as pb;
 
 use crate::backend::INPUT_DIM;
-use crate::session::InputFormat;
+use crate::session::{InputFormat, SessionCamera};
 
 mod invalid;
 
@@ -73,30 +73,20 @@ pub fn input_format_to_proto(spec: &InputFormat) -> pb::InputFormat {
     (*spec).into()
 }
 
-/// A checked calibration: as the client sent it (echoed on open and
-/// resume, carried by session tokens) and as the models' input contract
-/// reads it.
-#[derive(Debug, Clone, PartialEq)]
-pub struct ValidCamera {
-    /// As sent.
-    pub calibration: pb::CameraCalibration,
-    /// Its view: up, intrinsics and image size, the camera height when
-    /// given, and the lens when it has one.
-    pub view: ViewCalibration,
-}
-
 /// Validate an optional `CameraCalibration` against the input format and
 /// `served`, the camera-aware models' input contract (`None` when the
 /// server has no camera-aware models: a calibration is then refused): a
 /// plausible camera height, and one when the contract scales to the floor;
 /// three values of up; the image the pixels refer to; a calibration that
 /// rectifies; a lens model that inverts over the image; a camera inside the
-/// ones the models were trained through.
+/// ones the models were trained through. The camera the contract reads the
+/// keypoints through is built here, once: a session keeps it for its life
+/// ([`SessionCamera::input`]), a sequence request for its frames.
 pub fn camera(
     calibration: Option<&pb::CameraCalibration>,
     spec: &InputFormat,
     served: Option<&ModelInput>,
-) -> Result<Option<ValidCamera>, InvalidInput> {
+) -> Result<Option<SessionCamera>, InvalidInput> {
     let Some(c) = calibration else {
         return Ok(None);
     };
@@ -139,17 +129,22 @@ pub fn camera(
         camera_height: (height != 0.0).then_some(height),
         lens: None,
     };
-    // The calibration must rectify; checked before the lens, whose model
-    // the contract's camera applies on top of the level one.
-    served.camera(&view)?;
+    // The calibration must rectify; checked before the lens, which the
+    // contract's camera then undoes on top of the level one.
+    let input = served.camera(&view)?;
     view.lens =
         LensDistortion::checked(&c.distortion, view.focal, view.principal, Some(image_size))
             .map_err(InvalidInput::CameraDistortion)?;
     served
         .admits(&view)
         .map_err(InvalidInput::OutsideTrainedCameras)?;
-    Ok(Some(ValidCamera {
+    let input = match (input, view.lens) {
+        (Some(input), Some(lens)) => Some(input.with_lens(lens)),
+        (input, _) => input,
+    };
+    Ok(Some(SessionCamera {
         calibration: c.clone(),
+        input,
         view,
     }))
 }
@@ -414,7 +409,7 @@ pub struct ValidSequence {
     /// One pose per frame.
     pub poses: Vec<Pose>,
     /// The request's calibration, when it sent one.
-    pub camera: Option<ValidCamera>,
+    pub camera: Option<SessionCamera>,
 }
 
 /// Validate an `AdjustSequenceRequest` (`camera_aware`: the server's

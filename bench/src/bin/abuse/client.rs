@@ -180,6 +180,25 @@ pub(crate) fn rss(pid: u32) -> Result<u64> {
 }
 
 pub(crate) const MAX_RSS_GROWTH: u64 = 64 << 20;
+
+/// The server's memory growth over a case (bytes), printed.
+pub(crate) fn rss_growth(before: u64, after: u64) -> u64 {
+    let growth = after.saturating_sub(before);
+    println!(
+        "  server RSS growth: {:.1} MB",
+        growth as f64 / (1 << 20) as f64
+    );
+    growth
+}
+
+/// The bound on a case's memory growth ([`MAX_RSS_GROWTH`]).
+pub(crate) fn check_growth(growth: u64) -> Result<()> {
+    ensure!(
+        growth <= MAX_RSS_GROWTH,
+        "server RSS grew {growth} bytes (bound {MAX_RSS_GROWTH})"
+    );
+    Ok(())
+}
 pub(crate) const HEALTHY_FRAMES: usize = 300;
 
 /// The least p99 bound: server/README.md measured a 4-5 ms p99 on the

@@ -7,6 +7,8 @@
 //! abuse sessions --server URL --server-pid PID --header x-blapose-client --limit 8
 //! abuse token    --server URL --replica URL --token-ttl 4
 //! abuse bomb     --out bomb.npz
+//! abuse headers  --server URL --server-pid PID --count 120000
+//! abuse idle     --server URL --server-pid PID --connections 2000
 //! ```
 //!
 //! Every case that has a victim measures a *healthy client*: its own
@@ -33,11 +35,19 @@
 //!   `--token-ttl`) and reported.
 //! - `bomb`: writes a replay file with a 2 GiB zero member deflated to
 //!   about 2 MB (used as `pose_3d`), for the script to run the client on.
+//! - `headers` (by hand, not in the script): one raw HTTP/2 connection
+//!   sends HEADERS frames for the stream method as fast as the socket takes
+//!   them, ignoring SETTINGS_MAX_CONCURRENT_STREAMS ([`raw`]).
+//! - `idle` (by hand, not in the script): TCP connections from 127.0.0.2-9
+//!   that never send the HTTP/2 preface (the server closes them at its
+//!   `--handshake-timeout`); the healthy client comes from 127.0.0.1.
 //!
 //! A limit the server does not enforce fails the case with "not enforced".
 
 use std::io::Write;
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{ensure, Context, Result};
@@ -51,10 +61,11 @@ use tonic::transport::Channel;
 use tonic::Code;
 
 mod client;
+mod raw;
 
 use client::{
-    check_latency, connect, frames, healthy, open, opened, round_trip, rss, start, Stream,
-    HEALTHY_FRAMES, MAX_RSS_GROWTH,
+    check_growth, check_latency, connect, frames, healthy, open, opened, round_trip, rss,
+    rss_growth, start, Stream, HEALTHY_FRAMES,
 };
 
 /// Abuse cases against a running blapose server.
@@ -119,6 +130,30 @@ enum Case {
         #[arg(long)]
         out: PathBuf,
     },
+    /// HEADERS frames on one raw connection, past the stream limit.
+    Headers {
+        /// The server.
+        #[arg(long)]
+        server: String,
+        /// Its process id (for its memory).
+        #[arg(long)]
+        server_pid: u32,
+        /// HEADERS frames to send.
+        #[arg(long, default_value_t = 120_000)]
+        count: u32,
+    },
+    /// Connections that never send the HTTP/2 preface.
+    Idle {
+        /// The server.
+        #[arg(long)]
+        server: String,
+        /// Its process id (for its memory).
+        #[arg(long)]
+        server_pid: u32,
+        /// Connections to open.
+        #[arg(long, default_value_t = 2000)]
+        connections: u32,
+    },
 }
 
 async fn streams(url: &str, pid: u32, n: usize, limit: usize) -> Result<()> {
@@ -172,20 +207,13 @@ async fn streams(url: &str, pid: u32, n: usize, limit: usize) -> Result<()> {
     for t in &tasks {
         t.abort();
     }
-    let growth = rss_after.saturating_sub(rss_before);
     println!(
         "  sessions open at once on the connection: {open_now} (refused {refused}, waiting {})",
         n - open_now - refused
     );
-    println!(
-        "  server RSS growth: {:.1} MB",
-        growth as f64 / (1 << 20) as f64
-    );
+    let growth = rss_growth(rss_before, rss_after);
     latency?;
-    ensure!(
-        growth <= MAX_RSS_GROWTH,
-        "server RSS grew {growth} bytes (bound {MAX_RSS_GROWTH})"
-    );
+    check_growth(growth)?;
     ensure!(
         open_now <= limit,
         "not enforced: {open_now} streams open at once on one connection, limit {limit}"
@@ -236,18 +264,14 @@ async fn sessions(url: &str, pid: u32, header: &str, attempts: usize, limit: usi
     stop.store(true, std::sync::atomic::Ordering::Relaxed);
     let (held, exhausted, other, attempts) = attacker.await??;
     let rss_after = rss(pid)?;
-    let growth = rss_after.saturating_sub(rss_before);
     println!(
         "  attacker tried {attempts} opens: holds {} sessions, {exhausted} RESOURCE_EXHAUSTED, {other} other refusals",
         held.len()
     );
-    println!(
-        "  server RSS growth: {:.1} MB",
-        growth as f64 / (1 << 20) as f64
-    );
+    let growth = rss_growth(rss_before, rss_after);
     drop(held);
     latency?;
-    ensure!(growth <= MAX_RSS_GROWTH, "server RSS grew {growth} bytes");
+    check_growth(growth)?;
     ensure!(
         exhausted > 0 && attempts - exhausted - other <= limit,
         "not enforced: one client opened {} sessions, limit {limit}",
@@ -404,6 +428,56 @@ async fn token(url: &str, replica: &str, ttl: Duration) -> Result<()> {
     Ok(())
 }
 
+/// A raw abuse ([`raw`]) while the healthy client runs: its p99 against
+/// its baseline and the server's memory growth, as every case checks them.
+/// `abuse` starts the abuser once the baseline is measured; it is stopped
+/// (its connections dropped) after.
+async fn raw_case<F, Fut>(url: &str, pid: u32, what: &str, abuse: F) -> Result<()>
+where
+    F: FnOnce(std::net::SocketAddr, Arc<AtomicBool>) -> Fut,
+    Fut: std::future::Future<Output = Result<raw::Abuser>>,
+{
+    println!("case {what}");
+    let addr = raw::socket_addr(url).await?;
+    let baseline = healthy(url, None, HEALTHY_FRAMES).await?;
+    let rss_before = rss(pid)?;
+    let stop = Arc::new(AtomicBool::new(false));
+    let abuser = abuse(addr, stop.clone()).await?;
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let latency = check_latency(url, None, &baseline).await;
+    let rss_after = rss(pid)?;
+    stop.store(true, Ordering::Relaxed);
+    abuser.stop().await;
+    let growth = rss_growth(rss_before, rss_after);
+    latency?;
+    check_growth(growth)
+}
+
+/// `count` HEADERS frames on one raw connection ([`raw::flood_headers`]).
+async fn headers(url: &str, pid: u32, count: u32) -> Result<()> {
+    let sent = Arc::new(AtomicU64::new(0));
+    let what = format!("headers: {count} HEADERS frames on one raw connection");
+    let counted = sent.clone();
+    raw_case(url, pid, &what, |addr, stop| async move {
+        let task = tokio::spawn(raw::flood_headers(addr, count, stop, counted));
+        Ok(raw::Abuser::Task(task))
+    })
+    .await?;
+    println!("  HEADERS frames written: {}", sent.load(Ordering::Relaxed));
+    Ok(())
+}
+
+/// `n` connections without a preface ([`raw::idle_connections`]).
+async fn idle(url: &str, pid: u32, n: u32) -> Result<()> {
+    let what = format!("idle: {n} connections that never send the HTTP/2 preface");
+    raw_case(url, pid, &what, |addr, _| async move {
+        let held = raw::idle_connections(addr, n).await?;
+        println!("  connections opened: {}", held.len());
+        Ok(raw::Abuser::Held(held))
+    })
+    .await
+}
+
 /// The zip-bomb replay file: a valid replay file whose `pose_3d` is a
 /// right header followed by 2 GiB of zeros (about 2 MB deflated).
 fn bomb(out: &PathBuf) -> Result<()> {
@@ -471,6 +545,16 @@ async fn main() -> Result<()> {
             token_ttl,
         } => token(server, replica, Duration::from_secs_f64(*token_ttl)).await?,
         Case::Bomb { out } => bomb(out)?,
+        Case::Headers {
+            server,
+            server_pid,
+            count,
+        } => headers(server, *server_pid, *count).await?,
+        Case::Idle {
+            server,
+            server_pid,
+            connections,
+        } => idle(server, *server_pid, *connections).await?,
     }
     println!("  ok ({:.1} s)", start.elapsed().as_secs_f64());
     Ok(())

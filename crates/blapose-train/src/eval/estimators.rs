@@ -141,12 +141,16 @@ pub fn calibrate<'a>(
     prepare_streams(trials, &input, &camera)
 }
 
+/// Which frames the online GRU's hidden state restarts (from zeros)
+/// before: `restart(t)` for frame `t` of a trial, the running mean of
+/// predictions carrying on ([`GruEstimator::with_state_restarts`]).
+pub type StateRestarts = std::sync::Arc<dyn Fn(usize) -> bool + Send + Sync>;
+
 /// The online GRU's running mean of per-frame predictions.
 pub struct GruEstimator {
     engine: OnlineGruEngine,
-    /// Restart the hidden state every this many frames (the running mean
-    /// of predictions carries on); `None`: never.
-    state_frames: Option<usize>,
+    /// Before which frames the hidden state restarts; `None`: never.
+    restarts: Option<StateRestarts>,
 }
 
 impl GruEstimator {
@@ -163,16 +167,17 @@ impl GruEstimator {
     ) -> Result<Self, TrainError> {
         Ok(Self {
             engine: OnlineGruEngine::with_options(weights, engine_options(precision))?,
-            state_frames: None,
+            restarts: None,
         })
     }
 
-    /// The same estimator restarting its hidden state every `frames`
-    /// frames (`None` or 0: never): a diagnostic (`blapose-lab diagnose
-    /// --state-frames`), kept here because it lives inside the lockstep
-    /// loop.
-    pub fn with_state_frames(mut self, frames: Option<usize>) -> Self {
-        self.state_frames = frames.filter(|&f| f > 0);
+    /// The same estimator restarting its hidden state before the frames
+    /// `restarts` names. The lockstep loop is the one place a state lives
+    /// through a trial, so this is where a caller can restart it; which
+    /// frames (e.g. `blapose-lab diagnose --state-frames`) is the
+    /// caller's.
+    pub fn with_state_restarts(mut self, restarts: StateRestarts) -> Self {
+        self.restarts = Some(restarts);
         self
     }
 
@@ -199,7 +204,7 @@ impl GruEstimator {
             .collect();
         let mut scratch = self.engine.scratch(b);
         for t in 0..longest {
-            if self.state_frames.is_some_and(|k| t > 0 && t % k == 0) {
+            if self.restarts.as_ref().is_some_and(|restart| restart(t)) {
                 hidden.fill(0.0);
             }
             for (i, tr) in group.iter().enumerate() {

@@ -43,7 +43,7 @@ use std::collections::BTreeMap;
 use blapose_core::skeleton::BONE_NAMES;
 use blapose_core::BoneLengths;
 
-pub use estimators::{calibrate, BiGruEstimator, FlipAveraged, GruEstimator};
+pub use estimators::{calibrate, BiGruEstimator, FlipAveraged, GruEstimator, StateRestarts};
 pub use report::{
     markdown, subject_spread, summarize, trial_error_mm, CurvePoint, EvalReport, SubjectMean,
     SubjectSpread, Summary, TrialPrediction,

@@ -12,7 +12,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use blapose_lab::diagnose::{rectified, skipped, DiagnoseReport};
+use blapose_lab::diagnose::{rectified, skipped, state_frames, DiagnoseReport};
 use blapose_lab::joint_dropout::score_with_lost_joints;
 use blapose_lab::stature_proxy::{stature_answers, StatureSource};
 use blapose_model::stature::StatureModel;
@@ -110,10 +110,10 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
     let weights = blapose_model::weights::load(weights_path, kind)?;
     let score = |trials| {
         let estimator: Box<dyn LengthEstimator> = match kind {
-            ModelKind::Gru => Box::new(
-                GruEstimator::with_precision(&weights, a.run.precision)?
-                    .with_state_frames(a.state_frames),
-            ),
+            ModelKind::Gru => Box::new(state_frames(
+                GruEstimator::with_precision(&weights, a.run.precision)?,
+                a.state_frames,
+            )),
             ModelKind::BiGru => network_estimator(kind, &weights, a.run.precision)?,
         };
         data.score(kind, estimator, &weights, weights_path, trials)

@@ -1,5 +1,4 @@
-//! Test support: a gate that holds a fake model's steps, and a constant
-//! model.
+//! A gate that holds a fake model's steps.
 //!
 //! Tests of batching, backpressure and shutdown need frames provably
 //! waiting inside the server at a chosen moment. Sleeping in a fake model
@@ -72,45 +71,6 @@ impl StepGate {
         self.state
             .lock()
             .unwrap_or_else(|poisoned| poisoned.into_inner())
-    }
-}
-
-/// A model that answers every step and sequence with the same lengths
-/// (0.25 m each): for tests of what happens around the model (transport,
-/// limits, metrics), where its answers do not matter.
-#[derive(Debug, Default, Clone, Copy)]
-pub struct ConstantModel;
-
-impl crate::backend::Backend for ConstantModel {
-    fn step(
-        &mut self,
-        _: &[f32],
-        _: &mut [f32],
-        out: &mut [f32],
-        _: usize,
-    ) -> Result<(), crate::backend::BackendError> {
-        out.fill(0.25);
-        Ok(())
-    }
-}
-
-impl crate::backend::SequenceBackend for ConstantModel {
-    fn predict(&mut self, _: &[f32], _: usize) -> Result<[f32; 16], crate::backend::BackendError> {
-        Ok([0.25; 16])
-    }
-}
-
-impl crate::ModelProvider for ConstantModel {
-    fn online(&self) -> Result<Box<dyn crate::backend::Backend>, crate::backend::BackendError> {
-        Ok(Box::new(ConstantModel))
-    }
-    fn offline(
-        &self,
-    ) -> Result<Box<dyn crate::backend::SequenceBackend>, crate::backend::BackendError> {
-        Ok(Box::new(ConstantModel))
-    }
-    fn describe(&self) -> Vec<blapose_proto::v1::ModelDescription> {
-        Vec::new()
     }
 }
 

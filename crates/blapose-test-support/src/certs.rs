@@ -5,15 +5,13 @@
 //! openssl the test is skipped with a message, except under `CI=true`,
 //! where that is a failure.
 
-#![allow(dead_code)]
-
 use std::path::PathBuf;
 use std::process::Command;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use blapose_server::testing::ConstantModel;
+use crate::model::ConstantModel;
 use blapose_server::transport::ConnectionLimits;
 use blapose_server::{ServerConfig, ServerHandle, TlsFiles};
 

@@ -4,8 +4,6 @@
 //! tonic clients refuse to (they queue streams and check sizes), so these
 //! tests write the frames themselves (RFC 9113, HPACK literals of RFC 7541).
 
-#![allow(dead_code)]
-
 use std::time::Duration;
 
 use tokio::io::{AsyncReadExt, AsyncWriteExt};

@@ -1,9 +1,7 @@
-//! What the fuzz tests share (included with `#[path]` by the fuzz tests of
-//! blapose-core, blapose-data and blapose-server): a fixed-seed proptest
-//! configuration that `PROPTEST_CASES` lengthens, and byte mutations of
-//! valid inputs (files, tokens), so that each test states only its target.
-
-#![allow(dead_code)]
+//! What the fuzz tests of blapose-core, blapose-data and blapose-server
+//! share: a fixed-seed proptest configuration that `PROPTEST_CASES`
+//! lengthens, and byte mutations of valid inputs (files, tokens), so that
+//! each test states only its target.
 
 use proptest::prelude::*;
 use proptest::test_runner::RngSeed;

@@ -1,0 +1,266 @@
+// The live page: the camera -> MediaPipe Pose in this browser -> COCO-17 keypoints
+// (pixels, with each landmark's visibility as confidence, and the image size) -> one
+// blapose session over the server's WebSocket, which carries the same
+// StreamRequest / StreamResponse messages as gRPC's Stream. The server lifts the
+// keypoints (server_lifter), adjusts the bone lengths and runs the causal motion
+// stage; the page draws the adjusted skeleton (three.js), the bone lengths as they
+// settle, frames/s and the capture-to-answer latency. Its figures are
+// window.blapose.stats, which the browser test reads.
+import * as THREE from "./vendor/three/three.module.js";
+
+const WS_PATH = "/v1/stream";
+// MediaPipe Pose landmark of each COCO-17 joint, in COCO order.
+const COCO_FROM_MEDIAPIPE = [0, 2, 5, 7, 8, 11, 12, 13, 14, 15, 16, 23, 24, 25, 26, 27, 28];
+// Human3.6M-17 parents (the answers' joint order).
+const PARENTS = [-1, 0, 1, 2, 0, 4, 5, 0, 7, 8, 9, 8, 11, 12, 8, 14, 15];
+// Frames in flight at most: a slow server or network costs frames, never a queue.
+const MAX_IN_FLIGHT = 4;
+const HISTORY = 150;
+
+const stats = {
+  frames_sent: 0,
+  frames_answered: 0,
+  frames_skipped: 0,
+  detections: 0,
+  camera_frames: 0,
+  errors: 0,
+  last_error: null,
+  fps: 0,
+  latency_p50_ms: null,
+  latency_p99_ms: null,
+  lengths_m: null,
+  lengths_std_mm_last_50: null,
+  session_id: null,
+  smoother: null,
+};
+let paused = false;
+window.blapose = { stats, pause: () => { paused = true; }, resume: () => { paused = false; } };
+
+const statusEl = document.getElementById("status");
+const status = (text) => { statusEl.textContent = text; };
+const fail = (text) => { status("error: " + text); stats.errors++; stats.last_error = text; };
+
+// ---- the protocol: the server's own proto, field names as written there --------------
+const protoText = await (await fetch("blapose.proto")).text();
+const root = protobuf.parse(protoText, { keepCase: true }).root;
+const Req = root.lookupType("blapose.v1.StreamRequest");
+const Resp = root.lookupType("blapose.v1.StreamResponse");
+const encode = (msg) => Req.encode(Req.create(msg)).finish();
+
+// ---- the camera ------------------------------------------------------------------------
+const video = document.getElementById("video");
+try {
+  video.srcObject = await navigator.mediaDevices.getUserMedia({ video: { width: 640, height: 480 }, audio: false });
+  await video.play();
+} catch (e) {
+  fail("no camera: " + e.message);
+  throw e;
+}
+const W = video.videoWidth, H = video.videoHeight;
+
+// ---- the session -------------------------------------------------------------------------
+let ws = null, opened = false, nextIndex = 0;
+const sentAt = new Map();
+function subject() {
+  const h = parseFloat(document.getElementById("height").value);
+  const sex = parseInt(document.getElementById("sex").value, 10) || 0;
+  return Number.isFinite(h) ? { height_m: h, sex } : undefined;
+}
+function connect() {
+  const token = new URLSearchParams(location.search).get("token");
+  const scheme = location.protocol === "https:" ? "wss" : "ws";
+  ws = new WebSocket(`${scheme}://${location.host}${WS_PATH}` + (token ? `?token=${encodeURIComponent(token)}` : ""));
+  ws.binaryType = "arraybuffer";
+  opened = false;
+  sentAt.clear();
+  const socket = ws;
+  ws.onopen = () => socket.send(encode({
+    open: {
+      input_format: { layout: 3, image_size: { width: W, height: H } }, // COCO-17, pixels
+      server_lifter: true,
+      client_label: "live page",
+      motion: { enabled: true, frame_rate_hz: 30 },
+      subject: subject(),
+    },
+  }));
+  ws.onmessage = (ev) => answer(Resp.toObject(Resp.decode(new Uint8Array(ev.data)), { longs: Number, defaults: true }));
+  ws.onclose = (ev) => {
+    if (socket !== ws) return;
+    opened = false;
+    status(`disconnected (${ev.code}${ev.reason ? ": " + ev.reason : ""}); reconnecting`);
+    setTimeout(connect, 1000);
+  };
+}
+document.getElementById("person").addEventListener("submit", (ev) => {
+  ev.preventDefault();
+  const old = ws;
+  connect();
+  old.close();
+});
+
+// ---- answers -------------------------------------------------------------------------------
+const latencies = [], answeredAt = [], lengthHistory = [];
+function percentile(values, p) {
+  const s = [...values].sort((a, b) => a - b);
+  return s.length ? s[Math.min(s.length - 1, Math.floor(p * s.length))] : null;
+}
+function answer(msg) {
+  if (msg.opened) {
+    opened = true;
+    stats.session_id = msg.opened.session_id;
+    stats.smoother = msg.opened.motion ? msg.opened.motion.smoother || "on" : null;
+    status(`live: session ${msg.opened.session_id.slice(0, 8)}, lifter ${msg.opened.lifter || "?"}`);
+    return;
+  }
+  if (msg.error) {
+    sentAt.delete(msg.error.frame_index);
+    stats.errors++;
+    stats.last_error = msg.error.message;
+    return;
+  }
+  if (!msg.frame) return;
+  const f = msg.frame, now = performance.now();
+  const t0 = sentAt.get(f.frame_index);
+  sentAt.delete(f.frame_index);
+  stats.frames_answered++;
+  if (t0 !== undefined) latencies.push(now - t0);
+  if (latencies.length > 300) latencies.shift();
+  answeredAt.push(now);
+  while (answeredAt.length && answeredAt[0] < now - 2000) answeredAt.shift();
+  stats.fps = answeredAt.length / 2;
+  stats.latency_p50_ms = percentile(latencies, 0.5);
+  stats.latency_p99_ms = percentile(latencies, 0.99);
+  stats.lengths_m = f.bone_lengths;
+  lengthHistory.push(f.bone_lengths);
+  if (lengthHistory.length > HISTORY) lengthHistory.shift();
+  const last = lengthHistory.slice(-50);
+  if (last.length === 50) {
+    let worst = 0;
+    for (let b = 0; b < 16; b++) {
+      const m = last.reduce((s, l) => s + l[b], 0) / 50;
+      worst = Math.max(worst, Math.sqrt(last.reduce((s, l) => s + (l[b] - m) ** 2, 0) / 50));
+    }
+    stats.lengths_std_mm_last_50 = worst * 1000;
+  }
+  drawSkeleton(f.adjusted_pose_3d);
+}
+
+// ---- MediaPipe Pose, frame by frame ------------------------------------------------------------
+const overlay = document.getElementById("overlay");
+let captureTime = 0;
+function onPose(results) {
+  stats.camera_frames++;
+  overlay.width = W; overlay.height = H;
+  const g = overlay.getContext("2d");
+  g.clearRect(0, 0, W, H);
+  const lm = results.poseLandmarks;
+  if (!lm) return;
+  stats.detections++;
+  const kp = [], conf = [];
+  for (const i of COCO_FROM_MEDIAPIPE) {
+    kp.push(lm[i].x * W, lm[i].y * H);
+    conf.push(Math.min(1, Math.max(0, lm[i].visibility ?? 1)));
+  }
+  g.fillStyle = "#22c55e";
+  for (let j = 0; j < 17; j++) { g.beginPath(); g.arc(kp[2 * j], kp[2 * j + 1], 4, 0, 2 * Math.PI); g.fill(); }
+  if (paused || !opened || ws.readyState !== WebSocket.OPEN || !kp.every(Number.isFinite)) return;
+  if (sentAt.size >= MAX_IN_FLIGHT) { stats.frames_skipped++; return; }
+  const index = nextIndex++;
+  sentAt.set(index, captureTime);
+  ws.send(encode({ frame: { frame_index: index, keypoints_2d: kp, confidence: conf } }));
+  stats.frames_sent++;
+}
+const pose = new Pose({ locateFile: (f) => `vendor/mediapipe/${f}` });
+pose.setOptions({ modelComplexity: 0, smoothLandmarks: true, minDetectionConfidence: 0.5, minTrackingConfidence: 0.5 });
+pose.onResults(onPose);
+await pose.initialize();
+connect();
+(async function loop() {
+  for (;;) {
+    if (video.readyState >= 2) {
+      captureTime = performance.now();
+      try { await pose.send({ image: video }); } catch (e) { fail("pose: " + e.message); }
+    }
+    await new Promise((r) => requestAnimationFrame(r));
+  }
+})();
+
+// ---- the 3D view ---------------------------------------------------------------------------------
+const holder = document.getElementById("view3d");
+const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+renderer.setPixelRatio(window.devicePixelRatio || 1);
+holder.append(renderer.domElement);
+const scene = new THREE.Scene();
+scene.background = new THREE.Color(0xf1f3f7);
+const camera = new THREE.PerspectiveCamera(40, 4 / 3, 0.1, 50);
+camera.position.set(1.6, 0.4, 3.2);
+camera.lookAt(0, -0.1, 0);
+const grid = new THREE.GridHelper(4, 16, 0x8a94a6, 0xc9ced8);
+grid.position.y = -0.95;
+scene.add(grid);
+const bones = new THREE.BufferGeometry();
+bones.setAttribute("position", new THREE.BufferAttribute(new Float32Array(16 * 2 * 3), 3));
+bones.setAttribute("color", new THREE.BufferAttribute(new Float32Array(16 * 2 * 3), 3));
+scene.add(new THREE.LineSegments(bones, new THREE.LineBasicMaterial({ vertexColors: true, linewidth: 3 })));
+const joints = new THREE.InstancedMesh(new THREE.SphereGeometry(0.025, 12, 8), new THREE.MeshBasicMaterial({ color: 0x1d2330 }), 17);
+scene.add(joints);
+const LEFT = new Set([4, 5, 6, 11, 12, 13]), RIGHT = new Set([1, 2, 3, 14, 15, 16]);
+function resize3d() {
+  const w = holder.clientWidth, h = holder.clientHeight;
+  renderer.setSize(w, h, false);
+  renderer.domElement.style.width = "100%"; renderer.domElement.style.height = "100%";
+  camera.aspect = w / h; camera.updateProjectionMatrix();
+}
+window.addEventListener("resize", resize3d);
+resize3d();
+// Camera axes (x right, y down, z forward) to three's (y up, z towards the viewer).
+const toScene = (p, j) => [p[3 * j], -p[3 * j + 1], -p[3 * j + 2]];
+function drawSkeleton(p) {
+  if (!p || p.length !== 51) return;
+  const pos = bones.attributes.position.array, col = bones.attributes.color.array;
+  const m = new THREE.Matrix4();
+  for (let j = 0; j < 17; j++) { const [x, y, z] = toScene(p, j); m.makeTranslation(x, y, z); joints.setMatrixAt(j, m); }
+  joints.instanceMatrix.needsUpdate = true;
+  for (let b = 0; b < 16; b++) {
+    const c = b + 1, pa = PARENTS[c];
+    pos.set([...toScene(p, pa), ...toScene(p, c)], 6 * b);
+    const rgb = LEFT.has(c) ? [0.15, 0.39, 0.92] : RIGHT.has(c) ? [0.86, 0.15, 0.15] : [0.22, 0.25, 0.32];
+    col.set([...rgb, ...rgb], 6 * b);
+  }
+  bones.attributes.position.needsUpdate = true;
+  bones.attributes.color.needsUpdate = true;
+  bones.computeBoundingSphere();
+}
+
+// ---- figures and the lengths chart, a few times a second ------------------------------------------
+const chart = document.getElementById("lengths");
+function drawLengths() {
+  const dpr = window.devicePixelRatio || 1;
+  chart.width = chart.clientWidth * dpr; chart.height = chart.clientHeight * dpr;
+  const g = chart.getContext("2d"), w = chart.width, h = chart.height;
+  g.clearRect(0, 0, w, h);
+  if (lengthHistory.length < 2) return;
+  let lo = Infinity, hi = -Infinity;
+  for (const l of lengthHistory) for (const v of l) { lo = Math.min(lo, v); hi = Math.max(hi, v); }
+  const y = (v) => h - 6 * dpr - (v - lo) / Math.max(hi - lo, 1e-3) * (h - 12 * dpr);
+  const x = (i) => i / (HISTORY - 1) * w;
+  for (let b = 0; b < 16; b++) {
+    g.strokeStyle = `hsl(${(b * 360) / 16}, 60%, 45%)`; g.lineWidth = 1.5 * dpr; g.beginPath();
+    lengthHistory.forEach((l, i) => (i ? g.lineTo(x(i), y(l[b])) : g.moveTo(x(i), y(l[b]))));
+    g.stroke();
+  }
+  g.fillStyle = "#667085"; g.font = `${11 * dpr}px system-ui`;
+  g.fillText(`${(hi * 1000).toFixed(0)}`, 4 * dpr, 12 * dpr); g.fillText(`${(lo * 1000).toFixed(0)}`, 4 * dpr, h - 4 * dpr);
+}
+const fmt = (v, d = 1) => (v == null ? "-" : v.toFixed(d));
+(function frame() {
+  renderer.render(scene, camera);
+  requestAnimationFrame(frame);
+})();
+setInterval(() => {
+  drawLengths();
+  document.getElementById("fps").textContent = fmt(stats.fps);
+  document.getElementById("latency").textContent = `${fmt(stats.latency_p50_ms)} / ${fmt(stats.latency_p99_ms)} ms`;
+  document.getElementById("counts").textContent = `${stats.frames_sent} / ${stats.frames_answered} / ${stats.errors}`;
+  document.getElementById("spread").textContent = stats.lengths_std_mm_last_50 == null ? "-" : `${fmt(stats.lengths_std_mm_last_50, 2)} mm (largest bone)`;
+}, 250);
