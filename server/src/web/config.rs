@@ -12,7 +12,7 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 
-/// Where the page is built (`cd web && npm ci && npm run build`), relative
+/// Where the page is built (`cd web && npm ci`), relative
 /// to the directory the server starts in.
 pub const DEFAULT_WEB_DIR: &str = "web/dist";
 
@@ -32,7 +32,7 @@ pub struct WebArgs {
     pub web_addr: Option<SocketAddr>,
 
     /// With --web-addr: the built page served at / (build it with
-    /// `cd web && npm ci && npm run build`).
+    /// `cd web && npm ci`).
     #[arg(long, env = "BLAPOSE_WEB_DIR", value_name = "DIR", default_value = DEFAULT_WEB_DIR)]
     pub web_dir: PathBuf,
 }

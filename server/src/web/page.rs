@@ -1,5 +1,5 @@
-//! The live page at `/`: the built files (`web/dist`, made by npm in a
-//! later step) when they exist, otherwise a short page that says which
+//! The live page at `/`: the built files (`web/dist`, assembled by
+//! `npm ci` in `web/`) when they exist, otherwise a short page that says which
 //! command builds them, so that a person who starts the server with
 //! `--web-addr` before building learns what is missing from the browser
 //! as well as from the log. The WebSocket works either way.
@@ -12,7 +12,7 @@ use axum::Router;
 use tower_http::services::ServeDir;
 
 /// The command that builds the page, from the repository root.
-pub const BUILD_COMMAND: &str = "cd web && npm ci && npm run build";
+pub const BUILD_COMMAND: &str = "cd web && npm ci";
 
 /// What `/` serves: `dir` (index.html at `/`, 404 for a missing file) if
 /// it holds a built page; otherwise every path answers the build hint,
