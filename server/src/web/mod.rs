@@ -128,6 +128,9 @@ async fn accept(
                 }
             },
         };
+        // Answers are small and latency matters more than packets, as on
+        // the gRPC listener.
+        let _ = tcp.set_nodelay(true);
         let permit = match connections.admit(peer.ip()) {
             Ok(permit) => Arc::new(permit),
             Err(refusal) => {
