@@ -83,7 +83,16 @@ function connect() {
       subject: subject(),
     },
   }));
-  ws.onmessage = (ev) => answer(Resp.toObject(Resp.decode(new Uint8Array(ev.data)), { longs: Number, defaults: true }));
+  ws.onmessage = (ev) => {
+    // A text message is the stream's final error status (then the socket closes with 4000 + its code).
+    if (typeof ev.data === "string") {
+      const s = JSON.parse(ev.data);
+      stats.errors++;
+      stats.last_error = `${s.status}: ${s.message}`;
+      return;
+    }
+    answer(Resp.toObject(Resp.decode(new Uint8Array(ev.data)), { longs: Number, defaults: true }));
+  };
   ws.onclose = (ev) => {
     if (socket !== ws) return;
     opened = false;
