@@ -31,7 +31,7 @@ const stats = {
   lengths_m: null,
   lengths_std_mm_last_50: null,
   session_id: null,
-  smoother: null,
+  motion: false,
 };
 let paused = false;
 window.blapose = { stats, pause: () => { paused = true; }, resume: () => { paused = false; } };
@@ -117,7 +117,7 @@ function answer(msg) {
   if (msg.opened) {
     opened = true;
     stats.session_id = msg.opened.session_id;
-    stats.smoother = msg.opened.motion ? msg.opened.motion.smoother || "on" : null;
+    stats.motion = !!(msg.opened.motion && msg.opened.motion.enabled);
     status(`live: session ${msg.opened.session_id.slice(0, 8)}, lifter ${msg.opened.lifter || "?"}`);
     return;
   }
