@@ -8,7 +8,10 @@
 //! connections from the peers named by `--trusted-proxies` (anyone else
 //! could set it to whatever escapes their limit). The bearer token is not
 //! an identity: the server has one shared `--auth-token`, so it would put
-//! every authenticated client in one bucket. The identity is hashed
+//! every authenticated client in one bucket. Addresses, the peer's and the
+//! trusted proxies', are compared in canonical form (an IPv4-mapped IPv6
+//! address as its IPv4 address), so a dual-stack listener (`[::]`) sees
+//! the balancer at the address it was configured with. The identity is hashed
 //! (SHA-256, 16 bytes) so the store never holds an address or header value.
 //!
 //! The limits: sessions per client (a fraction of `--max-sessions` by
@@ -85,7 +88,10 @@ impl Limits {
             client_header: client_header
                 .map(|h| h.trim().to_ascii_lowercase())
                 .filter(|h| !h.is_empty()),
-            trusted_proxies,
+            trusted_proxies: trusted_proxies
+                .into_iter()
+                .map(|ip| ip.to_canonical())
+                .collect(),
         }
     }
 
@@ -103,6 +109,7 @@ impl Limits {
 
     /// The identity string of a peer (and its headers, read by `header`).
     fn identity(&self, peer: Option<IpAddr>, header: impl Fn(&str) -> Option<String>) -> String {
+        let peer = peer.map(|ip| ip.to_canonical());
         if let (Some(name), Some(ip)) = (&self.client_header, peer) {
             if self.trusted_proxies.contains(&ip) {
                 if let Some(value) = header(name).filter(|v| !v.is_empty()) {
@@ -172,5 +179,22 @@ mod tests {
         let untrusting = limits(None, &["10.0.0.5"]);
         assert_eq!(untrusting.identity(Some(lb), header), "peer:10.0.0.5");
         assert_ne!(ClientId::of("peer:a"), ClientId::of("peer:b"));
+    }
+
+    #[test]
+    fn mapped_ipv6_peers_are_their_ipv4_address_everywhere() {
+        let header = |_: &str| Some("203.0.113.9".to_string());
+        let mapped: IpAddr = "::ffff:10.0.0.5".parse().unwrap();
+        // An IPv4 trusted proxy arriving on a dual-stack listener ...
+        let l = limits(Some("x-blapose-client"), &["10.0.0.5"]);
+        assert_eq!(l.identity(Some(mapped), header), "header:203.0.113.9");
+        // ... and a mapped entry in the list matching an IPv4 peer.
+        let l = limits(Some("x-blapose-client"), &["::ffff:10.0.0.5"]);
+        let v4: IpAddr = "10.0.0.5".parse().unwrap();
+        assert_eq!(l.identity(Some(v4), header), "header:203.0.113.9");
+        // Without the header, the same client whichever way it arrives.
+        let plain = limits(None, &[]);
+        assert_eq!(plain.identity(Some(mapped), header), "peer:10.0.0.5");
+        assert_eq!(plain.identity(Some(v4), header), "peer:10.0.0.5");
     }
 }

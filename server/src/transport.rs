@@ -19,6 +19,12 @@
 //! print it); a TLS ClientHello on a plaintext port is closed with a log
 //! line, and blapose's clients then diagnose the port themselves.
 //!
+//! Peers are told apart by their IP address in its canonical form
+//! ([`canonical_peer`]): on a dual-stack listener (`[::]`) an IPv4 client
+//! arrives as an IPv4-mapped IPv6 address (`::ffff:127.0.0.1`), which would
+//! otherwise be a different client from the same address on an IPv4
+//! listener and never match an IPv4 `--trusted-proxies` entry.
+//!
 //! Every refusal or early close is a log line and a count in
 //! `blapose_connections_refused_total{limit}` or
 //! `blapose_connections_closed_total{reason}`.
@@ -54,6 +60,14 @@ pub struct TlsFiles {
 
 /// The HTTP/2 client connection preface (RFC 9113, section 3.4).
 pub const PREFACE: &[u8; 24] = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n";
+
+/// `peer` with an IPv4-mapped IPv6 address (`::ffff:a.b.c.d`) written as
+/// the IPv4 address it maps; every other address as it is. Every
+/// per-address rule (connection counts, client identity, trusted proxies)
+/// sees addresses through this.
+pub fn canonical_peer(peer: SocketAddr) -> SocketAddr {
+    SocketAddr::new(peer.ip().to_canonical(), peer.port())
+}
 
 /// Connection limits enforced before tonic sees a connection.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -357,7 +371,7 @@ async fn accept_loop(
             _ = tx.closed() => return,
         };
         let (tcp, peer) = match accepted {
-            Ok(accepted) => accepted,
+            Ok((tcp, peer)) => (tcp, canonical_peer(peer)),
             Err(e) => {
                 // Out of file descriptors or a connection reset before it
                 // was accepted: neither ends serving. Pause briefly so an
@@ -500,6 +514,18 @@ mod tests {
         assert_eq!(table.held(), 2);
         let _a3 = table.admit(a).unwrap();
         assert_eq!(Refusal::PerPeer.flag(), "max_connections_per_peer");
+    }
+
+    #[test]
+    fn mapped_ipv6_peers_are_their_ipv4_address() {
+        let mapped: SocketAddr = "[::ffff:127.0.0.1]:5000".parse().unwrap();
+        assert_eq!(canonical_peer(mapped), "127.0.0.1:5000".parse().unwrap());
+        let v6: SocketAddr = "[::1]:5000".parse().unwrap();
+        assert_eq!(canonical_peer(v6), v6);
+        let table = ConnectionTable::new(limits(8, 1));
+        let _v4 = table.admit("10.0.0.1".parse().unwrap()).unwrap();
+        let same = canonical_peer("[::ffff:10.0.0.1]:1".parse().unwrap()).ip();
+        assert_eq!(table.admit(same).unwrap_err(), Refusal::PerPeer);
     }
 
     #[test]

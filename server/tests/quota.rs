@@ -127,3 +127,28 @@ async fn limits_are_flags_with_env_variables_and_defaults() {
     assert_eq!(cfg.trusted_proxies.len(), 2);
     assert_eq!(cfg.token_ttl, Duration::from_secs(600));
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn the_client_header_counts_behind_a_dual_stack_listener() {
+    // `[::]` accepts IPv4 clients as `::ffff:127.0.0.1`; the trusted proxy
+    // is configured as 127.0.0.1 and must still be believed.
+    let Ok(listener) = tokio::net::TcpListener::bind("[::]:0").await else {
+        eprintln!("SKIP: no IPv6 on this machine");
+        return;
+    };
+    let port = listener.local_addr().unwrap().port();
+    let server = blapose_server::spawn(config(true, 64), listener)
+        .await
+        .unwrap();
+    let mut client = PoseAdjustmentClient::connect(format!("http://127.0.0.1:{port}"))
+        .await
+        .unwrap();
+    let (opened, _) = flood(&mut client, "a").await;
+    assert_eq!(opened, 32);
+    // Trusted: "b" is another client with its own share.
+    let answers = exchange(&mut client, "b", vec![open(), frame(0)])
+        .await
+        .unwrap();
+    assert_eq!(frames(&answers), 1, "{answers:?}");
+    server.shutdown().await.unwrap();
+}
