@@ -222,6 +222,7 @@ fn restore(
         None => None,
     };
     let id = portable.session_id;
+    let origin_ms = portable.expiry_origin_ms();
     let config = SessionConfig {
         input: portable.input,
         label: truncate_label(&portable.label),
@@ -237,6 +238,9 @@ fn restore(
         held: portable.held,
         skipped: portable.skipped,
         motion: portable.motion.map(|m| m.state),
+        // Its tokens expire with the one it came from, whatever chain of
+        // restores follows.
+        origin_ms: Some(origin_ms),
     };
     let attachment = state
         .store

@@ -269,6 +269,7 @@ impl SessionStore {
         {
             let mut st = session.lock();
             load(&mut st, &state)?;
+            st.token_origin_ms = state.origin_ms;
             st.epoch = 2;
             session.publish(&st);
         }
