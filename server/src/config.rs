@@ -135,6 +135,8 @@ pub struct ServerConfig {
     pub client_header: Option<String>,
     /// Peers whose `client_header` is believed.
     pub trusted_proxies: Vec<std::net::IpAddr>,
+    /// Idle and aged connections, control-frame floods.
+    pub protection: crate::protect::Protection,
 }
 
 impl Default for ServerConfig {
@@ -173,6 +175,7 @@ impl Default for ServerConfig {
             max_queued_frames_per_client: None,
             client_header: None,
             trusted_proxies: Vec::new(),
+            protection: crate::protect::Protection::default(),
         }
     }
 }
@@ -430,6 +433,10 @@ pub struct Cli {
     /// Time a new connection has to finish its TLS handshake and send the HTTP/2 preface.
     #[arg(long, env = "BLAPOSE_HANDSHAKE_TIMEOUT", default_value = "10s", value_parser = parse_open_timeout)]
     pub handshake_timeout: Duration,
+
+    /// Idle and aged connections, control-frame floods.
+    #[command(flatten)]
+    pub protection: crate::protect::ProtectionArgs,
 }
 
 /// How `--health-check` connects to a server with TLS on: it verifies the
@@ -507,6 +514,7 @@ impl Cli {
             max_queued_frames_per_client: self.max_queued_frames_per_client,
             client_header: self.client_header,
             trusted_proxies: self.trusted_proxies,
+            protection: self.protection.into(),
         }
     }
 }

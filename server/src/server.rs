@@ -20,14 +20,14 @@ use tokio::net::TcpListener;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 use tonic::service::interceptor::InterceptedService;
-use tonic::transport::server::Router;
-use tonic::transport::Server;
+use tonic::service::Routes;
 use tonic_health::server::HealthReporter;
 use tonic_health::ServingStatus;
 
 use crate::auth::BearerAuth;
 use crate::batch::{Batcher, BatcherConfig};
 use crate::config::ServerConfig;
+use crate::connection::{self, Http2Settings};
 use crate::error::ServerError;
 use crate::metrics;
 use crate::models::{self, Family, LoadedLifter, ModelProvider, WeightsProvider};
@@ -189,7 +189,7 @@ pub async fn spawn_with_provider(
         stature: Arc::new(models::embedded_stature_model()?),
         limits: state::limits(&config),
     });
-    let (health, router) = router(&config, state.clone()).await?;
+    let (health, routes) = routes(&config, state.clone()).await?;
 
     // TLS is terminated in `transport` (under the handshake deadline).
     let tls = config
@@ -199,25 +199,34 @@ pub async fn spawn_with_provider(
         .transpose()
         .map_err(ServerError::Tls)?;
     export_limits(&config);
+    let protection = config.protection;
+    protection.export();
     let incoming = transport::incoming(
         listener,
         transport::ConnectionTable::new(config.connection_limits),
         tls,
         shutdown.clone(),
+        protection.max_control_frames_per_second,
     );
+    let settings = Http2Settings {
+        max_concurrent_streams: config.max_concurrent_streams,
+        max_header_list_bytes: config.max_header_list_bytes,
+        keepalive: (Duration::from_secs(30), Duration::from_secs(20)),
+    };
     let token = shutdown.clone();
     let grace = config.shutdown_grace;
     let task = tokio::spawn(async move {
         let signal_health = health.clone();
         let signal_token = token.clone();
-        let server = router.serve_with_incoming_shutdown(incoming, async move {
+        tokio::spawn(async move {
             signal_token.cancelled().await;
             tracing::info!("shutting down: draining in-flight frames");
             set_health(&signal_health, ServingStatus::NotServing).await;
         });
+        let server = connection::serve(incoming, routes, settings, protection, token.clone());
         tokio::pin!(server);
-        let served = tokio::select! {
-            r = &mut server => r.map_err(ServerError::from),
+        let served: Result<(), ServerError> = tokio::select! {
+            () = &mut server => Ok(()),
             _ = async { token.cancelled().await; tokio::time::sleep(grace).await } => {
                 tracing::warn!(?grace, "shutdown grace period expired; dropping remaining connections");
                 Ok(())
@@ -291,12 +300,12 @@ async fn set_health(health: &HealthReporter, status: ServingStatus) {
 }
 
 /// The gRPC services (health, reflection, the pose service behind its
-/// metrics and auth layers) on one router, health already SERVING: the
-/// warm-up ran in [`pipeline::start`], so the models are ready.
-async fn router(
+/// metrics and auth layers) on one set of routes, health already SERVING:
+/// the warm-up ran in [`pipeline::start`], so the models are ready.
+async fn routes(
     config: &ServerConfig,
     state: Arc<AppState>,
-) -> Result<(HealthReporter, Router), ServerError> {
+) -> Result<(HealthReporter, Routes), ServerError> {
     let (health, health_service) = tonic_health::server::health_reporter();
     set_health(&health, ServingStatus::Serving).await;
 
@@ -316,16 +325,14 @@ async fn router(
     let pose = metrics::ErrorCounting::new(pose);
     let pose = InterceptedService::new(pose, BearerAuth::new(config.auth_token.as_deref()));
 
-    let router = Server::builder()
-        .http2_keepalive_interval(Some(Duration::from_secs(30)))
-        .http2_keepalive_timeout(Some(Duration::from_secs(20)))
-        .max_concurrent_streams(config.max_concurrent_streams)
-        .http2_max_header_list_size(config.max_header_list_bytes)
-        .add_service(health_service)
+    // The HTTP/2 settings (streams, header list, keepalive) are
+    // `connection`'s, which serves these routes on each connection.
+    let routes = Routes::new(health_service)
         .add_service(reflection_v1)
         .add_service(reflection_v1alpha)
-        .add_service(pose);
-    Ok((health, router))
+        .add_service(pose)
+        .prepare();
+    Ok((health, routes))
 }
 
 /// Export the configured transport limits (`blapose_limit{limit}`, the

@@ -47,6 +47,8 @@ use tokio_stream::wrappers::ReceiverStream;
 use tokio_util::sync::CancellationToken;
 use tonic::transport::server::{Connected, TcpConnectInfo};
 
+use crate::activity::Activity;
+use crate::frames::FrameMeter;
 use crate::metrics;
 
 /// TLS certificate chain and private key, both PEM files.
@@ -252,7 +254,16 @@ pub struct Conn {
     /// The preface, read to check it, given back to HTTP/2 first.
     replay: usize,
     info: TcpConnectInfo,
+    activity: Arc<Activity>,
+    meter: FrameMeter,
     _permit: Permit,
+}
+
+impl Conn {
+    /// The connection's activity (open streams, a control-frame flood).
+    pub fn activity(&self) -> Arc<Activity> {
+        self.activity.clone()
+    }
 }
 
 enum Io {
@@ -290,10 +301,21 @@ impl AsyncRead for Conn {
             self.replay += n;
             return Poll::Ready(Ok(()));
         }
-        match &mut self.io {
+        if self.activity.flooding() {
+            // Read nothing more from a flooding connection: it is being
+            // closed (GOAWAY, then dropped), and h2 does no more work on it.
+            return Poll::Pending;
+        }
+        let before = buf.filled().len();
+        let this = &mut *self;
+        let read = match &mut this.io {
             Io::Plain(s) => Pin::new(s).poll_read(cx, buf),
             Io::Tls(s) => Pin::new(s.as_mut()).poll_read(cx, buf),
+        };
+        if this.meter.observe(&buf.filled()[before..]) {
+            this.activity.raise_flood();
         }
+        read
     }
 }
 
@@ -345,14 +367,24 @@ impl AsyncWrite for Conn {
 /// The stream of handshaken connections on `listener` that tonic serves.
 /// Accepting stops when `shutdown` is cancelled or the stream is dropped
 /// (the listener closes with it, so new connections are refused).
+/// Each connection's control frames are counted, at most
+/// `control_frames_per_second` ([`crate::frames`]).
 pub fn incoming(
     listener: TcpListener,
     table: ConnectionTable,
     tls: Option<TlsAcceptor>,
     shutdown: CancellationToken,
+    control_frames_per_second: u32,
 ) -> ReceiverStream<io::Result<Conn>> {
     let (tx, rx) = mpsc::channel(64);
-    tokio::spawn(accept_loop(listener, table, tls, shutdown, tx));
+    tokio::spawn(accept_loop(
+        listener,
+        table,
+        tls,
+        shutdown,
+        tx,
+        control_frames_per_second,
+    ));
     ReceiverStream::new(rx)
 }
 
@@ -362,6 +394,7 @@ async fn accept_loop(
     tls: Option<TlsAcceptor>,
     shutdown: CancellationToken,
     tx: mpsc::Sender<io::Result<Conn>>,
+    control_frames_per_second: u32,
 ) {
     let deadline = table.limits.handshake_timeout;
     loop {
@@ -405,6 +438,8 @@ async fn accept_loop(
                         io,
                         replay: 0,
                         info,
+                        activity: Arc::new(Activity::new()),
+                        meter: FrameMeter::new(control_frames_per_second),
                         _permit: permit,
                     };
                     let _ = tx.send(Ok(conn)).await;

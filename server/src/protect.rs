@@ -1,0 +1,123 @@
+//! The settings that protect the server from many sources at once:
+//! connections kept without use, connections kept for ever, control-frame
+//! floods (and, with them, the flags that set each). Kept apart from
+//! [`crate::config`] because they are one concern, how long and how hard a
+//! connection may hold the server, and because each is enforced in one
+//! place ([`crate::connection`], [`crate::frames`]).
+//!
+//! Why these defaults:
+//! * `--max-connection-idle` 5 min: a connection with no open stream is
+//!   sent GOAWAY and closed after it. HTTP/2 PINGs keep a TCP connection
+//!   alive but prove nobody uses it; 8 addresses x 512 such connections
+//!   held all of `--max-connections` for as long as they liked. Five
+//!   minutes keeps the connection (and its TLS handshake) of a client that
+//!   pauses between sessions, and hands back an abandoned or hostile one
+//!   within minutes; clients (tonic, grpcio) reconnect on GOAWAY by
+//!   themselves. gRPC servers default to no limit; Envoy's idle timeout is
+//!   1 h; a server whose clients hold long pauses may raise it.
+//! * `--max-connection-age` off, `--max-connection-age-grace` 30 s: as in
+//!   gRPC (`MAX_CONNECTION_AGE`): set it behind a balancer to spread
+//!   long-lived connections over new replicas; streams still open after
+//!   the grace period are cut.
+//! * `--max-control-frames-per-second` 10,000: PING, SETTINGS,
+//!   WINDOW_UPDATE, RST_STREAM and PRIORITY frames one connection may send
+//!   per second. Clients send a few per second (a WINDOW_UPDATE per 32 KB
+//!   received per stream, a keepalive PING every 30 s, an RST_STREAM per
+//!   cancelled call), bursts of a few hundred; a flood sends millions.
+
+use std::time::Duration;
+
+use clap::Args;
+
+use crate::config::parse_duration;
+
+/// How long connections may live, and how many control frames they send.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Protection {
+    /// A connection with no open stream this long is closed (GOAWAY);
+    /// `None`: never.
+    pub max_connection_idle: Option<Duration>,
+    /// A connection this old is sent GOAWAY; `None`: never.
+    pub max_connection_age: Option<Duration>,
+    /// After GOAWAY (age or idle), how long its open streams may finish
+    /// before the connection is cut.
+    pub max_connection_age_grace: Duration,
+    /// Control frames one connection may send per second; more: GOAWAY and
+    /// closed.
+    pub max_control_frames_per_second: u32,
+}
+
+/// Default `--max-connection-idle`.
+pub const DEFAULT_MAX_CONNECTION_IDLE: Duration = Duration::from_secs(300);
+/// Default `--max-connection-age-grace`.
+pub const DEFAULT_MAX_CONNECTION_AGE_GRACE: Duration = Duration::from_secs(30);
+/// Default `--max-control-frames-per-second`.
+pub const DEFAULT_MAX_CONTROL_FRAMES_PER_SECOND: u32 = 10_000;
+
+impl Default for Protection {
+    fn default() -> Self {
+        Self {
+            max_connection_idle: Some(DEFAULT_MAX_CONNECTION_IDLE),
+            max_connection_age: None,
+            max_connection_age_grace: DEFAULT_MAX_CONNECTION_AGE_GRACE,
+            max_control_frames_per_second: DEFAULT_MAX_CONTROL_FRAMES_PER_SECOND,
+        }
+    }
+}
+
+/// The flags of [`Protection`] (flattened into `blapose-server`'s).
+#[derive(Debug, Clone, Args)]
+pub struct ProtectionArgs {
+    /// A connection with no open stream for this long is sent GOAWAY and closed (keepalive
+    /// PINGs do not keep it); 0 = never.
+    #[arg(long, env = "BLAPOSE_MAX_CONNECTION_IDLE", default_value = "5m", value_parser = parse_duration)]
+    pub max_connection_idle: Duration,
+
+    /// A connection this old is sent GOAWAY (clients reconnect); 0 = never.
+    #[arg(long, env = "BLAPOSE_MAX_CONNECTION_AGE", default_value = "0", value_parser = parse_duration)]
+    pub max_connection_age: Duration,
+
+    /// After an age or idle GOAWAY, how long open streams may finish before the connection is
+    /// cut.
+    #[arg(long, env = "BLAPOSE_MAX_CONNECTION_AGE_GRACE", default_value = "30s", value_parser = parse_duration)]
+    pub max_connection_age_grace: Duration,
+
+    /// Control frames (PING, SETTINGS, WINDOW_UPDATE, RST_STREAM, PRIORITY) one connection may
+    /// send per second; more: GOAWAY and closed.
+    #[arg(long, env = "BLAPOSE_MAX_CONTROL_FRAMES_PER_SECOND",
+          default_value_t = DEFAULT_MAX_CONTROL_FRAMES_PER_SECOND,
+          value_parser = clap::value_parser!(u32).range(1..))]
+    pub max_control_frames_per_second: u32,
+}
+
+impl From<ProtectionArgs> for Protection {
+    fn from(a: ProtectionArgs) -> Self {
+        let nonzero = |d: Duration| (!d.is_zero()).then_some(d);
+        Self {
+            max_connection_idle: nonzero(a.max_connection_idle),
+            max_connection_age: nonzero(a.max_connection_age),
+            max_connection_age_grace: a.max_connection_age_grace,
+            max_control_frames_per_second: a.max_control_frames_per_second,
+        }
+    }
+}
+
+impl Protection {
+    /// Export the settings as `blapose_limit{limit}` gauges (durations in
+    /// ms, 0 = off).
+    pub fn export(&self) {
+        let ms = |d: Option<Duration>| {
+            d.map_or(0, |d| usize::try_from(d.as_millis()).unwrap_or(usize::MAX))
+        };
+        crate::metrics::limit("max_connection_idle_ms", ms(self.max_connection_idle));
+        crate::metrics::limit("max_connection_age_ms", ms(self.max_connection_age));
+        crate::metrics::limit(
+            "max_connection_age_grace_ms",
+            ms(Some(self.max_connection_age_grace)),
+        );
+        crate::metrics::limit(
+            "max_control_frames_per_second",
+            self.max_control_frames_per_second as usize,
+        );
+    }
+}
