@@ -20,7 +20,8 @@ use crate::prepare;
 use crate::quota::ClientId;
 use crate::restore_check;
 use crate::session::{
-    Attachment, Session, SessionConfig, SessionError, SessionSnapshot, StateCopy, MAX_LABEL_BYTES,
+    Attachment, Session, SessionConfig, SessionError, SessionSnapshot, StateCopy, TokenStamp,
+    MAX_LABEL_BYTES,
 };
 use crate::state::AppState;
 use crate::token::{PortableMotion, PortableState};
@@ -223,6 +224,10 @@ fn restore(
     };
     let id = portable.session_id;
     let origin_ms = portable.expiry_origin_ms();
+    let stamp = TokenStamp {
+        issued_ms: portable.issued_at_ms,
+        owner: portable.owner.map(ClientId::from_bytes),
+    };
     let config = SessionConfig {
         input: portable.input,
         label: truncate_label(&portable.label),
@@ -244,7 +249,14 @@ fn restore(
     };
     let attachment = state
         .store
-        .restore(id, config, copy, client, state.limits.sessions_per_client)
+        .restore(
+            id,
+            config,
+            copy,
+            client,
+            state.limits.sessions_per_client,
+            stamp,
+        )
         .map_err(session_status)?;
     tracing::info!(session = %id, frames_seen = attachment.snapshot.frames_seen, "session restored from a token");
     Ok(attachment)
@@ -277,6 +289,7 @@ pub fn seal(state: &AppState, session: &Session, copy: StateCopy) -> Option<(Vec
         copy,
     );
     portable.subject = config.subject.as_ref().map(|s| s.subject);
+    portable.owner = Some(*session.client().as_bytes());
     portable.motion = match (&config.motion, motion_state) {
         (Some(m), Some(state)) => Some(PortableMotion {
             rate_hz: m.rate_hz,
@@ -303,9 +316,9 @@ pub fn session_status(e: SessionError) -> Status {
         SessionError::TooManySessions { .. } | SessionError::Quota(_) => {
             Status::resource_exhausted(e.to_string())
         }
-        SessionError::Closed { .. } | SessionError::Rollback { .. } => {
-            Status::failed_precondition(e.to_string())
-        }
+        SessionError::Closed { .. }
+        | SessionError::Rollback { .. }
+        | SessionError::Forgotten { .. } => Status::failed_precondition(e.to_string()),
         SessionError::NotFound { .. } => Status::not_found(e.to_string()),
         SessionError::Rng(_) => Status::internal(e.to_string()),
         SessionError::Restore(_) => Status::failed_precondition(e.to_string()),

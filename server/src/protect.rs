@@ -24,9 +24,14 @@
 //!   per second. Clients send a few per second (a WINDOW_UPDATE per 32 KB
 //!   received per stream, a keepalive PING every 30 s, an RST_STREAM per
 //!   cancelled call), bursts of a few hundred; a flood sends millions.
+//! * `--max-ended-sessions` 100,000 (a sixteenth, at least 1,024, per
+//!   client): ended sessions remembered so that their tokens do not revive
+//!   them, about 100 bytes each (10 MB); past it the oldest go and a floor
+//!   on token issue times keeps them ended ([`crate::session::retired`]).
 
 use std::time::Duration;
 
+use clap::builder::TypedValueParser;
 use clap::Args;
 
 use crate::config::parse_duration;
@@ -45,6 +50,8 @@ pub struct Protection {
     /// Control frames one connection may send per second; more: GOAWAY and
     /// closed.
     pub max_control_frames_per_second: u32,
+    /// Ended sessions remembered at once (a sixteenth per client).
+    pub max_ended_sessions: usize,
 }
 
 /// Default `--max-connection-idle`.
@@ -61,6 +68,7 @@ impl Default for Protection {
             max_connection_age: None,
             max_connection_age_grace: DEFAULT_MAX_CONNECTION_AGE_GRACE,
             max_control_frames_per_second: DEFAULT_MAX_CONTROL_FRAMES_PER_SECOND,
+            max_ended_sessions: crate::session::DEFAULT_MAX_ENDED,
         }
     }
 }
@@ -88,6 +96,13 @@ pub struct ProtectionArgs {
           default_value_t = DEFAULT_MAX_CONTROL_FRAMES_PER_SECOND,
           value_parser = clap::value_parser!(u32).range(1..))]
     pub max_control_frames_per_second: u32,
+
+    /// Ended sessions remembered (so that their tokens cannot revive them), all clients; a
+    /// sixteenth (at least 1,024) per client. Past it the oldest are forgotten and tokens issued
+    /// before them refused.
+    #[arg(long, env = "BLAPOSE_MAX_ENDED_SESSIONS", default_value_t = crate::session::DEFAULT_MAX_ENDED,
+          value_parser = clap::value_parser!(u32).range(1..).map(|v| v as usize))]
+    pub max_ended_sessions: usize,
 }
 
 impl From<ProtectionArgs> for Protection {
@@ -98,6 +113,7 @@ impl From<ProtectionArgs> for Protection {
             max_connection_age: nonzero(a.max_connection_age),
             max_connection_age_grace: a.max_connection_age_grace,
             max_control_frames_per_second: a.max_control_frames_per_second,
+            max_ended_sessions: a.max_ended_sessions,
         }
     }
 }
@@ -119,5 +135,8 @@ impl Protection {
             "max_control_frames_per_second",
             self.max_control_frames_per_second as usize,
         );
+        let ended = crate::session::EndedLimits::with_max(self.max_ended_sessions);
+        crate::metrics::limit("max_ended_sessions", ended.max);
+        crate::metrics::limit("max_ended_sessions_per_client", ended.per_client);
     }
 }

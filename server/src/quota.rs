@@ -37,6 +37,16 @@ impl ClientId {
         id.copy_from_slice(&digest[..16]);
         Self(id)
     }
+
+    /// The id as 16 bytes (what a session token records of its owner).
+    pub fn as_bytes(&self) -> &[u8; 16] {
+        &self.0
+    }
+
+    /// An id from its bytes.
+    pub fn from_bytes(bytes: [u8; 16]) -> Self {
+        Self(bytes)
+    }
 }
 
 /// The per-client limits and how a request's client is told.

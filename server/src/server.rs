@@ -158,7 +158,7 @@ pub async fn spawn_with_provider(
         tracing::info!(%addr, "metrics at http://{addr}/metrics");
     }
     let batcher = Arc::new(start_batcher(&config, provider.clone(), lifter.clone()).await?);
-    let (store, purge_guard) = SessionStore::with_memory(
+    let (store, purge_guard) = SessionStore::with_limits(
         config.max_sessions.max(1),
         config.session_ttl,
         // Ended sessions are remembered only where tokens could revive them.
@@ -166,6 +166,7 @@ pub async fn spawn_with_provider(
             .session_key
             .as_ref()
             .map_or(Duration::ZERO, |_| config.token_ttl),
+        crate::session::EndedLimits::with_max(config.protection.max_ended_sessions),
     );
     let shutdown = CancellationToken::new();
     let state = Arc::new(AppState {
