@@ -19,6 +19,14 @@
 //! own share and no more), frames one session may have waiting in the
 //! batcher queue, and frames one client may have waiting (a share of
 //! `--queue-capacity`). Each refusal is RESOURCE_EXHAUSTED naming its limit.
+//!
+//! On top of the configured shares, a *fair share* that shrinks as more
+//! clients hold something ([`fair_share`]): with k clients holding part of
+//! a pool, each may hold at most `total / (k + 1)`, so together they leave
+//! at least one share free for a client that holds nothing. Measured
+//! before it: two clients holding half the session table each (2,048 +
+//! 2,047) locked every other client out for as long as they streamed. The
+//! same rule holds the frame queue and connections (per address) .
 
 use std::net::IpAddr;
 use std::time::Duration;
@@ -64,6 +72,28 @@ pub struct Limits {
     client_header: Option<String>,
     /// Peers allowed to set `client_header`.
     trusted_proxies: Vec<IpAddr>,
+}
+
+/// A pool this small (or a share this small of a larger one) is not split
+/// further by [`fair_share`]: tests' and single-user deployments' small
+/// tables keep working, and the guarantee holds up to `total / 16 - 1`
+/// clients at once.
+pub const FAIR_FLOOR: usize = 16;
+
+/// The most of a pool of `total` one client may hold while `active`
+/// clients (it included) hold some: `total / (active + 1)`, so k clients
+/// at their shares leave `total / (k + 1)` for the next; never below
+/// [`FAIR_FLOOR`] (all of a pool that small).
+pub fn fair_share(total: usize, active: usize) -> usize {
+    (total / (active.max(1) + 1)).max(total.min(FAIR_FLOOR))
+}
+
+/// The limit for a client holding `held` of a pool of `total` in which
+/// `holders` clients hold some: the configured `share`, or the fair share
+/// when that is smaller.
+pub fn effective_share(share: usize, total: usize, holders: usize, held: usize) -> usize {
+    let active = holders + usize::from(held == 0);
+    share.min(fair_share(total, active))
 }
 
 /// Smallest default share: a small table or queue (a test's, a
@@ -138,7 +168,7 @@ impl Limits {
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum QuotaError {
     /// The client holds its share of the session table.
-    #[error("this client already holds {limit} sessions (--max-sessions-per-client); close unused sessions or retry later")]
+    #[error("this client already holds {limit} sessions, its share of the session table (--max-sessions-per-client, or less while other clients hold sessions: the share shrinks as more clients are served); close unused sessions or retry later")]
     Sessions {
         /// The limit.
         limit: usize,
@@ -150,7 +180,7 @@ pub enum QuotaError {
         limit: usize,
     },
     /// The client has its share of the frame queue.
-    #[error("this client already has {limit} frames waiting (--max-queued-frames-per-client); wait for earlier answers")]
+    #[error("this client already has {limit} frames waiting, its share of the queue (--max-queued-frames-per-client, or less while other clients have frames waiting); wait for earlier answers")]
     ClientFrames {
         /// The limit.
         limit: usize,
@@ -189,6 +219,22 @@ mod tests {
         let untrusting = limits(None, &["10.0.0.5"]);
         assert_eq!(untrusting.identity(Some(lb), header), "peer:10.0.0.5");
         assert_ne!(ClientId::of("peer:a"), ClientId::of("peer:b"));
+    }
+
+    #[test]
+    fn k_clients_at_their_fair_shares_leave_room_for_another() {
+        for total in [64, 4096, 8192] {
+            for k in 1..=(total / FAIR_FLOOR - 1).min(300) {
+                let share = fair_share(total, k);
+                assert!(k * share < total, "{k} clients x {share} of {total}");
+            }
+        }
+        assert_eq!(fair_share(4096, 1), 2048, "alone: half, as before");
+        assert_eq!(fair_share(3, 5), 3, "a small pool is not split");
+        // A client already holding counts itself; a new one is counted.
+        assert_eq!(effective_share(2048, 4096, 2, 1), 1365);
+        assert_eq!(effective_share(2048, 4096, 2, 0), 1024);
+        assert_eq!(effective_share(100, 4096, 2, 0), 100);
     }
 
     #[test]

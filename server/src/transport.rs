@@ -139,10 +139,20 @@ impl ConnectionTable {
         if counts.total >= self.limits.max_connections {
             return Err(Refusal::Total);
         }
-        let from_peer = counts.per_peer.entry(peer).or_default();
-        if *from_peer >= self.limits.max_connections_per_peer {
+        let holders = counts.per_peer.len();
+        let held = counts.per_peer.get(&peer).copied().unwrap_or(0);
+        // Per peer, and no more than a fair share of all connections: k
+        // addresses at their shares leave room for another.
+        let limit = crate::quota::effective_share(
+            self.limits.max_connections_per_peer,
+            self.limits.max_connections,
+            holders,
+            held,
+        );
+        if held >= limit {
             return Err(Refusal::PerPeer);
         }
+        let from_peer = counts.per_peer.entry(peer).or_default();
         *from_peer += 1;
         counts.total += 1;
         metrics::connections(counts.total);
@@ -549,6 +559,24 @@ mod tests {
         assert_eq!(table.held(), 2);
         let _a3 = table.admit(a).unwrap();
         assert_eq!(Refusal::PerPeer.flag(), "max_connections_per_peer");
+    }
+
+    #[test]
+    fn addresses_at_their_fair_shares_leave_room_for_another() {
+        let table = ConnectionTable::new(limits(64, 64));
+        let fill = |ip: &str| {
+            let ip: IpAddr = ip.parse().unwrap();
+            let mut held = Vec::new();
+            while let Ok(p) = table.admit(ip) {
+                held.push(p);
+            }
+            held
+        };
+        let a = fill("10.0.0.1");
+        let b = fill("10.0.0.2");
+        assert_eq!((a.len(), b.len()), (32, 21), "64/2, then 64/3");
+        let c = fill("10.0.0.3");
+        assert_eq!(c.len(), 11, "the third still connects");
     }
 
     #[test]

@@ -152,3 +152,24 @@ async fn the_client_header_counts_behind_a_dual_stack_listener() {
     assert_eq!(frames(&answers), 1, "{answers:?}");
     server.shutdown().await.unwrap();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn two_clients_at_their_shares_leave_a_third_served() {
+    // The report: two clients held 2,048 + 2,047 of 4,096 sessions and
+    // every other client was refused. Shares now shrink as more clients
+    // hold sessions: alone half, with another a third, ...
+    let (server, mut client) = start(config(true, 4096)).await;
+    let (first, _) = flood(&mut client, "first").await;
+    let (second, refused) = flood(&mut client, "second").await;
+    assert_eq!((first, second), (2048, 4096 / 3));
+    assert_eq!(refused.code(), Code::ResourceExhausted, "{refused:?}");
+    assert!(refused.message().contains("share"), "{}", refused.message());
+    let mut requests = vec![open()];
+    requests.extend((0..20).map(frame));
+    let answers = exchange(&mut client, "third", requests).await.unwrap();
+    assert_eq!(frames(&answers), 20, "{answers:?}");
+    // It may take what is left (4,096 / 4 = 1,024 is more than that).
+    let (third, _) = flood(&mut client, "third").await;
+    assert_eq!(first + second + third + 1, 4096, "the rest of the table");
+    server.shutdown().await.unwrap();
+}

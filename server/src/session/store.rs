@@ -43,9 +43,11 @@ impl Inner {
         if self.sessions.len() >= max {
             return Err(SessionError::TooManySessions { max });
         }
-        if self.per_client.get(&client).copied().unwrap_or(0) >= per_client {
+        let held = self.per_client.get(&client).copied().unwrap_or(0);
+        let limit = crate::quota::effective_share(per_client, max, self.per_client.len(), held);
+        if held >= limit {
             metrics::limited("sessions_per_client");
-            return Err(QuotaError::Sessions { limit: per_client }.into());
+            return Err(QuotaError::Sessions { limit }.into());
         }
         Ok(())
     }
