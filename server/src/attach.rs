@@ -69,6 +69,10 @@ pub fn open_or_resume(
             let motion = motion::options(open.motion.as_ref())?
                 .map(|rate| SessionMotion::new(rate, &input, camera.as_ref().map(|c| &c.view)));
             let label = truncate_label(&open.client_label);
+            state
+                .budget
+                .admit(crate::budget::SESSION_BYTES)
+                .map_err(|e| e.to_status())?;
             let attachment = state
                 .store
                 .open_for(
@@ -141,6 +145,10 @@ fn restore(
             truncate_label(&resume.session_id)
         ))
     })?;
+    state
+        .budget
+        .admit(crate::budget::SESSION_BYTES)
+        .map_err(|e| e.to_status())?;
     let portable =
         PortableState::open(&resume.session_token, &tokens.key).map_err(|e| e.to_status())?;
     // Authentic is not the same as sane: check it like input.

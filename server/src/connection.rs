@@ -37,6 +37,7 @@ use tonic::service::Routes;
 use tonic::transport::server::{Connected, TcpConnectInfo};
 
 use crate::activity::{Activity, StreamGuard};
+use crate::budget::{Budget, BudgetStream};
 use crate::metrics;
 use crate::protect::Protection;
 use crate::transport::Conn;
@@ -72,6 +73,7 @@ pub async fn serve<I>(
     routes: Routes,
     settings: Http2Settings,
     protection: Protection,
+    budget: Arc<Budget>,
     shutdown: CancellationToken,
 ) where
     I: tokio_stream::Stream<Item = std::io::Result<Conn>>,
@@ -95,6 +97,7 @@ pub async fn serve<I>(
                 routes: routes.clone(),
                 info: conn.connect_info(),
                 activity: conn.activity(),
+                budget: budget.clone(),
             };
             tokio::spawn(serve_one(
                 conn,
@@ -221,6 +224,7 @@ struct Tracked {
     routes: Routes,
     info: TcpConnectInfo,
     activity: Arc<Activity>,
+    budget: Arc<Budget>,
 }
 
 type BoxFuture<T> = Pin<Box<dyn Future<Output = T> + Send>>;
@@ -235,7 +239,16 @@ impl Service<Request<Incoming>> for Tracked {
     }
 
     fn call(&mut self, request: Request<Incoming>) -> Self::Future {
-        let guard = self.activity.stream();
+        // Past the memory budget or the address's streams, the stream is
+        // answered at once and holds nothing.
+        let admitted = match self.budget.stream(self.info.remote_addr.map(|a| a.ip())) {
+            Ok(admitted) => admitted,
+            Err(e) => {
+                let refused = e.to_status().into_http::<Body>();
+                return Box::pin(async move { Ok(refused) });
+            }
+        };
+        let guard = (self.activity.stream(), admitted);
         let mut request = request.map(Body::new);
         request.extensions_mut().insert(self.info.clone());
         let call = self.routes.call(request);
@@ -254,7 +267,7 @@ impl Service<Request<Incoming>> for Tracked {
 /// A response body that keeps its stream counted until it ends.
 struct Guarded {
     body: Body,
-    _guard: StreamGuard,
+    _guard: (StreamGuard, BudgetStream),
 }
 
 impl http_body::Body for Guarded {

@@ -79,6 +79,7 @@ pub mod stream;
 pub mod activity;
 pub mod auth;
 pub mod backend;
+pub mod budget;
 pub mod config;
 pub mod connection;
 pub mod engine;

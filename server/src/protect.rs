@@ -24,6 +24,11 @@
 //!   per second. Clients send a few per second (a WINDOW_UPDATE per 32 KB
 //!   received per stream, a keepalive PING every 30 s, an RST_STREAM per
 //!   cancelled call), bursts of a few hundred; a flood sends millions.
+//! * `--memory-budget`: half the memory the process may use (its cgroup's
+//!   limit, else the machine's), at least 256 MB ([`crate::budget`]);
+//!   `--max-streams-per-peer` 4,096: open streams of one address across
+//!   all its connections (4 x `--max-concurrent-streams`; the load test's
+//!   1,024 streams from one client fit), about 32 MB.
 //! * `--max-ended-sessions` 100,000 (a sixteenth, at least 1,024, per
 //!   client): ended sessions remembered so that their tokens do not revive
 //!   them, about 100 bytes each (10 MB); past it the oldest go and a floor
@@ -52,7 +57,14 @@ pub struct Protection {
     pub max_control_frames_per_second: u32,
     /// Ended sessions remembered at once (a sixteenth per client).
     pub max_ended_sessions: usize,
+    /// The memory budget in bytes; `None`: sized from the machine.
+    pub memory_budget: Option<usize>,
+    /// Open streams one address may have across its connections.
+    pub max_streams_per_peer: usize,
 }
+
+/// Default `--max-streams-per-peer`.
+pub const DEFAULT_MAX_STREAMS_PER_PEER: usize = 4096;
 
 /// Default `--max-connection-idle`.
 pub const DEFAULT_MAX_CONNECTION_IDLE: Duration = Duration::from_secs(300);
@@ -69,6 +81,8 @@ impl Default for Protection {
             max_connection_age_grace: DEFAULT_MAX_CONNECTION_AGE_GRACE,
             max_control_frames_per_second: DEFAULT_MAX_CONTROL_FRAMES_PER_SECOND,
             max_ended_sessions: crate::session::DEFAULT_MAX_ENDED,
+            memory_budget: None,
+            max_streams_per_peer: DEFAULT_MAX_STREAMS_PER_PEER,
         }
     }
 }
@@ -103,6 +117,17 @@ pub struct ProtectionArgs {
     #[arg(long, env = "BLAPOSE_MAX_ENDED_SESSIONS", default_value_t = crate::session::DEFAULT_MAX_ENDED,
           value_parser = clap::value_parser!(u32).range(1..).map(|v| v as usize))]
     pub max_ended_sessions: usize,
+
+    /// Memory the server may account for its clients (streams, sessions, queued frames, ended
+    /// sessions), e.g. 4G; past it new connections, streams, sessions and frames are refused.
+    /// Default: half of the cgroup's or the machine's memory, at least 256M.
+    #[arg(long, env = "BLAPOSE_MEMORY_BUDGET", value_name = "BYTES", value_parser = crate::budget::parse_bytes)]
+    pub memory_budget: Option<usize>,
+
+    /// Open streams one IP address may have across all its connections; more: RESOURCE_EXHAUSTED.
+    #[arg(long, env = "BLAPOSE_MAX_STREAMS_PER_PEER", default_value_t = DEFAULT_MAX_STREAMS_PER_PEER,
+          value_parser = clap::value_parser!(u32).range(1..).map(|v| v as usize))]
+    pub max_streams_per_peer: usize,
 }
 
 impl From<ProtectionArgs> for Protection {
@@ -114,6 +139,8 @@ impl From<ProtectionArgs> for Protection {
             max_connection_age_grace: a.max_connection_age_grace,
             max_control_frames_per_second: a.max_control_frames_per_second,
             max_ended_sessions: a.max_ended_sessions,
+            memory_budget: a.memory_budget,
+            max_streams_per_peer: a.max_streams_per_peer,
         }
     }
 }
@@ -138,5 +165,6 @@ impl Protection {
         let ended = crate::session::EndedLimits::with_max(self.max_ended_sessions);
         crate::metrics::limit("max_ended_sessions", ended.max);
         crate::metrics::limit("max_ended_sessions_per_client", ended.per_client);
+        crate::metrics::limit("max_streams_per_peer", self.max_streams_per_peer);
     }
 }

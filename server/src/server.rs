@@ -169,6 +169,14 @@ pub async fn spawn_with_provider(
         crate::session::EndedLimits::with_max(config.protection.max_ended_sessions),
     );
     let shutdown = CancellationToken::new();
+    let budget = crate::budget::Budget::new(
+        config
+            .protection
+            .memory_budget
+            .unwrap_or_else(crate::budget::default_budget),
+        config.protection.max_streams_per_peer,
+    );
+    metrics::limit("memory_budget_bytes", budget.budget());
     let state = Arc::new(AppState {
         store,
         batcher: batcher.clone(),
@@ -189,7 +197,9 @@ pub async fn spawn_with_provider(
         max_message_bytes: config.max_message_bytes,
         stature: Arc::new(models::embedded_stature_model()?),
         limits: state::limits(&config),
+        budget: budget.clone(),
     });
+    tokio::spawn(sample_budget(state.clone(), shutdown.clone()));
     let (health, routes) = routes(&config, state.clone()).await?;
 
     // TLS is terminated in `transport` (under the handshake deadline).
@@ -208,6 +218,7 @@ pub async fn spawn_with_provider(
         tls,
         shutdown.clone(),
         protection.max_control_frames_per_second,
+        budget.clone(),
     );
     let settings = Http2Settings {
         max_concurrent_streams: config.max_concurrent_streams,
@@ -224,7 +235,14 @@ pub async fn spawn_with_provider(
             tracing::info!("shutting down: draining in-flight frames");
             set_health(&signal_health, ServingStatus::NotServing).await;
         });
-        let server = connection::serve(incoming, routes, settings, protection, token.clone());
+        let server = connection::serve(
+            incoming,
+            routes,
+            settings,
+            protection,
+            budget,
+            token.clone(),
+        );
         tokio::pin!(server);
         let served: Result<(), ServerError> = tokio::select! {
             () = &mut server => Ok(()),
@@ -250,6 +268,24 @@ pub async fn spawn_with_provider(
         shutdown,
         task: Some(task),
     })
+}
+
+/// Sample what the memory budget accounts from the store and the batcher
+/// (`crate::budget`) every 100 ms until shutdown. Holds the state weakly,
+/// so it never keeps a stopped server alive.
+async fn sample_budget(state: Arc<AppState>, shutdown: CancellationToken) {
+    let state = Arc::downgrade(&state);
+    loop {
+        {
+            let Some(s) = state.upgrade() else { return };
+            s.budget
+                .sample(s.store.len(), s.batcher.queue_len(), s.store.ended_bytes());
+        }
+        tokio::select! {
+            _ = shutdown.cancelled() => return,
+            _ = tokio::time::sleep(Duration::from_millis(100)) => {}
+        }
+    }
 }
 
 /// Load and log the server lifter (`--lifter-weights`), off the async

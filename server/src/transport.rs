@@ -48,6 +48,7 @@ use tokio_util::sync::CancellationToken;
 use tonic::transport::server::{Connected, TcpConnectInfo};
 
 use crate::activity::Activity;
+use crate::budget::Budget;
 use crate::frames::FrameMeter;
 use crate::metrics;
 
@@ -385,6 +386,7 @@ pub fn incoming(
     tls: Option<TlsAcceptor>,
     shutdown: CancellationToken,
     control_frames_per_second: u32,
+    budget: Arc<Budget>,
 ) -> ReceiverStream<io::Result<Conn>> {
     let (tx, rx) = mpsc::channel(64);
     tokio::spawn(accept_loop(
@@ -394,6 +396,7 @@ pub fn incoming(
         shutdown,
         tx,
         control_frames_per_second,
+        budget,
     ));
     ReceiverStream::new(rx)
 }
@@ -405,6 +408,7 @@ async fn accept_loop(
     shutdown: CancellationToken,
     tx: mpsc::Sender<io::Result<Conn>>,
     control_frames_per_second: u32,
+    budget: Arc<Budget>,
 ) {
     let deadline = table.limits.handshake_timeout;
     loop {
@@ -424,6 +428,12 @@ async fn accept_loop(
                 continue;
             }
         };
+        if budget.admit(crate::budget::STREAM_BYTES).is_err() {
+            metrics::connection_refused("memory_budget");
+            tracing::warn!(%peer, "connection refused: --memory-budget reached");
+            drop(tcp);
+            continue;
+        }
         let permit = match table.admit(peer.ip()) {
             Ok(permit) => permit,
             Err(refusal) => {

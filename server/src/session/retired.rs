@@ -127,7 +127,6 @@ impl Memory {
     }
 
     /// Bytes the memory holds, about (entries, queue items, floors).
-    #[cfg_attr(not(test), allow(dead_code))] // read by the memory budget's accounting next
     pub fn approx_bytes(&self) -> usize {
         let entry = std::mem::size_of::<(SessionId, Retired)>() + 8;
         let item = std::mem::size_of::<(Instant, SessionId)>();

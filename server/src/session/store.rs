@@ -208,6 +208,11 @@ impl SessionStore {
         self.shared.max_sessions
     }
 
+    /// Bytes the memory of ended sessions holds, about.
+    pub fn ended_bytes(&self) -> usize {
+        self.shared.lock().retired.approx_bytes()
+    }
+
     /// Sessions currently held (attached or detached).
     pub fn len(&self) -> usize {
         self.shared.lock().sessions.len()
