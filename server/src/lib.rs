@@ -82,6 +82,7 @@ pub mod backend;
 pub mod budget;
 pub mod config;
 pub mod connection;
+pub mod duration;
 pub mod engine;
 pub mod error;
 #[cfg(test)]

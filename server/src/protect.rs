@@ -39,7 +39,7 @@ use std::time::Duration;
 use clap::builder::TypedValueParser;
 use clap::Args;
 
-use crate::config::parse_duration;
+use crate::duration::parse_duration;
 
 /// How long connections may live, and how many control frames they send.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

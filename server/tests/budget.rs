@@ -99,7 +99,7 @@ async fn streams_of_one_address_are_capped_across_its_connections() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn past_the_memory_budget_new_sessions_are_refused_until_some_end() {
-    // 256 KB: about ten attached sessions (a stream 8 KB, a session 16 KB).
+    // 256 KB: about ten attached sessions (8 KB per stream, 16 KB per session state).
     let server = start(Protection {
         memory_budget: Some(256 << 10),
         ..Protection::default()
