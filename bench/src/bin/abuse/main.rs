@@ -7,6 +7,8 @@
 //! abuse sessions --server URL --server-pid PID --header x-blapose-client --limit 8
 //! abuse token    --server URL --replica URL --token-ttl 4
 //! abuse bomb     --out bomb.npz
+//! abuse idle     --server URL --server-pid PID --connections 400 --addresses 8 --idle 2
+//! abuse flood    --server URL --server-pid PID
 //! ```
 //!
 //! Every case that has a victim measures a *healthy client*: its own
@@ -33,6 +35,11 @@
 //!   `--token-ttl`) and reported.
 //! - `bomb`: writes a replay file with a 2 GiB zero member deflated to
 //!   about 2 MB (used as `pose_3d`), for the script to run the client on.
+//! - `idle`: connections from several addresses that send the preface and
+//!   then only answer keepalive PINGs; each must get GOAWAY within the
+//!   server's `--max-connection-idle` + 10 s.
+//! - `flood`: one connection flooding WINDOW_UPDATE frames must get GOAWAY
+//!   within a second (`--max-control-frames-per-second`).
 //!
 //! A limit the server does not enforce fails the case with "not enforced".
 
@@ -51,6 +58,7 @@ use tonic::transport::Channel;
 use tonic::Code;
 
 mod client;
+mod connections;
 
 use client::{
     check_latency, connect, frames, healthy, open, opened, round_trip, rss, start, Stream,
@@ -112,6 +120,33 @@ enum Case {
         /// The replicas' --token-ttl, in seconds.
         #[arg(long, default_value_t = 4.0)]
         token_ttl: f64,
+    },
+    /// PING-only connections from several addresses.
+    Idle {
+        /// The server.
+        #[arg(long)]
+        server: String,
+        /// Its process id (for its memory).
+        #[arg(long)]
+        server_pid: u32,
+        /// Connections to open.
+        #[arg(long, default_value_t = 400)]
+        connections: usize,
+        /// Loopback addresses they come from (127.0.0.2 and up).
+        #[arg(long, default_value_t = 8)]
+        addresses: usize,
+        /// The server's --max-connection-idle, in seconds.
+        #[arg(long)]
+        idle: f64,
+    },
+    /// One connection flooding WINDOW_UPDATE frames.
+    Flood {
+        /// The server.
+        #[arg(long)]
+        server: String,
+        /// Its process id (for its memory).
+        #[arg(long)]
+        server_pid: u32,
     },
     /// Write the zip-bomb replay file.
     Bomb {
@@ -471,6 +506,17 @@ async fn main() -> Result<()> {
             token_ttl,
         } => token(server, replica, Duration::from_secs_f64(*token_ttl)).await?,
         Case::Bomb { out } => bomb(out)?,
+        Case::Idle {
+            server,
+            server_pid,
+            connections: n,
+            addresses,
+            idle,
+        } => {
+            let idle = Duration::from_secs_f64(*idle);
+            connections::idle(server, *server_pid, *n, *addresses, idle).await?
+        }
+        Case::Flood { server, server_pid } => connections::flood(server, *server_pid).await?,
     }
     println!("  ok ({:.1} s)", start.elapsed().as_secs_f64());
     Ok(())
