@@ -16,8 +16,9 @@
 //! `blapose_memory_accounted_bytes` gauge.
 //!
 //! Open streams are counted live (and per address, across connections:
-//! `--max-streams-per-peer`); the rest is sampled every 100 ms from the
-//! session store and the batcher.
+//! `--max-streams-per-peer`, except for `--trusted-proxies`, whose streams
+//! are many clients'); the rest is sampled every 100 ms from the session
+//! store and the batcher.
 
 use std::collections::HashMap;
 use std::net::IpAddr;
@@ -67,6 +68,7 @@ impl BudgetError {
 pub struct Budget {
     budget: usize,
     per_peer: usize,
+    exempt: Vec<IpAddr>,
     streams: AtomicUsize,
     sampled: AtomicUsize,
     peers: Mutex<HashMap<IpAddr, usize>>,
@@ -74,11 +76,13 @@ pub struct Budget {
 
 impl Budget {
     /// A budget of `budget` bytes, with at most `per_peer` open streams
-    /// per address.
-    pub fn new(budget: usize, per_peer: usize) -> Arc<Self> {
+    /// per address but those in `exempt` (the trusted proxies: a balancer
+    /// carries many clients' streams, and has limits of its own).
+    pub fn new(budget: usize, per_peer: usize, exempt: Vec<IpAddr>) -> Arc<Self> {
         Arc::new(Self {
             budget,
             per_peer: per_peer.max(1),
+            exempt: exempt.into_iter().map(|ip| ip.to_canonical()).collect(),
             streams: AtomicUsize::new(0),
             sampled: AtomicUsize::new(0),
             peers: Mutex::new(HashMap::new()),
@@ -119,6 +123,7 @@ impl Budget {
     /// share; it counts until the guard drops.
     pub fn stream(self: &Arc<Self>, peer: Option<IpAddr>) -> Result<BudgetStream, BudgetError> {
         self.admit(STREAM_BYTES)?;
+        let peer = peer.filter(|ip| !self.exempt.contains(ip));
         if let Some(ip) = peer {
             let mut peers = self.peers.lock().unwrap_or_else(|p| p.into_inner());
             let n = peers.entry(ip).or_default();
@@ -221,14 +226,15 @@ mod tests {
 
     #[test]
     fn work_past_the_budget_or_the_peer_share_is_refused_and_freed() {
-        let b = Budget::new(10 * STREAM_BYTES, 4);
+        let b = Budget::new(10 * STREAM_BYTES, 4, vec!["10.0.0.9".parse().unwrap()]);
         let a: IpAddr = "10.0.0.1".parse().unwrap();
         let held: Vec<_> = (0..4).map(|_| b.stream(Some(a)).unwrap()).collect();
         assert!(matches!(
             b.stream(Some(a)),
             Err(BudgetError::PeerStreams { limit: 4 })
         ));
-        let other: Vec<_> = (0..6).map(|_| b.stream(None).unwrap()).collect();
+        let proxy: IpAddr = "10.0.0.9".parse().unwrap();
+        let other: Vec<_> = (0..6).map(|_| b.stream(Some(proxy)).unwrap()).collect();
         assert!(matches!(b.stream(None), Err(BudgetError::Memory { .. })));
         drop(other);
         b.sample(0, 0, 5 * STREAM_BYTES);

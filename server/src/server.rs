@@ -175,6 +175,7 @@ pub async fn spawn_with_provider(
             .memory_budget
             .unwrap_or_else(crate::budget::default_budget),
         config.protection.max_streams_per_peer,
+        config.trusted_proxies.clone(),
     );
     metrics::limit("memory_budget_bytes", budget.budget());
     let state = Arc::new(AppState {
