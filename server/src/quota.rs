@@ -90,8 +90,12 @@ pub fn fair_share(total: usize, active: usize) -> usize {
 
 /// The limit for a client holding `held` of a pool of `total` in which
 /// `holders` clients hold some: the configured `share`, or the fair share
-/// when that is smaller.
+/// when that is smaller. A `share` of `usize::MAX` means no per-client
+/// limit at all (library callers that do not tell clients apart).
 pub fn effective_share(share: usize, total: usize, holders: usize, held: usize) -> usize {
+    if share == usize::MAX {
+        return share;
+    }
     let active = holders + usize::from(held == 0);
     share.min(fair_share(total, active))
 }
@@ -235,6 +239,11 @@ mod tests {
         assert_eq!(effective_share(2048, 4096, 2, 1), 1365);
         assert_eq!(effective_share(2048, 4096, 2, 0), 1024);
         assert_eq!(effective_share(100, 4096, 2, 0), 100);
+        assert_eq!(
+            effective_share(usize::MAX, 4096, 1, 3000),
+            usize::MAX,
+            "unlimited"
+        );
     }
 
     #[test]
