@@ -60,8 +60,8 @@ run_case sessions "$ABUSE" sessions --server "$URL" --server-pid "$SERVER_PID" \
     --header x-blapose-client --attempts 200 --limit "$SESSION_LIMIT"
 stop_server
 
-start_server "$OUT/connections.log" --max-queue-delay 0 --max-connection-idle 2s --max-control-frames-per-second 1000
-run_case idle "$ABUSE" idle --server "$URL" --server-pid "$SERVER_PID" --connections 400 --addresses 8 --idle 2
+start_server "$OUT/connections.log" --max-queue-delay 0 --max-connection-idle 4s --max-control-frames-per-second 1000
+run_case idle "$ABUSE" idle --server "$URL" --server-pid "$SERVER_PID" --connections 400 --addresses 8 --idle 4
 run_case flood "$ABUSE" flood --server "$URL" --server-pid "$SERVER_PID"
 stop_server
 

@@ -59,8 +59,14 @@ async fn connect_from(from: IpAddr, to: SocketAddr) -> Result<TcpStream> {
 async fn ping_only(mut s: TcpStream, started: Instant, wait: Duration) -> Option<Duration> {
     let deadline = started + wait;
     let mut head = [0u8; 9];
+    let mut next_ping = Instant::now();
     loop {
-        let _ = s.write_all(&frame(PING, 0, &[1; 8])).await;
+        // A keepalive PING every 2 s, as a client's keepalive would (more
+        // often than any server's idle limit checks, far from a flood).
+        if Instant::now() >= next_ping {
+            let _ = s.write_all(&frame(PING, 0, &[1; 8])).await;
+            next_ping = Instant::now() + Duration::from_secs(2);
+        }
         let read = tokio::time::timeout(Duration::from_millis(500), s.read_exact(&mut head)).await;
         match read {
             Ok(Ok(_)) => {}
