@@ -191,6 +191,16 @@ impl Client {
                 Ok(channel) => return Ok(Client::from_channel(channel, auth, config)),
                 Err(e) => {
                     last_error = error_chain(&e);
+                    // A certificate the client does not trust will not be
+                    // trusted on the next attempt either: say why and stop.
+                    if let Some(problem) = blapose_tls::untrusted(&e) {
+                        let ca_given = config.tls.ca_cert_pem.is_some();
+                        return Err(ClientError::Connect {
+                            endpoint: config.endpoint,
+                            attempts: attempt,
+                            last_error: format!("{} ({last_error})", problem.advice(ca_given)),
+                        });
+                    }
                     if attempt < attempts {
                         tokio::time::sleep(backoff).await;
                         backoff = next_backoff(backoff);
@@ -280,11 +290,19 @@ impl Client {
         }
     }
 
-    /// A plaintext call whose connection failed: when the port speaks TLS,
-    /// say so. The server's GOAWAY says it too, but the connection's close
+    /// A call whose connection failed: a certificate the client does not
+    /// trust is named with the flag that fixes it; for a plaintext call,
+    /// when the port speaks TLS, say so. The server's GOAWAY says it too, but the connection's close
     /// can reach the client first, so the port is asked directly
     /// ([`blapose_tls::probe`], a connection of its own).
     async fn explain_transport_error(&self, status: tonic::Status) -> ClientError {
+        if let Some(problem) = blapose_tls::untrusted(&status) {
+            let advice = problem.advice(self.config.tls.ca_cert_pem.is_some());
+            return ClientError::Status(tonic::Status::unavailable(format!(
+                "{advice} ({})",
+                status.message()
+            )));
+        }
         let plaintext =
             self.config.endpoint.starts_with("http://") && self.config.tls.ca_cert_pem.is_none();
         let transport = matches!(

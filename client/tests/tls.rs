@@ -79,3 +79,36 @@ async fn a_tls_client_on_a_plaintext_port_is_told_the_server_speaks_plaintext() 
     assert!(err.contains("speaks plaintext HTTP/2"), "{err}");
     server.shutdown().await.unwrap();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_untrusted_self_signed_certificate_is_named_with_the_flag_that_fixes_it() {
+    let Some(cert) = certs::self_signed() else {
+        return;
+    };
+    let server = certs::serve(Some(&cert)).await;
+    let port = server.local_addr().port();
+    // https:// without --tls-ca: the system's roots do not trust it.
+    let mut untrusting = config(format!("https://localhost:{port}"), None);
+    untrusting.connect_attempts = 3;
+    let err = Client::connect(untrusting).await.unwrap_err().to_string();
+    assert!(
+        err.contains("self-signed") && err.contains("--tls-ca"),
+        "{err}"
+    );
+    assert!(
+        err.contains("after 1 attempt"),
+        "no retry of a certificate: {err}"
+    );
+    assert!(!err.starts_with("CaUsedAsEndEntity"), "{err}");
+    // Another certificate given as the CA.
+    let other = certs::self_signed().unwrap();
+    let err = Client::connect(config(format!("https://localhost:{port}"), Some(&other)))
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("not the certificate given with --tls-ca"),
+        "{err}"
+    );
+    server.shutdown().await.unwrap();
+}

@@ -108,3 +108,55 @@ def test_a_zip_bomb_is_refused_before_it_is_inflated(tmp_path):
     tracemalloc.stop()
     returned = seq.keypoints_2d.nbytes + seq.pose_3d.nbytes
     assert peak < 2 * returned + (1 << 20), (peak, returned)
+
+
+def test_a_zip_directory_bomb_is_refused_before_it_is_parsed(tmp_path):
+    """zipfile reads the whole directory when it opens an archive: too many
+    entries, or a directory too large, are refused from the end record."""
+    a = arrays()
+    path = write(tmp_path, a, "entries.npz")
+    with zipfile.ZipFile(path, "a") as z:
+        for i in range(blapose.replay_file.MAX_ENTRIES):
+            z.writestr(f"j{i}.npy", b"")
+    tracemalloc.start()
+    err = refused(path, None, "entries", str(blapose.replay_file.MAX_ENTRIES))
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    assert peak < 1 << 20, (peak, str(err))
+
+    path = write(tmp_path, a, "names.npz")
+    with zipfile.ZipFile(path, "a") as z:
+        for i in range(200):
+            z.writestr(f"{i:08000d}.npy", b"")
+    refused(path, None, "bytes")
+    # A file just within both limits still loads.
+    path = write(tmp_path, a, "fine.npz")
+    with zipfile.ZipFile(path, "a") as z:
+        for i in range(blapose.replay_file.MAX_ENTRIES - len(a)):
+            z.writestr(f"j{i}.npy", b"")
+    assert load_replay(path).num_frames == 100
+
+
+def member_data(path, key):
+    """Offset and length of member ``key``'s stored (maybe compressed) bytes."""
+    with zipfile.ZipFile(path) as z:
+        info = z.getinfo(key + ".npy")
+    raw = path.read_bytes()
+    at = info.header_offset
+    name_len, extra_len = int.from_bytes(raw[at + 26 : at + 28], "little"), int.from_bytes(raw[at + 28 : at + 30], "little")
+    return at + 30 + name_len + extra_len, info.compress_size
+
+
+@pytest.mark.parametrize("compressed", [False, True])
+def test_a_corrupt_member_is_a_replay_file_error(tmp_path, compressed):
+    """A bad CRC (stored member) or a corrupt deflate stream (zlib.error
+    inside zipfile) is a ReplayFileError naming the member."""
+    path = tmp_path / "corrupt.npz"
+    (np.savez_compressed if compressed else np.savez)(path, **arrays())
+    start, length = member_data(path, "pose_3d")
+    raw = bytearray(path.read_bytes())
+    for i in range(start + length // 2, start + length // 2 + 16):
+        raw[i] ^= 0x5A
+    path.write_bytes(bytes(raw))
+    err = refused(path, "pose_3d", "cannot be read")
+    assert isinstance(err, ValueError)

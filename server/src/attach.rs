@@ -19,7 +19,8 @@ use crate::motion::{self, SessionMotion};
 use crate::quota::ClientId;
 use crate::restore_check;
 use crate::session::{
-    Attachment, Session, SessionConfig, SessionError, SessionSnapshot, StateCopy, MAX_LABEL_BYTES,
+    Attachment, Session, SessionConfig, SessionError, SessionSnapshot, StateCopy, TokenStamp,
+    MAX_LABEL_BYTES,
 };
 use crate::state::AppState;
 use crate::token::{PortableMotion, PortableState};
@@ -64,6 +65,10 @@ pub fn open_or_resume(
             let motion = motion::options(open.motion.as_ref())?
                 .map(|rate| SessionMotion::new(rate, &input, camera.as_ref().map(|c| &c.view)));
             let label = truncate_label(&open.client_label);
+            state
+                .budget
+                .admit(crate::budget::SESSION_BYTES)
+                .map_err(|e| e.to_status())?;
             let attachment = state
                 .store
                 .open_for(
@@ -136,6 +141,10 @@ fn restore(
             truncate_label(&resume.session_id)
         ))
     })?;
+    state
+        .budget
+        .admit(crate::budget::SESSION_BYTES)
+        .map_err(|e| e.to_status())?;
     let portable =
         PortableState::open(&resume.session_token, &tokens.key).map_err(|e| e.to_status())?;
     // Authentic is not the same as sane: check it like input.
@@ -218,6 +227,11 @@ fn restore(
         None => None,
     };
     let id = portable.session_id;
+    let origin_ms = portable.expiry_origin_ms();
+    let stamp = TokenStamp {
+        issued_ms: portable.issued_at_ms,
+        owner: portable.owner.map(ClientId::from_bytes),
+    };
     let config = SessionConfig {
         input: portable.input,
         label: truncate_label(&portable.label),
@@ -233,10 +247,20 @@ fn restore(
         held: portable.held,
         skipped: portable.skipped,
         motion: portable.motion.map(|m| m.state),
+        // Its tokens expire with the one it came from, whatever chain of
+        // restores follows.
+        origin_ms: Some(origin_ms),
     };
     let attachment = state
         .store
-        .restore(id, config, copy, client, state.limits.sessions_per_client)
+        .restore(
+            id,
+            config,
+            copy,
+            client,
+            state.limits.sessions_per_client,
+            stamp,
+        )
         .map_err(session_status)?;
     tracing::info!(session = %id, frames_seen = attachment.snapshot.frames_seen, "session restored from a token");
     Ok(attachment)
@@ -269,6 +293,7 @@ pub fn seal(state: &AppState, session: &Session, copy: StateCopy) -> Option<(Vec
         copy,
     );
     portable.subject = config.subject.as_ref().map(|s| s.subject);
+    portable.owner = Some(*session.client().as_bytes());
     portable.motion = match (&config.motion, motion_state) {
         (Some(m), Some(state)) => Some(PortableMotion {
             rate_hz: m.rate_hz,
@@ -295,9 +320,9 @@ pub fn session_status(e: SessionError) -> Status {
         SessionError::TooManySessions { .. } | SessionError::Quota(_) => {
             Status::resource_exhausted(e.to_string())
         }
-        SessionError::Closed { .. } | SessionError::Rollback { .. } => {
-            Status::failed_precondition(e.to_string())
-        }
+        SessionError::Closed { .. }
+        | SessionError::Rollback { .. }
+        | SessionError::Forgotten { .. } => Status::failed_precondition(e.to_string()),
         SessionError::NotFound { .. } => Status::not_found(e.to_string()),
         SessionError::Rng(_) => Status::internal(e.to_string()),
         SessionError::Restore(_) => Status::failed_precondition(e.to_string()),

@@ -245,13 +245,15 @@ impl Batcher {
             crate::metrics::limited("frames_per_session");
             return Err(QuotaError::SessionFrames { limit: per_session }.into());
         }
-        if q.per_client.get(&client).copied().unwrap_or(0) >= per_client {
-            crate::metrics::limited("queued_frames_per_client");
-            return Err(QuotaError::ClientFrames { limit: per_client }.into());
-        }
         let capacity = self.shared.config.queue_capacity;
         if q.len >= capacity {
             return Err(SubmitError::QueueFull { capacity });
+        }
+        let held = q.per_client.get(&client).copied().unwrap_or(0);
+        let limit = crate::quota::effective_share(per_client, capacity, q.per_client.len(), held);
+        if held >= limit {
+            crate::metrics::limited("queued_frames_per_client");
+            return Err(QuotaError::ClientFrames { limit }.into());
         }
         *q.per_client.entry(client).or_default() += 1;
         let frames = q.per_session.entry(key).or_default();

@@ -138,6 +138,8 @@ pub struct ServerConfig {
     pub trusted_proxies: Vec<std::net::IpAddr>,
     /// The browser transport (`--web-addr`); `None`: off.
     pub web: Option<WebConfig>,
+    /// Idle and aged connections, control-frame floods.
+    pub protection: crate::protect::Protection,
 }
 
 impl Default for ServerConfig {
@@ -177,6 +179,7 @@ impl Default for ServerConfig {
             client_header: None,
             trusted_proxies: Vec::new(),
             web: None,
+            protection: crate::protect::Protection::default(),
         }
     }
 }
@@ -437,6 +440,9 @@ pub struct Cli {
 
     #[command(flatten)]
     pub web: WebArgs,
+    /// Idle and aged connections, control-frame floods.
+    #[command(flatten)]
+    pub protection: crate::protect::ProtectionArgs,
 }
 
 /// How `--health-check` connects to a server with TLS on: it verifies the
@@ -515,6 +521,7 @@ impl Cli {
             client_header: self.client_header,
             trusted_proxies: self.trusted_proxies,
             web: self.web.into_config(),
+            protection: self.protection.into(),
         }
     }
 }
@@ -545,34 +552,7 @@ pub fn parse_open_timeout(text: &str) -> Result<Duration, String> {
     }
 }
 
-/// Parse a duration such as `60s`, `500ms`, `250us`, `5m`, `1h` or a bare
-/// `0`. Fractions are allowed (`1.5s`).
-pub fn parse_duration(text: &str) -> Result<Duration, String> {
-    let t = text.trim();
-    if t == "0" {
-        return Ok(Duration::ZERO);
-    }
-    let split = t
-        .find(|c: char| !(c.is_ascii_digit() || c == '.'))
-        .ok_or_else(|| format!("{text:?}: missing unit (use us, ms, s, m or h)"))?;
-    let (num, unit) = t.split_at(split);
-    let value: f64 = num
-        .parse()
-        .map_err(|_| format!("{text:?}: {num:?} is not a number"))?;
-    let scale = match unit.trim() {
-        "us" | "µs" => 1e-6,
-        "ms" => 1e-3,
-        "s" => 1.0,
-        "m" | "min" => 60.0,
-        "h" => 3600.0,
-        other => {
-            return Err(format!(
-                "{text:?}: unknown unit {other:?} (use us, ms, s, m or h)"
-            ))
-        }
-    };
-    Duration::try_from_secs_f64(value * scale).map_err(|e| format!("{text:?}: {e}"))
-}
+pub use crate::duration::parse_duration;
 
 #[cfg(test)]
 mod tests {

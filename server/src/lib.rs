@@ -38,6 +38,9 @@
 //! (`AdjustSequence`, which shares prepare and answer).
 //!
 //! Around them: [`server`] (the wiring: listeners, services, tasks),
+//! [`transport`] (accepting within limits, handshakes), [`connection`]
+//! (hyper's HTTP/2 per connection, closed when idle, aged or flooding:
+//! [`activity`], [`frames`], settings in [`protect`]),
 //! [`config`] (flags and [`ServerConfig`]), [`session`] (store, TTL,
 //! resume), [`backend`] (the model-execution trait), [`engine`]
 //! (blapose-model's fast engines behind it), [`models`] (weights, their
@@ -76,16 +79,22 @@ pub mod offline;
 pub mod stream;
 
 // Around them.
+pub mod activity;
 pub mod auth;
 pub mod backend;
+pub mod budget;
 pub mod config;
+pub mod connection;
+pub mod duration;
 pub mod engine;
 pub mod error;
 #[cfg(test)]
 mod fakes;
+pub mod frames;
 pub mod health;
 pub mod metrics;
 pub mod models;
+pub mod protect;
 pub mod quota;
 pub mod restore_check;
 pub mod server;

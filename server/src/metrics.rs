@@ -52,6 +52,10 @@ pub const CONNECTIONS_REFUSED: &str = "blapose_connections_refused_total";
 pub const CONNECTIONS_CLOSED: &str = "blapose_connections_closed_total";
 /// Gauge: a configured limit in force, by `limit` (its flag's name).
 pub const LIMIT: &str = "blapose_limit";
+/// Gauge: memory the server accounts for its clients (the budget's sum).
+pub const MEMORY_ACCOUNTED: &str = "blapose_memory_accounted_bytes";
+/// Gauge: ended sessions remembered (so their tokens cannot revive them).
+pub const ENDED_SESSIONS: &str = "blapose_ended_sessions";
 /// Counter: requests or frames refused by a per-client limit or a token
 /// rule, by `limit`.
 pub const LIMITED: &str = "blapose_limited_total";
@@ -212,6 +216,16 @@ pub fn session_evicted(held: usize) {
 /// Export the configured value of the limit `name` (its flag's name).
 pub fn limit(name: &'static str, value: usize) {
     gauge!(LIMIT, "limit" => name).set(value as f64);
+}
+
+/// `bytes` accounted against the memory budget.
+pub fn memory_accounted(bytes: usize) {
+    gauge!(MEMORY_ACCOUNTED).set(bytes as f64);
+}
+
+/// `count` ended sessions remembered.
+pub fn ended_sessions(count: usize) {
+    gauge!(ENDED_SESSIONS).set(count as f64);
 }
 
 /// Something was refused by the limit or token rule `name`.

@@ -8,7 +8,10 @@
 //! connections from the peers named by `--trusted-proxies` (anyone else
 //! could set it to whatever escapes their limit). The bearer token is not
 //! an identity: the server has one shared `--auth-token`, so it would put
-//! every authenticated client in one bucket. The identity is hashed
+//! every authenticated client in one bucket. Addresses, the peer's and the
+//! trusted proxies', are compared in canonical form (an IPv4-mapped IPv6
+//! address as its IPv4 address), so a dual-stack listener (`[::]`) sees
+//! the balancer at the address it was configured with. The identity is hashed
 //! (SHA-256, 16 bytes) so the store never holds an address or header value.
 //!
 //! The limits: sessions per client (a fraction of `--max-sessions` by
@@ -16,6 +19,14 @@
 //! own share and no more), frames one session may have waiting in the
 //! batcher queue, and frames one client may have waiting (a share of
 //! `--queue-capacity`). Each refusal is RESOURCE_EXHAUSTED naming its limit.
+//!
+//! On top of the configured shares, a *fair share* that shrinks as more
+//! clients hold something ([`fair_share`]): with k clients holding part of
+//! a pool, each may hold at most `total / (k + 1)`, so together they leave
+//! at least one share free for a client that holds nothing. Measured
+//! before it: two clients holding half the session table each (2,048 +
+//! 2,047) locked every other client out for as long as they streamed. The
+//! same rule holds the frame queue and connections (per address) .
 
 use std::net::IpAddr;
 use std::time::Duration;
@@ -34,6 +45,16 @@ impl ClientId {
         id.copy_from_slice(&digest[..16]);
         Self(id)
     }
+
+    /// The id as 16 bytes (what a session token records of its owner).
+    pub fn as_bytes(&self) -> &[u8; 16] {
+        &self.0
+    }
+
+    /// An id from its bytes.
+    pub fn from_bytes(bytes: [u8; 16]) -> Self {
+        Self(bytes)
+    }
 }
 
 /// The per-client limits and how a request's client is told.
@@ -51,6 +72,32 @@ pub struct Limits {
     client_header: Option<String>,
     /// Peers allowed to set `client_header`.
     trusted_proxies: Vec<IpAddr>,
+}
+
+/// A pool this small (or a share this small of a larger one) is not split
+/// further by [`fair_share`]: tests' and single-user deployments' small
+/// tables keep working, and the guarantee holds up to `total / 16 - 1`
+/// clients at once.
+pub const FAIR_FLOOR: usize = 16;
+
+/// The most of a pool of `total` one client may hold while `active`
+/// clients (it included) hold some: `total / (active + 1)`, so k clients
+/// at their shares leave `total / (k + 1)` for the next; never below
+/// [`FAIR_FLOOR`] (all of a pool that small).
+pub fn fair_share(total: usize, active: usize) -> usize {
+    (total / (active.max(1) + 1)).max(total.min(FAIR_FLOOR))
+}
+
+/// The limit for a client holding `held` of a pool of `total` in which
+/// `holders` clients hold some: the configured `share`, or the fair share
+/// when that is smaller. A `share` of `usize::MAX` means no per-client
+/// limit at all (library callers that do not tell clients apart).
+pub fn effective_share(share: usize, total: usize, holders: usize, held: usize) -> usize {
+    if share == usize::MAX {
+        return share;
+    }
+    let active = holders + usize::from(held == 0);
+    share.min(fair_share(total, active))
 }
 
 /// Smallest default share: a small table or queue (a test's, a
@@ -85,7 +132,10 @@ impl Limits {
             client_header: client_header
                 .map(|h| h.trim().to_ascii_lowercase())
                 .filter(|h| !h.is_empty()),
-            trusted_proxies,
+            trusted_proxies: trusted_proxies
+                .into_iter()
+                .map(|ip| ip.to_canonical())
+                .collect(),
         }
     }
 
@@ -114,6 +164,7 @@ impl Limits {
 
     /// The identity string of a peer (and its headers, read by `header`).
     fn identity(&self, peer: Option<IpAddr>, header: impl Fn(&str) -> Option<String>) -> String {
+        let peer = peer.map(|ip| ip.to_canonical());
         if let (Some(name), Some(ip)) = (&self.client_header, peer) {
             if self.trusted_proxies.contains(&ip) {
                 if let Some(value) = header(name).filter(|v| !v.is_empty()) {
@@ -132,7 +183,7 @@ impl Limits {
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum QuotaError {
     /// The client holds its share of the session table.
-    #[error("this client already holds {limit} sessions (--max-sessions-per-client); close unused sessions or retry later")]
+    #[error("this client already holds {limit} sessions, its share of the session table (--max-sessions-per-client, or less while other clients hold sessions: the share shrinks as more clients are served); close unused sessions or retry later")]
     Sessions {
         /// The limit.
         limit: usize,
@@ -144,7 +195,7 @@ pub enum QuotaError {
         limit: usize,
     },
     /// The client has its share of the frame queue.
-    #[error("this client already has {limit} frames waiting (--max-queued-frames-per-client); wait for earlier answers")]
+    #[error("this client already has {limit} frames waiting, its share of the queue (--max-queued-frames-per-client, or less while other clients have frames waiting); wait for earlier answers")]
     ClientFrames {
         /// The limit.
         limit: usize,
@@ -183,5 +234,43 @@ mod tests {
         let untrusting = limits(None, &["10.0.0.5"]);
         assert_eq!(untrusting.identity(Some(lb), header), "peer:10.0.0.5");
         assert_ne!(ClientId::of("peer:a"), ClientId::of("peer:b"));
+    }
+
+    #[test]
+    fn k_clients_at_their_fair_shares_leave_room_for_another() {
+        for total in [64, 4096, 8192] {
+            for k in 1..=(total / FAIR_FLOOR - 1).min(300) {
+                let share = fair_share(total, k);
+                assert!(k * share < total, "{k} clients x {share} of {total}");
+            }
+        }
+        assert_eq!(fair_share(4096, 1), 2048, "alone: half, as before");
+        assert_eq!(fair_share(3, 5), 3, "a small pool is not split");
+        // A client already holding counts itself; a new one is counted.
+        assert_eq!(effective_share(2048, 4096, 2, 1), 1365);
+        assert_eq!(effective_share(2048, 4096, 2, 0), 1024);
+        assert_eq!(effective_share(100, 4096, 2, 0), 100);
+        assert_eq!(
+            effective_share(usize::MAX, 4096, 1, 3000),
+            usize::MAX,
+            "unlimited"
+        );
+    }
+
+    #[test]
+    fn mapped_ipv6_peers_are_their_ipv4_address_everywhere() {
+        let header = |_: &str| Some("203.0.113.9".to_string());
+        let mapped: IpAddr = "::ffff:10.0.0.5".parse().unwrap();
+        // An IPv4 trusted proxy arriving on a dual-stack listener ...
+        let l = limits(Some("x-blapose-client"), &["10.0.0.5"]);
+        assert_eq!(l.identity(Some(mapped), header), "header:203.0.113.9");
+        // ... and a mapped entry in the list matching an IPv4 peer.
+        let l = limits(Some("x-blapose-client"), &["::ffff:10.0.0.5"]);
+        let v4: IpAddr = "10.0.0.5".parse().unwrap();
+        assert_eq!(l.identity(Some(v4), header), "header:203.0.113.9");
+        // Without the header, the same client whichever way it arrives.
+        let plain = limits(None, &[]);
+        assert_eq!(plain.identity(Some(mapped), header), "peer:10.0.0.5");
+        assert_eq!(plain.identity(Some(v4), header), "peer:10.0.0.5");
     }
 }

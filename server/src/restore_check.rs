@@ -40,7 +40,7 @@ pub enum RestoreError {
         reason: String,
     },
     /// The token is older than the token TTL.
-    #[error("the session token expired: it was issued {age_s} s ago and tokens are accepted for {ttl_s} s (--token-ttl); open a new session")]
+    #[error("the session token expired: it (or the first token of the chain of restores it comes from) was issued {age_s} s ago and tokens are accepted for {ttl_s} s (--token-ttl); open a new session")]
     Expired {
         /// Its age in seconds.
         age_s: u64,
@@ -80,7 +80,14 @@ pub fn check(state: &PortableState, now_ms: u64, ttl: Duration) -> Result<(), Re
             ),
         ));
     }
-    let age_ms = now_ms.saturating_sub(state.issued_at_ms);
+    if state.origin_ms.is_some_and(|o| o > state.issued_at_ms) {
+        return Err(field(
+            "chain origin",
+            "after the token's own issue time (a chain starts before its tokens)",
+        ));
+    }
+    // A restored session's tokens age from the first token of the chain.
+    let age_ms = now_ms.saturating_sub(state.expiry_origin_ms());
     if age_ms > ttl_ms {
         return Err(RestoreError::Expired {
             age_s: age_ms / 1000,

@@ -20,14 +20,14 @@ use tokio::net::TcpListener;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 use tonic::service::interceptor::InterceptedService;
-use tonic::transport::server::Router;
-use tonic::transport::Server;
+use tonic::service::Routes;
 use tonic_health::server::HealthReporter;
 use tonic_health::ServingStatus;
 
 use crate::auth::BearerAuth;
 use crate::batch::{Batcher, BatcherConfig};
 use crate::config::ServerConfig;
+use crate::connection::{self, Http2Settings};
 use crate::error::ServerError;
 use crate::metrics;
 use crate::models::{self, Family, LoadedLifter, ModelProvider, WeightsProvider};
@@ -165,7 +165,7 @@ pub async fn spawn_with_provider(
         tracing::info!(%addr, "metrics at http://{addr}/metrics");
     }
     let batcher = Arc::new(start_batcher(&config, provider.clone(), lifter.clone()).await?);
-    let (store, purge_guard) = SessionStore::with_memory(
+    let (store, purge_guard) = SessionStore::with_limits(
         config.max_sessions.max(1),
         config.session_ttl,
         // Ended sessions are remembered only where tokens could revive them.
@@ -173,8 +173,18 @@ pub async fn spawn_with_provider(
             .session_key
             .as_ref()
             .map_or(Duration::ZERO, |_| config.token_ttl),
+        crate::session::EndedLimits::with_max(config.protection.max_ended_sessions),
     );
     let shutdown = CancellationToken::new();
+    let budget = crate::budget::Budget::new(
+        config
+            .protection
+            .memory_budget
+            .unwrap_or_else(crate::budget::default_budget),
+        config.protection.max_streams_per_peer,
+        config.trusted_proxies.clone(),
+    );
+    metrics::limit("memory_budget_bytes", budget.budget());
     let state = Arc::new(AppState {
         store,
         batcher: batcher.clone(),
@@ -195,8 +205,10 @@ pub async fn spawn_with_provider(
         max_message_bytes: config.max_message_bytes,
         stature: Arc::new(models::embedded_stature_model()?),
         limits: state::limits(&config),
+        budget: budget.clone(),
     });
-    let (health, router) = router(&config, state.clone()).await?;
+    tokio::spawn(sample_budget(state.clone(), shutdown.clone()));
+    let (health, routes) = routes(&config, state.clone()).await?;
 
     // TLS is terminated in `transport` (under the handshake deadline).
     let tls = config
@@ -206,6 +218,8 @@ pub async fn spawn_with_provider(
         .transpose()
         .map_err(ServerError::Tls)?;
     export_limits(&config);
+    let protection = config.protection;
+    protection.export();
     // One table for both listeners: a peer's connections count together.
     let connections = transport::ConnectionTable::new(config.connection_limits);
     let web = match &config.web {
@@ -228,28 +242,40 @@ pub async fn spawn_with_provider(
         None => None,
     };
     let web_addr = web.as_ref().map(|w| w.local_addr);
-    let incoming = transport::incoming(listener, connections, tls, shutdown.clone());
+    let incoming = transport::incoming(
+        listener,
+        connections,
+        tls,
+        shutdown.clone(),
+        protection.max_control_frames_per_second,
+        budget.clone(),
+    );
+    let settings = Http2Settings {
+        max_concurrent_streams: config.max_concurrent_streams,
+        max_header_list_bytes: config.max_header_list_bytes,
+        keepalive: (Duration::from_secs(30), Duration::from_secs(20)),
+    };
     let token = shutdown.clone();
     let grace = config.shutdown_grace;
     let task = tokio::spawn(async move {
         let signal_health = health.clone();
         let signal_token = token.clone();
-        let grpc = router.serve_with_incoming_shutdown(incoming, async move {
+        tokio::spawn(async move {
             signal_token.cancelled().await;
             tracing::info!("shutting down: draining in-flight frames");
             set_health(&signal_health, ServingStatus::NotServing).await;
         });
         // Both transports drain (the browser's sockets as streams do).
+        let serve_token = token.clone();
         let server = async move {
-            let served = grpc.await;
+            connection::serve(incoming, routes, settings, protection, budget, serve_token).await;
             if let Some(web) = web {
                 let _ = web.task.await;
             }
-            served
         };
         tokio::pin!(server);
-        let served = tokio::select! {
-            r = &mut server => r.map_err(ServerError::from),
+        let served: Result<(), ServerError> = tokio::select! {
+            () = &mut server => Ok(()),
             _ = async { token.cancelled().await; tokio::time::sleep(grace).await } => {
                 tracing::warn!(?grace, "shutdown grace period expired; dropping remaining connections");
                 Ok(())
@@ -273,6 +299,24 @@ pub async fn spawn_with_provider(
         shutdown,
         task: Some(task),
     })
+}
+
+/// Sample what the memory budget accounts from the store and the batcher
+/// (`crate::budget`) every 100 ms until shutdown. Holds the state weakly,
+/// so it never keeps a stopped server alive.
+async fn sample_budget(state: Arc<AppState>, shutdown: CancellationToken) {
+    let state = Arc::downgrade(&state);
+    loop {
+        {
+            let Some(s) = state.upgrade() else { return };
+            s.budget
+                .sample(s.store.len(), s.batcher.queue_len(), s.store.ended_bytes());
+        }
+        tokio::select! {
+            _ = shutdown.cancelled() => return,
+            _ = tokio::time::sleep(Duration::from_millis(100)) => {}
+        }
+    }
 }
 
 /// Load and log the server lifter (`--lifter-weights`), off the async
@@ -324,12 +368,12 @@ async fn set_health(health: &HealthReporter, status: ServingStatus) {
 }
 
 /// The gRPC services (health, reflection, the pose service behind its
-/// metrics and auth layers) on one router, health already SERVING: the
-/// warm-up ran in [`pipeline::start`], so the models are ready.
-async fn router(
+/// metrics and auth layers) on one set of routes, health already SERVING:
+/// the warm-up ran in [`pipeline::start`], so the models are ready.
+async fn routes(
     config: &ServerConfig,
     state: Arc<AppState>,
-) -> Result<(HealthReporter, Router), ServerError> {
+) -> Result<(HealthReporter, Routes), ServerError> {
     let (health, health_service) = tonic_health::server::health_reporter();
     set_health(&health, ServingStatus::Serving).await;
 
@@ -349,16 +393,14 @@ async fn router(
     let pose = metrics::ErrorCounting::new(pose);
     let pose = InterceptedService::new(pose, BearerAuth::new(config.auth_token.as_deref()));
 
-    let router = Server::builder()
-        .http2_keepalive_interval(Some(Duration::from_secs(30)))
-        .http2_keepalive_timeout(Some(Duration::from_secs(20)))
-        .max_concurrent_streams(config.max_concurrent_streams)
-        .http2_max_header_list_size(config.max_header_list_bytes)
-        .add_service(health_service)
+    // The HTTP/2 settings (streams, header list, keepalive) are
+    // `connection`'s, which serves these routes on each connection.
+    let routes = Routes::new(health_service)
         .add_service(reflection_v1)
         .add_service(reflection_v1alpha)
-        .add_service(pose);
-    Ok((health, router))
+        .add_service(pose)
+        .prepare();
+    Ok((health, routes))
 }
 
 /// Export the configured transport limits (`blapose_limit{limit}`, the

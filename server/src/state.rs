@@ -44,6 +44,8 @@ pub struct AppState {
     /// The stature model subjects are answered with (embedded).
     pub stature: Arc<StatureModel>,
     pub limits: Limits,
+    /// The memory budget (`crate::budget`).
+    pub budget: Arc<crate::budget::Budget>,
 }
 
 /// What issuing and restoring session tokens needs: the key, how often to

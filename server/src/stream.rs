@@ -229,6 +229,9 @@ fn submit(state: &AppState, a: &Attachment, token_every: u64, frame: pb::Frame) 
             ))
         }
     };
+    if let Err(e) = state.budget.admit(crate::budget::FRAME_BYTES) {
+        return Pending::Ready(frame_error(index, e.to_status().code(), e.to_string()));
+    }
     let (reply, rx) = oneshot::channel();
     let job = FrameJob {
         session: a.session.clone(),

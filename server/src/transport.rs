@@ -19,6 +19,12 @@
 //! print it); a TLS ClientHello on a plaintext port is closed with a log
 //! line, and blapose's clients then diagnose the port themselves.
 //!
+//! Peers are told apart by their IP address in its canonical form
+//! ([`canonical_peer`]): on a dual-stack listener (`[::]`) an IPv4 client
+//! arrives as an IPv4-mapped IPv6 address (`::ffff:127.0.0.1`), which would
+//! otherwise be a different client from the same address on an IPv4
+//! listener and never match an IPv4 `--trusted-proxies` entry.
+//!
 //! Every refusal or early close is a log line and a count in
 //! `blapose_connections_refused_total{limit}` or
 //! `blapose_connections_closed_total{reason}`.
@@ -41,6 +47,9 @@ use tokio_stream::wrappers::ReceiverStream;
 use tokio_util::sync::CancellationToken;
 use tonic::transport::server::{Connected, TcpConnectInfo};
 
+use crate::activity::Activity;
+use crate::budget::Budget;
+use crate::frames::FrameMeter;
 use crate::metrics;
 
 /// TLS certificate chain and private key, both PEM files.
@@ -54,6 +63,14 @@ pub struct TlsFiles {
 
 /// The HTTP/2 client connection preface (RFC 9113, section 3.4).
 pub const PREFACE: &[u8; 24] = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n";
+
+/// `peer` with an IPv4-mapped IPv6 address (`::ffff:a.b.c.d`) written as
+/// the IPv4 address it maps; every other address as it is. Every
+/// per-address rule (connection counts, client identity, trusted proxies)
+/// sees addresses through this.
+pub fn canonical_peer(peer: SocketAddr) -> SocketAddr {
+    SocketAddr::new(peer.ip().to_canonical(), peer.port())
+}
 
 /// Connection limits enforced before tonic sees a connection.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -123,10 +140,20 @@ impl ConnectionTable {
         if counts.total >= self.limits.max_connections {
             return Err(Refusal::Total);
         }
-        let from_peer = counts.per_peer.entry(peer).or_default();
-        if *from_peer >= self.limits.max_connections_per_peer {
+        let holders = counts.per_peer.len();
+        let held = counts.per_peer.get(&peer).copied().unwrap_or(0);
+        // Per peer, and no more than a fair share of all connections: k
+        // addresses at their shares leave room for another.
+        let limit = crate::quota::effective_share(
+            self.limits.max_connections_per_peer,
+            self.limits.max_connections,
+            holders,
+            held,
+        );
+        if held >= limit {
             return Err(Refusal::PerPeer);
         }
+        let from_peer = counts.per_peer.entry(peer).or_default();
         *from_peer += 1;
         counts.total += 1;
         metrics::connections(counts.total);
@@ -238,7 +265,16 @@ pub struct Conn {
     /// The preface, read to check it, given back to HTTP/2 first.
     replay: usize,
     info: TcpConnectInfo,
+    activity: Arc<Activity>,
+    meter: FrameMeter,
     _permit: Permit,
+}
+
+impl Conn {
+    /// The connection's activity (open streams, a control-frame flood).
+    pub fn activity(&self) -> Arc<Activity> {
+        self.activity.clone()
+    }
 }
 
 enum Io {
@@ -276,10 +312,21 @@ impl AsyncRead for Conn {
             self.replay += n;
             return Poll::Ready(Ok(()));
         }
-        match &mut self.io {
+        if self.activity.flooding() {
+            // Read nothing more from a flooding connection: it is being
+            // closed (GOAWAY, then dropped), and h2 does no more work on it.
+            return Poll::Pending;
+        }
+        let before = buf.filled().len();
+        let this = &mut *self;
+        let read = match &mut this.io {
             Io::Plain(s) => Pin::new(s).poll_read(cx, buf),
             Io::Tls(s) => Pin::new(s.as_mut()).poll_read(cx, buf),
+        };
+        if this.meter.observe(&buf.filled()[before..]) {
+            this.activity.raise_flood();
         }
+        read
     }
 }
 
@@ -331,14 +378,26 @@ impl AsyncWrite for Conn {
 /// The stream of handshaken connections on `listener` that tonic serves.
 /// Accepting stops when `shutdown` is cancelled or the stream is dropped
 /// (the listener closes with it, so new connections are refused).
+/// Each connection's control frames are counted, at most
+/// `control_frames_per_second` ([`crate::frames`]).
 pub fn incoming(
     listener: TcpListener,
     table: ConnectionTable,
     tls: Option<TlsAcceptor>,
     shutdown: CancellationToken,
+    control_frames_per_second: u32,
+    budget: Arc<Budget>,
 ) -> ReceiverStream<io::Result<Conn>> {
     let (tx, rx) = mpsc::channel(64);
-    tokio::spawn(accept_loop(listener, table, tls, shutdown, tx));
+    tokio::spawn(accept_loop(
+        listener,
+        table,
+        tls,
+        shutdown,
+        tx,
+        control_frames_per_second,
+        budget,
+    ));
     ReceiverStream::new(rx)
 }
 
@@ -348,6 +407,8 @@ async fn accept_loop(
     tls: Option<TlsAcceptor>,
     shutdown: CancellationToken,
     tx: mpsc::Sender<io::Result<Conn>>,
+    control_frames_per_second: u32,
+    budget: Arc<Budget>,
 ) {
     let deadline = table.limits.handshake_timeout;
     loop {
@@ -357,7 +418,7 @@ async fn accept_loop(
             _ = tx.closed() => return,
         };
         let (tcp, peer) = match accepted {
-            Ok(accepted) => accepted,
+            Ok((tcp, peer)) => (tcp, canonical_peer(peer)),
             Err(e) => {
                 // Out of file descriptors or a connection reset before it
                 // was accepted: neither ends serving. Pause briefly so an
@@ -367,6 +428,12 @@ async fn accept_loop(
                 continue;
             }
         };
+        if budget.admit(crate::budget::STREAM_BYTES).is_err() {
+            metrics::connection_refused("memory_budget");
+            tracing::warn!(%peer, "connection refused: --memory-budget reached");
+            drop(tcp);
+            continue;
+        }
         let permit = match table.admit(peer.ip()) {
             Ok(permit) => permit,
             Err(refusal) => {
@@ -391,6 +458,8 @@ async fn accept_loop(
                         io,
                         replay: 0,
                         info,
+                        activity: Arc::new(Activity::new()),
+                        meter: FrameMeter::new(control_frames_per_second),
                         _permit: permit,
                     };
                     let _ = tx.send(Ok(conn)).await;
@@ -500,6 +569,36 @@ mod tests {
         assert_eq!(table.held(), 2);
         let _a3 = table.admit(a).unwrap();
         assert_eq!(Refusal::PerPeer.flag(), "max_connections_per_peer");
+    }
+
+    #[test]
+    fn addresses_at_their_fair_shares_leave_room_for_another() {
+        let table = ConnectionTable::new(limits(64, 64));
+        let fill = |ip: &str| {
+            let ip: IpAddr = ip.parse().unwrap();
+            let mut held = Vec::new();
+            while let Ok(p) = table.admit(ip) {
+                held.push(p);
+            }
+            held
+        };
+        let a = fill("10.0.0.1");
+        let b = fill("10.0.0.2");
+        assert_eq!((a.len(), b.len()), (32, 21), "64/2, then 64/3");
+        let c = fill("10.0.0.3");
+        assert_eq!(c.len(), 11, "the third still connects");
+    }
+
+    #[test]
+    fn mapped_ipv6_peers_are_their_ipv4_address() {
+        let mapped: SocketAddr = "[::ffff:127.0.0.1]:5000".parse().unwrap();
+        assert_eq!(canonical_peer(mapped), "127.0.0.1:5000".parse().unwrap());
+        let v6: SocketAddr = "[::1]:5000".parse().unwrap();
+        assert_eq!(canonical_peer(v6), v6);
+        let table = ConnectionTable::new(limits(8, 1));
+        let _v4 = table.admit("10.0.0.1".parse().unwrap()).unwrap();
+        let same = canonical_peer("[::ffff:10.0.0.1]:1".parse().unwrap()).ip();
+        assert_eq!(table.admit(same).unwrap_err(), Refusal::PerPeer);
     }
 
     #[test]

@@ -77,6 +77,8 @@ fn state(camera: bool, lifter: bool) -> PortableState {
         }),
         issued_at_ms: blapose_server::token::now_ms(),
         motion: None,
+        origin_ms: lifter.then(|| blapose_server::token::now_ms() - 1000),
+        owner: camera.then_some([3; 16]),
     }
 }
 

@@ -127,3 +127,49 @@ async fn limits_are_flags_with_env_variables_and_defaults() {
     assert_eq!(cfg.trusted_proxies.len(), 2);
     assert_eq!(cfg.token_ttl, Duration::from_secs(600));
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn the_client_header_counts_behind_a_dual_stack_listener() {
+    // `[::]` accepts IPv4 clients as `::ffff:127.0.0.1`; the trusted proxy
+    // is configured as 127.0.0.1 and must still be believed.
+    let Ok(listener) = tokio::net::TcpListener::bind("[::]:0").await else {
+        eprintln!("SKIP: no IPv6 on this machine");
+        return;
+    };
+    let port = listener.local_addr().unwrap().port();
+    let server = blapose_server::spawn(config(true, 64), listener)
+        .await
+        .unwrap();
+    let mut client = PoseAdjustmentClient::connect(format!("http://127.0.0.1:{port}"))
+        .await
+        .unwrap();
+    let (opened, _) = flood(&mut client, "a").await;
+    assert_eq!(opened, 32);
+    // Trusted: "b" is another client with its own share.
+    let answers = exchange(&mut client, "b", vec![open(), frame(0)])
+        .await
+        .unwrap();
+    assert_eq!(frames(&answers), 1, "{answers:?}");
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn two_clients_at_their_shares_leave_a_third_served() {
+    // The report: two clients held 2,048 + 2,047 of 4,096 sessions and
+    // every other client was refused. Shares now shrink as more clients
+    // hold sessions: alone half, with another a third, ...
+    let (server, mut client) = start(config(true, 4096)).await;
+    let (first, _) = flood(&mut client, "first").await;
+    let (second, refused) = flood(&mut client, "second").await;
+    assert_eq!((first, second), (2048, 4096 / 3));
+    assert_eq!(refused.code(), Code::ResourceExhausted, "{refused:?}");
+    assert!(refused.message().contains("share"), "{}", refused.message());
+    let mut requests = vec![open()];
+    requests.extend((0..20).map(frame));
+    let answers = exchange(&mut client, "third", requests).await.unwrap();
+    assert_eq!(frames(&answers), 20, "{answers:?}");
+    // It may take what is left (4,096 / 4 = 1,024 is more than that).
+    let (third, _) = flood(&mut client, "third").await;
+    assert_eq!(first + second + third + 1, 4096, "the rest of the table");
+    server.shutdown().await.unwrap();
+}

@@ -248,13 +248,18 @@ fn tokens(r: &[Resp]) -> Vec<&pb::SessionToken> {
         .collect()
 }
 
-/// Two tokens of the same state: equal but for their issue times.
+/// Two tokens of the same state: equal but for their issue times (and the
+/// chain origin a restored session's tokens carry).
 fn assert_same_state(a: &[u8], b: &[u8]) {
     let key = SessionKey::parse(KEY).unwrap();
     let mut a = PortableState::open(a, &key).unwrap();
     let mut b = PortableState::open(b, &key).unwrap();
     a.issued_at_ms = 0;
     b.issued_at_ms = 0;
+    a.origin_ms = None;
+    b.origin_ms = None;
+    a.owner = None;
+    b.owner = None;
     assert!(a == b, "the same state, the same token");
 }
 
@@ -333,7 +338,8 @@ async fn a_session_resumed_from_its_token_on_another_server_continues_bit_for_bi
         let size = token.token.len();
         println!("{kind:?}: token of {size} bytes at frame {K}");
         if matches!(kind, Kind::Plain) {
-            assert!(size < 4500, "{size} bytes");
+            // 4,489 + the label + 16 bytes naming the owner.
+            assert!(size < 4520, "{size} bytes");
         }
 
         // B has never seen the session: it restores it from the token.
@@ -864,4 +870,110 @@ async fn a_stream_that_never_asked_gets_no_token_at_shutdown() {
     assert!(tokens(&after).is_empty(), "{after:?}");
     assert_eq!(status.code(), Code::Unavailable, "{status:?}");
     assert!(!status.message().contains("token"), "{}", status.message());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn no_chain_of_restores_outlives_the_first_tokens_ttl() {
+    // The fork around the balancer: closed on A, restored on B from a
+    // token A issued, B's fresh token restored on C, C's on A. Every token
+    // of the chain expires with the first one.
+    let ttl = Duration::from_secs(2);
+    let replica = || ServerConfig {
+        token_ttl: ttl,
+        lifter_weights: None,
+        ..config(Some(KEY))
+    };
+    let (server_a, mut a) = start(replica()).await;
+    let (server_b, mut b) = start(replica()).await;
+    let (server_c, mut c) = start(replica()).await;
+    let key = SessionKey::parse(KEY).unwrap();
+    let mut requests = vec![open(Kind::Plain)];
+    requests.extend((0..12).map(|t| frame(t, false)));
+    requests.push(pb::StreamRequest {
+        kind: Some(Req::Close(pb::CloseSession {})),
+    });
+    let (run, end) = exchange(&mut a, requests).await;
+    end.unwrap();
+    let id = opened(&run).session_id.clone();
+    let first = tokens(&run)[0].token.clone();
+    let origin = PortableState::open(&first, &key).unwrap().issued_at_ms;
+    // Within the TTL the chain restores (documented: a replica that never
+    // saw the close cannot know of it) ...
+    let mut requests = vec![resume(&id, &first)];
+    requests.extend((10..12).map(|t| frame(t, false)));
+    let (on_b, end) = exchange(&mut b, requests).await;
+    end.unwrap();
+    let from_b = opened(&on_b).session_token.clone();
+    tokio::time::sleep(Duration::from_millis(700)).await;
+    let (on_c, end) = exchange(&mut c, vec![resume(&id, &from_b), token_request()]).await;
+    end.unwrap();
+    let from_c = tokens(&on_c)[0].token.clone();
+    let state = PortableState::open(&from_c, &key).unwrap();
+    assert_eq!(state.origin_ms, Some(origin), "the chain keeps its origin");
+    assert!(state.issued_at_ms > origin + 500, "a fresh token");
+    // ... and once the first token's TTL has run out, no token of the
+    // chain restores anywhere, however fresh it is itself.
+    let until =
+        Duration::from_millis(origin + 2_300).saturating_sub(Duration::from_millis(now_ms()));
+    tokio::time::sleep(until).await;
+    assert!(
+        now_ms() - state.issued_at_ms < 2_000,
+        "C's token is younger than the TTL"
+    );
+    for (replica, client) in [("A", &mut a), ("B", &mut b), ("C", &mut c)] {
+        for token in [&from_b, &from_c] {
+            let s = status_of(client, resume(&id, token)).await;
+            assert_eq!(s.code(), Code::FailedPrecondition, "{replica}: {s:?}");
+            assert!(
+                s.message().contains("expired"),
+                "{replica}: {}",
+                s.message()
+            );
+        }
+    }
+    server_a.shutdown().await.unwrap();
+    server_b.shutdown().await.unwrap();
+    server_c.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn churn_forgets_ended_sessions_but_never_revives_them() {
+    // 1,100 sessions opened and closed by one client, memory for 1,024:
+    // the first is forgotten, and its token still refused (issued before
+    // the floor the forgetting raised).
+    let (server, mut a) = start(ServerConfig {
+        lifter_weights: None,
+        protection: blapose_server::protect::Protection {
+            max_ended_sessions: 1024,
+            ..Default::default()
+        },
+        ..config(Some(KEY))
+    })
+    .await;
+    let close = pb::StreamRequest {
+        kind: Some(Req::Close(pb::CloseSession {})),
+    };
+    let mut first = None;
+    let mut last = None;
+    for _ in 0..1100 {
+        let (run, end) = exchange(&mut a, vec![open(Kind::Plain), close.clone()]).await;
+        end.unwrap();
+        let o = opened(&run);
+        let pair = (o.session_id.clone(), o.session_token.clone());
+        first.get_or_insert_with(|| pair.clone());
+        last = Some(pair);
+    }
+    let (first_id, first_token) = first.unwrap();
+    let s = status_of(&mut a, resume(&first_id, &first_token)).await;
+    assert_eq!(s.code(), Code::FailedPrecondition, "{s:?}");
+    assert!(
+        s.message().contains("oldest ended session"),
+        "{}",
+        s.message()
+    );
+    let (last_id, last_token) = last.unwrap();
+    let s = status_of(&mut a, resume(&last_id, &last_token)).await;
+    assert_eq!(s.code(), Code::FailedPrecondition, "{s:?}");
+    assert!(s.message().contains("closed"), "{}", s.message());
+    server.shutdown().await.unwrap();
 }

@@ -12,6 +12,10 @@
 #   bomb      blapose-client on a replay file whose pose_3d is 2 GiB of
 #             zeros deflated to 2 MB: refused, naming pose_3d, with the
 #             client's peak RSS no more than on the valid example
+#   idle      400 connections from 8 addresses that send the preface and
+#             only answer PINGs: GOAWAY within --max-connection-idle + 10 s
+#   flood     one connection flooding WINDOW_UPDATE frames: GOAWAY within
+#             a second (--max-control-frames-per-second)
 # A limit the server does not enforce fails its case with "not enforced".
 # The servers run with --max-queue-delay 0: a lone stream (the baseline)
 # never waits for a batch, while any concurrent stream makes it wait up to
@@ -54,6 +58,11 @@ start_server "$OUT/sessions.log" --max-queue-delay 0 --client-header x-blapose-c
     --max-sessions-per-client "$SESSION_LIMIT"
 run_case sessions "$ABUSE" sessions --server "$URL" --server-pid "$SERVER_PID" \
     --header x-blapose-client --attempts 200 --limit "$SESSION_LIMIT"
+stop_server
+
+start_server "$OUT/connections.log" --max-queue-delay 0 --max-connection-idle 4s --max-control-frames-per-second 1000
+run_case idle "$ABUSE" idle --server "$URL" --server-pid "$SERVER_PID" --connections 400 --addresses 8 --idle 4
+run_case flood "$ABUSE" flood --server "$URL" --server-pid "$SERVER_PID"
 stop_server
 
 start_server "$OUT/replica_b.log" --session-key "$KEY" --token-ttl 4s

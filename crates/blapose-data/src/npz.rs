@@ -29,6 +29,7 @@ use std::path::{Path, PathBuf};
 use blapose_core::{Keypoints2d, Pose};
 
 mod archive;
+pub mod directory;
 
 pub use archive::{
     parse_npy, read_npy_header, read_npz, read_npz_bytes, read_npz_filtered, Dtype, NpyHeader,
@@ -77,6 +78,16 @@ pub enum NpzError {
     FortranOrder {
         /// The array's key.
         key: String,
+    },
+    /// The archive's zip directory is larger than a replay file's can be
+    /// (refused before it is parsed).
+    #[error("{path}: {source}")]
+    Directory {
+        /// The file.
+        path: PathBuf,
+        /// What is too large.
+        #[source]
+        source: directory::DirectoryError,
     },
     /// A requested key is not in the archive.
     #[error("no array named {key:?} (available: {available})")]

@@ -6,7 +6,8 @@
 //! does not use, a used member whose directory entry says 2 GiB, one whose
 //! directory entry lies (says the right size, inflates to 2 GiB), or a
 //! header declaring a huge shape. A counting global allocator measures the
-//! peak bytes allocated while `Sequence::load` runs; one test function runs
+//! peak bytes allocated while `Sequence::load` runs (a zip directory of
+//! too many entries is refused before it is parsed); one test function runs
 //! the cases in turn so nothing else allocates meanwhile. The bomb is
 //! deflated once, streamed from a zero buffer (never 2 GiB in memory), and
 //! copied raw into each archive.
@@ -232,6 +233,29 @@ fn zip_bombs_cost_no_more_than_the_arrays_returned() {
         );
         assert!(peak < 1 << 20, "{peak}");
     }
+    // A directory bomb: a valid replay file with 60,000 empty members more
+    // (the report's had 8 M): refused before the directory is parsed.
+    let mut zip = zip::ZipWriter::new_append(Cursor::new(replay_file(&bomb, None, &[]))).unwrap();
+    let stored = SimpleFileOptions::default().compression_method(zip::CompressionMethod::Stored);
+    for i in 0..60_000 {
+        zip.start_file(format!("j{i}.npy"), stored).unwrap();
+    }
+    let entries = write(&dir, "directory.npz", &zip.finish().unwrap().into_inner());
+    let (result, peak) = peak_of(|| Sequence::load(&entries, None));
+    let e = result.unwrap_err();
+    eprintln!("60,003 directory entries: {e}; peak {peak}");
+    assert!(
+        matches!(
+            &e,
+            SequenceError::Npz {
+                error: NpzError::Directory { .. },
+                ..
+            }
+        ),
+        "{e}"
+    );
+    assert!(e.to_string().contains("entries"), "{e}");
+    assert!(peak < 1 << 20, "{peak}");
     // The bound is the caller's.
     let e = Sequence::load_with_max_frames(&valid, None, FRAMES - 1).unwrap_err();
     assert!(e.to_string().contains("more than the limit of 1999"), "{e}");

@@ -24,8 +24,16 @@
 //!   the caller can say "the server speaks TLS: pass --tls-ca" or "the
 //!   server speaks plaintext HTTP/2".
 //!
+//! * **An untrusted certificate.** [`untrusted`] finds why a certificate
+//!   was refused in a connection error and [`Untrusted::advice`] says it in
+//!   words, with the flag that fixes it (not webpki's `CaUsedAsEndEntity`).
+//!
 //! [`TlsConnector`] is the tonic connector that applies [`client_config`]:
 //! TCP, the TLS handshake with ALPN `h2`, and the diagnosis on failure.
+
+mod trust;
+
+pub use trust::{untrusted, Untrusted};
 
 use std::future::Future;
 use std::io;

@@ -6,9 +6,17 @@ can inflate to gigabytes, and ``np.load`` inflates whatever is asked of it.
 So this reader opens only the members the format defines, reads each one's
 ``.npy`` header first, checks its dtype and shape against the format (every
 per-frame array has the keypoints' frame count, which is bounded by
-``max_frames``) and only then reads exactly the declared bytes. The memory it
-uses is about the size of the arrays it returns. Every refusal is a
-:class:`ReplayFileError` naming the key, what was expected and what was found.
+``max_frames``) and only then reads exactly the declared bytes, and one more
+to prove the member ends there (which also checks its CRC). The memory it uses
+is about the size of the arrays it returns. The zip directory is bounded too:
+``zipfile`` reads the whole central directory into memory when it opens an
+archive, so the end-of-directory record ``zipfile`` itself would use is read
+first and an archive declaring more than :data:`MAX_ENTRIES` entries or a
+directory over :data:`MAX_DIRECTORY_BYTES` is refused before it is parsed (a
+replay file has about fifteen members; a 415 MB file with 8 M entries made
+``zipfile`` take 3.7 GB). Every refusal, a corrupt or truncated member included,
+is a :class:`ReplayFileError` naming the key, what was expected and what was
+found.
 
 The format (the same as ``blapose-client replay`` reads; see client/README.md):
 
@@ -32,7 +40,9 @@ camera_distortion  (4,) or (5,)   optional OpenCV k1 k2 p1 p2 [k3]
 
 from __future__ import annotations
 
+import struct
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Sequence, Tuple, Union
@@ -42,11 +52,23 @@ import numpy as np
 from .errors import BlaposeError
 from .types import LAYOUTS, Camera, _LAYOUT_BY_VALUE
 
-__all__ = ["ReplayFile", "ReplayFileError", "load_replay", "DEFAULT_MAX_FRAMES"]
+__all__ = ["ReplayFile", "ReplayFileError", "load_replay", "DEFAULT_MAX_FRAMES", "MAX_ENTRIES", "MAX_DIRECTORY_BYTES"]
 
 #: The most frames :func:`load_replay` accepts by default (an hour at 250 fps;
 #: about 350 MB of keypoints and poses).
 DEFAULT_MAX_FRAMES = 900_000
+
+#: The most zip directory entries a replay file may declare (``blapose-client``
+#: has the same limit).
+MAX_ENTRIES = 1024
+#: The most bytes a replay file's zip directory may declare.
+MAX_DIRECTORY_BYTES = 1 << 20
+
+# What reading a damaged archive or member raises, besides ReplayFileError:
+# zipfile's own errors, a corrupt deflate stream (zlib.error), a truncated
+# file, a truncated record (struct.error), an unsupported compression method
+# (NotImplementedError) or an encrypted member (RuntimeError).
+_MALFORMED = (zipfile.BadZipFile, zlib.error, ValueError, EOFError, OSError, struct.error, NotImplementedError, RuntimeError)
 
 # Shapes: ints are fixed, "T" is the frame count, "J" the joint count.
 _KEYPOINTS = "keypoints_2d"
@@ -114,12 +136,26 @@ class _Archive:
     def __init__(self, path: Union[str, Path]) -> None:
         self.path = path
         try:
+            with open(path, "rb") as f:
+                self._check_directory(f)
             self.zip = zipfile.ZipFile(path)
-        except FileNotFoundError:
+        except (FileNotFoundError, ReplayFileError):
             raise
-        except (zipfile.BadZipFile, OSError) as e:
+        except _MALFORMED as e:
             raise ReplayFileError(path, None, f"not a replay file (an .npz zip archive): {e}") from None
         self.names = {n[: -len(".npy")] for n in self.zip.namelist() if n.endswith(".npy")}
+
+    def _check_directory(self, f) -> None:
+        # The end-of-directory record zipfile.ZipFile reads (zip64 included):
+        # the directory it then reads into memory is the size this declares.
+        end = zipfile._EndRecData(f)
+        if end is None:
+            raise self.fail(None, "not a replay file (an .npz zip archive): no zip end-of-directory record")
+        entries, size = end[zipfile._ECD_ENTRIES_TOTAL], end[zipfile._ECD_SIZE]
+        if entries > MAX_ENTRIES:
+            raise self.fail(None, f"its zip directory declares {entries} entries, more than the {MAX_ENTRIES} a replay file may have")
+        if size > MAX_DIRECTORY_BYTES:
+            raise self.fail(None, f"its zip directory declares {size} bytes, more than the {MAX_DIRECTORY_BYTES} a replay file's may take")
 
     def __enter__(self) -> "_Archive":
         return self
@@ -163,7 +199,10 @@ class _Archive:
                 buffer = bytearray(count * dtype.itemsize)
                 if f.readinto(buffer) != len(buffer):
                     raise self.fail(key, "is shorter than its header declares")
-        except (zipfile.BadZipFile, ValueError, EOFError, OSError) as e:
+                # Reading to the member's end checks its CRC.
+                if f.read(1):
+                    raise self.fail(key, "is longer than its header declares")
+        except _MALFORMED as e:
             if isinstance(e, ReplayFileError):
                 raise
             raise self.fail(key, f"cannot be read: {e}") from None

@@ -33,6 +33,13 @@ pub enum SessionError {
         /// The session.
         id: SessionId,
     },
+    /// The token was issued before this server's memory of ended sessions
+    /// reaches (it made room by forgetting older ones).
+    #[error("the session token for {id} was issued before the oldest ended session this server still remembers (it keeps a bounded number): it may belong to a session that ended here, so it is refused; resume with a newer token or open a new session")]
+    Forgotten {
+        /// The session.
+        id: SessionId,
+    },
     /// The token is older than the newest this server issued for it.
     #[error("the session token for {id} is as of {token} frames, older than the newest token this server issued for it ({held} frames): a session is never rolled back; resume with its latest token")]
     Rollback {

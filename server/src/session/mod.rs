@@ -46,6 +46,7 @@ mod store;
 
 pub use error::SessionError;
 pub use id::SessionId;
+pub use retired::{EndedLimits, TokenStamp, DEFAULT_MAX_ENDED};
 pub use state::{
     Attachment, Coordinates, InputFormat, Ownership, RunningMean, Session, SessionCamera,
     SessionConfig, SessionSnapshot, SessionState, SessionSubject, StateCopy, MAX_LABEL_BYTES,

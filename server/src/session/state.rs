@@ -128,6 +128,10 @@ pub struct SessionState {
     pub newest_token: u64,
     /// The causal motion stage's filters (sessions opened with motion).
     pub motion: Option<CausalMotion>,
+    /// For a session restored from a token: the issue time (ms since the
+    /// Unix epoch) its tokens expire from, the first token of its chain's,
+    /// so that no chain of restores outlives that token's TTL.
+    pub token_origin_ms: Option<u64>,
 }
 
 impl SessionState {
@@ -156,6 +160,7 @@ impl SessionState {
             held: self.held,
             skipped: self.skipped,
             motion: self.motion.as_ref().map(CausalMotion::state),
+            origin_ms: self.token_origin_ms,
         }
     }
 }
@@ -176,6 +181,9 @@ pub struct StateCopy {
     pub skipped: u64,
     /// The motion stage's filter state (sessions opened with motion).
     pub motion: Option<MotionState>,
+    /// The issue time its tokens expire from, for a session restored from
+    /// a token ([`SessionState::token_origin_ms`]); `None`: each token's own.
+    pub origin_ms: Option<u64>,
 }
 
 impl StateCopy {
@@ -220,6 +228,7 @@ impl Session {
             skipped: 0,
             newest_token: 0,
             motion: config.motion.as_ref().map(SessionMotion::stage),
+            token_origin_ms: None,
         };
         let (owner, _) = watch::channel(Ownership {
             epoch: 1,
@@ -342,5 +351,7 @@ pub(crate) fn load(st: &mut SessionState, state: &StateCopy) -> Result<(), Sessi
     st.held = state.held;
     st.skipped = state.skipped;
     st.newest_token = state.frames_seen();
+    // The expiry origin is not loaded: a session held here keeps its own
+    // (it is no fork); a new one takes the token's in `SessionStore::restore`.
     Ok(())
 }

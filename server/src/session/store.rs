@@ -13,7 +13,7 @@ use crate::metrics;
 use crate::quota::{ClientId, QuotaError};
 use crate::session::error::SessionError;
 use crate::session::id::SessionId;
-use crate::session::retired::Memory;
+use crate::session::retired::{EndedLimits, Memory, TokenStamp};
 use crate::session::state::{load, Attachment, Session, SessionConfig, SessionSnapshot, StateCopy};
 
 #[derive(Debug)]
@@ -43,9 +43,11 @@ impl Inner {
         if self.sessions.len() >= max {
             return Err(SessionError::TooManySessions { max });
         }
-        if self.per_client.get(&client).copied().unwrap_or(0) >= per_client {
+        let held = self.per_client.get(&client).copied().unwrap_or(0);
+        let limit = crate::quota::effective_share(per_client, max, self.per_client.len(), held);
+        if held >= limit {
             metrics::limited("sessions_per_client");
-            return Err(QuotaError::Sessions { limit: per_client }.into());
+            return Err(QuotaError::Sessions { limit }.into());
         }
         Ok(())
     }
@@ -65,7 +67,9 @@ impl Inner {
             }
         }
         let newest_token = entry.session.lock().newest_token;
-        self.retired.remember(id, closed, newest_token, memory);
+        self.retired
+            .remember(id, closed, newest_token, memory, entry.session.client());
+        metrics::ended_sessions(self.retired.remembered());
         Some(entry)
     }
 
@@ -167,8 +171,22 @@ impl SessionStore {
     /// `memory` (the session token TTL): a closed one is never restored
     /// from a token, an evicted one never from a token older than its state.
     pub fn with_memory(max_sessions: usize, ttl: Duration, memory: Duration) -> (Self, PurgeGuard) {
+        Self::with_limits(max_sessions, ttl, memory, EndedLimits::default())
+    }
+
+    /// [`with_memory`](Self::with_memory), remembering at most `ended`
+    /// ended sessions ([`crate::session::retired`]).
+    pub fn with_limits(
+        max_sessions: usize,
+        ttl: Duration,
+        memory: Duration,
+        ended: EndedLimits,
+    ) -> (Self, PurgeGuard) {
         let shared = Arc::new(Shared {
-            inner: Mutex::new(Inner::default()),
+            inner: Mutex::new(Inner {
+                retired: Memory::new(ended),
+                ..Inner::default()
+            }),
             purge: Notify::new(),
             ttl,
             max_sessions,
@@ -188,6 +206,11 @@ impl SessionStore {
     /// Maximum sessions held.
     pub fn max_sessions(&self) -> usize {
         self.shared.max_sessions
+    }
+
+    /// Bytes the memory of ended sessions holds, about.
+    pub fn ended_bytes(&self) -> usize {
+        self.shared.lock().retired.approx_bytes()
     }
 
     /// Sessions currently held (attached or detached).
@@ -247,6 +270,7 @@ impl SessionStore {
         state: StateCopy,
         client: ClientId,
         per_client: usize,
+        stamp: TokenStamp,
     ) -> Result<Attachment, SessionError> {
         if self.shared.lock().sessions.contains_key(&id) {
             // Take it over first: the old stream's frames are refused from
@@ -269,6 +293,7 @@ impl SessionStore {
         {
             let mut st = session.lock();
             load(&mut st, &state)?;
+            st.token_origin_ms = state.origin_ms;
             st.epoch = 2;
             session.publish(&st);
         }
@@ -278,7 +303,7 @@ impl SessionStore {
             drop(inner);
             return self.resume(&id.to_string());
         }
-        inner.retired.check(id, frames)?;
+        inner.retired.check(id, frames, stamp)?;
         inner.check_room(client, self.shared.max_sessions, per_client)?;
         inner.admit(id, &session);
         drop(inner);

@@ -29,7 +29,8 @@
 //! 0      4     magic "BLPT"
 //! 4      1     version (3)
 //! 5      1     flags: bit 0 camera calibration present, bit 1 lifter window
-//!              present, bit 2 subject present, bit 3 motion stage present
+//!              present, bit 2 subject present, bit 3 motion stage present,
+//!              bit 4 chain origin present, bit 5 owner present
 //! 6      16    session id
 //! 22     32    SHA-256 of the session family's online GRU weights
 //! 54     8     issued at (u64, milliseconds since the Unix epoch)
@@ -49,6 +50,13 @@
 //!          2 male)
 //! [motion] 8   frame rate (f64), then the direction filter's and the root
 //!          4+8n filter's state, each a count (u32) and f64 values
+//! [origin] 8   for a session restored from a token: the issue time (u64 ms)
+//!              of the first token of the chain it came from; the token
+//!              expires `--token-ttl` after this instead of its own issue
+//!              time, so no chain of restores outlives its first token
+//! [owner]  16  the client that held the session (its hashed identity,
+//!              `crate::quota::ClientId`): the floor of ended sessions it
+//!              pushed out of this server's memory applies to the token
 //! [lifter] 32  SHA-256 of the lifter weights
 //!          2+2 receptive field, frames held w (u16 each)
 //!          136w the window's frames, oldest first (17 x 2 f32 each)
@@ -94,6 +102,8 @@ const FLAG_CAMERA: u8 = 1;
 const FLAG_LIFTER: u8 = 2;
 const FLAG_SUBJECT: u8 = 4;
 const FLAG_MOTION: u8 = 8;
+const FLAG_ORIGIN: u8 = 16;
+const FLAG_OWNER: u8 = 32;
 
 /// Most filter values a token's motion section may hold per filter (the
 /// served filters hold 99 and 9).
@@ -183,6 +193,11 @@ pub struct PortableState {
     pub motion: Option<PortableMotion>,
     /// When the token was issued (milliseconds since the Unix epoch).
     pub issued_at_ms: u64,
+    /// For a session restored from a token: the issue time of the first
+    /// token of its chain, which this token expires from.
+    pub origin_ms: Option<u64>,
+    /// The client that held the session (hashed identity).
+    pub owner: Option<[u8; 16]>,
 }
 
 /// Milliseconds since the Unix epoch now (0 for a clock before it).
@@ -198,6 +213,12 @@ impl PortableState {
         self.lengths.count() + self.skipped
     }
 
+    /// The time the token's TTL runs from: its chain's origin, or its own
+    /// issue time for a session that was never restored.
+    pub fn expiry_origin_ms(&self) -> u64 {
+        self.origin_ms.unwrap_or(self.issued_at_ms)
+    }
+
     /// Assemble from a session's parts and a copy of its state.
     pub fn new(
         session_id: SessionId,
@@ -208,6 +229,7 @@ impl PortableState {
         lifter: Option<([u8; 32], usize)>,
         state: StateCopy,
     ) -> Self {
+        let origin_ms = state.origin_ms;
         let window = match (lifter, state.window) {
             (Some((lifter_id, receptive_field)), Some(frames)) => Some(PortableWindow {
                 lifter_id,
@@ -230,6 +252,8 @@ impl PortableState {
             subject: None,
             motion: None,
             issued_at_ms: now_ms(),
+            origin_ms,
+            owner: None,
         }
     }
 
@@ -257,6 +281,12 @@ impl PortableState {
         }
         if self.motion.is_some() {
             flags |= FLAG_MOTION;
+        }
+        if self.origin_ms.is_some() {
+            flags |= FLAG_ORIGIN;
+        }
+        if self.owner.is_some() {
+            flags |= FLAG_OWNER;
         }
         out.push(flags);
         out.extend_from_slice(self.session_id.as_bytes());
@@ -320,6 +350,12 @@ impl PortableState {
                     out.extend_from_slice(&v.to_le_bytes());
                 }
             }
+        }
+        if let Some(origin) = self.origin_ms {
+            out.extend_from_slice(&origin.to_le_bytes());
+        }
+        if let Some(owner) = &self.owner {
+            out.extend_from_slice(owner);
         }
         if let Some(w) = &self.window {
             out.extend_from_slice(&w.lifter_id);
@@ -412,7 +448,8 @@ fn decode_body(body: &[u8]) -> Result<PortableState, TokenError> {
     let bad = |what: String| TokenError::Malformed(what);
     let mut r = Reader { bytes: body, at: 6 };
     let flags = body[5];
-    if flags & !(FLAG_CAMERA | FLAG_LIFTER | FLAG_SUBJECT | FLAG_MOTION) != 0 {
+    let known = FLAG_CAMERA | FLAG_LIFTER | FLAG_SUBJECT | FLAG_MOTION | FLAG_ORIGIN | FLAG_OWNER;
+    if flags & !known != 0 {
         return Err(bad(format!("unknown flags {flags:#x}")));
     }
     let session_id = SessionId::from_bytes(r.array("the session id")?);
@@ -498,6 +535,16 @@ fn decode_body(body: &[u8]) -> Result<PortableState, TokenError> {
     } else {
         None
     };
+    let origin_ms = if flags & FLAG_ORIGIN != 0 {
+        Some(r.u64("the chain origin")?)
+    } else {
+        None
+    };
+    let owner = if flags & FLAG_OWNER != 0 {
+        Some(r.array("the owner")?)
+    } else {
+        None
+    };
     let window = if flags & FLAG_LIFTER != 0 {
         let lifter_id = r.array("the lifter hash")?;
         let receptive_field = usize::from(r.u16("the receptive field")?);
@@ -540,6 +587,8 @@ fn decode_body(body: &[u8]) -> Result<PortableState, TokenError> {
         subject,
         motion,
         issued_at_ms,
+        origin_ms,
+        owner,
     })
 }
 
@@ -597,6 +646,8 @@ mod tests {
             }),
             issued_at_ms: 1_780_000_000_000,
             motion: None,
+            origin_ms: lifter.then_some(1_779_999_000_000),
+            owner: camera.then_some([9; 16]),
         }
     }
 

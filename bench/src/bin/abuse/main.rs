@@ -8,7 +8,9 @@
 //! abuse token    --server URL --replica URL --token-ttl 4
 //! abuse bomb     --out bomb.npz
 //! abuse headers  --server URL --server-pid PID --count 120000
-//! abuse idle     --server URL --server-pid PID --connections 2000
+//! abuse preface  --server URL --server-pid PID --connections 2000
+//! abuse idle     --server URL --server-pid PID --connections 400 --addresses 8 --idle 2
+//! abuse flood    --server URL --server-pid PID
 //! ```
 //!
 //! Every case that has a victim measures a *healthy client*: its own
@@ -38,16 +40,19 @@
 //! - `headers` (by hand, not in the script): one raw HTTP/2 connection
 //!   sends HEADERS frames for the stream method as fast as the socket takes
 //!   them, ignoring SETTINGS_MAX_CONCURRENT_STREAMS ([`raw`]).
-//! - `idle` (by hand, not in the script): TCP connections from 127.0.0.2-9
-//!   that never send the HTTP/2 preface (the server closes them at its
-//!   `--handshake-timeout`); the healthy client comes from 127.0.0.1.
+//! - `preface` (by hand, not in the script): TCP connections from
+//!   127.0.0.2-9 that never send the HTTP/2 preface (the server closes them
+//!   at its `--handshake-timeout`); the healthy client comes from 127.0.0.1.
+//! - `idle`: connections from several addresses that send the preface and
+//!   then only answer keepalive PINGs; each must get GOAWAY within the
+//!   server's `--max-connection-idle` + 10 s.
+//! - `flood`: one connection flooding WINDOW_UPDATE frames must get GOAWAY
+//!   within a second (`--max-control-frames-per-second`).
 //!
 //! A limit the server does not enforce fails the case with "not enforced".
 
 use std::io::Write;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{ensure, Context, Result};
@@ -61,6 +66,7 @@ use tonic::transport::Channel;
 use tonic::Code;
 
 mod client;
+mod connections;
 mod raw;
 
 use client::{
@@ -124,6 +130,33 @@ enum Case {
         #[arg(long, default_value_t = 4.0)]
         token_ttl: f64,
     },
+    /// PING-only connections from several addresses.
+    Idle {
+        /// The server.
+        #[arg(long)]
+        server: String,
+        /// Its process id (for its memory).
+        #[arg(long)]
+        server_pid: u32,
+        /// Connections to open.
+        #[arg(long, default_value_t = 400)]
+        connections: usize,
+        /// Loopback addresses they come from (127.0.0.2 and up).
+        #[arg(long, default_value_t = 8)]
+        addresses: usize,
+        /// The server's --max-connection-idle, in seconds.
+        #[arg(long)]
+        idle: f64,
+    },
+    /// One connection flooding WINDOW_UPDATE frames.
+    Flood {
+        /// The server.
+        #[arg(long)]
+        server: String,
+        /// Its process id (for its memory).
+        #[arg(long)]
+        server_pid: u32,
+    },
     /// Write the zip-bomb replay file.
     Bomb {
         /// Where.
@@ -143,7 +176,7 @@ enum Case {
         count: u32,
     },
     /// Connections that never send the HTTP/2 preface.
-    Idle {
+    Preface {
         /// The server.
         #[arg(long)]
         server: String,
@@ -428,56 +461,6 @@ async fn token(url: &str, replica: &str, ttl: Duration) -> Result<()> {
     Ok(())
 }
 
-/// A raw abuse ([`raw`]) while the healthy client runs: its p99 against
-/// its baseline and the server's memory growth, as every case checks them.
-/// `abuse` starts the abuser once the baseline is measured; it is stopped
-/// (its connections dropped) after.
-async fn raw_case<F, Fut>(url: &str, pid: u32, what: &str, abuse: F) -> Result<()>
-where
-    F: FnOnce(std::net::SocketAddr, Arc<AtomicBool>) -> Fut,
-    Fut: std::future::Future<Output = Result<raw::Abuser>>,
-{
-    println!("case {what}");
-    let addr = raw::socket_addr(url).await?;
-    let baseline = healthy(url, None, HEALTHY_FRAMES).await?;
-    let rss_before = rss(pid)?;
-    let stop = Arc::new(AtomicBool::new(false));
-    let abuser = abuse(addr, stop.clone()).await?;
-    tokio::time::sleep(Duration::from_millis(500)).await;
-    let latency = check_latency(url, None, &baseline).await;
-    let rss_after = rss(pid)?;
-    stop.store(true, Ordering::Relaxed);
-    abuser.stop().await;
-    let growth = rss_growth(rss_before, rss_after);
-    latency?;
-    check_growth(growth)
-}
-
-/// `count` HEADERS frames on one raw connection ([`raw::flood_headers`]).
-async fn headers(url: &str, pid: u32, count: u32) -> Result<()> {
-    let sent = Arc::new(AtomicU64::new(0));
-    let what = format!("headers: {count} HEADERS frames on one raw connection");
-    let counted = sent.clone();
-    raw_case(url, pid, &what, |addr, stop| async move {
-        let task = tokio::spawn(raw::flood_headers(addr, count, stop, counted));
-        Ok(raw::Abuser::Task(task))
-    })
-    .await?;
-    println!("  HEADERS frames written: {}", sent.load(Ordering::Relaxed));
-    Ok(())
-}
-
-/// `n` connections without a preface ([`raw::idle_connections`]).
-async fn idle(url: &str, pid: u32, n: u32) -> Result<()> {
-    let what = format!("idle: {n} connections that never send the HTTP/2 preface");
-    raw_case(url, pid, &what, |addr, _| async move {
-        let held = raw::idle_connections(addr, n).await?;
-        println!("  connections opened: {}", held.len());
-        Ok(raw::Abuser::Held(held))
-    })
-    .await
-}
-
 /// The zip-bomb replay file: a valid replay file whose `pose_3d` is a
 /// right header followed by 2 GiB of zeros (about 2 MB deflated).
 fn bomb(out: &PathBuf) -> Result<()> {
@@ -549,12 +532,23 @@ async fn main() -> Result<()> {
             server,
             server_pid,
             count,
-        } => headers(server, *server_pid, *count).await?,
-        Case::Idle {
+        } => raw::headers(server, *server_pid, *count).await?,
+        Case::Preface {
             server,
             server_pid,
             connections,
-        } => idle(server, *server_pid, *connections).await?,
+        } => raw::preface(server, *server_pid, *connections).await?,
+        Case::Idle {
+            server,
+            server_pid,
+            connections: n,
+            addresses,
+            idle,
+        } => {
+            let idle = Duration::from_secs_f64(*idle);
+            connections::idle(server, *server_pid, *n, *addresses, idle).await?
+        }
+        Case::Flood { server, server_pid } => connections::flood(server, *server_pid).await?,
     }
     println!("  ok ({:.1} s)", start.elapsed().as_secs_f64());
     Ok(())

@@ -4,7 +4,7 @@
 //! the HTTP/2 preface. A well-behaved client library (tonic's, the
 //! `streams` case's) queues streams beyond the server's limit itself, so
 //! only bytes written by hand show what the server does when the peer does
-//! not.
+//! not. The cases `headers` and `preface` run them beside the healthy client.
 
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -12,6 +12,8 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::{Context, Result};
+
+use crate::client::{check_growth, check_latency, healthy, rss, rss_growth, HEALTHY_FRAMES};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpSocket, TcpStream};
 
@@ -133,4 +135,54 @@ pub(crate) async fn idle_connections(addr: SocketAddr, count: u32) -> Result<Vec
         }
     }
     Ok(held)
+}
+
+/// A raw abuse while the healthy client runs: its p99 against
+/// its baseline and the server's memory growth, as every case checks them.
+/// `abuse` starts the abuser once the baseline is measured; it is stopped
+/// (its connections dropped) after.
+async fn raw_case<F, Fut>(url: &str, pid: u32, what: &str, abuse: F) -> Result<()>
+where
+    F: FnOnce(std::net::SocketAddr, Arc<AtomicBool>) -> Fut,
+    Fut: std::future::Future<Output = Result<Abuser>>,
+{
+    println!("case {what}");
+    let addr = socket_addr(url).await?;
+    let baseline = healthy(url, None, HEALTHY_FRAMES).await?;
+    let rss_before = rss(pid)?;
+    let stop = Arc::new(AtomicBool::new(false));
+    let abuser = abuse(addr, stop.clone()).await?;
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let latency = check_latency(url, None, &baseline).await;
+    let rss_after = rss(pid)?;
+    stop.store(true, Ordering::Relaxed);
+    abuser.stop().await;
+    let growth = rss_growth(rss_before, rss_after);
+    latency?;
+    check_growth(growth)
+}
+
+/// `count` HEADERS frames on one raw connection ([`flood_headers`]).
+pub(crate) async fn headers(url: &str, pid: u32, count: u32) -> Result<()> {
+    let sent = Arc::new(AtomicU64::new(0));
+    let what = format!("headers: {count} HEADERS frames on one raw connection");
+    let counted = sent.clone();
+    raw_case(url, pid, &what, |addr, stop| async move {
+        let task = tokio::spawn(flood_headers(addr, count, stop, counted));
+        Ok(Abuser::Task(task))
+    })
+    .await?;
+    println!("  HEADERS frames written: {}", sent.load(Ordering::Relaxed));
+    Ok(())
+}
+
+/// `n` connections without a preface ([`idle_connections`]).
+pub(crate) async fn preface(url: &str, pid: u32, n: u32) -> Result<()> {
+    let what = format!("preface: {n} connections that never send the HTTP/2 preface");
+    raw_case(url, pid, &what, |addr, _| async move {
+        let held = idle_connections(addr, n).await?;
+        println!("  connections opened: {}", held.len());
+        Ok(Abuser::Held(held))
+    })
+    .await
 }

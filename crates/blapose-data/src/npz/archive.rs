@@ -303,7 +303,8 @@ pub fn read_npz_bytes(bytes: &[u8], keep: impl Fn(&str) -> bool + Sync) -> Resul
 /// An npz archive from an untrusted source, read member by member with
 /// the caller's shapes enforced before any value is read.
 ///
-/// Opening reads only the zip directory; [`NpzArchive::shape`] inflates a
+/// Opening reads only the zip directory, after counting it within
+/// [`super::directory`]'s limits; [`NpzArchive::shape`] inflates a
 /// member's header only; [`NpzArchive::read`] refuses a member whose
 /// declared size exceeds what the expected shape needs (before inflating)
 /// and reads at most that many bytes plus one.
@@ -325,9 +326,13 @@ impl NpzArchive {
 }
 
 impl<R: Read + Seek> NpzArchive<R> {
-    /// An archive read from `reader`; `path` names it in errors.
-    pub fn new(reader: R, path: impl Into<PathBuf>) -> Result<Self, NpzError> {
+    /// An archive read from `reader`; `path` names it in errors. Its zip
+    /// directory is bounded before it is parsed ([`super::directory`]).
+    pub fn new(mut reader: R, path: impl Into<PathBuf>) -> Result<Self, NpzError> {
         let path = path.into();
+        if let Err(source) = super::directory::check(&mut reader) {
+            return Err(NpzError::Directory { path, source });
+        }
         match zip::ZipArchive::new(reader) {
             Ok(zip) => Ok(Self { zip, path }),
             Err(source) => Err(NpzError::Zip { path, source }),
