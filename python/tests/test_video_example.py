@@ -54,19 +54,24 @@ def make_video(path: Path, cv2, data) -> None:
     out.release()
 
 
-def test_video_to_poses_end_to_end(start_server, tmp_path: Path) -> None:
+def run_example(start_server, tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
+    """The example on the test video against a server with the lifter; skips without the optional deps."""
     cv2, data = _optional_deps()
     if not LIFTER.exists():
         pytest.skip(f"{LIFTER} not present")
     video = tmp_path / "astronaut.avi"
     make_video(video, cv2, data)
     srv = start_server("--lifter-weights", str(LIFTER))
-    npz, html, bvh = tmp_path / "poses.npz", tmp_path / "report.html", tmp_path / "motion.bvh"
-    run = subprocess.run(
-        [sys.executable, str(EXAMPLE), str(video), "--server", srv.url, "--out", str(npz), "--html", str(html),
-         "--bvh", str(bvh), "--max-frames", str(FRAMES - 2)],
+    return subprocess.run(
+        [sys.executable, str(EXAMPLE), str(video), "--server", srv.url, *args],
         check=False, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
+
+
+def test_video_to_poses_end_to_end(start_server, tmp_path: Path) -> None:
+    npz, html, bvh = tmp_path / "poses.npz", tmp_path / "report.html", tmp_path / "motion.bvh"
+    run = run_example(start_server, tmp_path, "--out", str(npz), "--html", str(html), "--bvh", str(bvh),
+                      "--max-frames", str(FRAMES - 2))  # fmt: skip
     assert run.returncode == 0, run.stderr
     assert f"{FRAMES - 2} frames read" in run.stdout
 
@@ -112,18 +117,8 @@ def test_video_to_poses_end_to_end(start_server, tmp_path: Path) -> None:
 
 
 def test_video_to_poses_without_motion(start_server, tmp_path: Path) -> None:
-    cv2, data = _optional_deps()
-    if not LIFTER.exists():
-        pytest.skip(f"{LIFTER} not present")
-    video = tmp_path / "astronaut.avi"
-    make_video(video, cv2, data)
-    srv = start_server("--lifter-weights", str(LIFTER))
     npz = tmp_path / "poses.npz"
-    run = subprocess.run(
-        [sys.executable, str(EXAMPLE), str(video), "--server", srv.url, "--out", str(npz), "--no-motion",
-         "--max-frames", "12"],
-        check=False, capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
+    run = run_example(start_server, tmp_path, "--out", str(npz), "--no-motion", "--max-frames", "12")
     assert run.returncode == 0, run.stderr
     replay = blapose.load_replay(npz)
     with np.load(npz) as z:
