@@ -6,13 +6,12 @@
 
 mod support;
 
-use std::sync::Arc;
 use std::time::Duration;
 
 use blapose_proto::v1 as pb;
 use blapose_server::protect::Protection;
 use blapose_server::{ServerConfig, ServerHandle};
-use blapose_test_support::ConstantModel;
+use blapose_test_support::spawn_constant;
 use pb::pose_adjustment_client::PoseAdjustmentClient;
 use pb::stream_response::Kind as Resp;
 use tokio::sync::mpsc;
@@ -22,14 +21,11 @@ use tonic::transport::Channel;
 use tonic::Code;
 
 async fn start(protection: Protection) -> ServerHandle {
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let config = ServerConfig {
+    spawn_constant(ServerConfig {
         protection,
         ..ServerConfig::default()
-    };
-    blapose_server::spawn_with_provider(config, listener, Arc::new(ConstantModel))
-        .await
-        .unwrap()
+    })
+    .await
 }
 
 async fn connect(server: &ServerHandle) -> PoseAdjustmentClient<Channel> {

@@ -9,13 +9,12 @@
 mod support;
 
 use std::net::SocketAddr;
-use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use blapose_proto::v1 as pb;
 use blapose_server::protect::Protection;
 use blapose_server::{ServerConfig, ServerHandle};
-use blapose_test_support::{h2raw, ConstantModel};
+use blapose_test_support::{h2raw, spawn_constant};
 use pb::pose_adjustment_client::PoseAdjustmentClient;
 use pb::stream_response::Kind as Resp;
 use tokio::io::AsyncWriteExt;
@@ -26,14 +25,11 @@ const PING: u8 = 0x6;
 const WINDOW_UPDATE: u8 = 0x8;
 
 async fn start(protection: Protection) -> ServerHandle {
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let config = ServerConfig {
+    spawn_constant(ServerConfig {
         protection,
         ..ServerConfig::default()
-    };
-    blapose_server::spawn_with_provider(config, listener, Arc::new(ConstantModel))
-        .await
-        .unwrap()
+    })
+    .await
 }
 
 /// A well-behaved client on a fresh connection gets ModelInfo answered.

@@ -9,13 +9,12 @@
 use blapose_test_support::h2raw;
 
 use std::net::{IpAddr, SocketAddr};
-use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use blapose_proto::v1 as pb;
 use blapose_server::transport::ConnectionLimits;
 use blapose_server::{ServerConfig, ServerHandle};
-use blapose_test_support::ConstantModel;
+use blapose_test_support::spawn_constant;
 use h2raw::Frame;
 use pb::pose_adjustment_client::PoseAdjustmentClient;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -24,10 +23,7 @@ use tokio::net::{TcpSocket, TcpStream};
 const WAIT: Duration = Duration::from_secs(3);
 
 async fn start(config: ServerConfig) -> ServerHandle {
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    blapose_server::spawn_with_provider(config, listener, Arc::new(ConstantModel))
-        .await
-        .unwrap()
+    spawn_constant(config).await
 }
 
 /// A well-behaved client on a fresh connection gets ModelInfo answered.

@@ -35,4 +35,4 @@ pub mod trials;
 
 pub use gate::StepGate;
 #[cfg(feature = "server")]
-pub use model::ConstantModel;
+pub use model::{spawn_constant, ConstantModel};

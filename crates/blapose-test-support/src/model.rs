@@ -46,3 +46,14 @@ impl ModelProvider for ConstantModel {
         Vec::new()
     }
 }
+
+/// A server with `config` and the [`ConstantModel`], on a free loopback
+/// port: what the tests of the transport and the limits start.
+pub async fn spawn_constant(config: blapose_server::ServerConfig) -> blapose_server::ServerHandle {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+        .await
+        .expect("a loopback port");
+    blapose_server::spawn_with_provider(config, listener, std::sync::Arc::new(ConstantModel))
+        .await
+        .expect("the server starts")
+}
