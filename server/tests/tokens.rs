@@ -734,20 +734,28 @@ async fn a_restored_state_is_checked_like_input_even_with_a_valid_signature() {
     server_b.shutdown().await.unwrap();
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
-async fn closing_a_session_ends_its_tokens_where_it_lived() {
-    let (server_a, mut a) = start(config(Some(KEY))).await;
-    let (server_b, mut b) = start(config(Some(KEY))).await;
-    // Closed in its stream.
+/// A plain session opened on `client`, 12 frames, then closed in its
+/// stream: its id and the first token it was given.
+async fn closed_session(client: &mut PoseAdjustmentClient<Channel>) -> (String, Vec<u8>) {
     let mut requests = vec![open(Kind::Plain)];
     requests.extend((0..12).map(|t| frame(t, false)));
     requests.push(pb::StreamRequest {
         kind: Some(Req::Close(pb::CloseSession {})),
     });
-    let (run, end) = exchange(&mut a, requests).await;
+    let (run, end) = exchange(client, requests).await;
     end.unwrap();
-    let id = opened(&run).session_id.clone();
-    let token = tokens(&run)[0].token.clone();
+    (
+        opened(&run).session_id.clone(),
+        tokens(&run)[0].token.clone(),
+    )
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn closing_a_session_ends_its_tokens_where_it_lived() {
+    let (server_a, mut a) = start(config(Some(KEY))).await;
+    let (server_b, mut b) = start(config(Some(KEY))).await;
+    // Closed in its stream.
+    let (id, token) = closed_session(&mut a).await;
     let s = status_of(&mut a, resume(&id, &token)).await;
     assert_eq!(s.code(), Code::FailedPrecondition, "{s:?}");
     assert!(s.message().contains("closed"), "{}", s.message());
@@ -887,15 +895,7 @@ async fn no_chain_of_restores_outlives_the_first_tokens_ttl() {
     let (server_b, mut b) = start(replica()).await;
     let (server_c, mut c) = start(replica()).await;
     let key = SessionKey::parse(KEY).unwrap();
-    let mut requests = vec![open(Kind::Plain)];
-    requests.extend((0..12).map(|t| frame(t, false)));
-    requests.push(pb::StreamRequest {
-        kind: Some(Req::Close(pb::CloseSession {})),
-    });
-    let (run, end) = exchange(&mut a, requests).await;
-    end.unwrap();
-    let id = opened(&run).session_id.clone();
-    let first = tokens(&run)[0].token.clone();
+    let (id, first) = closed_session(&mut a).await;
     let origin = PortableState::open(&first, &key).unwrap().issued_at_ms;
     // Within the TTL the chain restores (documented: a replica that never
     // saw the close cannot know of it) ...
