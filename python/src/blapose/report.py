@@ -162,7 +162,7 @@ def report_data(
         "gt": None if g is None else _flat(g),
         "metrics": table,
         "info": [[str(k), str(v)] for k, v in items],
-        "root": None if r is None else [round(float(v), 4) + 0.0 for v in r.ravel()],
+        "root": None if r is None else _flat(r),
     }
 
 

@@ -128,7 +128,12 @@ pub struct ReportData {
     pub root: Option<Vec<f64>>,
 }
 
-/// Poses as a flat list in metres, rounded to 0.1 mm (`0.0 + x`: no `-0`).
+/// Metres rounded to 0.1 mm (`0.0 + x`: no `-0`), as the page's data holds them.
+fn tenth_mm(v: f64) -> f64 {
+    0.0 + (v * 1e4).round() / 1e4
+}
+
+/// Poses as a flat list in metres, rounded to 0.1 mm ([`tenth_mm`]).
 fn flat(what: &'static str, poses: &[Pose]) -> Result<Vec<f64>, HtmlError> {
     let mut out = Vec::with_capacity(poses.len() * 51);
     for (frame, pose) in poses.iter().enumerate() {
@@ -136,7 +141,7 @@ fn flat(what: &'static str, poses: &[Pose]) -> Result<Vec<f64>, HtmlError> {
             if !p.iter().all(|v| v.is_finite()) {
                 return Err(HtmlError::NonFinite { what, frame, joint });
             }
-            out.extend(p.iter().map(|&v| 0.0 + (f64::from(v) * 1e4).round() / 1e4));
+            out.extend(p.iter().map(|&v| tenth_mm(f64::from(v))));
         }
     }
     Ok(out)
@@ -246,7 +251,7 @@ impl ReportData {
                     .roots
                     .iter()
                     .flatten()
-                    .map(|&v| (f64::from(v) * 1e4).round() / 1e4 + 0.0)
+                    .map(|&v| tenth_mm(f64::from(v)))
                     .collect(),
             );
             let focal = if placement.focal_assumed {

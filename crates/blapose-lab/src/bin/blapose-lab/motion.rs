@@ -115,14 +115,6 @@ pub fn run(a: MotionArgs) -> Result<()> {
     };
     let lifted = lift_all(&trials, &|s| lifter.lift(&s.trial, true))?;
     eprintln!("lifted in {:.1}s", t0.elapsed().as_secs_f64());
-    let fit = {
-        let lifted = lift_all(&fit_trials, &|s| lifter.lift(&s.trial, true))?;
-        let lengths = LengthEstimates::compute(&fit_trials, Some(&gru_weights), None)?
-            .gru
-            .unwrap_or_default();
-        fir_fit(&fit_trials, &lifted, &lengths)?
-    };
-    eprintln!("fitted in {:.1}s", t0.elapsed().as_secs_f64());
     let (served_causal, served_offline) = Sweep::served();
     let mut rows: Vec<(String, Row)> = Vec::new();
     let mut push = |group: &str, name: String, report: Option<MethodReport>| {
@@ -173,6 +165,14 @@ pub fn run(a: MotionArgs) -> Result<()> {
         }
         return finish(&rows, a.json.as_deref(), t0);
     }
+    let fit = {
+        let lifted = lift_all(&fit_trials, &|s| lifter.lift(&s.trial, true))?;
+        let lengths = LengthEstimates::compute(&fit_trials, Some(&gru_weights), None)?
+            .gru
+            .unwrap_or_default();
+        fir_fit(&fit_trials, &lifted, &lengths)?
+    };
+    eprintln!("fitted in {:.1}s", t0.elapsed().as_secs_f64());
     let mut candidates = causal_direction_candidates();
     for (v, acc) in [
         (0.0, 0.0),
