@@ -33,4 +33,5 @@ pub mod models;
 pub mod motion_refiner;
 pub mod motion_sweep;
 pub mod real_check;
+pub mod root_scale;
 pub mod stature_proxy;
