@@ -19,7 +19,9 @@
 //!   [`joint_dropout`]: lost joints; [`stature_proxy`]: statures where
 //!   nobody measured one, to score the stature regression on Human3.6M;
 //! - [`motion_sweep`]: every candidate motion filter on the training
-//!   subjects, from which the served ones were chosen.
+//!   subjects, from which the served ones were chosen;
+//!   [`motion_refiner`]: learned linear refiners of the lifter's
+//!   directions; [`root_scale`]: where the root solve's error sits.
 
 // Numeric code indexes several parallel buffers with one loop variable,
 // as the training library does.

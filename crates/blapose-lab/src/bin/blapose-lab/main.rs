@@ -13,6 +13,7 @@
 mod bodies;
 mod diagnose;
 mod motion;
+mod root_scale;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};

@@ -158,7 +158,7 @@ pub fn run(a: MotionArgs) -> Result<()> {
     push("served", "gru_motion".into(), served.gru_motion.clone());
     push("served", "bigru_motion".into(), served.bigru_motion.clone());
     if a.root_scale {
-        return root_scale_report(&trials, &lifted, &scenes, estimates.adjusters().gru);
+        return crate::root_scale::report(&trials, &lifted, &scenes, estimates.adjusters().gru);
     }
     if a.refiners {
         for (group, name, report) in refiner_rows(
@@ -375,80 +375,4 @@ fn refiner_rows(
         }
     }
     Ok(rows)
-}
-
-/// `--root-scale`: how far the root solve places people, per pose source.
-fn root_scale_report(
-    trials: &[LifterSequence],
-    lifted: &blapose_lab::motion_sweep::Lifted,
-    scenes: &[Scene],
-    gru: Option<&[Vec<blapose_core::BoneLengths>]>,
-) -> Result<()> {
-    use blapose_core::bones::{adjust_sequence_per_frame, adjust_sequence_with, ZeroBonePolicy};
-    use blapose_lab::motion_sweep::key;
-    use blapose_lab::root_scale::{fit_scale, median_depth_ratio, mrpe_mm, RootPairs};
-    let mut sources: Vec<(&str, Vec<RootPairs>)> = Vec::new();
-    let solve = |t: &LifterSequence, poses: &[blapose_core::Pose], s: &Scene| {
-        RootPairs::solve(&t.trial.subject, &t.trial.camera, poses, s)
-    };
-    sources.push((
-        "true pose",
-        trials.iter().zip(scenes).map(|(t, s)| solve(t, &t.target, s)).collect(),
-    ));
-    sources.push((
-        "lifter as it is",
-        trials.iter().zip(scenes).map(|(t, s)| solve(t, &lifted[&key(t)], s)).collect(),
-    ));
-    let mut true_lengths = Vec::new();
-    for (t, s) in trials.iter().zip(scenes) {
-        let adj = adjust_sequence_with(&lifted[&key(t)], &t.trial.gt, ZeroBonePolicy::KeepInput)?;
-        true_lengths.push(solve(t, &adj, s));
-    }
-    sources.push(("lifter directions, true lengths", true_lengths));
-    if let Some(g) = gru {
-        let mut v = Vec::new();
-        for ((t, s), l) in trials.iter().zip(scenes).zip(g) {
-            let adj = adjust_sequence_per_frame(&lifted[&key(t)], l, ZeroBonePolicy::KeepInput)?;
-            v.push(solve(t, &adj, s));
-        }
-        sources.push(("lifter directions, gru lengths", v));
-    }
-    let mut subjects: Vec<&str> = trials.iter().map(|t| t.trial.subject.as_str()).collect();
-    subjects.dedup();
-    let mut cameras: Vec<&str> = trials.iter().map(|t| t.trial.camera.as_str()).collect();
-    cameras.sort();
-    cameras.dedup();
-    println!("| source | MRPE (mm) | k (all) | MRPE x k (mm) | MRPE, k from other subjects (mm) | median depth ratio |");
-    println!("|---|---|---|---|---|---|");
-    for (name, pairs) in &sources {
-        let k = fit_scale(pairs);
-        // Leave one subject out: each subject's roots scaled by the factor
-        // fitted on the others.
-        let mut held = Vec::new();
-        for s in &subjects {
-            let k_other = fit_scale(pairs.iter().filter(|p| p.subject != *s));
-            let mine: Vec<&RootPairs> = pairs.iter().filter(|p| p.subject == *s).collect();
-            held.extend(mine.into_iter().map(|p| {
-                let mut p = p.clone();
-                p.solved.iter_mut().for_each(|v| *v = v.map(|x| x * k_other));
-                p
-            }));
-        }
-        println!(
-            "| {name} | {:.1} | {k:.4} | {:.1} | {:.1} | {:.4} |",
-            mrpe_mm(pairs, 1.0),
-            mrpe_mm(pairs, k),
-            mrpe_mm(&held, 1.0),
-            median_depth_ratio(pairs)
-        );
-        for s in &subjects {
-            let p: Vec<&RootPairs> = pairs.iter().filter(|p| p.subject == *s).collect();
-            eprintln!("  {name} {s}: k {:.4} median ratio {:.4}", fit_scale(p.iter().copied()), median_depth_ratio(p.iter().copied()));
-        }
-        for c in &cameras {
-            let p: Vec<&RootPairs> = pairs.iter().filter(|p| p.camera == *c).collect();
-            eprintln!("  {name} camera {c}: k {:.4} median ratio {:.4}", fit_scale(p.iter().copied()), median_depth_ratio(p.iter().copied()));
-        }
-    }
-    Ok(())
 }
