@@ -1,4 +1,4 @@
-// The live page: the camera -> MediaPipe Pose in this browser -> COCO-17 keypoints
+// The live page: the camera -> MediaPipe's PoseLandmarker in this browser -> COCO-17 keypoints
 // (pixels, with each landmark's visibility as confidence, and the image size) -> one
 // blapose session over the server's WebSocket, which carries the same
 // StreamRequest / StreamResponse messages as gRPC's Stream. The server lifts the
@@ -7,6 +7,7 @@
 // settle, frames/s and the capture-to-answer latency. Its figures are
 // window.blapose.stats, which the browser test reads.
 import * as THREE from "./vendor/three/three.module.js";
+import { FilesetResolver, PoseLandmarker } from "./vendor/mediapipe/vision_bundle.mjs";
 
 const WS_PATH = "/v1/stream";
 // MediaPipe Pose landmark of each COCO-17 joint, in COCO order.
@@ -154,15 +155,15 @@ function answer(msg) {
   drawSkeleton(f.adjusted_pose_3d);
 }
 
-// ---- MediaPipe Pose, frame by frame ------------------------------------------------------------
+// ---- MediaPipe's PoseLandmarker, frame by frame -------------------------------------------------
+// On the CPU (XNNPACK, WebAssembly): no WebGL, which a browser without a GPU only
+// emulates, slowly. Each new camera frame once, the lite model.
 const overlay = document.getElementById("overlay");
-let captureTime = 0;
-function onPose(results) {
+function onPose(lm, captureTime) {
   stats.camera_frames++;
   overlay.width = W; overlay.height = H;
   const g = overlay.getContext("2d");
   g.clearRect(0, 0, W, H);
-  const lm = results.poseLandmarks;
   if (!lm) return;
   stats.detections++;
   const kp = [], conf = [];
@@ -179,20 +180,29 @@ function onPose(results) {
   ws.send(encode({ frame: { frame_index: index, keypoints_2d: kp, confidence: conf } }));
   stats.frames_sent++;
 }
-const pose = new Pose({ locateFile: (f) => `vendor/mediapipe/${f}` });
-pose.setOptions({ modelComplexity: 0, smoothLandmarks: true, minDetectionConfidence: 0.5, minTrackingConfidence: 0.5 });
-pose.onResults(onPose);
-await pose.initialize();
+const landmarker = await PoseLandmarker.createFromOptions(await FilesetResolver.forVisionTasks("vendor/mediapipe"), {
+  baseOptions: { modelAssetPath: "vendor/mediapipe/pose_landmarker_lite.task", delegate: "CPU" },
+  runningMode: "VIDEO",
+  numPoses: 1,
+  minPoseDetectionConfidence: 0.5,
+  minPosePresenceConfidence: 0.5,
+  minTrackingConfidence: 0.5,
+});
 connect();
-(async function loop() {
-  for (;;) {
-    if (video.readyState >= 2) {
-      captureTime = performance.now();
-      try { await pose.send({ image: video }); } catch (e) { fail("pose: " + e.message); }
-    }
-    await new Promise((r) => requestAnimationFrame(r));
+let lastVideoTime = -1;
+function detect() {
+  if (video.readyState >= 2 && video.currentTime !== lastVideoTime) {
+    lastVideoTime = video.currentTime;
+    const captureTime = performance.now();
+    try {
+      const result = landmarker.detectForVideo(video, captureTime);
+      onPose(result.landmarks[0], captureTime);
+    } catch (e) { fail("pose: " + e.message); }
   }
-})();
+  if (video.requestVideoFrameCallback) video.requestVideoFrameCallback(detect);
+  else requestAnimationFrame(detect);
+}
+detect();
 
 // ---- the 3D view ---------------------------------------------------------------------------------
 const holder = document.getElementById("view3d");
