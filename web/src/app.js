@@ -29,6 +29,8 @@ const stats = {
   fps: 0,
   latency_p50_ms: null,
   latency_p99_ms: null,
+  pose_ms_p50: null, // of that, the pose model's share
+  pose_ms_p99: null,
   lengths_m: null,
   lengths_std_mm_last_50: null,
   session_id: null,
@@ -189,13 +191,23 @@ const landmarker = await PoseLandmarker.createFromOptions(await FilesetResolver.
   minTrackingConfidence: 0.5,
 });
 connect();
+// The model sees at most 256 x 256 pixels: a smaller copy of the frame costs less to hand over.
+const SCALE = Math.min(1, 320 / Math.max(W, H));
+const small = SCALE < 1 ? new OffscreenCanvas(Math.round(W * SCALE), Math.round(H * SCALE)) : null;
+const smallG = small && small.getContext("2d", { alpha: false });
+const poseTimes = [];
 let lastVideoTime = -1;
 function detect() {
   if (video.readyState >= 2 && video.currentTime !== lastVideoTime) {
     lastVideoTime = video.currentTime;
     const captureTime = performance.now();
     try {
-      const result = landmarker.detectForVideo(video, captureTime);
+      if (small) smallG.drawImage(video, 0, 0, small.width, small.height);
+      const result = landmarker.detectForVideo(small || video, captureTime);
+      poseTimes.push(performance.now() - captureTime);
+      if (poseTimes.length > 300) poseTimes.shift();
+      stats.pose_ms_p50 = percentile(poseTimes, 0.5);
+      stats.pose_ms_p99 = percentile(poseTimes, 0.99);
       onPose(result.landmarks[0], captureTime);
     } catch (e) { fail("pose: " + e.message); }
   }
@@ -223,12 +235,14 @@ bones.setAttribute("color", new THREE.BufferAttribute(new Float32Array(16 * 2 * 
 scene.add(new THREE.LineSegments(bones, new THREE.LineBasicMaterial({ vertexColors: true, linewidth: 3 })));
 const joints = new THREE.InstancedMesh(new THREE.SphereGeometry(0.025, 12, 8), new THREE.MeshBasicMaterial({ color: 0x1d2330 }), 17);
 scene.add(joints);
+let redraw = true;
 const LEFT = new Set([4, 5, 6, 11, 12, 13]), RIGHT = new Set([1, 2, 3, 14, 15, 16]);
 function resize3d() {
   const w = holder.clientWidth, h = holder.clientHeight;
   renderer.setSize(w, h, false);
   renderer.domElement.style.width = "100%"; renderer.domElement.style.height = "100%";
   camera.aspect = w / h; camera.updateProjectionMatrix();
+  redraw = true;
 }
 window.addEventListener("resize", resize3d);
 resize3d();
@@ -249,6 +263,7 @@ function drawSkeleton(p) {
   bones.attributes.position.needsUpdate = true;
   bones.attributes.color.needsUpdate = true;
   bones.computeBoundingSphere();
+  redraw = true;
 }
 
 // ---- figures and the lengths chart, a few times a second ------------------------------------------
@@ -272,8 +287,9 @@ function drawLengths() {
   g.fillText(`${(hi * 1000).toFixed(0)}`, 4 * dpr, 12 * dpr); g.fillText(`${(lo * 1000).toFixed(0)}`, 4 * dpr, h - 4 * dpr);
 }
 const fmt = (v, d = 1) => (v == null ? "-" : v.toFixed(d));
+// Drawn when something changed: a browser without a GPU renders in software.
 (function frame() {
-  renderer.render(scene, camera);
+  if (redraw) { renderer.render(scene, camera); redraw = false; }
   requestAnimationFrame(frame);
 })();
 setInterval(() => {
