@@ -23,12 +23,14 @@ copy(join(here, "..", "proto", "blapose", "v1", "blapose.proto"), join(dist, "bl
 copy(join(modules, "three", "build", "three.module.js"), join(dist, "vendor", "three", "three.module.js"));
 copy(join(modules, "three", "build", "three.core.js"), join(dist, "vendor", "three", "three.core.js"));
 copy(join(modules, "protobufjs", "dist", "protobuf.min.js"), join(dist, "vendor", "protobuf.min.js"));
-// MediaPipe's PoseLandmarker (@mediapipe/tasks-vision): its module and WebAssembly
-// (with and without SIMD; it runs the models on the CPU, XNNPACK, no WebGL).
+// MediaPipe's PoseLandmarker (@mediapipe/tasks-vision): its module and its
+// WebAssembly as an ES module (for the page's module worker; it runs the models
+// on the CPU, XNNPACK, no WebGL).
 const tasks = join(modules, "@mediapipe", "tasks-vision");
 copy(join(tasks, "vision_bundle.mjs"), join(dist, "vendor", "mediapipe", "vision_bundle.mjs"));
-for (const f of ["vision_wasm_internal", "vision_wasm_nosimd_internal"]) {
-  for (const ext of [".js", ".wasm"]) copy(join(tasks, "wasm", f + ext), join(dist, "vendor", "mediapipe", f + ext));
+for (const ext of [".js", ".wasm"]) {
+  const f = "vision_wasm_module_internal" + ext;
+  copy(join(tasks, "wasm", f), join(dist, "vendor", "mediapipe", f));
 }
 // Its model: tasks-vision ships none, so pose_landmarker_lite.task is put together
 // from the two models the legacy @mediapipe/pose package ships (pose-task.mjs).

@@ -7,7 +7,6 @@
 // settle, frames/s and the capture-to-answer latency. Its figures are
 // window.blapose.stats, which the browser test reads.
 import * as THREE from "./vendor/three/three.module.js";
-import { FilesetResolver, PoseLandmarker } from "./vendor/mediapipe/vision_bundle.mjs";
 
 const WS_PATH = "/v1/stream";
 // MediaPipe Pose landmark of each COCO-17 joint, in COCO order.
@@ -29,8 +28,6 @@ const stats = {
   fps: 0,
   latency_p50_ms: null,
   latency_p99_ms: null,
-  pose_ms_p50: null, // of that, the pose model's share
-  pose_ms_p99: null,
   lengths_m: null,
   lengths_std_mm_last_50: null,
   session_id: null,
@@ -63,7 +60,7 @@ const W = video.videoWidth, H = video.videoHeight;
 
 // ---- the session -------------------------------------------------------------------------
 let ws = null, opened = false, nextIndex = 0;
-const sentAt = new Map();
+const sentAt = new Map(), sentTime = new Map();
 function subject() {
   const h = parseFloat(document.getElementById("height").value);
   const sex = parseInt(document.getElementById("sex").value, 10) || 0;
@@ -75,7 +72,7 @@ function connect() {
   ws = new WebSocket(`${scheme}://${location.host}${WS_PATH}` + (token ? `?token=${encodeURIComponent(token)}` : ""));
   ws.binaryType = "arraybuffer";
   opened = false;
-  sentAt.clear();
+  sentAt.clear(); sentTime.clear();
   const socket = ws;
   ws.onopen = () => socket.send(encode({
     open: {
@@ -112,6 +109,15 @@ document.getElementById("person").addEventListener("submit", (ev) => {
 
 // ---- answers -------------------------------------------------------------------------------
 const latencies = [], answeredAt = [], lengthHistory = [];
+// Where the time goes: stats.<name>_ms_p50 / _p99 over the last 300 frames.
+const timings = {};
+function timing(name, ms) {
+  const t = (timings[name] ??= []);
+  t.push(ms);
+  if (t.length > 300) t.shift();
+  stats[`${name}_ms_p50`] = percentile(t, 0.5);
+  stats[`${name}_ms_p99`] = percentile(t, 0.99);
+}
 function percentile(values, p) {
   const s = [...values].sort((a, b) => a - b);
   return s.length ? s[Math.min(s.length - 1, Math.floor(p * s.length))] : null;
@@ -125,7 +131,7 @@ function answer(msg) {
     return;
   }
   if (msg.error) {
-    sentAt.delete(msg.error.frame_index);
+    sentAt.delete(msg.error.frame_index); sentTime.delete(msg.error.frame_index);
     stats.errors++;
     stats.last_error = msg.error.message;
     return;
@@ -136,6 +142,8 @@ function answer(msg) {
   sentAt.delete(f.frame_index);
   stats.frames_answered++;
   if (t0 !== undefined) latencies.push(now - t0);
+  if (sentTime.has(f.frame_index)) timing("answer", now - sentTime.get(f.frame_index));
+  sentTime.delete(f.frame_index);
   if (latencies.length > 300) latencies.shift();
   answeredAt.push(now);
   while (answeredAt.length && answeredAt[0] < now - 2000) answeredAt.shift();
@@ -157,13 +165,11 @@ function answer(msg) {
   drawSkeleton(f.adjusted_pose_3d);
 }
 
-// ---- MediaPipe's PoseLandmarker, frame by frame -------------------------------------------------
-// On the CPU (XNNPACK, WebAssembly): no WebGL, which a browser without a GPU only
-// emulates, slowly. Each new camera frame once, the lite model.
+// ---- MediaPipe's PoseLandmarker, frame by frame (pose-worker.js) -----------------------------------
 const overlay = document.getElementById("overlay");
 function onPose(lm, captureTime) {
   stats.camera_frames++;
-  overlay.width = W; overlay.height = H;
+  if (overlay.width !== W || overlay.height !== H) { overlay.width = W; overlay.height = H; }
   const g = overlay.getContext("2d");
   g.clearRect(0, 0, W, H);
   if (!lm) return;
@@ -179,42 +185,49 @@ function onPose(lm, captureTime) {
   if (sentAt.size >= MAX_IN_FLIGHT) { stats.frames_skipped++; return; }
   const index = nextIndex++;
   sentAt.set(index, captureTime);
+  sentTime.set(index, performance.now());
   ws.send(encode({ frame: { frame_index: index, keypoints_2d: kp, confidence: conf } }));
   stats.frames_sent++;
 }
-const landmarker = await PoseLandmarker.createFromOptions(await FilesetResolver.forVisionTasks("vendor/mediapipe"), {
-  baseOptions: { modelAssetPath: "vendor/mediapipe/pose_landmarker_lite.task", delegate: "CPU" },
-  runningMode: "VIDEO",
-  numPoses: 1,
-  minPoseDetectionConfidence: 0.5,
-  minPosePresenceConfidence: 0.5,
-  minTrackingConfidence: 0.5,
-});
+const worker = new Worker("pose-worker.js", { type: "module" });
+await new Promise((resolve, reject) => {
+  worker.onmessage = ({ data }) => (data.ready ? resolve() : reject(new Error(data.error)));
+  worker.onerror = (e) => reject(new Error(e.message));
+  worker.postMessage({ init: true });
+}).catch((e) => { fail("pose: " + e.message); throw e; });
+worker.onerror = (e) => fail("pose: " + e.message);
 connect();
-// The model sees at most 256 x 256 pixels: a smaller copy of the frame costs less to hand over.
+// One frame with the model at a time, the newest: a slow model costs frames, never a queue.
+// It sees at most 256 x 256 pixels, so it gets a 320-pixel copy.
 const SCALE = Math.min(1, 320 / Math.max(W, H));
-const small = SCALE < 1 ? new OffscreenCanvas(Math.round(W * SCALE), Math.round(H * SCALE)) : null;
-const smallG = small && small.getContext("2d", { alpha: false });
-const poseTimes = [];
-let lastVideoTime = -1;
-function detect() {
-  if (video.readyState >= 2 && video.currentTime !== lastVideoTime) {
-    lastVideoTime = video.currentTime;
-    const captureTime = performance.now();
-    try {
-      if (small) smallG.drawImage(video, 0, 0, small.width, small.height);
-      const result = landmarker.detectForVideo(small || video, captureTime);
-      poseTimes.push(performance.now() - captureTime);
-      if (poseTimes.length > 300) poseTimes.shift();
-      stats.pose_ms_p50 = percentile(poseTimes, 0.5);
-      stats.pose_ms_p99 = percentile(poseTimes, 0.99);
-      onPose(result.landmarks[0], captureTime);
-    } catch (e) { fail("pose: " + e.message); }
-  }
-  if (video.requestVideoFrameCallback) video.requestVideoFrameCallback(detect);
-  else requestAnimationFrame(detect);
+let busy = false, fresh = false, captureTime = 0;
+async function pump() {
+  if (busy || !fresh || video.readyState < 2) return;
+  busy = true; fresh = false;
+  captureTime = performance.now();
+  try {
+    const frame = await createImageBitmap(video, { resizeWidth: Math.round(W * SCALE), resizeHeight: Math.round(H * SCALE) });
+    timing("capture", performance.now() - captureTime);
+    worker.postMessage({ frame, time: captureTime }, [frame]);
+  } catch (e) { busy = false; fail("pose: " + e.message); }
 }
-detect();
+worker.onmessage = ({ data }) => {
+  busy = false;
+  if (data.error) fail("pose: " + data.error);
+  else {
+    timing("pose", data.ms);
+    timing("model_wait", performance.now() - captureTime);
+    onPose(data.landmarks, captureTime);
+  }
+  pump();
+};
+function newFrame() {
+  fresh = true;
+  pump();
+  if (video.requestVideoFrameCallback) video.requestVideoFrameCallback(newFrame);
+  else setTimeout(newFrame, 1000 / 30);
+}
+newFrame();
 
 // ---- the 3D view ---------------------------------------------------------------------------------
 const holder = document.getElementById("view3d");
