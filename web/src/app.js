@@ -231,7 +231,13 @@ newFrame();
 
 // ---- the 3D view ---------------------------------------------------------------------------------
 const holder = document.getElementById("view3d");
-const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+// No antialiasing where WebGL is software (SwiftShader: no GPU), where it costs the most.
+const software = (() => {
+  const gl = document.createElement("canvas").getContext("webgl2");
+  const info = gl && gl.getExtension("WEBGL_debug_renderer_info");
+  return !!info && /swiftshader|llvmpipe|software/i.test(gl.getParameter(info.UNMASKED_RENDERER_WEBGL));
+})();
+const renderer = new THREE.WebGLRenderer({ antialias: !software, preserveDrawingBuffer: true });
 renderer.setPixelRatio(window.devicePixelRatio || 1);
 holder.append(renderer.domElement);
 const scene = new THREE.Scene();
