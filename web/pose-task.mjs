@@ -7,7 +7,8 @@
 // from (they refuse a float input without it), so each gets a ModelMetadata
 // with one input tensor and its NormalizationOptions: the detector takes
 // [-1, 1] (mean 127.5, std 127.5), the landmark model [0, 1] (mean 0, std 255),
-// as the legacy graphs' ImageToTensorCalculator ranges say.
+// as the legacy graphs' ImageToTensorCalculator ranges say. Each model is read
+// back before it is zipped.
 import { readFileSync } from "node:fs";
 import { join } from "node:path";
 
@@ -177,7 +178,39 @@ function withInputNormalization(model, mean, std) {
   head.bytes.copy(out, 0);
   model.copy(out, base);
   for (const [s, target] of head.ats) out.writeUInt32LE(base + target - s, s);
+  checkMetadata(out, model, mean, std);
   return out;
+}
+
+// Reads OUT back as the tasks graphs will: the same subgraphs as MODEL, and a
+// TFLITE_METADATA buffer whose ModelMetadata's first input has MEAN and STD.
+function checkMetadata(out, model, mean, std) {
+  const ref = (b, at) => at + b.readUInt32LE(at);
+  const field = (b, table, i) => {
+    const vt = table - b.readInt32LE(table);
+    const off = i < (b.readUInt16LE(vt) - 4) / 2 ? b.readUInt16LE(vt + 4 + 2 * i) : 0;
+    return off ? table + off : 0;
+  };
+  const vector = (b, at) => Array.from({ length: b.readUInt32LE(at) }, (_, i) => ref(b, at + 4 + 4 * i));
+  const str = (b, at) => b.toString("utf8", at + 4, at + 4 + b.readUInt32LE(at));
+  const root = ref(out, 0), oldRoot = ref(model, 0);
+  const subgraphs = (b, r) => vector(b, ref(b, field(b, r, 2))).length;
+  if (out.toString("latin1", 4, 8) !== "TFL3" || subgraphs(out, root) !== subgraphs(model, oldRoot)) {
+    throw new Error("the model with metadata does not read back");
+  }
+  const entry = vector(out, ref(out, field(out, root, 6))).find((e) => str(out, ref(out, field(out, e, 0))) === "TFLITE_METADATA");
+  const buffer = vector(out, ref(out, field(out, root, 4)))[out.readUInt32LE(field(out, entry, 1))];
+  const data = ref(out, field(out, buffer, 0));
+  const meta = out.subarray(data + 4, data + 4 + out.readUInt32LE(data));
+  if (meta.toString("latin1", 4, 8) !== "M001") throw new Error("the metadata does not read back");
+  const subgraph = vector(meta, ref(meta, field(meta, ref(meta, 0), 3)))[0];
+  const input = vector(meta, ref(meta, field(meta, subgraph, 2)))[0];
+  const unit = vector(meta, ref(meta, field(meta, input, 4)))[0];
+  const options = ref(meta, field(meta, unit, 1));
+  const first = (i) => meta.readFloatLE(ref(meta, field(meta, options, i)) + 4);
+  if (meta.readUInt8(field(meta, unit, 0)) !== 1 || first(0) !== mean || first(1) !== std) {
+    throw new Error("the normalization does not read back");
+  }
 }
 
 // ---- a zip, stored -------------------------------------------------------------------------
