@@ -21,13 +21,13 @@ e2e_cleanup() {
     if [ -z "$KEEP_OUT" ]; then rm -rf "$OUT"; fi
 }
 
-# start_server LOG [ARGS...]: starts $SERVER_BIN (default
+# start_server LOG [ARGS...]: starts $BLAPOSE_SERVER_BIN (default
 # target/release/blapose-server) on a free loopback port (--addr 127.0.0.1:0; it logs the port it got) with ARGS,
 # sets SERVER_PID and URL, and exits with the log when it does not come up.
 start_server() {
     local log=$1 port
     shift
-    "${SERVER_BIN:-target/release/blapose-server}" --addr 127.0.0.1:0 --no-metrics "$@" >"$log" 2>&1 &
+    "${BLAPOSE_SERVER_BIN:-target/release/blapose-server}" --addr 127.0.0.1:0 --no-metrics "$@" >"$log" 2>&1 &
     SERVER_PID=$!
     URL=
     for _ in $(seq 600); do

@@ -1,10 +1,12 @@
 // Assembles dist/ (what `blapose-server --web-addr` serves at /): the page's own
 // files from src/, the proto it speaks from ../proto, and the npm packages it
-// runs (MediaPipe Pose with its WebAssembly and models, three.js, protobuf.js),
-// so the page loads nothing but from the server. Run by `npm ci` (postinstall).
-import { cpSync, mkdirSync, rmSync, existsSync } from "node:fs";
+// runs (MediaPipe's PoseLandmarker with its WebAssembly and model, three.js,
+// protobuf.js), so the page loads nothing but from the server. Run by `npm ci`
+// (postinstall).
+import { cpSync, mkdirSync, rmSync, existsSync, writeFileSync } from "node:fs";
 import { dirname, join } from "node:path";
 import { fileURLToPath } from "node:url";
+import { poseLandmarkerLiteTask } from "./pose-task.mjs";
 
 const here = dirname(fileURLToPath(import.meta.url));
 const dist = join(here, "dist");
@@ -21,22 +23,19 @@ copy(join(here, "..", "proto", "blapose", "v1", "blapose.proto"), join(dist, "bl
 copy(join(modules, "three", "build", "three.module.js"), join(dist, "vendor", "three", "three.module.js"));
 copy(join(modules, "three", "build", "three.core.js"), join(dist, "vendor", "three", "three.core.js"));
 copy(join(modules, "protobufjs", "dist", "protobuf.min.js"), join(dist, "vendor", "protobuf.min.js"));
-// MediaPipe Pose: its loader, WebAssembly and the lite and full models (heavy is
-// 27.7 MB and not offered).
-const pose = join(modules, "@mediapipe", "pose");
-for (const f of [
-  "pose.js",
-  "pose_solution_packed_assets.data",
-  "pose_solution_packed_assets_loader.js",
-  "pose_solution_simd_wasm_bin.data",
-  "pose_solution_simd_wasm_bin.js",
-  "pose_solution_simd_wasm_bin.wasm",
-  "pose_solution_wasm_bin.js",
-  "pose_solution_wasm_bin.wasm",
-  "pose_web.binarypb",
-  "pose_landmark_lite.tflite",
-  "pose_landmark_full.tflite",
-]) {
-  copy(join(pose, f), join(dist, "vendor", "mediapipe", f));
+// MediaPipe's PoseLandmarker (@mediapipe/tasks-vision): its module and its
+// WebAssembly as an ES module (for the page's module worker; it runs the models
+// on the CPU, XNNPACK, no WebGL).
+const tasks = join(modules, "@mediapipe", "tasks-vision");
+copy(join(tasks, "vision_bundle.mjs"), join(dist, "vendor", "mediapipe", "vision_bundle.mjs"));
+for (const ext of [".js", ".wasm"]) {
+  const f = "vision_wasm_module_internal" + ext;
+  copy(join(tasks, "wasm", f), join(dist, "vendor", "mediapipe", f));
 }
+// Its model: tasks-vision ships none, so pose_landmarker_lite.task is put together
+// from the two models the legacy @mediapipe/pose package ships (pose-task.mjs).
+writeFileSync(
+  join(dist, "vendor", "mediapipe", "pose_landmarker_lite.task"),
+  poseLandmarkerLiteTask(join(modules, "@mediapipe", "pose")),
+);
 console.log(`blapose live page assembled in ${dist}`);

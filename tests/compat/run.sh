@@ -58,7 +58,7 @@ transcript new
 kill "$SERVER_PID"
 wait "$SERVER_PID" 2>/dev/null || true
 SERVER_PID=
-SERVER_BIN=$OLD start_server "$OUT/old.log" "${FLAGS[@]}"
+BLAPOSE_SERVER_BIN=$OLD start_server "$OUT/old.log" "${FLAGS[@]}"
 transcript old
 
 files=$(find "$OUT/new" -type f | wc -l)

@@ -28,7 +28,9 @@ const page = await browser.newPage({ viewport: { width: 1280, height: 1000 } });
 const problems = [], foreign = [];
 const origin = new URL(url).origin;
 page.on("pageerror", (e) => problems.push(`page error: ${e.message}`));
-page.on("console", (m) => { if (m.type() === "error") problems.push(`console: ${m.text()}`); });
+// MediaPipe's WebAssembly writes its informational lines to stderr, which the page
+// gets as console errors: "INFO: Created TensorFlow Lite XNNPACK delegate for CPU."
+page.on("console", (m) => { if (m.type() === "error" && !m.text().startsWith("INFO: ")) problems.push(`console: ${m.text()}`); });
 page.on("request", (r) => { if (!r.url().startsWith(origin) && !r.url().startsWith("data:") && !r.url().startsWith("blob:")) foreign.push(r.url()); });
 await page.goto(url, { waitUntil: "load" });
 await page.waitForFunction(() => window.blapose && window.blapose.stats.frames_answered > 0, null, { timeout: 60000 });

@@ -3,7 +3,7 @@
 # real picture of a person (messi5.jpg from Debian's opencv-doc, slowly panned
 # into a 640x480 30 Hz .y4m by Debian's ffmpeg; $BLAPOSE_LIVE_VIDEO takes any
 # video instead, e.g. opencv-doc's vtest.avi, whose walkers are too small for
-# MediaPipe to find often), MediaPipe Pose in the page, the release server
+# MediaPipe to find often), MediaPipe's PoseLandmarker in the page, the release server
 # lifting and adjusting over its WebSocket (--web-addr), and check_live.mjs
 # reading window.blapose.stats: frames/s, latency, every frame answered, the
 # lengths settled, the skeleton drawn, nothing from outside.
@@ -34,7 +34,7 @@ fi
 echo "== npm ci (web/: the page and its assets; tests/live)"
 (cd web && npm ci --no-audit --no-fund --loglevel=error)
 (cd tests/live && npm ci --no-audit --no-fund --loglevel=error)
-cargo build --release --quiet -p blapose-server
+[ -n "${BLAPOSE_SERVER_BIN:-}" ] || cargo build --release --quiet -p blapose-server
 
 use_out_dir "${BLAPOSE_LIVE_DIR:-}"
 if [ "$SOURCE" = "$PICTURE" ]; then

@@ -1,4 +1,4 @@
-// The live page: the camera -> MediaPipe Pose in this browser -> COCO-17 keypoints
+// The live page: the camera -> MediaPipe's PoseLandmarker in this browser -> COCO-17 keypoints
 // (pixels, with each landmark's visibility as confidence, and the image size) -> one
 // blapose session over the server's WebSocket, which carries the same
 // StreamRequest / StreamResponse messages as gRPC's Stream. The server lifts the
@@ -60,7 +60,7 @@ const W = video.videoWidth, H = video.videoHeight;
 
 // ---- the session -------------------------------------------------------------------------
 let ws = null, opened = false, nextIndex = 0;
-const sentAt = new Map();
+const sentAt = new Map(), sentTime = new Map();
 function subject() {
   const h = parseFloat(document.getElementById("height").value);
   const sex = parseInt(document.getElementById("sex").value, 10) || 0;
@@ -72,7 +72,7 @@ function connect() {
   ws = new WebSocket(`${scheme}://${location.host}${WS_PATH}` + (token ? `?token=${encodeURIComponent(token)}` : ""));
   ws.binaryType = "arraybuffer";
   opened = false;
-  sentAt.clear();
+  sentAt.clear(); sentTime.clear();
   const socket = ws;
   ws.onopen = () => socket.send(encode({
     open: {
@@ -109,6 +109,15 @@ document.getElementById("person").addEventListener("submit", (ev) => {
 
 // ---- answers -------------------------------------------------------------------------------
 const latencies = [], answeredAt = [], lengthHistory = [];
+// Where the time goes: stats.<name>_ms_p50 / _p99 over the last 300 frames.
+const timings = {};
+function timing(name, ms) {
+  const t = (timings[name] ??= []);
+  t.push(ms);
+  if (t.length > 300) t.shift();
+  stats[`${name}_ms_p50`] = percentile(t, 0.5);
+  stats[`${name}_ms_p99`] = percentile(t, 0.99);
+}
 function percentile(values, p) {
   const s = [...values].sort((a, b) => a - b);
   return s.length ? s[Math.min(s.length - 1, Math.floor(p * s.length))] : null;
@@ -122,7 +131,7 @@ function answer(msg) {
     return;
   }
   if (msg.error) {
-    sentAt.delete(msg.error.frame_index);
+    sentAt.delete(msg.error.frame_index); sentTime.delete(msg.error.frame_index);
     stats.errors++;
     stats.last_error = msg.error.message;
     return;
@@ -133,6 +142,8 @@ function answer(msg) {
   sentAt.delete(f.frame_index);
   stats.frames_answered++;
   if (t0 !== undefined) latencies.push(now - t0);
+  if (sentTime.has(f.frame_index)) timing("answer", now - sentTime.get(f.frame_index));
+  sentTime.delete(f.frame_index);
   if (latencies.length > 300) latencies.shift();
   answeredAt.push(now);
   while (answeredAt.length && answeredAt[0] < now - 2000) answeredAt.shift();
@@ -154,15 +165,13 @@ function answer(msg) {
   drawSkeleton(f.adjusted_pose_3d);
 }
 
-// ---- MediaPipe Pose, frame by frame ------------------------------------------------------------
+// ---- MediaPipe's PoseLandmarker, frame by frame (pose-worker.js) -----------------------------------
 const overlay = document.getElementById("overlay");
-let captureTime = 0;
-function onPose(results) {
+function onPose(lm, captureTime) {
   stats.camera_frames++;
-  overlay.width = W; overlay.height = H;
+  if (overlay.width !== W || overlay.height !== H) { overlay.width = W; overlay.height = H; }
   const g = overlay.getContext("2d");
   g.clearRect(0, 0, W, H);
-  const lm = results.poseLandmarks;
   if (!lm) return;
   stats.detections++;
   const kp = [], conf = [];
@@ -176,27 +185,61 @@ function onPose(results) {
   if (sentAt.size >= MAX_IN_FLIGHT) { stats.frames_skipped++; return; }
   const index = nextIndex++;
   sentAt.set(index, captureTime);
+  sentTime.set(index, performance.now());
   ws.send(encode({ frame: { frame_index: index, keypoints_2d: kp, confidence: conf } }));
   stats.frames_sent++;
 }
-const pose = new Pose({ locateFile: (f) => `vendor/mediapipe/${f}` });
-pose.setOptions({ modelComplexity: 0, smoothLandmarks: true, minDetectionConfidence: 0.5, minTrackingConfidence: 0.5 });
-pose.onResults(onPose);
-await pose.initialize();
+const worker = new Worker("pose-worker.js", { type: "module" });
+await new Promise((resolve, reject) => {
+  worker.onmessage = ({ data }) => (data.ready ? resolve() : reject(new Error(data.error)));
+  worker.onerror = (e) => reject(new Error(e.message));
+  worker.postMessage({ init: true });
+}).catch((e) => { fail("pose: " + e.message); throw e; });
+worker.onerror = (e) => fail("pose: " + e.message);
 connect();
-(async function loop() {
-  for (;;) {
-    if (video.readyState >= 2) {
-      captureTime = performance.now();
-      try { await pose.send({ image: video }); } catch (e) { fail("pose: " + e.message); }
-    }
-    await new Promise((r) => requestAnimationFrame(r));
+// One frame with the model at a time, the newest: a slow model costs frames, never a queue.
+// It sees at most 256 x 256 pixels, so it gets a 320-pixel copy.
+const SCALE = Math.min(1, 320 / Math.max(W, H));
+let busy = false, fresh = false, captureTime = 0;
+async function pump() {
+  if (busy || !fresh || video.readyState < 2) return;
+  busy = true; fresh = false;
+  captureTime = performance.now();
+  try {
+    const frame = await createImageBitmap(video, { resizeWidth: Math.round(W * SCALE), resizeHeight: Math.round(H * SCALE) });
+    timing("capture", performance.now() - captureTime);
+    worker.postMessage({ frame, time: captureTime }, [frame]);
+  } catch (e) { busy = false; fail("pose: " + e.message); }
+}
+worker.onmessage = ({ data }) => {
+  busy = false;
+  if (data.error) fail("pose: " + data.error);
+  else {
+    timing("pose", data.ms);
+    timing("model_wait", performance.now() - captureTime);
+    onPose(data.landmarks, captureTime);
   }
-})();
+  pump();
+};
+function newFrame() {
+  fresh = true;
+  pump();
+  if (video.requestVideoFrameCallback) video.requestVideoFrameCallback(newFrame);
+  else setTimeout(newFrame, 1000 / 30);
+}
+newFrame();
 
 // ---- the 3D view ---------------------------------------------------------------------------------
 const holder = document.getElementById("view3d");
-const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+// No antialiasing where WebGL is software (SwiftShader: no GPU), where it costs the most.
+const software = (() => {
+  const gl = document.createElement("canvas").getContext("webgl2");
+  const info = gl && gl.getExtension("WEBGL_debug_renderer_info");
+  const yes = !!info && /swiftshader|llvmpipe|software/i.test(gl.getParameter(info.UNMASKED_RENDERER_WEBGL));
+  gl?.getExtension("WEBGL_lose_context")?.loseContext();
+  return yes;
+})();
+const renderer = new THREE.WebGLRenderer({ antialias: !software, preserveDrawingBuffer: true });
 renderer.setPixelRatio(window.devicePixelRatio || 1);
 holder.append(renderer.domElement);
 const scene = new THREE.Scene();
@@ -213,12 +256,14 @@ bones.setAttribute("color", new THREE.BufferAttribute(new Float32Array(16 * 2 * 
 scene.add(new THREE.LineSegments(bones, new THREE.LineBasicMaterial({ vertexColors: true, linewidth: 3 })));
 const joints = new THREE.InstancedMesh(new THREE.SphereGeometry(0.025, 12, 8), new THREE.MeshBasicMaterial({ color: 0x1d2330 }), 17);
 scene.add(joints);
+let redraw = true;
 const LEFT = new Set([4, 5, 6, 11, 12, 13]), RIGHT = new Set([1, 2, 3, 14, 15, 16]);
 function resize3d() {
   const w = holder.clientWidth, h = holder.clientHeight;
   renderer.setSize(w, h, false);
   renderer.domElement.style.width = "100%"; renderer.domElement.style.height = "100%";
   camera.aspect = w / h; camera.updateProjectionMatrix();
+  redraw = true;
 }
 window.addEventListener("resize", resize3d);
 resize3d();
@@ -239,6 +284,7 @@ function drawSkeleton(p) {
   bones.attributes.position.needsUpdate = true;
   bones.attributes.color.needsUpdate = true;
   bones.computeBoundingSphere();
+  redraw = true;
 }
 
 // ---- figures and the lengths chart, a few times a second ------------------------------------------
@@ -262,8 +308,9 @@ function drawLengths() {
   g.fillText(`${(hi * 1000).toFixed(0)}`, 4 * dpr, 12 * dpr); g.fillText(`${(lo * 1000).toFixed(0)}`, 4 * dpr, h - 4 * dpr);
 }
 const fmt = (v, d = 1) => (v == null ? "-" : v.toFixed(d));
+// Drawn when something changed: a browser without a GPU renders in software.
 (function frame() {
-  renderer.render(scene, camera);
+  if (redraw) { renderer.render(scene, camera); redraw = false; }
   requestAnimationFrame(frame);
 })();
 setInterval(() => {
