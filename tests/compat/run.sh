@@ -53,7 +53,7 @@ transcript() {
     done
 }
 
-start_server "$OUT/new.log" "${FLAGS[@]}"
+BLAPOSE_SERVER_BIN=target/release/blapose-server start_server "$OUT/new.log" "${FLAGS[@]}"
 transcript new
 kill "$SERVER_PID"
 wait "$SERVER_PID" 2>/dev/null || true
