@@ -10,7 +10,7 @@
 #   3. SIGTERM: the killed replica is restarted, then another one is
 #      drained; its sessions get a final token and resume elsewhere;
 #   4. the session-token rules and per-client limits through HAProxy
-#      (server/tests/haproxy.rs: two in-process replicas behind it).
+#      (server/tests/integration/haproxy.rs: two in-process replicas behind it).
 #
 # Each case passes only if no frame is lost or answered twice and every
 # bone length equals the undisturbed run's within 1e-6 m (the `failover`
@@ -215,8 +215,8 @@ EOF
 )
 echo "$report"
 
-echo "== token rules and per-client limits behind HAProxy (server/tests/haproxy.rs)"
-BLAPOSE_REQUIRE_HAPROXY=1 cargo test --release --quiet -p blapose-server --test haproxy
+echo "== token rules and per-client limits behind HAProxy (server/tests/integration/haproxy.rs)"
+BLAPOSE_REQUIRE_HAPROXY=1 cargo test --release --quiet -p blapose-server --test integration haproxy::
 
 if [[ -n "$json" ]]; then
     echo "$report" >"$json"

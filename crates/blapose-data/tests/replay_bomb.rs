@@ -8,9 +8,9 @@
 //! header declaring a huge shape. A counting global allocator measures the
 //! peak bytes allocated while `Sequence::load` runs (a zip directory of
 //! too many entries is refused before it is parsed); one test function runs
-//! the cases in turn so nothing else allocates meanwhile. The bomb is
-//! deflated once, streamed from a zero buffer (never 2 GiB in memory), and
-//! copied raw into each archive.
+//! the cases in turn, in a test binary of its own, so nothing else
+//! allocates meanwhile. The bomb is deflated once, streamed from a zero
+//! buffer (never 2 GiB in memory), and copied raw into each archive.
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::io::{Cursor, Write};

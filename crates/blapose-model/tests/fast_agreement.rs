@@ -1,5 +1,7 @@
 //! The fast engines against the reference candle models, and the SIMD
-//! kernels against the scalar one.
+//! kernels against the scalar one. Its own test binary: candle reads its
+//! thread count once per process, so another test's candle call could fix
+//! it before `candle_single_threaded` runs.
 
 use blapose_model::reference::{frames_tensor, GruImpl};
 use blapose_model::{

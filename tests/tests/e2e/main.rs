@@ -14,14 +14,17 @@
 //!   errors, client-pose sessions beside lifting ones;
 //! - [`security`]: the bearer token and TLS;
 //! - [`shutdown`]: graceful shutdown answers frames already received;
-//! - [`example`]: replaying the shipped example improves its accuracy.
+//! - [`example`]: replaying the shipped example improves its accuracy;
+//! - [`failover`]: a replay resumed on another replica from its session
+//!   token, directly and behind a switching proxy.
 //!
 //! The HTML report of `replay --html` belongs to the `blapose-client`
 //! binary, so its end-to-end test runs that binary
-//! (`client/tests/html_report.rs`).
+//! (`client/tests/integration/html_report.rs`).
 
 mod errors;
 mod example;
+mod failover;
 mod lifter;
 mod security;
 mod sessions;

@@ -15,7 +15,7 @@
 //!
 //! Semantics are exactly the reference models' (same tensors, PyTorch gate
 //! order r, z, n, backward state first for the Bi-GRU, sigmoid -> fc ->
-//! symmetric averaging); `tests/fastnet_matches_candle.rs` checks the outputs
+//! symmetric averaging); `tests/integration/fastnet_matches_candle.rs` checks the outputs
 //! and every gradient against candle autograd on the reference model.
 //!
 //! Dropout masks are drawn from an RNG the caller seeds, so a training run is

@@ -12,7 +12,7 @@
 //! * **Determinism.** Batch `step` depends only on `(seed, step)`
 //!   ([`crate::synth::sample_rng`]), the dropout masks only on `(seed,
 //!   step)`, the initial weights only on `seed`: a resumed run reproduces an
-//!   uninterrupted one bit for bit (tested in `tests/train_loop.rs`).
+//!   uninterrupted one bit for bit (tested in `tests/integration/train_loop.rs`).
 //! * **Network.** The hot loop is [`crate::fastnet`] (hand-written BPTT,
 //!   checked against candle autograd on the reference model), not candle's
 //!   autograd, which was ~5x slower here.

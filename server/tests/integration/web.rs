@@ -5,7 +5,7 @@
 //! an idle socket, an oversize message, too many sockets from one
 //! address). Also the page at `/`, built or not.
 
-mod support;
+use crate::support;
 
 use std::net::SocketAddr;
 use std::time::{Duration, Instant};

@@ -16,7 +16,7 @@ use blapose_core::Pose;
 use blapose_server::{ServerConfig, WeightsSource};
 
 /// The page the binary fills (the Python package ships the same file).
-const TEMPLATE: &str = include_str!("../../python/src/blapose/report_template.html");
+const TEMPLATE: &str = include_str!("../../../python/src/blapose/report_template.html");
 /// The data's `format` field.
 const FORMAT: &str = "blapose-report/1";
 

@@ -6,7 +6,7 @@
 //! (`--max-control-frames-per-second`). A healthy client is answered
 //! throughout. Limits set low, a few seconds in all.
 
-mod support;
+use crate::support;
 
 use std::net::SocketAddr;
 use std::time::{Duration, Instant};

@@ -1,7 +1,6 @@
-//! Helpers the per-client limit tests share (`tests/quota.rs`,
-//! `tests/haproxy.rs`): a plain normalized-keypoint session, its frames,
-//! and one stream run with request headers. Each test crate uses a subset.
-#![allow(dead_code)]
+//! Helpers the per-client limit tests share ([`super::quota`],
+//! [`super::haproxy`], [`super::web`]): a plain normalized-keypoint session,
+//! its frames, and one stream run with request headers.
 
 use blapose_proto::v1 as pb;
 use blapose_server::{ServerConfig, ServerHandle};

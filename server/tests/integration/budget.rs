@@ -4,7 +4,7 @@
 //! connection it comes on; past `--memory-budget` new sessions are
 //! refused, and calls served again once streams end.
 
-mod support;
+use crate::support;
 
 use std::time::Duration;
 

@@ -335,7 +335,7 @@ fn lerp(a: [f32; 2], b: [f32; 2], t: f32) -> [f32; 2] {
 /// squares on the *training* subjects (every 5th frame, all cameras), SH16
 /// against the real detections, COCO-17 on projected ground truth. Slow
 /// (decodes all detections), so ignored by default:
-/// `cargo test --release -p blapose-data --test h36m_real -- --ignored --nocapture`
+/// `cargo test --release -p blapose-data --test integration h36m_real:: -- --ignored --nocapture`
 #[test]
 #[ignore]
 fn calibrate_layout_constants() {

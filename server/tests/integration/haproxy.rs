@@ -4,7 +4,7 @@
 //! Skipped (with a note) when `haproxy` is not installed, unless
 //! `BLAPOSE_REQUIRE_HAPROXY=1` (deploy/failover-test.sh sets it).
 
-mod support;
+use crate::support;
 
 use std::net::IpAddr;
 use std::path::PathBuf;

@@ -2,7 +2,7 @@
 //! -x509` (CA:TRUE) served with `--tls-cert`, checked by `--health-check`
 //! (`probe_health`, what the container's HEALTHCHECK runs) trusting that
 //! same file; and clear errors when the health check and the port disagree
-//! about TLS. The client library's side is in `client/tests/tls.rs`.
+//! about TLS. The client library's side is in `client/tests/integration/tls.rs`.
 
 use blapose_test_support::certs;
 

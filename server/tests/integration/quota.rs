@@ -4,7 +4,7 @@
 //! streams as before; the client is told by a header only when a trusted
 //! proxy sets it.
 
-mod support;
+use crate::support;
 
 use std::time::{Duration, Instant};
 

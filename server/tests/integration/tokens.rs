@@ -8,7 +8,7 @@
 //! beyond it. Missing joints themselves: their coordinates are never read,
 //! and a frame without a detected joint changes nothing but the count.
 
-mod support;
+use crate::support;
 
 use std::path::PathBuf;
 use std::time::Duration;
