@@ -6,7 +6,8 @@ them all and exits 1 when there is any. Why a script: these rules (crates
 depend only downward, no import circle between files, `super::` and
 `self::` paths included, no file over 600 lines before its tests, the
 server reads no weight metadata by string key, one `Sex`, a short model
-card, no work-log references, no registry host) decay silently when nobody
+card, no work-log references, no registry host, no test hidden behind
+`test = false` or `doctest = false`) decay silently when nobody
 looks; a failing CI line is what keeps them.
 """
 
@@ -218,7 +219,71 @@ def registry_hosts():
     return [f"{rel}:{n}: names a registry or mirror host: {line.strip()[:120]}" for rel, n, line in text_lines(skip) if REGISTRY_HOST.search(line)]
 
 
-RULES = [crate_layers, import_cycles, file_sizes, server_metadata_keys, one_sex, model_card, work_logs, registry_hosts]
+UNIT_TEST = re.compile(r"#\[(tokio::)?test\b|#\[cfg\(test\)\]")
+DOC_FENCE = re.compile(r"^\s*//[/!]\s*```\s*(\S*)")
+
+
+def doc_examples(path):
+    """Rust code blocks in a file's doc comments (what rustdoc would test)."""
+    found, inside = [], False
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        m = DOC_FENCE.match(line)
+        if not m:
+            continue
+        if not inside and (m.group(1) == "" or re.search(r"rust|no_run|should_panic|compile_fail|edition", m.group(1))):
+            found.append(n)
+        inside = not inside
+    return found
+
+
+def bin_modules(main):
+    """A binary's root file and the module files it declares (`mod x;`),
+    recursively, looked up beside it as `x.rs` or `x/mod.rs`."""
+    files, todo = [], [main]
+    while todo:
+        f = todo.pop()
+        if not f.exists() or f in files:
+            continue
+        files.append(f)
+        base = f.parent if f.name in ("main.rs", "mod.rs") else f.with_suffix("")
+        for m in re.findall(r"^\s*(?:pub(?:\([^)]*\))?\s+)?mod\s+(\w+)\s*;", f.read_text(), re.M):
+            todo += [base / f"{m}.rs", base / m / "mod.rs"]
+    return files
+
+
+def untested_targets():
+    """`test = false` or `doctest = false` (set so `cargo test` skips empty
+    harnesses) must not hide a test someone adds later."""
+    import tomllib
+
+    problems = []
+    for path, name, text in manifests():
+        crate = path.parent
+        manifest = tomllib.loads(text)
+        lib = manifest.get("lib", {})
+        lib_file = crate / lib.get("path", "src/lib.rs")
+        bins = manifest.get("bin", [])
+        bin_files = [crate / b.get("path", f"src/bin/{b['name']}.rs") for b in bins]
+        lib_sources = [p for p in rust_sources(crate) if p not in bin_files and "bin" not in p.relative_to(crate / "src").parts[:1] and p.name != "main.rs"]
+        checks = []
+        if lib_file.exists() and lib.get("test") is False:
+            checks += [(p, "test") for p in lib_sources]
+        if lib_file.exists() and lib.get("doctest") is False:
+            checks += [(p, "doctest") for p in lib_sources]
+        for b, f in zip(bins, bin_files):
+            if b.get("test") is False:
+                checks += [(p, "test") for p in bin_modules(f)]
+        for p, kind in checks:
+            rel = p.relative_to(ROOT)
+            if kind == "test" and UNIT_TEST.search(p.read_text()):
+                problems.append(f"{rel}: has unit tests, but its target in {path.relative_to(ROOT)} says test = false")
+            if kind == "doctest":
+                for n in doc_examples(p):
+                    problems.append(f"{rel}:{n}: a doc example, but {path.relative_to(ROOT)} says doctest = false")
+    return problems
+
+
+RULES = [crate_layers, import_cycles, file_sizes, server_metadata_keys, one_sex, model_card, work_logs, registry_hosts, untested_targets]
 
 
 def main():
