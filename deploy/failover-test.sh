@@ -57,7 +57,7 @@ if ! command -v haproxy >/dev/null; then
 fi
 
 echo "== building blapose-server and the failover check"
-cargo build --release --quiet -p blapose-server -p blapose-bench --bin blapose-server --bin failover
+[ "${BLAPOSE_PREBUILT:-}" = 1 ] || cargo build --release --quiet -p blapose-server -p blapose-bench --bin blapose-server --bin failover
 server=target/release/blapose-server
 failover=target/release/failover
 

@@ -1,6 +1,17 @@
 # Helpers sourced by the end-to-end scripts (tests/browser/run.sh,
 # tests/export/run.sh), run from the repository root.
 
+# build_release ARGS...: `cargo build --release --quiet ARGS`, unless
+# BLAPOSE_PREBUILT=1 says the binaries are built already. .ci/run sets it
+# after its `cargo test --workspace --release`, which builds every binary
+# these scripts run: a `cargo build -p ...` of a few packages resolves
+# features for that selection alone and would compile the server and the
+# client again (minutes on two cores).
+build_release() {
+    [ "${BLAPOSE_PREBUILT:-}" = 1 ] && return 0
+    cargo build --release --quiet "$@"
+}
+
 # use_out_dir KEEP: OUT is KEEP (created, kept) when it is set, else a
 # temporary directory; on exit the server (SERVER_PID) is stopped and a
 # temporary OUT removed.

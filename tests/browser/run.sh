@@ -33,7 +33,7 @@ fi
 
 echo "== npm ci (tests/browser)"
 (cd tests/browser && npm ci --no-audit --no-fund --loglevel=error)
-cargo build --release --quiet -p blapose-server -p blapose-client
+build_release -p blapose-server -p blapose-client
 
 use_out_dir "${BLAPOSE_REPORT_DIR:-}"
 

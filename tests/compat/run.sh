@@ -17,7 +17,7 @@ cd "$(dirname "$0")/../.."
 
 OLD=${1:?usage: tests/compat/run.sh OLD_BLAPOSE_SERVER [OUT_DIR]}
 [ -x "$OLD" ] || { echo "error: $OLD is not an executable" >&2; exit 2; }
-cargo build --release -q -p blapose-server -p blapose-client
+build_release -p blapose-server -p blapose-client
 use_out_dir "${2:-}"
 CLIENT=target/release/blapose-client
 KEY=hex:00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff

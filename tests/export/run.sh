@@ -38,7 +38,7 @@ if ! "$PY" -c "import ezc3d, c3d, opensim" 2>/dev/null; then
     echo "== pip install ezc3d c3d opensim (independent C3D and TRC readers)"
     "$PY" -m pip install --quiet --disable-pip-version-check ezc3d c3d opensim
 fi
-cargo build --release --quiet -p blapose-server -p blapose-client
+build_release -p blapose-server -p blapose-client
 
 use_out_dir "${BLAPOSE_EXPORT_DIR:-}"
 

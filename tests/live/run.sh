@@ -34,7 +34,7 @@ fi
 echo "== npm ci (web/: the page and its assets; tests/live)"
 (cd web && npm ci --no-audit --no-fund --loglevel=error)
 (cd tests/live && npm ci --no-audit --no-fund --loglevel=error)
-[ -n "${BLAPOSE_SERVER_BIN:-}" ] || cargo build --release --quiet -p blapose-server
+[ -n "${BLAPOSE_SERVER_BIN:-}" ] || build_release -p blapose-server
 
 use_out_dir "${BLAPOSE_LIVE_DIR:-}"
 if [ "$SOURCE" = "$PICTURE" ]; then
