@@ -393,11 +393,19 @@ fn root_scale_report(
     };
     sources.push((
         "true pose",
-        trials.iter().zip(scenes).map(|(t, s)| solve(t, &t.target, s)).collect(),
+        trials
+            .iter()
+            .zip(scenes)
+            .map(|(t, s)| solve(t, &t.target, s))
+            .collect(),
     ));
     sources.push((
         "lifter as it is",
-        trials.iter().zip(scenes).map(|(t, s)| solve(t, &lifted[&key(t)], s)).collect(),
+        trials
+            .iter()
+            .zip(scenes)
+            .map(|(t, s)| solve(t, &lifted[&key(t)], s))
+            .collect(),
     ));
     let mut true_lengths = Vec::new();
     for (t, s) in trials.iter().zip(scenes) {
@@ -430,7 +438,9 @@ fn root_scale_report(
             let mine: Vec<&RootPairs> = pairs.iter().filter(|p| p.subject == *s).collect();
             held.extend(mine.into_iter().map(|p| {
                 let mut p = p.clone();
-                p.solved.iter_mut().for_each(|v| *v = v.map(|x| x * k_other));
+                p.solved
+                    .iter_mut()
+                    .for_each(|v| *v = v.map(|x| x * k_other));
                 p
             }));
         }
@@ -443,11 +453,19 @@ fn root_scale_report(
         );
         for s in &subjects {
             let p: Vec<&RootPairs> = pairs.iter().filter(|p| p.subject == *s).collect();
-            eprintln!("  {name} {s}: k {:.4} median ratio {:.4}", fit_scale(p.iter().copied()), median_depth_ratio(p.iter().copied()));
+            eprintln!(
+                "  {name} {s}: k {:.4} median ratio {:.4}",
+                fit_scale(p.iter().copied()),
+                median_depth_ratio(p.iter().copied())
+            );
         }
         for c in &cameras {
             let p: Vec<&RootPairs> = pairs.iter().filter(|p| p.camera == *c).collect();
-            eprintln!("  {name} camera {c}: k {:.4} median ratio {:.4}", fit_scale(p.iter().copied()), median_depth_ratio(p.iter().copied()));
+            eprintln!(
+                "  {name} camera {c}: k {:.4} median ratio {:.4}",
+                fit_scale(p.iter().copied()),
+                median_depth_ratio(p.iter().copied())
+            );
         }
     }
     Ok(())
