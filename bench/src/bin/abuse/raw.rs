@@ -75,11 +75,28 @@ pub(crate) struct Tally {
     pub(crate) refused: AtomicU64,
     /// Connections the server sent GOAWAY on or closed.
     pub(crate) closed: AtomicU64,
+    /// Streams not refused that ended with their connection.
+    pub(crate) released: AtomicU64,
+}
+
+/// One connection's streams written, and whether the server closed it
+/// (then its streams written and not refused are released, once).
+#[derive(Default)]
+struct Written {
+    sent: u64,
+    closed: bool,
 }
 
 impl Tally {
     pub(crate) fn get(counter: &AtomicU64) -> u64 {
         counter.load(Ordering::Relaxed)
+    }
+
+    /// Streams the server holds open now: written, neither refused nor
+    /// ended with their connection.
+    pub(crate) fn held(&self) -> u64 {
+        let ended = Self::get(&self.refused) + Self::get(&self.released);
+        Self::get(&self.sent).saturating_sub(ended)
     }
 }
 
@@ -106,7 +123,8 @@ pub(crate) async fn flood_headers(
     };
     tally.connected.fetch_add(1, Ordering::Relaxed);
     let (read, mut write) = s.into_split();
-    let reader = tokio::spawn(count_refusals(read, stop, tally.clone()));
+    let written = Arc::new(std::sync::Mutex::new(Written::default()));
+    let reader = tokio::spawn(count_refusals(read, stop, tally.clone(), written.clone()));
     // The preface and an empty SETTINGS frame.
     let mut preface = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n".to_vec();
     preface.extend_from_slice(&[0, 0, 0, 4, 0, 0, 0, 0, 0]);
@@ -124,21 +142,32 @@ pub(crate) async fn flood_headers(
         if write.write_all(&buf).await.is_err() {
             break;
         }
-        tally.sent.fetch_add(batch.len() as u64, Ordering::Relaxed);
+        let n = batch.len() as u64;
+        tally.sent.fetch_add(n, Ordering::Relaxed);
+        let mut w = written.lock().unwrap_or_else(|p| p.into_inner());
+        w.sent += n;
+        if w.closed {
+            tally.released.fetch_add(n, Ordering::Relaxed);
+        }
     }
     let _ = reader.await;
 }
 
 /// Read the server's frames until `stop` or the connection's end,
 /// counting refused streams and the end in `tally`.
-async fn count_refusals(mut read: OwnedReadHalf, stop: Arc<AtomicBool>, tally: Arc<Tally>) {
+async fn count_refusals(
+    mut read: OwnedReadHalf,
+    stop: Arc<AtomicBool>,
+    tally: Arc<Tally>,
+    written: Arc<std::sync::Mutex<Written>>,
+) {
     const HEADERS: u8 = 0x1;
     const RST_STREAM: u8 = 0x3;
     const GOAWAY: u8 = 0x7;
     const END_STREAM: u8 = 0x1;
     let (mut buf, mut chunk) = (Vec::new(), vec![0u8; 1 << 16]);
     let mut ended = std::collections::HashSet::new();
-    while !stop.load(Ordering::Relaxed) {
+    'read: while !stop.load(Ordering::Relaxed) {
         // `read` is cancel-safe (`read_exact` is not): frames are cut
         // from the buffer.
         match tokio::time::timeout(Duration::from_millis(100), read.read(&mut chunk)).await {
@@ -167,10 +196,7 @@ async fn count_refusals(mut read: OwnedReadHalf, stop: Arc<AtomicBool>, tally: A
                         tally.refused.fetch_add(1, Ordering::Relaxed);
                     }
                 }
-                (GOAWAY, _) => {
-                    tally.closed.fetch_add(1, Ordering::Relaxed);
-                    return;
-                }
+                (GOAWAY, _) => break 'read,
                 _ => {}
             }
             at += 9 + len;
@@ -179,6 +205,10 @@ async fn count_refusals(mut read: OwnedReadHalf, stop: Arc<AtomicBool>, tally: A
     }
     if !stop.load(Ordering::Relaxed) {
         tally.closed.fetch_add(1, Ordering::Relaxed);
+        let mut w = written.lock().unwrap_or_else(|p| p.into_inner());
+        w.closed = true;
+        let released = w.sent.saturating_sub(ended.len() as u64);
+        tally.released.fetch_add(released, Ordering::Relaxed);
     }
 }
 

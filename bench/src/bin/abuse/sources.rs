@@ -79,13 +79,13 @@ pub(crate) async fn pending(
     let latency = victim.during().await;
     let mut over = Vec::new();
     for (a, t) in tallies.iter().enumerate() {
-        let (sent, refused) = (Tally::get(&t.sent), Tally::get(&t.refused));
-        let held = sent.saturating_sub(refused);
+        let (sent, refused, held) = (Tally::get(&t.sent), Tally::get(&t.refused), t.held());
         println!(
-            "  {}: {} connections accepted ({} closed), {sent} streams sent, {refused} refused at once, {held} held",
+            "  {}: {} connections accepted ({} closed by the server), {sent} streams sent, {refused} refused at once, {} ended with their connection, {held} held",
             abuser(a),
             Tally::get(&t.connected),
             Tally::get(&t.closed),
+            Tally::get(&t.released),
         );
         if per_peer.is_some_and(|limit| held > limit) {
             over.push(format!("{} holds {held}", abuser(a)));
