@@ -183,21 +183,15 @@ async fn count_refusals(
                 break;
             }
             let stream = u32::from_be_bytes([h[5], h[6], h[7], h[8]]) & 0x7fff_ffff;
-            match (h[3], h[4]) {
-                // A trailers-only answer is followed by RST_STREAM (the
-                // request side is still open): one refusal, counted once.
-                (HEADERS, flags) if flags & END_STREAM != 0 => {
-                    if ended.insert(stream) {
-                        tally.refused.fetch_add(1, Ordering::Relaxed);
-                    }
-                }
-                (RST_STREAM, _) => {
-                    if ended.insert(stream) {
-                        tally.refused.fetch_add(1, Ordering::Relaxed);
-                    }
-                }
-                (GOAWAY, _) => break 'read,
-                _ => {}
+            // A trailers-only answer (HEADERS with END_STREAM) is followed
+            // by RST_STREAM (the request side is still open): one refusal,
+            // counted once.
+            let refusal = (h[3] == HEADERS && h[4] & END_STREAM != 0) || h[3] == RST_STREAM;
+            if refusal && ended.insert(stream) {
+                tally.refused.fetch_add(1, Ordering::Relaxed);
+            }
+            if h[3] == GOAWAY {
+                break 'read;
             }
             at += 9 + len;
         }
