@@ -149,3 +149,24 @@ pub(crate) fn dirbomb(out: &Path, extra: u64) -> Result<()> {
     );
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_directory_bomb_is_a_zip64_archive_with_every_entry_the_readers_refuse() {
+        let out = std::env::temp_dir().join(format!("abuse-dirbomb-{}.npz", std::process::id()));
+        dirbomb(&out, 70_000).unwrap();
+        // A reader that believes the end records (the zip crate, as
+        // Python's zipfile) finds every entry: past 65,535, only zip64
+        // end records can say so.
+        let archive = zip::ZipArchive::new(std::fs::File::open(&out).unwrap()).unwrap();
+        assert_eq!(archive.len(), 15 + 70_000);
+        assert!(archive.file_names().any(|n| n == "pose_3d.npy"));
+        // The replay reader refuses it for its directory.
+        let refused = blapose_client::Sequence::load(&out, None).unwrap_err();
+        assert!(refused.to_string().contains("entries"), "{refused}");
+        std::fs::remove_file(&out).unwrap();
+    }
+}

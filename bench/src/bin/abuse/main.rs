@@ -1,12 +1,18 @@
 //! `abuse`: the server's limits under abuse, each case asserting its limit
 //! (`tests/abuse/run.sh` starts the servers and runs every case; loopback
-//! only, bounded, well under two minutes together).
+//! only, bounded, under three minutes together; `tests/abuse/full-scale.sh`
+//! runs some at full scale, by hand).
 //!
 //! ```sh
 //! abuse streams  --server URL --server-pid PID --streams 400 --limit 64
 //! abuse sessions --server URL --server-pid PID --header x-blapose-client --limit 8
 //! abuse token    --server URL --replica URL --token-ttl 4
 //! abuse bomb     --out bomb.npz
+//! abuse dirbomb  --out dirbomb.npz --entries 200000
+//! abuse pending  --server URL --server-pid PID --addresses 4 --connections 4 --streams 500 --limit 1000
+//! abuse shares   --server URL --server-pid PID --addresses 8 --max-sessions 256
+//! abuse churn    --server URL --server-pid PID --sessions 20000
+//! abuse proxy6   --server URL --server-pid PID --header x-blapose-client --limit 8
 //! abuse headers  --server URL --server-pid PID --count 120000
 //! abuse preface  --server URL --server-pid PID --connections 2000
 //! abuse idle     --server URL --server-pid PID --connections 400 --addresses 8 --idle 2
@@ -19,8 +25,10 @@
 //! within 2x of the baseline's, with a 5 ms floor (loopback round trips
 //! are a fraction of a millisecond, and a busy two-core machine puts a 4-5
 //! ms p99 into runs with or without abuse: server/README.md), in one of up
-//! to three measurements. The server's resident memory (VmRSS from /proc)
-//! must grow at most 64 MB during one connection's abuse.
+//! to three measurements; a new connection and session each time, so a new
+//! client must be served ([`client::Victim`]). The server's resident
+//! memory (VmRSS from /proc, its peak sampled every 20 ms) may grow at most
+//! 64 MB over a case unless the case takes another bound.
 //!
 //! - `streams`: one HTTP/2 connection opens many streams, each a session;
 //!   at most `--limit` (the server's `--max-concurrent-streams`) may be
@@ -32,11 +40,21 @@
 //! - `token`: a session token resumed on two replicas sharing the key, as
 //!   server/README.md's token rules say: one live copy per replica (a
 //!   second resume takes the session over, the first stream ends ABORTED),
-//!   the token of a closed session refused where it closed, an expired one
-//!   refused everywhere. A copy on each replica is allowed (bounded by
-//!   `--token-ttl`) and reported.
+//!   the token of a closed session refused where it closed, and after the
+//!   first token's TTL neither it nor the token the other replica's copy
+//!   issued (the chain) restores the closed session anywhere. A copy on
+//!   each replica is allowed (bounded by `--token-ttl`) and reported.
 //! - `bomb`: writes a replay file with a 2 GiB zero member deflated to
 //!   about 2 MB (used as `pose_3d`), for the script to run the client on.
+//! - `dirbomb`: writes the example replay file with `--entries` central
+//!   directory entries more ([`files`]), for the script to run
+//!   `blapose-client` and Python's `load_replay` on.
+//! - `pending`, `shares` ([`sources`]): HEADERS-only streams from several
+//!   addresses over many connections; several addresses each holding all
+//!   the sessions they can, then reading slowly.
+//! - `churn` ([`churn`]): one client opening and closing sessions as fast
+//!   as it can; `proxy6` ([`proxy`]): the balancer's header on a `[::]`
+//!   listener.
 //! - `headers` (by hand, not in the script): one raw HTTP/2 connection
 //!   sends HEADERS frames for the stream method as fast as the socket takes
 //!   them, ignoring SETTINGS_MAX_CONCURRENT_STREAMS ([`raw`]).
@@ -78,16 +96,24 @@ struct Args {
     case: Case,
 }
 
+/// The server a case abuses.
+#[derive(Debug, clap::Args)]
+struct Target {
+    /// The server (http://IP:PORT; a `[::]` listener is reached on
+    /// 127.0.0.1, a `--session-key` one remembers ended sessions).
+    #[arg(long)]
+    server: String,
+    /// Its process id (for its memory).
+    #[arg(long)]
+    server_pid: u32,
+}
+
 #[derive(Debug, Subcommand)]
 enum Case {
     /// Many streams on one connection.
     Streams {
-        /// The server.
-        #[arg(long)]
-        server: String,
-        /// Its process id (for its memory).
-        #[arg(long)]
-        server_pid: u32,
+        #[command(flatten)]
+        target: Target,
         /// Streams to open on the one connection.
         #[arg(long, default_value_t = 400)]
         streams: usize,
@@ -97,12 +123,8 @@ enum Case {
     },
     /// Rapid session opening from one client while another streams.
     Sessions {
-        /// The server.
-        #[arg(long)]
-        server: String,
-        /// Its process id (for its memory).
-        #[arg(long)]
-        server_pid: u32,
+        #[command(flatten)]
+        target: Target,
         /// The header naming the client (the server's --client-header).
         #[arg(long)]
         header: String,
@@ -128,12 +150,8 @@ enum Case {
     },
     /// PING-only connections from several addresses.
     Idle {
-        /// The server.
-        #[arg(long)]
-        server: String,
-        /// Its process id (for its memory).
-        #[arg(long)]
-        server_pid: u32,
+        #[command(flatten)]
+        target: Target,
         /// Connections to open.
         #[arg(long, default_value_t = 400)]
         connections: usize,
@@ -146,12 +164,8 @@ enum Case {
     },
     /// One connection flooding WINDOW_UPDATE frames.
     Flood {
-        /// The server.
-        #[arg(long)]
-        server: String,
-        /// Its process id (for its memory).
-        #[arg(long)]
-        server_pid: u32,
+        #[command(flatten)]
+        target: Target,
     },
     /// Write the zip-bomb replay file.
     Bomb {
@@ -161,24 +175,16 @@ enum Case {
     },
     /// HEADERS frames on one raw connection, past the stream limit.
     Headers {
-        /// The server.
-        #[arg(long)]
-        server: String,
-        /// Its process id (for its memory).
-        #[arg(long)]
-        server_pid: u32,
+        #[command(flatten)]
+        target: Target,
         /// HEADERS frames to send.
         #[arg(long, default_value_t = 120_000)]
         count: u32,
     },
     /// HEADERS-only streams from several addresses over many connections.
     Pending {
-        /// The server.
-        #[arg(long)]
-        server: String,
-        /// Its process id (for its memory).
-        #[arg(long)]
-        server_pid: u32,
+        #[command(flatten)]
+        target: Target,
         /// Loopback addresses (127.0.0.2 and up).
         #[arg(long, default_value_t = 4)]
         addresses: usize,
@@ -197,12 +203,8 @@ enum Case {
     },
     /// Several addresses each holding as many sessions as they can.
     Shares {
-        /// The server.
-        #[arg(long)]
-        server: String,
-        /// Its process id (for its memory).
-        #[arg(long)]
-        server_pid: u32,
+        #[command(flatten)]
+        target: Target,
         /// Loopback addresses (127.0.0.2 and up).
         #[arg(long, default_value_t = 2)]
         addresses: usize,
@@ -212,13 +214,8 @@ enum Case {
     },
     /// One client opening and closing sessions as fast as it can.
     Churn {
-        /// The server (with --session-key, so ended sessions are
-        /// remembered).
-        #[arg(long)]
-        server: String,
-        /// Its process id (for its memory).
-        #[arg(long)]
-        server_pid: u32,
+        #[command(flatten)]
+        target: Target,
         /// Sessions to open and close.
         #[arg(long, default_value_t = 20_000)]
         sessions: u64,
@@ -234,12 +231,8 @@ enum Case {
     },
     /// The client header from a trusted proxy on a [::] listener.
     Proxy6 {
-        /// The server (listening on [::], reached on 127.0.0.1).
-        #[arg(long)]
-        server: String,
-        /// Its process id (for its memory).
-        #[arg(long)]
-        server_pid: u32,
+        #[command(flatten)]
+        target: Target,
         /// The server's --client-header.
         #[arg(long)]
         header: String,
@@ -258,12 +251,8 @@ enum Case {
     },
     /// Connections that never send the HTTP/2 preface.
     Preface {
-        /// The server.
-        #[arg(long)]
-        server: String,
-        /// Its process id (for its memory).
-        #[arg(long)]
-        server_pid: u32,
+        #[command(flatten)]
+        target: Target,
         /// Connections to open.
         #[arg(long, default_value_t = 2000)]
         connections: u32,
@@ -392,14 +381,12 @@ async fn main() -> Result<()> {
     let start = Instant::now();
     match &args.case {
         Case::Streams {
-            server,
-            server_pid,
+            target: Target { server, server_pid },
             streams: n,
             limit,
         } => streams(server, *server_pid, *n, *limit).await?,
         Case::Sessions {
-            server,
-            server_pid,
+            target: Target { server, server_pid },
             header,
             attempts,
             limit,
@@ -412,8 +399,7 @@ async fn main() -> Result<()> {
         Case::Bomb { out } => files::bomb(out)?,
         Case::Dirbomb { out, entries } => files::dirbomb(out, *entries)?,
         Case::Pending {
-            server,
-            server_pid,
+            target: Target { server, server_pid },
             addresses,
             connections,
             streams,
@@ -433,14 +419,12 @@ async fn main() -> Result<()> {
             .await?
         }
         Case::Shares {
-            server,
-            server_pid,
+            target: Target { server, server_pid },
             addresses,
             max_sessions,
         } => sources::shares(server, *server_pid, *addresses, *max_sessions).await?,
         Case::Churn {
-            server,
-            server_pid,
+            target: Target { server, server_pid },
             sessions,
             parallel,
             max_growth_mb,
@@ -455,24 +439,20 @@ async fn main() -> Result<()> {
             .await?
         }
         Case::Proxy6 {
-            server,
-            server_pid,
+            target: Target { server, server_pid },
             header,
             limit,
         } => proxy::proxy6(server, *server_pid, header, *limit).await?,
         Case::Headers {
-            server,
-            server_pid,
+            target: Target { server, server_pid },
             count,
         } => raw::headers(server, *server_pid, *count).await?,
         Case::Preface {
-            server,
-            server_pid,
+            target: Target { server, server_pid },
             connections,
         } => raw::preface(server, *server_pid, *connections).await?,
         Case::Idle {
-            server,
-            server_pid,
+            target: Target { server, server_pid },
             connections: n,
             addresses,
             idle,
@@ -480,7 +460,9 @@ async fn main() -> Result<()> {
             let idle = Duration::from_secs_f64(*idle);
             connections::idle(server, *server_pid, *n, *addresses, idle).await?
         }
-        Case::Flood { server, server_pid } => connections::flood(server, *server_pid).await?,
+        Case::Flood {
+            target: Target { server, server_pid },
+        } => connections::flood(server, *server_pid).await?,
     }
     println!("  ok ({:.1} s)", start.elapsed().as_secs_f64());
     Ok(())
