@@ -20,14 +20,7 @@ cd "$(dirname "$0")/../.."
 . tests/abuse/lib.sh
 
 STARTED=$SECONDS
-cargo build --release -q -p blapose-server -p blapose-client
-cargo build --release -q -p blapose-bench --bin abuse
-use_out_dir "${1:-}"
-ABUSE=target/release/abuse
-CLIENT=target/release/blapose-client
-URL=http://127.0.0.1:1  # the readers refuse the file before they connect
-PY=${BLAPOSE_PYTHON:-target/pyvenv-ci/bin/python}
-KEY=hex:00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff
+abuse_setup "${1:-}"
 
 failed=()
 for addresses in 1 8; do
@@ -43,6 +36,7 @@ start_server "$OUT/churn.log" --max-queue-delay 0 --session-key "$KEY"
 stop_server
 
 "$ABUSE" dirbomb --out "$OUT/dirbomb.npz" --entries 8000000
+URL=http://127.0.0.1:1  # no server: the readers refuse the file before they connect
 client_refuses "$OUT/dirbomb.npz" || failed+=(dirbomb-client)
 python_refuses "$OUT/dirbomb.npz" || failed+=(dirbomb-python)
 rm -f "$OUT/dirbomb.npz"

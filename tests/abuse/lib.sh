@@ -2,6 +2,22 @@
 # after tests/e2e-lib.sh, from the repository root; they use OUT, URL,
 # CLIENT and PY).
 
+# abuse_setup [OUT_DIR]: builds the server, the client and the driver,
+# makes OUT (kept when OUT_DIR is given) and sets ABUSE, CLIENT, PY (the
+# Python with the blapose package: $BLAPOSE_PYTHON, else the venv .ci/run
+# makes) and KEY (a session key the replicas share).
+abuse_setup() {
+    # Two builds: --bin selects targets in every package named with it,
+    # so one command would build the driver alone.
+    cargo build --release -q -p blapose-server -p blapose-client
+    cargo build --release -q -p blapose-bench --bin abuse
+    use_out_dir "${1:-}"
+    ABUSE=target/release/abuse
+    CLIENT=target/release/blapose-client
+    PY=${BLAPOSE_PYTHON:-target/pyvenv-ci/bin/python}
+    KEY=hex:00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff
+}
+
 stop_server() {
     kill "$SERVER_PID" 2>/dev/null || true
     wait "$SERVER_PID" 2>/dev/null || true

@@ -52,17 +52,9 @@ cd "$(dirname "$0")/../.."
 . tests/abuse/lib.sh
 
 STARTED=$SECONDS
-# Two builds: --bin selects targets in every package named with it, so
-# one command would build the driver alone.
-cargo build --release -q -p blapose-server -p blapose-client
-cargo build --release -q -p blapose-bench --bin abuse
-use_out_dir "${1:-}"
-PY=${BLAPOSE_PYTHON:-target/pyvenv-ci/bin/python}
-ABUSE=target/release/abuse
-CLIENT=target/release/blapose-client
+abuse_setup "${1:-}"
 STREAM_LIMIT=64
 SESSION_LIMIT=8
-KEY=hex:00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff
 failed=()
 
 run_case() {
