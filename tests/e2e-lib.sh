@@ -28,6 +28,9 @@ e2e_cleanup() {
 start_server() {
     local log=$1 port
     shift
+    # Emptied first: the server's own redirection may come after the first
+    # look below, which would read an earlier run's port from a kept log.
+    : >"$log"
     target/release/blapose-server --addr "${SERVER_ADDR:-127.0.0.1:0}" --no-metrics "$@" >"$log" 2>&1 &
     SERVER_PID=$!
     URL=
