@@ -46,6 +46,25 @@ async fn resume(
     Ok((stream, o))
 }
 
+/// Resume `id` with `token` on a new connection to `url`, which the token
+/// rules say must be refused with FAILED_PRECONDITION (printed); anything
+/// else is a failure, described.
+async fn refused(url: &str, id: &str, token: &[u8], what: &str) -> Result<Option<String>> {
+    let mut c = connect(url).await?;
+    Ok(match resume(&mut c, id, token).await {
+        Err(s) if s.code() == Code::FailedPrecondition => {
+            println!("  {what}: refused: {}", s.message());
+            None
+        }
+        Err(s) => Some(format!(
+            "{what}: {} (expected FAILED_PRECONDITION): {}",
+            s.code(),
+            s.message()
+        )),
+        Ok(_) => Some(format!("not enforced: {what} restored the closed session")),
+    })
+}
+
 /// Whether `stream` still answers a frame; the status it ended with if not.
 async fn answers(stream: &mut Stream, frame: &pb::Frame) -> Result<(), tonic::Status> {
     round_trip(stream, frame)
@@ -127,21 +146,7 @@ pub(crate) async fn token(url: &str, replica: &str, ttl: Duration) -> Result<()>
             break;
         }
     }
-    let mut a3 = connect(url).await?;
-    match resume(&mut a3, &id, &token).await {
-        Err(s) if s.code() == Code::FailedPrecondition => {
-            println!(
-                "  after close, the token is refused on the origin: {}",
-                s.message()
-            )
-        }
-        Err(s) => failures.push(format!(
-            "after close, the origin refused with {} (expected FAILED_PRECONDITION): {}",
-            s.code(),
-            s.message()
-        )),
-        Ok(_) => failures.push("not enforced: a closed session was restored from its token".into()),
-    }
+    failures.extend(refused(url, &id, &token, "after close, the token on the origin").await?);
 
     // Expired: refused on every replica.
     tokio::time::sleep(
@@ -154,23 +159,8 @@ pub(crate) async fn token(url: &str, replica: &str, ttl: Duration) -> Result<()>
         .into_iter()
         .flat_map(|r| tokens.map(|t| (r, t)))
     {
-        let mut c = connect(url).await?;
-        match resume(&mut c, &id, token).await {
-            Err(s) if s.code() == Code::FailedPrecondition => {
-                println!(
-                    "  the {which} token, expired, refused on the {name}: {}",
-                    s.message()
-                )
-            }
-            Err(s) => failures.push(format!(
-                "the {which} token, expired, on the {name}: {} {}",
-                s.code(),
-                s.message()
-            )),
-            Ok(_) => failures.push(format!(
-                "not enforced: the {which} token restored the closed session on the {name} after the TTL"
-            )),
-        }
+        let what = format!("the {which} token, expired, on the {name}");
+        failures.extend(refused(url, &id, token, &what).await?);
     }
     for f in &failures {
         println!("  FAIL: {f}");
