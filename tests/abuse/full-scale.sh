@@ -12,7 +12,8 @@
 #             --max-ended-sessions): peak RSS growth at most 64 MB
 #   dirbomb   8,000,000 directory entries more (a 416 MB file): both
 #             readers refuse it under 64 MB
-# The numbers are in tests/abuse/README.md.
+# The numbers are in tests/abuse/README.md. OUT needs about 1.5 GB: the
+# churning server logs each session (about 1 GB for 2 M), the bomb 416 MB.
 # Usage: tests/abuse/full-scale.sh [OUT_DIR]   (logs kept in OUT_DIR when given)
 set -euo pipefail
 cd "$(dirname "$0")/../.."
