@@ -33,16 +33,21 @@ e2e_cleanup() {
 }
 
 # start_server LOG [ARGS...]: starts $BLAPOSE_SERVER_BIN (default
-# target/release/blapose-server) on a free loopback port (--addr 127.0.0.1:0; it logs the port it got) with ARGS,
-# sets SERVER_PID and URL, and exits with the log when it does not come up.
+# target/release/blapose-server) on a free port (--addr $SERVER_ADDR,
+# default 127.0.0.1:0; it logs the port it got) with ARGS, sets SERVER_PID
+# and URL (always http://127.0.0.1:PORT: a [::] listener takes IPv4 too),
+# and exits with the log when it does not come up.
 start_server() {
     local log=$1 port
     shift
-    "${BLAPOSE_SERVER_BIN:-target/release/blapose-server}" --addr 127.0.0.1:0 --no-metrics "$@" >"$log" 2>&1 &
+    # Emptied first: the server's own redirection may come after the first
+    # look below, which would read an earlier run's port from a kept log.
+    : >"$log"
+    "${BLAPOSE_SERVER_BIN:-target/release/blapose-server}" --addr "${SERVER_ADDR:-127.0.0.1:0}" --no-metrics "$@" >"$log" 2>&1 &
     SERVER_PID=$!
     URL=
     for _ in $(seq 600); do
-        port=$(sed -n 's/.*serving blapose\.v1 addr=127\.0\.0\.1:\([0-9]*\).*/\1/p' "$log" | head -n 1)
+        port=$(sed -n 's/.*serving blapose\.v1 addr=[^ ]*:\([0-9]*\).*/\1/p' "$log" | head -n 1)
         if [ -n "$port" ]; then URL=http://127.0.0.1:$port; return 0; fi
         kill -0 "$SERVER_PID" 2>/dev/null || break
         sleep 0.1

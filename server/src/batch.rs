@@ -247,11 +247,12 @@ impl Batcher {
         }
         let capacity = self.shared.config.queue_capacity;
         if q.len >= capacity {
+            crate::metrics::limited("queue_capacity");
             return Err(SubmitError::QueueFull { capacity });
         }
         let held = q.per_client.get(&client).copied().unwrap_or(0);
-        let limit = crate::quota::effective_share(per_client, capacity, q.per_client.len(), held);
-        if held >= limit {
+        let holders = q.per_client.len();
+        if let Err(limit) = crate::quota::admit(per_client, capacity, q.len, holders, held) {
             crate::metrics::limited("queued_frames_per_client");
             return Err(QuotaError::ClientFrames { limit }.into());
         }

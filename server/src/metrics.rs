@@ -377,9 +377,43 @@ pub fn code_name(code: tonic::Code) -> &'static str {
     }
 }
 
+/// A recorder of a test's own, to install on the test's thread
+/// (`metrics::with_local_recorder`, `metrics::set_default_local_recorder`):
+/// the process-wide one is the exporter's, once per process.
+#[cfg(test)]
+pub(crate) fn test_recorder() -> metrics_exporter_prometheus::PrometheusRecorder {
+    PrometheusBuilder::new().build_recorder()
+}
+
+/// What `recorder` counted in `blapose_limited_total{limit}`.
+#[cfg(test)]
+pub(crate) fn limited_count(
+    recorder: &metrics_exporter_prometheus::PrometheusRecorder,
+    limit: &str,
+) -> u64 {
+    let needle = format!("{LIMITED}{{limit=\"{limit}\"}} ");
+    recorder
+        .handle()
+        .render()
+        .lines()
+        .find_map(|l| l.strip_prefix(&needle)?.trim().parse().ok())
+        .unwrap_or(0)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_test_recorder_counts_refusals_by_limit() {
+        let recorder = test_recorder();
+        metrics::with_local_recorder(&recorder, || {
+            limited("max_sessions");
+            limited("max_sessions");
+        });
+        assert_eq!(limited_count(&recorder, "max_sessions"), 2);
+        assert_eq!(limited_count(&recorder, "queue_capacity"), 0);
+    }
 
     #[test]
     fn code_names_follow_the_grpc_spec() {

@@ -170,6 +170,7 @@ impl OfflineRunner {
     /// Predict lengths for a prepared sequence and adjust its poses.
     pub async fn adjust(&self, seq: PreparedSequence) -> Result<AdjustedSequence, Status> {
         let _admitted = self.admission.clone().try_acquire_owned().map_err(|_| {
+            crate::metrics::limited("offline_waiting");
             Status::resource_exhausted(format!(
                 "server busy: {MAX_WAITING} offline requests are already waiting; retry later"
             ))
@@ -351,6 +352,17 @@ mod tests {
             assert!(poll < 120_000, "the refusals never came");
             tokio::time::sleep(std::time::Duration::from_millis(1)).await;
         }
+        // One more, on this thread with a recorder of its own: counted.
+        let recorder = crate::metrics::test_recorder();
+        {
+            let _local = ::metrics::set_default_local_recorder(&recorder);
+            let refused = runner.adjust(seq.clone()).await.unwrap_err();
+            assert_eq!(refused.code(), tonic::Code::ResourceExhausted);
+        }
+        assert_eq!(
+            crate::metrics::limited_count(&recorder, "offline_waiting"),
+            1
+        );
         {
             let (open, cv) = &*gate.0;
             *open.lock().unwrap() = true;

@@ -363,6 +363,14 @@ mod tests {
             }
         }
         assert_eq!(refused, 6);
+        let recorder = crate::metrics::test_recorder();
+        let (j, _rx) = job(&a.session, a.epoch, 1.0, 10.0);
+        let again = ::metrics::with_local_recorder(&recorder, || batcher.submit(j));
+        assert_eq!(again, Err(SubmitError::QueueFull { capacity: 3 }));
+        assert_eq!(
+            crate::metrics::limited_count(&recorder, "queue_capacity"),
+            1
+        );
         gate.set_open(true);
         let n = accepted.len();
         // Every accepted frame is answered; the state counts exactly those.

@@ -25,8 +25,12 @@
 //! a pool, each may hold at most `total / (k + 1)`, so together they leave
 //! at least one share free for a client that holds nothing. Measured
 //! before it: two clients holding half the session table each (2,048 +
-//! 2,047) locked every other client out for as long as they streamed. The
-//! same rule holds the frame queue and connections (per address) .
+//! 2,047) locked every other client out for as long as they streamed. As
+//! shares never take back what is held, clients that arrive one after
+//! another could still fill a pool (each took a larger share than the
+//! next), so a [`reserve`] of one more share is kept from every client
+//! that holds some ([`admit`]). The same rules hold the frame queue and
+//! connections (per address).
 
 use std::net::IpAddr;
 use std::time::Duration;
@@ -98,6 +102,43 @@ pub fn effective_share(share: usize, total: usize, holders: usize, held: usize) 
     }
     let active = holders + usize::from(held == 0);
     share.min(fair_share(total, active))
+}
+
+/// What a client that already holds part of a pool of `total` may not
+/// take, with `holders` clients holding some: the fair share of one more
+/// client (`total / (holders + 2)`). Shares alone do not leave it: each
+/// client took its share when fewer held some (alone half, then a third,
+/// a quarter, ...) and a share never takes back what is held, so three
+/// clients arriving one after another could fill the pool (1/2 + 1/3 +
+/// 1/4 > 1). With the reserve a client holding nothing always finds its
+/// share free. Nothing is reserved in a pool of [`FAIR_FLOOR`] or fewer.
+pub fn reserve(total: usize, holders: usize) -> usize {
+    if total <= FAIR_FLOOR {
+        0
+    } else {
+        total / (holders + 2)
+    }
+}
+
+/// Whether a client holding `held` of a pool of `total`, of which `used`
+/// are taken by `holders` clients, may take one more under its configured
+/// `share`: [`effective_share`], and the [`reserve`] left for a client that
+/// holds nothing. `Err` carries the limit the client is held to now.
+pub fn admit(
+    share: usize,
+    total: usize,
+    used: usize,
+    holders: usize,
+    held: usize,
+) -> Result<(), usize> {
+    let limit = effective_share(share, total, holders, held);
+    if held >= limit {
+        return Err(limit);
+    }
+    if share != usize::MAX && held > 0 && used + reserve(total, holders) >= total {
+        return Err(held);
+    }
+    Ok(())
 }
 
 /// Smallest default share: a small table or queue (a test's, a
@@ -234,6 +275,40 @@ mod tests {
         let untrusting = limits(None, &["10.0.0.5"]);
         assert_eq!(untrusting.identity(Some(lb), header), "peer:10.0.0.5");
         assert_ne!(ClientId::of("peer:a"), ClientId::of("peer:b"));
+    }
+
+    #[test]
+    fn clients_arriving_one_after_another_leave_room_for_the_next() {
+        // Each client takes all it is admitted before the next arrives:
+        // shares alone let the third fill the pool.
+        for total in [17, 64, 256, 4096, 8192] {
+            let mut held: Vec<usize> = Vec::new();
+            for k in 0..(total / FAIR_FLOOR).min(40) {
+                let used: usize = held.iter().sum();
+                assert!(used < total, "client {k} of {total}: pool full {held:?}");
+                let mut mine = 0;
+                while admit(total, total, used + mine, k + usize::from(mine > 0), mine).is_ok() {
+                    mine += 1;
+                }
+                assert!(mine > 0, "client {k} of {total} admitted nothing: {held:?}");
+                held.push(mine);
+            }
+        }
+        let mut taken = 0;
+        for (k, expected) in [2048, 1024, 205].into_iter().enumerate() {
+            let mut mine = 0;
+            while admit(2048, 4096, taken + mine, k + usize::from(mine > 0), mine).is_ok() {
+                mine += 1;
+            }
+            assert_eq!(mine, expected, "client {k}");
+            taken += mine;
+        }
+        assert_eq!(
+            admit(3, 16, 15, 3, 2),
+            Ok(()),
+            "a small pool keeps no reserve"
+        );
+        assert_eq!(admit(usize::MAX, 64, 63, 1, 63), Ok(()), "unlimited");
     }
 
     #[test]

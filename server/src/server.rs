@@ -185,6 +185,12 @@ pub async fn spawn_with_provider(
         config.trusted_proxies.clone(),
     );
     metrics::limit("memory_budget_bytes", budget.budget());
+    // In the log too: the default depends on the machine (or cgroup).
+    tracing::info!(
+        memory_budget_mb = budget.budget() >> 20,
+        max_streams_per_peer = config.protection.max_streams_per_peer,
+        "memory budget"
+    );
     let state = Arc::new(AppState {
         store,
         batcher: batcher.clone(),

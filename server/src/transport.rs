@@ -142,15 +142,16 @@ impl ConnectionTable {
         }
         let holders = counts.per_peer.len();
         let held = counts.per_peer.get(&peer).copied().unwrap_or(0);
-        // Per peer, and no more than a fair share of all connections: k
-        // addresses at their shares leave room for another.
-        let limit = crate::quota::effective_share(
+        // Per peer, and no more than a fair share of all connections, with
+        // a share kept for an address that holds none.
+        let admitted = crate::quota::admit(
             self.limits.max_connections_per_peer,
             self.limits.max_connections,
+            counts.total,
             holders,
             held,
         );
-        if held >= limit {
+        if admitted.is_err() {
             return Err(Refusal::PerPeer);
         }
         let from_peer = counts.per_peer.entry(peer).or_default();
@@ -584,9 +585,12 @@ mod tests {
         };
         let a = fill("10.0.0.1");
         let b = fill("10.0.0.2");
-        assert_eq!((a.len(), b.len()), (32, 21), "64/2, then 64/3");
+        // 64/2, then what leaves 64/4 free; the third leaves 64/5.
+        assert_eq!((a.len(), b.len()), (32, 16));
         let c = fill("10.0.0.3");
-        assert_eq!(c.len(), 11, "the third still connects");
+        assert_eq!(c.len(), 4, "the third still connects");
+        let d = fill("10.0.0.4");
+        assert!(!d.is_empty(), "and the fourth");
     }
 
     #[test]

@@ -41,15 +41,15 @@ impl Inner {
         per_client: usize,
     ) -> Result<(), SessionError> {
         if self.sessions.len() >= max {
+            metrics::limited("max_sessions");
             return Err(SessionError::TooManySessions { max });
         }
         let held = self.per_client.get(&client).copied().unwrap_or(0);
-        let limit = crate::quota::effective_share(per_client, max, self.per_client.len(), held);
-        if held >= limit {
+        let (used, holders) = (self.sessions.len(), self.per_client.len());
+        crate::quota::admit(per_client, max, used, holders, held).map_err(|limit| {
             metrics::limited("sessions_per_client");
-            return Err(QuotaError::Sessions { limit }.into());
-        }
-        Ok(())
+            QuotaError::Sessions { limit }.into()
+        })
     }
 
     /// Remove `id` from the table (closed or evicted) and remember it for
@@ -494,10 +494,13 @@ mod tests {
         let (store, _guard) = SessionStore::new(2, Duration::from_secs(10));
         let a = store.open(config()).unwrap();
         let _b = store.open(config()).unwrap();
+        let recorder = crate::metrics::test_recorder();
+        let refused = ::metrics::with_local_recorder(&recorder, || store.open(config()));
         assert_eq!(
-            store.open(config()).unwrap_err(),
+            refused.unwrap_err(),
             SessionError::TooManySessions { max: 2 }
         );
+        assert_eq!(crate::metrics::limited_count(&recorder, "max_sessions"), 1);
         // Detached sessions still count.
         store.detach(&a.session, a.epoch);
         assert!(matches!(

@@ -161,15 +161,22 @@ async fn two_clients_at_their_shares_leave_a_third_served() {
     let (server, mut client) = start(config(true, 4096)).await;
     let (first, _) = flood(&mut client, "first").await;
     let (second, refused) = flood(&mut client, "second").await;
-    assert_eq!((first, second), (2048, 4096 / 3));
+    // Alone half; then until a share for one more (4,096 / 4) is left.
+    assert_eq!((first, second), (2048, 1024));
     assert_eq!(refused.code(), Code::ResourceExhausted, "{refused:?}");
     assert!(refused.message().contains("share"), "{}", refused.message());
     let mut requests = vec![open()];
     requests.extend((0..20).map(frame));
     let answers = exchange(&mut client, "third", requests).await.unwrap();
     assert_eq!(frames(&answers), 20, "{answers:?}");
-    // It may take what is left (4,096 / 4 = 1,024 is more than that).
+    // A third flooding as well leaves a share for a fourth (4,096 / 5):
+    // without that reserve it took the rest of the table (2,048 + 1,365 +
+    // 683) and every later client was refused.
     let (third, _) = flood(&mut client, "third").await;
-    assert_eq!(first + second + third + 1, 4096, "the rest of the table");
+    assert_eq!(first + second + third + 1, 4096 - 4096 / 5);
+    let answers = exchange(&mut client, "fourth", vec![open(), frame(0)])
+        .await
+        .unwrap();
+    assert_eq!(frames(&answers), 1, "{answers:?}");
     server.shutdown().await.unwrap();
 }

@@ -3,15 +3,20 @@
 //! client every case measures (its p99 against the baseline's, the bar
 //! the module docs state) and the server's resident memory.
 
+use std::net::{IpAddr, Ipv4Addr, SocketAddr};
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, ensure, Context, Result};
 use blapose_client::Sequence;
 use blapose_proto::v1 as pb;
+use hyper_util::rt::TokioIo;
 use pb::pose_adjustment_client::PoseAdjustmentClient;
 use pb::stream_request::Kind as Req;
 use pb::stream_response::Kind as Resp;
+use tokio::net::TcpSocket;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::transport::{Channel, Endpoint};
@@ -46,6 +51,46 @@ pub(crate) async fn connect(url: &str) -> Result<PoseAdjustmentClient<Channel>> 
         .await
         .with_context(|| format!("connecting to {url}"))?;
     Ok(PoseAdjustmentClient::new(channel))
+}
+
+/// A fresh connection from the local address `from` (any 127/8 address
+/// is loopback): the server tells clients without a trusted header apart
+/// by their address, so each abusive address is a client of its own.
+pub(crate) async fn connect_from(url: &str, from: IpAddr) -> Result<PoseAdjustmentClient<Channel>> {
+    let to = socket_addr(url).await?;
+    let connector = tower::service_fn(move |_: tonic::transport::Uri| async move {
+        let socket = TcpSocket::new_v4()?;
+        socket.bind(SocketAddr::new(from, 0))?;
+        let stream = socket.connect(to).await?;
+        stream.set_nodelay(true)?;
+        Ok::<_, std::io::Error>(TokioIo::new(stream))
+    });
+    let channel = Endpoint::from_shared(url.to_owned())?
+        .connect_timeout(Duration::from_secs(5))
+        .connect_with_connector(connector)
+        .await
+        .with_context(|| format!("connecting to {url} from {from}"))?;
+    Ok(PoseAdjustmentClient::new(channel))
+}
+
+/// The `n`th abusive loopback address: 127.0.0.2 and up (the healthy
+/// client is 127.0.0.1).
+pub(crate) fn abuser(n: usize) -> IpAddr {
+    let k = n + 2;
+    IpAddr::V4(Ipv4Addr::new(127, 0, (k >> 8) as u8, k as u8))
+}
+
+/// The socket address of a server URL (`http://host:port`).
+pub(crate) async fn socket_addr(url: &str) -> Result<SocketAddr> {
+    let host_port = url
+        .split_once("://")
+        .map_or(url, |(_, rest)| rest)
+        .trim_end_matches('/');
+    tokio::net::lookup_host(host_port)
+        .await
+        .with_context(|| format!("resolving {host_port}"))?
+        .next()
+        .with_context(|| format!("{host_port} resolves to no address"))
 }
 
 /// An open stream: its sender and its answers.
@@ -179,26 +224,143 @@ pub(crate) fn rss(pid: u32) -> Result<u64> {
     Ok(kb * 1024)
 }
 
+/// The bound on the server's memory growth over a case unless the case
+/// names another: what one connection's abuse may cost.
 pub(crate) const MAX_RSS_GROWTH: u64 = 64 << 20;
 
-/// The server's memory growth over a case (bytes), printed.
-pub(crate) fn rss_growth(before: u64, after: u64) -> u64 {
-    let growth = after.saturating_sub(before);
-    println!(
-        "  server RSS growth: {:.1} MB",
-        growth as f64 / (1 << 20) as f64
-    );
-    growth
+/// The server's peak resident memory while a case runs, sampled every
+/// 20 ms on a thread of its own (a burst the before/after pair would miss
+/// still shows).
+struct PeakRss {
+    peak: Arc<AtomicU64>,
+    stop: Arc<AtomicBool>,
 }
 
-/// The bound on a case's memory growth ([`MAX_RSS_GROWTH`]).
-pub(crate) fn check_growth(growth: u64) -> Result<()> {
-    ensure!(
-        growth <= MAX_RSS_GROWTH,
-        "server RSS grew {growth} bytes (bound {MAX_RSS_GROWTH})"
-    );
-    Ok(())
+impl PeakRss {
+    fn start(pid: u32, now: u64) -> Self {
+        let peak = Arc::new(AtomicU64::new(now));
+        let stop = Arc::new(AtomicBool::new(false));
+        let (p, s) = (peak.clone(), stop.clone());
+        std::thread::spawn(move || {
+            while !s.load(Ordering::Relaxed) {
+                if let Ok(r) = rss(pid) {
+                    p.fetch_max(r, Ordering::Relaxed);
+                }
+                std::thread::sleep(Duration::from_millis(20));
+            }
+        });
+        Self { peak, stop }
+    }
+
+    fn peak(&self) -> u64 {
+        self.peak.load(Ordering::Relaxed)
+    }
 }
+
+impl Drop for PeakRss {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+    }
+}
+
+/// The healthy client beside an abuse, and the server's memory: every case
+/// takes the baseline before its abuse starts ([`Victim::before`]),
+/// measures again while it runs ([`Victim::during`]) and checks both once
+/// it is over ([`Victim::check`]).
+pub(crate) struct Victim {
+    url: String,
+    header: Option<String>,
+    pid: u32,
+    baseline: Vec<Duration>,
+    rss_before: u64,
+    peak: PeakRss,
+}
+
+/// The healthy client's latency under abuse ([`check_latency`]'s verdict).
+pub(crate) struct Latency(Result<()>);
+
+impl Victim {
+    /// The healthy client's baseline (no abuse yet) and the server's
+    /// memory now, from `header` when the server tells clients apart by
+    /// it.
+    pub(crate) async fn before(url: &str, header: Option<&str>, pid: u32) -> Result<Self> {
+        let baseline = healthy(url, header, HEALTHY_FRAMES).await?;
+        let rss_before = rss(pid)?;
+        Ok(Self {
+            url: url.to_owned(),
+            header: header.map(str::to_owned),
+            pid,
+            baseline,
+            rss_before,
+            peak: PeakRss::start(pid, rss_before),
+        })
+    }
+
+    /// The healthy client under the abuse now running: a new connection
+    /// and session each time, so a new client must be served.
+    pub(crate) async fn during(&self) -> Latency {
+        Latency(check_latency(&self.url, self.header.as_deref(), &self.baseline).await)
+    }
+
+    /// The healthy client's check, then the server's peak memory growth
+    /// since [`before`](Self::before) against `bound` bytes (printed
+    /// either way, with the memory now).
+    pub(crate) fn check(self, latency: Latency, bound: u64) -> Result<()> {
+        let mb = |b: u64| b as f64 / (1 << 20) as f64;
+        let now = rss(self.pid)?;
+        let peak = self.peak.peak().max(now);
+        let growth = peak.saturating_sub(self.rss_before);
+        println!(
+            "  server RSS: {:.1} MB before, {:.1} MB peak, {:.1} MB now; peak growth {:.1} MB (bound {:.0} MB)",
+            mb(self.rss_before),
+            mb(peak),
+            mb(now),
+            mb(growth),
+            mb(bound)
+        );
+        latency.0?;
+        ensure!(
+            growth <= bound,
+            "server RSS grew {:.1} MB (bound {:.0} MB)",
+            mb(growth),
+            mb(bound)
+        );
+        Ok(())
+    }
+}
+
+/// Sessions opened on `client` (as the client `header` names, where the
+/// server believes it) until `refusals` RESOURCE_EXHAUSTED in a row or
+/// `most` held: the sessions, held open, and the refusals. Any other
+/// refusal is an error.
+pub(crate) async fn hold_sessions(
+    client: &mut PoseAdjustmentClient<Channel>,
+    header: Option<(&str, &str)>,
+    most: usize,
+    refusals: usize,
+) -> Result<(Vec<Stream>, usize)> {
+    let (format, _) = frames()?;
+    let (mut held, mut refused, mut in_a_row) = (Vec::new(), 0, 0);
+    while held.len() < most && in_a_row < refusals {
+        let result = match start(client, open(&format, false), header).await {
+            Ok(mut stream) => opened(&mut stream).await.map(|_| stream),
+            Err(status) => Err(status),
+        };
+        match result {
+            Ok(stream) => {
+                held.push(stream);
+                in_a_row = 0;
+            }
+            Err(s) if s.code() == tonic::Code::ResourceExhausted => {
+                refused += 1;
+                in_a_row += 1;
+            }
+            Err(s) => return Err(s).context("opening a session"),
+        }
+    }
+    Ok((held, refused))
+}
+
 pub(crate) const HEALTHY_FRAMES: usize = 300;
 
 /// The least p99 bound: server/README.md measured a 4-5 ms p99 on the

@@ -10,7 +10,7 @@ use anyhow::{ensure, Context, Result};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpSocket, TcpStream};
 
-use crate::client::{check_latency, healthy, rss, HEALTHY_FRAMES, MAX_RSS_GROWTH};
+use crate::client::{socket_addr, Victim, MAX_RSS_GROWTH};
 
 const PREFACE: &[u8; 24] = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n";
 const SETTINGS: u8 = 0x4;
@@ -33,13 +33,6 @@ fn frame(kind: u8, flags: u8, payload: &[u8]) -> Vec<u8> {
     ];
     out.extend_from_slice(payload);
     out
-}
-
-fn addr_of(url: &str) -> Result<SocketAddr> {
-    let hostport = url.trim_start_matches("http://").trim_end_matches('/');
-    hostport
-        .parse()
-        .with_context(|| format!("{url}: not http://IP:PORT"))
 }
 
 /// Connect from `from` (any 127/8 address is loopback) and send the
@@ -110,9 +103,8 @@ pub(crate) async fn idle(
     idle: Duration,
 ) -> Result<()> {
     println!("case idle: {connections} PING-only connections from {addresses} addresses (--max-connection-idle {idle:?})");
-    let to = addr_of(url)?;
-    let baseline = healthy(url, None, HEALTHY_FRAMES).await?;
-    let rss_before = rss(pid)?;
+    let to = socket_addr(url).await?;
+    let victim = Victim::before(url, None, pid).await?;
     let started = Instant::now();
     let mut tasks = Vec::new();
     for i in 0..connections {
@@ -124,29 +116,23 @@ pub(crate) async fn idle(
             idle + Duration::from_secs(10),
         )));
     }
-    let latency = check_latency(url, None, &baseline).await;
+    let latency = victim.during().await;
     let mut closed = Vec::new();
     for t in tasks {
         closed.push(t.await?);
     }
-    let rss_after = rss(pid)?;
     let kept = closed.iter().filter(|c| c.is_none()).count();
     let last = closed.iter().flatten().max().copied().unwrap_or_default();
     println!(
-        "  closed: {} of {connections}, the last after {:.1} s; server RSS growth {:.1} MB",
+        "  closed: {} of {connections}, the last after {:.1} s",
         connections - kept,
         last.as_secs_f64(),
-        rss_after.saturating_sub(rss_before) as f64 / (1 << 20) as f64
     );
-    latency?;
+    victim.check(latency, MAX_RSS_GROWTH)?;
     ensure!(
         kept == 0,
         "not enforced: {kept} PING-only connections still open after {:?}",
         idle + Duration::from_secs(10)
-    );
-    ensure!(
-        rss_after.saturating_sub(rss_before) <= MAX_RSS_GROWTH,
-        "server RSS grew"
     );
     Ok(())
 }
@@ -155,9 +141,8 @@ pub(crate) async fn idle(
 /// within a second, while the healthy client is served.
 pub(crate) async fn flood(url: &str, pid: u32) -> Result<()> {
     println!("case flood: one connection sends WINDOW_UPDATE frames as fast as it can");
-    let to = addr_of(url)?;
-    let baseline = healthy(url, None, HEALTHY_FRAMES).await?;
-    let rss_before = rss(pid)?;
+    let to = socket_addr(url).await?;
+    let victim = Victim::before(url, None, pid).await?;
     let s = connect_from("127.0.0.2".parse()?, to).await?;
     let (mut read, mut write) = s.into_split();
     let started = Instant::now();
@@ -184,23 +169,18 @@ pub(crate) async fn flood(url: &str, pid: u32) -> Result<()> {
     })
     .await;
     let sent = tokio::time::timeout(Duration::from_secs(5), writer).await;
-    let latency = check_latency(url, None, &baseline).await;
-    let rss_after = rss(pid)?;
+    let latency = victim.during().await;
     let ended = ended.ok();
     println!(
         "  GOAWAY after {:?}; {} frames written before the close",
         ended,
         sent.ok().and_then(|s| s.ok()).unwrap_or(0)
     );
-    latency?;
+    victim.check(latency, MAX_RSS_GROWTH)?;
     let ended = ended.context("not enforced: the flooding connection was never closed")?;
     ensure!(
         ended <= Duration::from_secs(1),
         "not enforced: GOAWAY after {ended:?}, more than a second"
-    );
-    ensure!(
-        rss_after.saturating_sub(rss_before) <= MAX_RSS_GROWTH,
-        "server RSS grew"
     );
     Ok(())
 }

@@ -1,12 +1,18 @@
 //! `abuse`: the server's limits under abuse, each case asserting its limit
 //! (`tests/abuse/run.sh` starts the servers and runs every case; loopback
-//! only, bounded, well under two minutes together).
+//! only, bounded, under three minutes together; `tests/abuse/full-scale.sh`
+//! runs some at full scale, by hand).
 //!
 //! ```sh
 //! abuse streams  --server URL --server-pid PID --streams 400 --limit 64
 //! abuse sessions --server URL --server-pid PID --header x-blapose-client --limit 8
 //! abuse token    --server URL --replica URL --token-ttl 4
 //! abuse bomb     --out bomb.npz
+//! abuse dirbomb  --out dirbomb.npz --entries 200000
+//! abuse pending  --server URL --server-pid PID --addresses 4 --connections 4 --streams 500 --limit 1000
+//! abuse shares   --server URL --server-pid PID --addresses 8 --max-sessions 256
+//! abuse churn    --server URL --server-pid PID --sessions 20000
+//! abuse proxy6   --server URL --server-pid PID --header x-blapose-client --limit 8
 //! abuse headers  --server URL --server-pid PID --count 120000
 //! abuse preface  --server URL --server-pid PID --connections 2000
 //! abuse idle     --server URL --server-pid PID --connections 400 --addresses 8 --idle 2
@@ -19,8 +25,10 @@
 //! within 2x of the baseline's, with a 5 ms floor (loopback round trips
 //! are a fraction of a millisecond, and a busy two-core machine puts a 4-5
 //! ms p99 into runs with or without abuse: server/README.md), in one of up
-//! to three measurements. The server's resident memory (VmRSS from /proc)
-//! must grow at most 64 MB during one connection's abuse.
+//! to three measurements; a new connection and session each time, so a new
+//! client must be served ([`client::Victim`]). The server's resident
+//! memory (VmRSS from /proc, its peak sampled every 20 ms) may grow at most
+//! 64 MB over a case unless the case takes another bound.
 //!
 //! - `streams`: one HTTP/2 connection opens many streams, each a session;
 //!   at most `--limit` (the server's `--max-concurrent-streams`) may be
@@ -32,11 +40,21 @@
 //! - `token`: a session token resumed on two replicas sharing the key, as
 //!   server/README.md's token rules say: one live copy per replica (a
 //!   second resume takes the session over, the first stream ends ABORTED),
-//!   the token of a closed session refused where it closed, an expired one
-//!   refused everywhere. A copy on each replica is allowed (bounded by
-//!   `--token-ttl`) and reported.
+//!   the token of a closed session refused where it closed, and after the
+//!   first token's TTL neither it nor the token the other replica's copy
+//!   issued (the chain) restores the closed session anywhere. A copy on
+//!   each replica is allowed (bounded by `--token-ttl`) and reported.
 //! - `bomb`: writes a replay file with a 2 GiB zero member deflated to
 //!   about 2 MB (used as `pose_3d`), for the script to run the client on.
+//! - `dirbomb`: writes the example replay file with `--entries` central
+//!   directory entries more ([`files`]), for the script to run
+//!   `blapose-client` and Python's `load_replay` on.
+//! - `pending`, `shares` ([`sources`]): HEADERS-only streams from several
+//!   addresses over many connections; several addresses each holding all
+//!   the sessions they can, then reading slowly.
+//! - `churn` ([`churn`]): one client opening and closing sessions as fast
+//!   as it can; `proxy6` ([`proxy`]): the balancer's header on a `[::]`
+//!   listener.
 //! - `headers` (by hand, not in the script): one raw HTTP/2 connection
 //!   sends HEADERS frames for the stream method as fast as the socket takes
 //!   them, ignoring SETTINGS_MAX_CONCURRENT_STREAMS ([`raw`]).
@@ -51,28 +69,24 @@
 //!
 //! A limit the server does not enforce fails the case with "not enforced".
 
-use std::io::Write;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use anyhow::{ensure, Context, Result};
-use blapose_proto::v1 as pb;
+use anyhow::{ensure, Result};
 use clap::{Parser, Subcommand};
-use pb::pose_adjustment_client::PoseAdjustmentClient;
-use pb::stream_request::Kind as Req;
-use pb::stream_response::Kind as Resp;
 use tokio::sync::mpsc;
-use tonic::transport::Channel;
 use tonic::Code;
 
+mod churn;
 mod client;
 mod connections;
+mod files;
+mod proxy;
 mod raw;
+mod sources;
+mod token;
 
-use client::{
-    check_growth, check_latency, connect, frames, healthy, open, opened, round_trip, rss,
-    rss_growth, start, Stream, HEALTHY_FRAMES,
-};
+use client::{connect, frames, open, opened, round_trip, start, Victim, MAX_RSS_GROWTH};
 
 /// Abuse cases against a running blapose server.
 #[derive(Debug, Parser)]
@@ -82,16 +96,24 @@ struct Args {
     case: Case,
 }
 
+/// The server a case abuses.
+#[derive(Debug, clap::Args)]
+struct Target {
+    /// The server (http://IP:PORT; a `[::]` listener is reached on
+    /// 127.0.0.1, a `--session-key` one remembers ended sessions).
+    #[arg(long)]
+    server: String,
+    /// Its process id (for its memory).
+    #[arg(long)]
+    server_pid: u32,
+}
+
 #[derive(Debug, Subcommand)]
 enum Case {
     /// Many streams on one connection.
     Streams {
-        /// The server.
-        #[arg(long)]
-        server: String,
-        /// Its process id (for its memory).
-        #[arg(long)]
-        server_pid: u32,
+        #[command(flatten)]
+        target: Target,
         /// Streams to open on the one connection.
         #[arg(long, default_value_t = 400)]
         streams: usize,
@@ -101,12 +123,8 @@ enum Case {
     },
     /// Rapid session opening from one client while another streams.
     Sessions {
-        /// The server.
-        #[arg(long)]
-        server: String,
-        /// Its process id (for its memory).
-        #[arg(long)]
-        server_pid: u32,
+        #[command(flatten)]
+        target: Target,
         /// The header naming the client (the server's --client-header).
         #[arg(long)]
         header: String,
@@ -132,12 +150,8 @@ enum Case {
     },
     /// PING-only connections from several addresses.
     Idle {
-        /// The server.
-        #[arg(long)]
-        server: String,
-        /// Its process id (for its memory).
-        #[arg(long)]
-        server_pid: u32,
+        #[command(flatten)]
+        target: Target,
         /// Connections to open.
         #[arg(long, default_value_t = 400)]
         connections: usize,
@@ -150,12 +164,8 @@ enum Case {
     },
     /// One connection flooding WINDOW_UPDATE frames.
     Flood {
-        /// The server.
-        #[arg(long)]
-        server: String,
-        /// Its process id (for its memory).
-        #[arg(long)]
-        server_pid: u32,
+        #[command(flatten)]
+        target: Target,
     },
     /// Write the zip-bomb replay file.
     Bomb {
@@ -165,24 +175,84 @@ enum Case {
     },
     /// HEADERS frames on one raw connection, past the stream limit.
     Headers {
-        /// The server.
-        #[arg(long)]
-        server: String,
-        /// Its process id (for its memory).
-        #[arg(long)]
-        server_pid: u32,
+        #[command(flatten)]
+        target: Target,
         /// HEADERS frames to send.
         #[arg(long, default_value_t = 120_000)]
         count: u32,
     },
+    /// HEADERS-only streams from several addresses over many connections.
+    Pending {
+        #[command(flatten)]
+        target: Target,
+        /// Loopback addresses (127.0.0.2 and up).
+        #[arg(long, default_value_t = 4)]
+        addresses: usize,
+        /// Connections from each address.
+        #[arg(long, default_value_t = 4)]
+        connections: usize,
+        /// HEADERS-only streams on each connection.
+        #[arg(long, default_value_t = 500)]
+        streams: u32,
+        /// The server's --max-streams-per-peer, checked per address.
+        #[arg(long)]
+        limit: Option<u64>,
+        /// Bound on the server's peak memory growth, MB.
+        #[arg(long, default_value_t = 64)]
+        max_growth_mb: u64,
+    },
+    /// Several addresses each holding as many sessions as they can.
+    Shares {
+        #[command(flatten)]
+        target: Target,
+        /// Loopback addresses (127.0.0.2 and up).
+        #[arg(long, default_value_t = 2)]
+        addresses: usize,
+        /// The server's --max-sessions.
+        #[arg(long)]
+        max_sessions: usize,
+    },
+    /// One client opening and closing sessions as fast as it can.
+    Churn {
+        #[command(flatten)]
+        target: Target,
+        /// Sessions to open and close.
+        #[arg(long, default_value_t = 20_000)]
+        sessions: u64,
+        /// Connections churning at once (one session each at a time):
+        /// two keep a 2-core machine's server busy (about 5,000 a second)
+        /// while leaving the healthy client a core's share; more measure
+        /// the CPU, not the memory this case bounds.
+        #[arg(long, default_value_t = 2)]
+        parallel: usize,
+        /// Bound on the server's peak memory growth, MB.
+        #[arg(long, default_value_t = 64)]
+        max_growth_mb: u64,
+    },
+    /// The client header from a trusted proxy on a [::] listener.
+    Proxy6 {
+        #[command(flatten)]
+        target: Target,
+        /// The server's --client-header.
+        #[arg(long)]
+        header: String,
+        /// The server's --max-sessions-per-client.
+        #[arg(long)]
+        limit: usize,
+    },
+    /// Write a central-directory bomb replay file.
+    Dirbomb {
+        /// Where.
+        #[arg(long)]
+        out: PathBuf,
+        /// Directory entries beyond the valid replay file's.
+        #[arg(long, default_value_t = 200_000)]
+        entries: u64,
+    },
     /// Connections that never send the HTTP/2 preface.
     Preface {
-        /// The server.
-        #[arg(long)]
-        server: String,
-        /// Its process id (for its memory).
-        #[arg(long)]
-        server_pid: u32,
+        #[command(flatten)]
+        target: Target,
         /// Connections to open.
         #[arg(long, default_value_t = 2000)]
         connections: u32,
@@ -192,8 +262,7 @@ enum Case {
 async fn streams(url: &str, pid: u32, n: usize, limit: usize) -> Result<()> {
     println!("case streams: {n} streams on one connection (limit {limit})");
     let (format, frames) = frames()?;
-    let baseline = healthy(url, None, HEALTHY_FRAMES).await?;
-    let rss_before = rss(pid)?;
+    let victim = Victim::before(url, None, pid).await?;
     let client = connect(url).await?;
     let mut tasks = Vec::new();
     let (done_tx, _) = tokio::sync::broadcast::channel::<()>(1);
@@ -234,8 +303,7 @@ async fn streams(url: &str, pid: u32, n: usize, limit: usize) -> Result<()> {
             refused += 1;
         }
     }
-    let latency = check_latency(url, None, &baseline).await;
-    let rss_after = rss(pid)?;
+    let latency = victim.during().await;
     let _ = done_tx.send(());
     for t in &tasks {
         t.abort();
@@ -244,9 +312,7 @@ async fn streams(url: &str, pid: u32, n: usize, limit: usize) -> Result<()> {
         "  sessions open at once on the connection: {open_now} (refused {refused}, waiting {})",
         n - open_now - refused
     );
-    let growth = rss_growth(rss_before, rss_after);
-    latency?;
-    check_growth(growth)?;
+    victim.check(latency, MAX_RSS_GROWTH)?;
     ensure!(
         open_now <= limit,
         "not enforced: {open_now} streams open at once on one connection, limit {limit}"
@@ -257,8 +323,7 @@ async fn streams(url: &str, pid: u32, n: usize, limit: usize) -> Result<()> {
 async fn sessions(url: &str, pid: u32, header: &str, attempts: usize, limit: usize) -> Result<()> {
     println!("case sessions: one client opens sessions as fast as it can while another streams (limit {limit})");
     let (format, _) = frames()?;
-    let baseline = healthy(url, Some(header), HEALTHY_FRAMES).await?;
-    let rss_before = rss(pid)?;
+    let victim = Victim::before(url, Some(header), pid).await?;
     let url_owned = url.to_owned();
     let header_owned = header.to_owned();
     let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
@@ -293,213 +358,19 @@ async fn sessions(url: &str, pid: u32, header: &str, attempts: usize, limit: usi
         }
         anyhow::Ok((held, exhausted, other, tried))
     });
-    let latency = check_latency(url, Some(header), &baseline).await;
+    let latency = victim.during().await;
     stop.store(true, std::sync::atomic::Ordering::Relaxed);
     let (held, exhausted, other, attempts) = attacker.await??;
-    let rss_after = rss(pid)?;
     println!(
         "  attacker tried {attempts} opens: holds {} sessions, {exhausted} RESOURCE_EXHAUSTED, {other} other refusals",
         held.len()
     );
-    let growth = rss_growth(rss_before, rss_after);
     drop(held);
-    latency?;
-    check_growth(growth)?;
+    victim.check(latency, MAX_RSS_GROWTH)?;
     ensure!(
         exhausted > 0 && attempts - exhausted - other <= limit,
         "not enforced: one client opened {} sessions, limit {limit}",
         attempts - exhausted - other
-    );
-    Ok(())
-}
-
-/// Resume `id` with `token` on `client`; the stream and its opening.
-async fn resume(
-    client: &mut PoseAdjustmentClient<Channel>,
-    id: &str,
-    token: &[u8],
-) -> Result<(Stream, pb::SessionOpened), tonic::Status> {
-    let first = Req::Resume(pb::ResumeSession {
-        session_id: id.to_owned(),
-        session_token: token.to_vec(),
-        session_tokens: true,
-    });
-    let mut stream = start(client, first, None).await?;
-    let o = opened(&mut stream).await?;
-    Ok((stream, o))
-}
-
-/// Whether `stream` still answers a frame; the status it ended with if not.
-async fn answers(stream: &mut Stream, frame: &pb::Frame) -> Result<(), tonic::Status> {
-    round_trip(stream, frame)
-        .await
-        .map(|_| ())
-        .map_err(|e| match e.downcast::<tonic::Status>() {
-            Ok(status) => status,
-            Err(e) => tonic::Status::unknown(e.to_string()),
-        })
-}
-
-/// The token rules of server/README.md under abuse: one live copy per
-/// replica (a second resume of the same token takes the session over, the
-/// first stream ends ABORTED), a closed session's token refused where it
-/// was closed, and an expired token refused on every replica. Two replicas
-/// may each restore one copy (documented, bounded by --token-ttl).
-async fn token(url: &str, replica: &str, ttl: Duration) -> Result<()> {
-    println!("case token: one session token resumed on two replicas (token TTL {ttl:?})");
-    let (format, frames) = frames()?;
-    let mut a = connect(url).await?;
-    let mut stream = start(&mut a, open(&format, true), None).await?;
-    let session = opened(&mut stream).await?;
-    let issued = Instant::now();
-    let id = session.session_id.clone();
-    for frame in &frames[..10] {
-        round_trip(&mut stream, frame).await?;
-    }
-    stream
-        .tx
-        .send(pb::StreamRequest {
-            kind: Some(Req::TokenRequest(pb::TokenRequest {})),
-        })
-        .await?;
-    let mut token = Vec::new();
-    while let Some(r) = stream.rx.message().await? {
-        if let Some(Resp::Token(t)) = r.kind {
-            token = t.token;
-            break;
-        }
-    }
-    ensure!(
-        !token.is_empty(),
-        "no session token: start the replicas with --session-key"
-    );
-    drop(stream);
-    tokio::time::sleep(Duration::from_millis(100)).await;
-
-    // The token on both replicas at once, then again on the origin.
-    let mut b = connect(replica).await?;
-    let mut a1 = connect(url).await?;
-    let mut a2 = connect(url).await?;
-    let (on_b, on_a) = tokio::join!(resume(&mut b, &id, &token), resume(&mut a1, &id, &token));
-    let (mut on_b, _) = on_b.context("resume on the replica")?;
-    let (mut first_a, _) = on_a.context("resume on the origin")?;
-    answers(&mut on_b, &frames[10]).await?;
-    answers(&mut first_a, &frames[10]).await?;
-    println!("  resumed on both replicas (one copy each, as documented: bounded by the token TTL)");
-    let (mut second_a, _) = resume(&mut a2, &id, &token)
-        .await
-        .context("second resume on the origin")?;
-    answers(&mut second_a, &frames[10]).await?;
-    let mut failures = Vec::new();
-    match answers(&mut first_a, &frames[11]).await {
-        Err(s) if s.code() == Code::Aborted => {
-            println!("  a second resume on the origin took the session over: the first stream ended ABORTED")
-        }
-        other => failures.push(format!(
-            "not enforced: two live copies on one replica (the first stream: {other:?})"
-        )),
-    }
-
-    // Close it on the origin: its token is refused there afterwards.
-    second_a
-        .tx
-        .send(pb::StreamRequest {
-            kind: Some(Req::Close(pb::CloseSession {})),
-        })
-        .await?;
-    while let Ok(Some(r)) = second_a.rx.message().await {
-        if matches!(r.kind, Some(Resp::Closed(_))) {
-            break;
-        }
-    }
-    let mut a3 = connect(url).await?;
-    match resume(&mut a3, &id, &token).await {
-        Err(s) if s.code() == Code::FailedPrecondition => {
-            println!(
-                "  after close, the token is refused on the origin: {}",
-                s.message()
-            )
-        }
-        Err(s) => failures.push(format!(
-            "after close, the origin refused with {} (expected FAILED_PRECONDITION): {}",
-            s.code(),
-            s.message()
-        )),
-        Ok(_) => failures.push("not enforced: a closed session was restored from its token".into()),
-    }
-
-    // Expired: refused on every replica.
-    tokio::time::sleep(
-        (issued + ttl + Duration::from_millis(500)).saturating_duration_since(Instant::now()),
-    )
-    .await;
-    drop(on_b);
-    for (name, url) in [("replica", replica), ("origin", url)] {
-        let mut c = connect(url).await?;
-        match resume(&mut c, &id, &token).await {
-            Err(s) if s.code() == Code::FailedPrecondition => {
-                println!("  expired token refused on the {name}: {}", s.message())
-            }
-            Err(s) => failures.push(format!(
-                "the expired token on the {name}: {} {}",
-                s.code(),
-                s.message()
-            )),
-            Ok(_) => failures.push(format!(
-                "not enforced: an expired token restored the session on the {name}"
-            )),
-        }
-    }
-    for f in &failures {
-        println!("  FAIL: {f}");
-    }
-    ensure!(
-        failures.is_empty(),
-        "{} token rule(s) do not hold",
-        failures.len()
-    );
-    Ok(())
-}
-
-/// The zip-bomb replay file: a valid replay file whose `pose_3d` is a
-/// right header followed by 2 GiB of zeros (about 2 MB deflated).
-fn bomb(out: &PathBuf) -> Result<()> {
-    let (_, frames) = frames()?;
-    let t = frames.len();
-    let file = std::fs::File::create(out)?;
-    let mut zip = zip::ZipWriter::new(std::io::BufWriter::new(file));
-    let options = zip::write::SimpleFileOptions::default()
-        .compression_method(zip::CompressionMethod::Deflated);
-    let npy = |shape: String| {
-        let header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape}, }}\n");
-        let mut out = b"\x93NUMPY\x01\x00".to_vec();
-        out.extend_from_slice(&(header.len() as u16).to_le_bytes());
-        out.extend_from_slice(header.as_bytes());
-        out
-    };
-    zip.start_file("keypoints_2d.npy", options)?;
-    zip.write_all(&npy(format!("({t}, 17, 2)")))?;
-    for f in &frames {
-        for v in &f.keypoints_2d {
-            zip.write_all(&v.to_le_bytes())?;
-        }
-    }
-    zip.start_file("image_size.npy", options)?;
-    zip.write_all(&npy("(2,)".into()))?;
-    for v in [1920f32, 1080.0] {
-        zip.write_all(&v.to_le_bytes())?;
-    }
-    zip.start_file("pose_3d.npy", options)?;
-    zip.write_all(&npy(format!("({t}, 17, 3)")))?;
-    let zeros = vec![0u8; 1 << 20];
-    for _ in 0..2048 {
-        zip.write_all(&zeros)?;
-    }
-    zip.finish()?.flush()?;
-    println!(
-        "bomb: {} ({} bytes; pose_3d inflates to 2 GiB)",
-        out.display(),
-        std::fs::metadata(out)?.len()
     );
     Ok(())
 }
@@ -510,14 +381,12 @@ async fn main() -> Result<()> {
     let start = Instant::now();
     match &args.case {
         Case::Streams {
-            server,
-            server_pid,
+            target: Target { server, server_pid },
             streams: n,
             limit,
         } => streams(server, *server_pid, *n, *limit).await?,
         Case::Sessions {
-            server,
-            server_pid,
+            target: Target { server, server_pid },
             header,
             attempts,
             limit,
@@ -526,21 +395,64 @@ async fn main() -> Result<()> {
             server,
             replica,
             token_ttl,
-        } => token(server, replica, Duration::from_secs_f64(*token_ttl)).await?,
-        Case::Bomb { out } => bomb(out)?,
+        } => token::token(server, replica, Duration::from_secs_f64(*token_ttl)).await?,
+        Case::Bomb { out } => files::bomb(out)?,
+        Case::Dirbomb { out, entries } => files::dirbomb(out, *entries)?,
+        Case::Pending {
+            target: Target { server, server_pid },
+            addresses,
+            connections,
+            streams,
+            limit,
+            max_growth_mb,
+        } => {
+            let bound = max_growth_mb << 20;
+            sources::pending(
+                server,
+                *server_pid,
+                *addresses,
+                *connections,
+                *streams,
+                *limit,
+                bound,
+            )
+            .await?
+        }
+        Case::Shares {
+            target: Target { server, server_pid },
+            addresses,
+            max_sessions,
+        } => sources::shares(server, *server_pid, *addresses, *max_sessions).await?,
+        Case::Churn {
+            target: Target { server, server_pid },
+            sessions,
+            parallel,
+            max_growth_mb,
+        } => {
+            churn::churn(
+                server,
+                *server_pid,
+                *sessions,
+                *parallel,
+                max_growth_mb << 20,
+            )
+            .await?
+        }
+        Case::Proxy6 {
+            target: Target { server, server_pid },
+            header,
+            limit,
+        } => proxy::proxy6(server, *server_pid, header, *limit).await?,
         Case::Headers {
-            server,
-            server_pid,
+            target: Target { server, server_pid },
             count,
         } => raw::headers(server, *server_pid, *count).await?,
         Case::Preface {
-            server,
-            server_pid,
+            target: Target { server, server_pid },
             connections,
         } => raw::preface(server, *server_pid, *connections).await?,
         Case::Idle {
-            server,
-            server_pid,
+            target: Target { server, server_pid },
             connections: n,
             addresses,
             idle,
@@ -548,7 +460,9 @@ async fn main() -> Result<()> {
             let idle = Duration::from_secs_f64(*idle);
             connections::idle(server, *server_pid, *n, *addresses, idle).await?
         }
-        Case::Flood { server, server_pid } => connections::flood(server, *server_pid).await?,
+        Case::Flood {
+            target: Target { server, server_pid },
+        } => connections::flood(server, *server_pid).await?,
     }
     println!("  ok ({:.1} s)", start.elapsed().as_secs_f64());
     Ok(())

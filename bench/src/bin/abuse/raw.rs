@@ -6,15 +6,16 @@
 //! only bytes written by hand show what the server does when the peer does
 //! not. The cases `headers` and `preface` run them beside the healthy client.
 
-use std::net::SocketAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 
-use crate::client::{check_growth, check_latency, healthy, rss, rss_growth, HEALTHY_FRAMES};
+use crate::client::{abuser, socket_addr, Victim, MAX_RSS_GROWTH};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::tcp::OwnedReadHalf;
 use tokio::net::{TcpSocket, TcpStream};
 
 /// A running raw abuse.
@@ -36,19 +37,6 @@ impl Abuser {
             Self::Held(held) => drop(held),
         }
     }
-}
-
-/// The socket address of a server URL (`http://host:port`).
-pub(crate) async fn socket_addr(url: &str) -> Result<SocketAddr> {
-    let host_port = url
-        .split_once("://")
-        .map_or(url, |(_, rest)| rest)
-        .trim_end_matches('/');
-    tokio::net::lookup_host(host_port)
-        .await
-        .with_context(|| format!("resolving {host_port}"))?
-        .next()
-        .with_context(|| format!("{host_port} resolves to no address"))
 }
 
 /// A string literal of an HPACK header block, without Huffman coding.
@@ -74,24 +62,74 @@ fn stream_call_headers() -> Vec<u8> {
     block
 }
 
-/// One connection, `count` HEADERS frames for the stream method (streams
-/// 1, 3, 5, ...), as fast as the socket takes them; `sent` counts them.
-/// The connection is held open, its answers read and dropped so that the
-/// server is never blocked on it, until `stop`.
+/// What HEADERS floods have done so far, over all their connections.
+#[derive(Default)]
+pub(crate) struct Tally {
+    /// Connections that were accepted.
+    pub(crate) connected: AtomicU64,
+    /// HEADERS frames written.
+    pub(crate) sent: AtomicU64,
+    /// Streams the server ended at once: a trailers-only answer (HEADERS
+    /// with END_STREAM: gRPC's refusal, RESOURCE_EXHAUSTED for a limit)
+    /// or RST_STREAM.
+    pub(crate) refused: AtomicU64,
+    /// Connections the server sent GOAWAY on or closed.
+    pub(crate) closed: AtomicU64,
+    /// Streams not refused that ended with their connection.
+    pub(crate) released: AtomicU64,
+}
+
+/// One connection's streams written, and whether the server closed it
+/// (then its streams written and not refused are released, once).
+#[derive(Default)]
+struct Written {
+    sent: u64,
+    closed: bool,
+}
+
+impl Tally {
+    pub(crate) fn get(counter: &AtomicU64) -> u64 {
+        counter.load(Ordering::Relaxed)
+    }
+
+    /// Streams the server holds open now: written, neither refused nor
+    /// ended with their connection.
+    pub(crate) fn held(&self) -> u64 {
+        let ended = Self::get(&self.refused) + Self::get(&self.released);
+        Self::get(&self.sent).saturating_sub(ended)
+    }
+}
+
+/// One connection from `from`, `count` HEADERS frames for the stream
+/// method (streams 1, 3, 5, ...), as fast as the socket takes them. The
+/// answers are read all along (so the server is never blocked writing
+/// them) and the refusals among them counted in `tally`, until `stop` or
+/// until the server closes the connection.
 pub(crate) async fn flood_headers(
     addr: SocketAddr,
+    from: IpAddr,
     count: u32,
     stop: Arc<AtomicBool>,
-    sent: Arc<AtomicU64>,
+    tally: Arc<Tally>,
 ) {
-    let Ok(mut s) = TcpStream::connect(addr).await else {
+    let Ok(socket) = TcpSocket::new_v4() else {
         return;
     };
+    if socket.bind(SocketAddr::new(from, 0)).is_err() {
+        return;
+    }
+    let Ok(s) = socket.connect(addr).await else {
+        return;
+    };
+    tally.connected.fetch_add(1, Ordering::Relaxed);
+    let (read, mut write) = s.into_split();
+    let written = Arc::new(std::sync::Mutex::new(Written::default()));
+    let reader = tokio::spawn(count_refusals(read, stop, tally.clone(), written.clone()));
     // The preface and an empty SETTINGS frame.
     let mut preface = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n".to_vec();
     preface.extend_from_slice(&[0, 0, 0, 4, 0, 0, 0, 0, 0]);
     let block = stream_call_headers();
-    let _ = s.write_all(&preface).await;
+    let _ = write.write_all(&preface).await;
     for batch in (0..count).collect::<Vec<_>>().chunks(256) {
         let mut buf = Vec::new();
         for i in batch {
@@ -101,17 +139,70 @@ pub(crate) async fn flood_headers(
             buf.extend_from_slice(&(2 * i + 1).to_be_bytes());
             buf.extend_from_slice(&block);
         }
-        if s.write_all(&buf).await.is_err() {
+        if write.write_all(&buf).await.is_err() {
             break;
         }
-        sent.fetch_add(batch.len() as u64, Ordering::Relaxed);
-    }
-    let mut sink = vec![0u8; 65536];
-    while !stop.load(Ordering::Relaxed) {
-        match tokio::time::timeout(Duration::from_millis(100), s.read(&mut sink)).await {
-            Ok(Ok(0)) | Ok(Err(_)) => break,
-            _ => {}
+        let n = batch.len() as u64;
+        tally.sent.fetch_add(n, Ordering::Relaxed);
+        let mut w = written.lock().unwrap_or_else(|p| p.into_inner());
+        w.sent += n;
+        if w.closed {
+            tally.released.fetch_add(n, Ordering::Relaxed);
         }
+    }
+    let _ = reader.await;
+}
+
+/// Read the server's frames until `stop` or the connection's end,
+/// counting refused streams and the end in `tally`.
+async fn count_refusals(
+    mut read: OwnedReadHalf,
+    stop: Arc<AtomicBool>,
+    tally: Arc<Tally>,
+    written: Arc<std::sync::Mutex<Written>>,
+) {
+    const HEADERS: u8 = 0x1;
+    const RST_STREAM: u8 = 0x3;
+    const GOAWAY: u8 = 0x7;
+    const END_STREAM: u8 = 0x1;
+    let (mut buf, mut chunk) = (Vec::new(), vec![0u8; 1 << 16]);
+    let mut ended = std::collections::HashSet::new();
+    'read: while !stop.load(Ordering::Relaxed) {
+        // `read` is cancel-safe (`read_exact` is not): frames are cut
+        // from the buffer.
+        match tokio::time::timeout(Duration::from_millis(100), read.read(&mut chunk)).await {
+            Err(_) => continue,
+            Ok(Ok(0)) | Ok(Err(_)) => break,
+            Ok(Ok(n)) => buf.extend_from_slice(&chunk[..n]),
+        }
+        let mut at = 0;
+        while buf.len() - at >= 9 {
+            let h = &buf[at..at + 9];
+            let len = usize::from(h[0]) << 16 | usize::from(h[1]) << 8 | usize::from(h[2]);
+            if buf.len() - at < 9 + len {
+                break;
+            }
+            let stream = u32::from_be_bytes([h[5], h[6], h[7], h[8]]) & 0x7fff_ffff;
+            // A trailers-only answer (HEADERS with END_STREAM) is followed
+            // by RST_STREAM (the request side is still open): one refusal,
+            // counted once.
+            let refusal = (h[3] == HEADERS && h[4] & END_STREAM != 0) || h[3] == RST_STREAM;
+            if refusal && ended.insert(stream) {
+                tally.refused.fetch_add(1, Ordering::Relaxed);
+            }
+            if h[3] == GOAWAY {
+                break 'read;
+            }
+            at += 9 + len;
+        }
+        buf.drain(..at);
+    }
+    if !stop.load(Ordering::Relaxed) {
+        tally.closed.fetch_add(1, Ordering::Relaxed);
+        let mut w = written.lock().unwrap_or_else(|p| p.into_inner());
+        w.closed = true;
+        let released = w.sent.saturating_sub(ended.len() as u64);
+        tally.released.fetch_add(released, Ordering::Relaxed);
     }
 }
 
@@ -148,31 +239,31 @@ where
 {
     println!("case {what}");
     let addr = socket_addr(url).await?;
-    let baseline = healthy(url, None, HEALTHY_FRAMES).await?;
-    let rss_before = rss(pid)?;
+    let victim = Victim::before(url, None, pid).await?;
     let stop = Arc::new(AtomicBool::new(false));
     let abuser = abuse(addr, stop.clone()).await?;
     tokio::time::sleep(Duration::from_millis(500)).await;
-    let latency = check_latency(url, None, &baseline).await;
-    let rss_after = rss(pid)?;
+    let latency = victim.during().await;
     stop.store(true, Ordering::Relaxed);
     abuser.stop().await;
-    let growth = rss_growth(rss_before, rss_after);
-    latency?;
-    check_growth(growth)
+    victim.check(latency, MAX_RSS_GROWTH)
 }
 
 /// `count` HEADERS frames on one raw connection ([`flood_headers`]).
 pub(crate) async fn headers(url: &str, pid: u32, count: u32) -> Result<()> {
-    let sent = Arc::new(AtomicU64::new(0));
+    let tally = Arc::new(Tally::default());
     let what = format!("headers: {count} HEADERS frames on one raw connection");
-    let counted = sent.clone();
+    let counted = tally.clone();
     raw_case(url, pid, &what, |addr, stop| async move {
-        let task = tokio::spawn(flood_headers(addr, count, stop, counted));
+        let task = tokio::spawn(flood_headers(addr, abuser(0), count, stop, counted));
         Ok(Abuser::Task(task))
     })
     .await?;
-    println!("  HEADERS frames written: {}", sent.load(Ordering::Relaxed));
+    println!(
+        "  HEADERS frames written: {}, streams refused at once: {}",
+        Tally::get(&tally.sent),
+        Tally::get(&tally.refused)
+    );
     Ok(())
 }
 
