@@ -216,7 +216,11 @@ EOF
 echo "$report"
 
 echo "== token rules and per-client limits behind HAProxy (server/tests/integration/haproxy.rs)"
-BLAPOSE_REQUIRE_HAPROXY=1 cargo test --release --quiet -p blapose-server --test integration haproxy::
+# --workspace, not -p blapose-server: the same package selection as
+# `cargo test --workspace --release`, so the test binary that built is run
+# as it is instead of the server being compiled again for a smaller
+# selection's features (only the server's integration tests match).
+BLAPOSE_REQUIRE_HAPROXY=1 cargo test --release --quiet --workspace --test integration haproxy::
 
 if [[ -n "$json" ]]; then
     echo "$report" >"$json"
