@@ -27,6 +27,8 @@
 # builds blapose-server and the failover binary in release mode.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# shellcheck source=../tests/e2e-lib.sh
+. tests/e2e-lib.sh  # build_release
 
 json=""
 sessions=32
@@ -57,7 +59,7 @@ if ! command -v haproxy >/dev/null; then
 fi
 
 echo "== building blapose-server and the failover check"
-[ "${BLAPOSE_PREBUILT:-}" = 1 ] || cargo build --release --quiet -p blapose-server -p blapose-bench --bin blapose-server --bin failover
+build_release -p blapose-server -p blapose-bench --bin blapose-server --bin failover
 server=target/release/blapose-server
 failover=target/release/failover
 

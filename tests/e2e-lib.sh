@@ -1,5 +1,5 @@
-# Helpers sourced by the end-to-end scripts (tests/browser/run.sh,
-# tests/export/run.sh), run from the repository root.
+# Helpers sourced by the end-to-end scripts (tests/*/run.sh,
+# deploy/failover-test.sh), run from the repository root.
 
 # build_release ARGS...: `cargo build --release --quiet ARGS`, unless
 # BLAPOSE_PREBUILT=1 says the binaries are built already. .ci/run sets it

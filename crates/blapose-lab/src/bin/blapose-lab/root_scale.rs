@@ -9,6 +9,10 @@ use anyhow::Result;
 use blapose_train::lifter::data::LifterSequence;
 use blapose_train::motion_eval::Scene;
 
+/// Human3.6M's focal length (pixels, about the same for its four cameras):
+/// the robust solve's thresholds are given in pixels.
+const H36M_FOCAL_PX: f64 = 1145.0;
+
 /// `--root-scale`: how far the root solve places people, per pose source.
 pub fn report(
     trials: &[LifterSequence],
@@ -41,42 +45,52 @@ pub fn report(
             .map(|(t, s)| solve(t, &lifted[&key(t)], s))
             .collect(),
     ));
-    let mut true_lengths = Vec::new();
-    for (t, s) in trials.iter().zip(scenes) {
-        let adj = adjust_sequence_with(&lifted[&key(t)], &t.trial.gt, ZeroBonePolicy::KeepInput)?;
-        true_lengths.push(solve(t, &adj, s));
-    }
-    sources.push(("lifter directions, true lengths", true_lengths));
-    if let Some(g) = gru {
-        let mut v = Vec::new();
-        for ((t, s), l) in trials.iter().zip(scenes).zip(g) {
-            let adj = adjust_sequence_per_frame(&lifted[&key(t)], l, ZeroBonePolicy::KeepInput)?;
-            v.push(solve(t, &adj, s));
-        }
-        sources.push(("lifter directions, gru lengths", v));
+    // The lifter's directions with the true and with the GRU's lengths,
+    // adjusted once for every measurement below.
+    let true_adjusted = trials
+        .iter()
+        .map(|t| adjust_sequence_with(&lifted[&key(t)], &t.trial.gt, ZeroBonePolicy::KeepInput))
+        .collect::<Result<Vec<_>, _>>()?;
+    let gru_adjusted = match gru {
+        Some(g) => Some(
+            trials
+                .iter()
+                .zip(g)
+                .map(|(t, l)| {
+                    adjust_sequence_per_frame(&lifted[&key(t)], l, ZeroBonePolicy::KeepInput)
+                })
+                .collect::<Result<Vec<_>, _>>()?,
+        ),
+        None => None,
+    };
+    let solve_all = |adjusted: &[Vec<blapose_core::Pose>]| -> Vec<RootPairs> {
+        trials
+            .iter()
+            .zip(scenes)
+            .zip(adjusted)
+            .map(|((t, s), a)| solve(t, a, s))
+            .collect()
+    };
+    let true_pairs = solve_all(&true_adjusted);
+    sources.push(("lifter directions, true lengths", true_pairs.clone()));
+    let gru_pairs = gru_adjusted.as_deref().map(solve_all);
+    if let Some(p) = &gru_pairs {
+        sources.push(("lifter directions, gru lengths", p.clone()));
     }
     let mut subjects: Vec<&str> = trials.iter().map(|t| t.trial.subject.as_str()).collect();
     subjects.dedup();
     // Robust solves and causal medians of the served pose sources.
-    if let Some(g) = gru {
+    if let (Some(adjusted), Some(gru_pairs)) = (&gru_adjusted, &gru_pairs) {
         use blapose_lab::root_scale::{causal_median, place_roots_robust};
-        let mut adjusted = Vec::new();
-        for (t, l) in trials.iter().zip(g) {
-            adjusted.push(adjust_sequence_per_frame(
-                &lifted[&key(t)],
-                l,
-                ZeroBonePolicy::KeepInput,
-            )?);
-        }
         for c_px in [5.0, 10.0, 20.0, 40.0] {
             let pairs: Vec<RootPairs> = trials
                 .iter()
                 .zip(scenes)
-                .zip(&adjusted)
+                .zip(adjusted)
                 .map(|((t, s), a)| RootPairs {
                     subject: t.trial.subject.clone(),
                     camera: t.trial.camera.clone(),
-                    solved: place_roots_robust(a, s, c_px / 1145.0, 4),
+                    solved: place_roots_robust(a, s, c_px / H36M_FOCAL_PX, 4),
                     truth: s.root.clone(),
                 })
                 .collect();
@@ -87,20 +101,10 @@ pub fn report(
                 mrpe_mm(&pairs, k)
             );
         }
-        let (_, gru_pairs) = sources.last().expect("gru source");
         // A learned depth correction: fitted on the true-length solves of
         // the other subjects, applied to each subject's solves.
         {
             use blapose_lab::root_scale::{depth_features, DepthCorrection};
-            let true_pairs = &sources[2].1;
-            let mut true_adjusted = Vec::new();
-            for t in trials {
-                true_adjusted.push(adjust_sequence_with(
-                    &lifted[&key(t)],
-                    &t.trial.gt,
-                    ZeroBonePolicy::KeepInput,
-                )?);
-            }
             let feats = |poses: &[Vec<blapose_core::Pose>]| -> Vec<Vec<Vec<f64>>> {
                 poses
                     .iter()
@@ -114,7 +118,7 @@ pub fn report(
                     .collect()
             };
             let true_feats = feats(&true_adjusted);
-            let gru_feats = feats(&adjusted);
+            let gru_feats = feats(adjusted);
             for lambda in [1.0, 100.0, 10000.0] {
                 let mut held_true = Vec::new();
                 let mut held_gru = Vec::new();
@@ -135,7 +139,7 @@ pub fn report(
                         continue;
                     };
                     for (pairs, fs, out) in [
-                        (true_pairs, &true_feats, &mut held_true),
+                        (&true_pairs, &true_feats, &mut held_true),
                         (gru_pairs, &gru_feats, &mut held_gru),
                     ] {
                         for (p, f) in pairs.iter().zip(fs).filter(|(p, _)| p.subject == *s) {
