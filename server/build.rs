@@ -4,12 +4,13 @@
 //! A checkout without the files (weights not trained or not copied yet) still
 //! builds: the `blapose_embedded_*` cfgs stay unset, the server then requires
 //! `--weights` / `--bigru-weights` (and `--rectified-*`, or
-//! `--no-camera-aware`), and cargo prints a warning so nobody ships such a
+//! `--no-camera-aware`; without the lifter it serves none unless
+//! `--lifter-weights` names one), and cargo prints a warning so nobody ships such a
 //! binary by accident.
 
 use std::path::PathBuf;
 
-const FILES: [(&str, &str, &str); 4] = [
+const FILES: [(&str, &str, &str); 5] = [
     (
         "bone_length_gru.safetensors",
         "blapose_embedded_gru",
@@ -29,6 +30,11 @@ const FILES: [(&str, &str, &str); 4] = [
         "bone_length_bigru_rectified.safetensors",
         "blapose_embedded_bigru_rectified",
         "BLAPOSE_EMBEDDED_BIGRU_RECTIFIED",
+    ),
+    (
+        "lifter_videopose27_causal.safetensors",
+        "blapose_embedded_lifter",
+        "BLAPOSE_EMBEDDED_LIFTER",
     ),
 ];
 

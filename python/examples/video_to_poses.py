@@ -11,8 +11,8 @@
 3. maps MediaPipe's 33 landmarks to COCO-17, in pixels, with each landmark's
    ``visibility`` as its confidence;
 4. streams them through a blapose session: by default the server lifts them
-   (a server started with ``--lifter-weights``, e.g.
-   ``models/lifter_videopose27_causal.safetensors``), or your own lifter
+   (its embedded ``models/lifter_videopose27_causal.safetensors``, or
+   ``--lifter-weights``), or your own lifter
    (``--lifter MODULE:FUNCTION``, or ``lifter=`` in :func:`video_to_poses`):
    a callable ``f(keypoints, confidence, image_size) -> (17, 3)`` pose, metres,
    Human3.6M joint order, where ``keypoints`` is the frame's ``(17, 2)`` COCO-17
@@ -315,7 +315,7 @@ def video_to_poses(
     ``motion`` runs the server's causal motion stage at the video's frame rate
     (smoothed directions, the pelvis placed: ``VideoPoses.root_3d``).
 
-    ``lifter=None`` uses the server's lifter (``--lifter-weights``); ``detector``
+    ``lifter=None`` uses the server's lifter (embedded or ``--lifter-weights``); ``detector``
     (default :class:`MediaPipeDetector`) maps an RGB frame to ``(keypoints, confidence)``
     or None; ``progress(frames_read, frame_count_or_0, detections, seconds)`` is called
     after every frame.
@@ -347,8 +347,8 @@ def video_to_poses(
         with blapose.Client(server, token=token) as client:
             if lifter is None and client.info().lifter is None:
                 raise blapose.BlaposeError(
-                    f"the server at {server} has no lifter: start it with --lifter-weights "
-                    f"models/lifter_videopose27_causal.safetensors, or pass a lifter (--lifter MODULE:FUNCTION)"
+                    f"the server at {server} has no lifter (started with --no-lifter): start it "
+                    f"without that flag, or pass a lifter (--lifter MODULE:FUNCTION)"
                 )
             with client.session(
                 layout="coco17", image_size=image_size, model=model, server_lifter=lifter is None, label=str(video),

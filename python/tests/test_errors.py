@@ -32,20 +32,36 @@ def open_session(client: blapose.Client, seq: blapose.ReplayFile, **kw) -> blapo
         {"layout": 0, "image_size": (1000, 1000)},  # KEYPOINT_LAYOUT_UNSPECIFIED
         {"layout": "h36m17", "image_size": (0, 1000)},  # zero image size
         {"layout": "h36m17", "image_size": (1000, 1000), "model": "bigru"},  # Bi-GRU on a stream
-        {"layout": "h36m17", "image_size": (1000, 1000), "server_lifter": True},  # no lifter served
         {
             "layout": "h36m17",
             "image_size": (1000, 1000),
             "camera": blapose.Camera(up=(0, -1, 0), focal=(-5, 5), principal=(500, 500)),
         },  # focal length <= 0
     ],
-    ids=["layout-unset", "zero-image", "bigru-stream", "no-lifter", "bad-camera"],
+    ids=["layout-unset", "zero-image", "bigru-stream", "bad-camera"],
 )
 def test_bad_open_is_invalid_argument(server: Server, kwargs) -> None:
     with blapose.Client(server.url) as client, pytest.raises(blapose.InvalidArgument) as e:
         client.session(**kwargs)
     assert e.value.code == grpc.StatusCode.INVALID_ARGUMENT
     assert e.value.details
+
+
+def test_server_lifter_on_a_server_without_one_is_invalid_argument(start_server) -> None:
+    srv = start_server("--no-lifter")
+    with blapose.Client(srv.url) as client:
+        with pytest.raises(blapose.InvalidArgument) as e:
+            client.session(layout="h36m17", image_size=(1000, 1000), server_lifter=True)
+        assert "--no-lifter" in e.value.details
+        assert client.info().lifter is None
+
+
+def test_the_default_server_lifts(server: Server) -> None:
+    with blapose.Client(server.url) as client:
+        lifter = client.info().lifter
+        assert lifter is not None and lifter["causal"], lifter
+        with client.session(layout="h36m17", image_size=(1000, 1000), server_lifter=True) as s:
+            assert s.info.lifter == lifter["name"]
 
 
 def test_a_bad_lens_distortion_is_named(server: Server, seq) -> None:

@@ -17,8 +17,12 @@
 //!
 //! Open streams are counted live (and per address, across connections:
 //! `--max-streams-per-peer`, except for `--trusted-proxies`, whose streams
-//! are many clients'); the rest is sampled every 100 ms from the session
-//! store and the batcher.
+//! are many clients'); so are connections, each at what it may hold before
+//! the stream layer sees a stream: h2 takes up to `--max-concurrent-streams`
+//! HEADERS on a connection before any handler runs (512 connections x
+//! 1,000 refused streams still grew the server by 0.7-1.0 GB with every
+//! admitted stream in the budget). The rest is sampled every 100 ms from
+//! the session store and the batcher.
 
 use std::collections::HashMap;
 use std::net::IpAddr;
@@ -33,6 +37,22 @@ pub const STREAM_BYTES: usize = 8 << 10;
 pub const SESSION_BYTES: usize = 16 << 10;
 /// A queued frame: its keypoints, pose and reply channel.
 pub const FRAME_BYTES: usize = 1 << 10;
+/// A connection's own state: the socket, hyper's and h2's buffers and
+/// tables, the frame meter (TLS adds its buffers).
+pub const CONNECTION_BYTES: usize = 64 << 10;
+/// A stream h2 has taken but the stream layer has not yet admitted or
+/// refused (measured: 512 connections x 1,000 refused HEADERS-only streams
+/// held 0.7-1.0 GB, about 1.9 KB a stream).
+pub const PENDING_STREAM_BYTES: usize = 2 << 10;
+
+/// What one HTTP/2 connection may hold before its streams are admitted:
+/// itself and `max_concurrent_streams` pending streams.
+pub fn http2_connection_bytes(max_concurrent_streams: u32) -> usize {
+    CONNECTION_BYTES + max_concurrent_streams as usize * PENDING_STREAM_BYTES
+}
+
+/// What one WebSocket connection may hold: itself and its one stream.
+pub const WEBSOCKET_CONNECTION_BYTES: usize = CONNECTION_BYTES + STREAM_BYTES;
 
 /// The smallest default budget.
 pub const MIN_DEFAULT_BUDGET: usize = 256 << 20;
@@ -70,6 +90,7 @@ pub struct Budget {
     per_peer: usize,
     exempt: Vec<IpAddr>,
     streams: AtomicUsize,
+    connections: AtomicUsize,
     sampled: AtomicUsize,
     peers: Mutex<HashMap<IpAddr, usize>>,
 }
@@ -84,6 +105,7 @@ impl Budget {
             per_peer: per_peer.max(1),
             exempt: exempt.into_iter().map(|ip| ip.to_canonical()).collect(),
             streams: AtomicUsize::new(0),
+            connections: AtomicUsize::new(0),
             sampled: AtomicUsize::new(0),
             peers: Mutex::new(HashMap::new()),
         })
@@ -96,7 +118,9 @@ impl Budget {
 
     /// Bytes accounted now.
     pub fn accounted(&self) -> usize {
-        self.streams.load(Ordering::Relaxed) * STREAM_BYTES + self.sampled.load(Ordering::Relaxed)
+        self.streams.load(Ordering::Relaxed) * STREAM_BYTES
+            + self.connections.load(Ordering::Relaxed)
+            + self.sampled.load(Ordering::Relaxed)
     }
 
     /// Record the parts sampled from the store and the batcher.
@@ -140,6 +164,34 @@ impl Budget {
             budget: self.clone(),
             peer,
         })
+    }
+}
+
+impl Budget {
+    /// Admit a new connection that may hold `bytes` (for example
+    /// [`http2_connection_bytes`]); they count until the guard drops.
+    pub fn connection(self: &Arc<Self>, bytes: usize) -> Result<BudgetConnection, BudgetError> {
+        self.admit(bytes)?;
+        self.connections.fetch_add(bytes, Ordering::Relaxed);
+        Ok(BudgetConnection {
+            budget: self.clone(),
+            bytes,
+        })
+    }
+}
+
+/// An admitted connection's bytes; released when dropped.
+#[derive(Debug)]
+pub struct BudgetConnection {
+    budget: Arc<Budget>,
+    bytes: usize,
+}
+
+impl Drop for BudgetConnection {
+    fn drop(&mut self) {
+        self.budget
+            .connections
+            .fetch_sub(self.bytes, Ordering::Relaxed);
     }
 }
 
@@ -244,5 +296,27 @@ mod tests {
         assert!(b.stream(Some(a)).is_ok());
         let e = BudgetError::PeerStreams { limit: 4 };
         assert_eq!(e.to_status().code(), tonic::Code::ResourceExhausted);
+    }
+
+    #[test]
+    fn connections_count_what_they_may_hold_until_they_close() {
+        let per_connection = http2_connection_bytes(100);
+        assert_eq!(
+            per_connection,
+            CONNECTION_BYTES + 100 * PENDING_STREAM_BYTES
+        );
+        let b = Budget::new(3 * per_connection + STREAM_BYTES, 8, vec![]);
+        let held: Vec<_> = (0..3)
+            .map(|_| b.connection(per_connection).unwrap())
+            .collect();
+        assert_eq!(b.accounted(), 3 * per_connection);
+        assert!(matches!(
+            b.connection(per_connection),
+            Err(BudgetError::Memory { .. })
+        ));
+        assert!(b.stream(None).is_ok(), "a stream still fits");
+        drop(held);
+        assert_eq!(b.accounted(), 0);
+        assert!(b.connection(WEBSOCKET_CONNECTION_BYTES).is_ok());
     }
 }

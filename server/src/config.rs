@@ -35,6 +35,15 @@ impl WeightsSource {
     pub fn from_flag(path: Option<PathBuf>) -> Self {
         path.map_or(Self::Embedded, Self::File)
     }
+
+    /// Where the weights come from, as `ModelInfo` and messages say it:
+    /// "embedded" or the file's path.
+    pub fn origin(&self) -> String {
+        match self {
+            Self::Embedded => "embedded".to_string(),
+            Self::File(path) => path.display().to_string(),
+        }
+    }
 }
 
 /// Log output format.
@@ -70,10 +79,10 @@ pub struct ServerConfig {
     /// The camera-aware models (for sessions and requests that send a
     /// camera calibration); `None`: such sessions are refused.
     pub camera_aware: Option<CameraAwareWeights>,
-    /// A trained causal lifter (`blapose train-lifter` weights file) the
-    /// server runs for sessions that send 2D keypoints only; `None`: no
-    /// server lifter (clients send their own 3D poses).
-    pub lifter_weights: Option<PathBuf>,
+    /// The trained causal lifter the server runs for sessions that send 2D
+    /// keypoints only (`server_lifter`); `None`: no server lifter (clients
+    /// send their own 3D poses).
+    pub lifter: Option<WeightsSource>,
     /// Maximum number of sessions held (attached or detached).
     pub max_sessions: usize,
     /// How long a detached session survives before it is evicted.
@@ -149,7 +158,7 @@ impl Default for ServerConfig {
             weights: WeightsSource::Embedded,
             bigru_weights: WeightsSource::Embedded,
             camera_aware: Some(CameraAwareWeights::default()),
-            lifter_weights: None,
+            lifter: Some(WeightsSource::Embedded),
             max_sessions: DEFAULT_MAX_SESSIONS,
             session_ttl: Duration::from_secs(DEFAULT_SESSION_TTL_S),
             max_batch: DEFAULT_MAX_BATCH,
@@ -198,11 +207,13 @@ const DEFAULT_MAX_MESSAGE_BYTES: usize = 4 * 1024 * 1024;
 const DEFAULT_SHUTDOWN_GRACE_S: u64 = 10;
 const DEFAULT_OPEN_TIMEOUT_S: u64 = 10;
 const DEFAULT_TOKEN_EVERY: u64 = 100;
-// Transport limits. The load tests put at most a few hundred streams on one
-// connection (bench loadtest: its streams over at most 16 connections; the
-// failover test: 32 sessions); 1,024 streams of idle sessions stay well
-// under 64 MB.
-const DEFAULT_MAX_CONCURRENT_STREAMS: u32 = 1024;
+// Transport limits. 100 streams a connection, the least RFC 9113 advises
+// (nginx 128, Go 250): h2 takes that many HEADERS on each connection before
+// the stream layer refuses any, about 2 KB each, so 512 connections of one
+// address x 1,000 grew the server by 0.7-1.0 GB and x 100 by 108 MB
+// (tests/abuse/README.md). Clients queue beyond it or open more
+// connections: bench loadtest spreads its streams over a connection per 32.
+const DEFAULT_MAX_CONCURRENT_STREAMS: u32 = 100;
 const DEFAULT_MAX_HEADER_LIST_BYTES: u32 = 16 * 1024;
 const DEFAULT_MAX_CONNECTIONS: usize = 4096;
 const DEFAULT_MAX_CONNECTIONS_PER_PEER: usize = 512;
@@ -253,11 +264,17 @@ pub struct Cli {
           conflicts_with_all = ["rectified_weights", "rectified_bigru_weights"])]
     pub no_camera_aware: bool,
 
-    /// A trained causal lifter (a `blapose train-lifter --model videopose --causal`
-    /// weights file): sessions opened with server_lifter send 2D keypoints only and
-    /// the server lifts them. Default: no server lifter.
+    /// The causal lifter for sessions opened with server_lifter (they send 2D
+    /// keypoints only and the server lifts them): a `blapose train-lifter --model
+    /// videopose --causal` weights file; default: the embedded
+    /// lifter_videopose27_causal.
     #[arg(long, env = "BLAPOSE_LIFTER_WEIGHTS", value_name = "FILE")]
     pub lifter_weights: Option<PathBuf>,
+
+    /// Serve no lifter: sessions that ask for server_lifter are refused with
+    /// INVALID_ARGUMENT (clients send their own 3D poses).
+    #[arg(long, env = "BLAPOSE_NO_LIFTER", conflicts_with = "lifter_weights")]
+    pub no_lifter: bool,
 
     /// Maximum sessions held at once (attached or detached); more -> RESOURCE_EXHAUSTED.
     #[arg(long, env = "BLAPOSE_MAX_SESSIONS", default_value_t = DEFAULT_MAX_SESSIONS,
@@ -491,7 +508,7 @@ impl Cli {
                 gru: WeightsSource::from_flag(self.rectified_weights),
                 bigru: WeightsSource::from_flag(self.rectified_bigru_weights),
             }),
-            lifter_weights: self.lifter_weights,
+            lifter: (!self.no_lifter).then(|| WeightsSource::from_flag(self.lifter_weights)),
             max_sessions: self.max_sessions,
             session_ttl: self.session_ttl,
             max_batch: self.max_batch,
@@ -595,8 +612,12 @@ mod tests {
         assert_eq!(cfg.connection_limits, def.connection_limits);
         assert_eq!(def.open_timeout, Duration::from_secs(10));
         assert_eq!(cfg.weights, WeightsSource::Embedded);
-        assert_eq!(cfg.lifter_weights, None, "no server lifter unless asked");
-        assert_eq!(def.lifter_weights, None);
+        assert_eq!(
+            cfg.lifter,
+            Some(WeightsSource::Embedded),
+            "the embedded lifter"
+        );
+        assert_eq!(def.lifter, cfg.lifter);
     }
 
     #[test]
@@ -608,10 +629,16 @@ mod tests {
         ])
         .unwrap();
         assert_eq!(
-            cli.into_config().lifter_weights,
-            Some(PathBuf::from(
+            cli.into_config().lifter,
+            Some(WeightsSource::File(PathBuf::from(
                 "models/lifter_videopose27_causal.safetensors"
-            ))
+            )))
+        );
+        let cli = Cli::try_parse_from(["blapose-server", "--no-lifter"]).unwrap();
+        assert_eq!(cli.into_config().lifter, None);
+        assert!(
+            Cli::try_parse_from(["blapose-server", "--no-lifter", "--lifter-weights", "f"])
+                .is_err()
         );
     }
 

@@ -12,12 +12,13 @@
 //! (blapose-model's one reading of the weights' metadata); the server reads
 //! no metadata key itself. [`ModelProvider`] is the seam between the
 //! service and model execution: the real [`WeightsProvider`] builds
-//! blapose-model's fast engines, tests plug in fakes. A server lifter is
-//! never embedded: it runs only when `--lifter-weights` names a trained file
-//! ([`LoadedLifter`]).
+//! blapose-model's fast engines, tests plug in fakes. The server lifter
+//! ([`LoadedLifter`]) is embedded the same way
+//! (`models/lifter_videopose27_causal.safetensors`, 8.7 MB), so that a
+//! browser or a 2D-only client is served by the no-argument server;
+//! `--lifter-weights` overrides it and `--no-lifter` leaves it out.
 
 use std::collections::HashMap;
-use std::path::Path;
 use std::sync::Arc;
 
 use blapose_lifters::{TrainedLifter, TrainedLifterError};
@@ -87,6 +88,13 @@ embedded_weights!(
     embedded_bigru_rectified,
     blapose_embedded_bigru_rectified,
     "BLAPOSE_EMBEDDED_BIGRU_RECTIFIED"
+);
+
+embedded_weights!(
+    /// The embedded causal lifter, if the build found it.
+    embedded_lifter,
+    blapose_embedded_lifter,
+    "BLAPOSE_EMBEDDED_LIFTER"
 );
 
 /// Which family a model belongs to: the default one, fed keypoints as
@@ -235,21 +243,15 @@ impl LoadedModel {
         kind: ModelKind,
         family: Family,
     ) -> Result<Self, WeightsError> {
-        let (bytes, origin): (std::borrow::Cow<'static, [u8]>, String) = match source {
-            WeightsSource::Embedded => {
-                let (embedded, flag) = family.embedded(kind);
-                let bytes = embedded.ok_or(WeightsError::NotEmbedded { kind, flag })?;
-                (bytes.into(), "embedded".to_string())
-            }
-            WeightsSource::File(path) => {
-                let bytes = std::fs::read(path).map_err(|source| WeightsError::Io {
-                    kind,
-                    path: path.display().to_string(),
-                    source,
-                })?;
-                (bytes.into(), path.display().to_string())
-            }
-        };
+        let (embedded, flag) = family.embedded(kind);
+        let origin = source.origin();
+        let bytes = read_source(source, embedded)
+            .map_err(|e| WeightsError::Io {
+                kind,
+                path: origin.clone(),
+                source: e,
+            })?
+            .ok_or(WeightsError::NotEmbedded { kind, flag })?;
         let weights =
             weights::load_bytes(&bytes, kind).map_err(|source| WeightsError::Invalid {
                 kind,
@@ -307,6 +309,18 @@ impl LoadedModel {
     }
 }
 
+/// The bytes `source` names: the file's, or `embedded` (`None` when the
+/// build had none).
+fn read_source(
+    source: &WeightsSource,
+    embedded: Option<&'static [u8]>,
+) -> std::io::Result<Option<std::borrow::Cow<'static, [u8]>>> {
+    Ok(match source {
+        WeightsSource::Embedded => embedded.map(std::borrow::Cow::Borrowed),
+        WeightsSource::File(path) => Some(std::fs::read(path)?.into()),
+    })
+}
+
 fn sha256_hex(bytes: &[u8]) -> String {
     Sha256::digest(bytes)
         .iter()
@@ -326,26 +340,30 @@ pub struct LoadedLifter {
 }
 
 impl LoadedLifter {
-    /// Read `path` and build the lifter, refusing files that cannot be
-    /// served online (see [`blapose_lifters::trained`]).
-    pub fn load(path: &Path) -> Result<Self, WeightsError> {
-        let origin = path.display().to_string();
-        let invalid = |cause| WeightsError::Lifter {
+    /// The lifter `source` names: the file, read and refused if it cannot
+    /// be served online (see [`blapose_lifters::trained`]), or the embedded
+    /// one (`None` when the build had none).
+    pub fn load(source: &WeightsSource) -> Result<Option<Self>, WeightsError> {
+        let origin = source.origin();
+        let bytes = read_source(source, embedded_lifter()).map_err(|e| WeightsError::Lifter {
+            path: origin.clone(),
+            cause: TrainedLifterError::Io {
+                path: origin.clone().into(),
+                source: e,
+            },
+        })?;
+        let Some(bytes) = bytes else {
+            return Ok(None);
+        };
+        let lifter = TrainedLifter::from_bytes(&bytes).map_err(|cause| WeightsError::Lifter {
             path: origin.clone(),
             cause,
-        };
-        let bytes = std::fs::read(path).map_err(|source| {
-            invalid(TrainedLifterError::Io {
-                path: path.to_path_buf(),
-                source,
-            })
         })?;
-        let lifter = TrainedLifter::from_bytes(&bytes).map_err(invalid)?;
-        Ok(Self {
+        Ok(Some(Self {
             lifter,
             sha256: sha256_hex(&bytes),
             origin,
-        })
+        }))
     }
 
     /// The lifter's name (as `AdjustedFrame.lifter` reports it).

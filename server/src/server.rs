@@ -26,7 +26,7 @@ use tonic_health::ServingStatus;
 
 use crate::auth::BearerAuth;
 use crate::batch::{Batcher, BatcherConfig};
-use crate::config::ServerConfig;
+use crate::config::{ServerConfig, WeightsSource};
 use crate::connection::{self, Http2Settings};
 use crate::error::ServerError;
 use crate::metrics;
@@ -156,8 +156,8 @@ pub async fn spawn_with_provider(
 ) -> Result<ServerHandle, ServerError> {
     let local_addr = listener.local_addr()?;
     // A bad lifter file is a start-up error, before anything is served.
-    let lifter = match config.lifter_weights.clone() {
-        Some(path) => Some(Arc::new(load_lifter(path).await?)),
+    let lifter = match config.lifter.clone() {
+        Some(source) => load_lifter(source).await?.map(Arc::new),
         None => None,
     };
     if let Some(addr) = config.metrics_addr {
@@ -254,7 +254,10 @@ pub async fn spawn_with_provider(
         tls,
         shutdown.clone(),
         protection.max_control_frames_per_second,
-        budget.clone(),
+        transport::ConnectionCost {
+            budget: budget.clone(),
+            bytes: crate::budget::http2_connection_bytes(config.max_concurrent_streams),
+        },
     );
     let settings = Http2Settings {
         max_concurrent_streams: config.max_concurrent_streams,
@@ -325,12 +328,16 @@ async fn sample_budget(state: Arc<AppState>, shutdown: CancellationToken) {
     }
 }
 
-/// Load and log the server lifter (`--lifter-weights`), off the async
-/// workers.
-async fn load_lifter(path: std::path::PathBuf) -> Result<LoadedLifter, ServerError> {
-    let lifter = tokio::task::spawn_blocking(move || LoadedLifter::load(&path))
+/// Load and log the server lifter (embedded or `--lifter-weights`), off
+/// the async workers; `None` when the build embedded none.
+async fn load_lifter(source: WeightsSource) -> Result<Option<LoadedLifter>, ServerError> {
+    let loaded = tokio::task::spawn_blocking(move || LoadedLifter::load(&source))
         .await
         .map_err(|e| ServerError::Task(e.to_string()))??;
+    let Some(lifter) = loaded else {
+        tracing::warn!("no server lifter: this build embedded none and --lifter-weights names none; server_lifter sessions are refused");
+        return Ok(None);
+    };
     tracing::info!(
         lifter = lifter.name(),
         receptive_field = lifter.lifter.receptive_field(),
@@ -339,7 +346,7 @@ async fn load_lifter(path: std::path::PathBuf) -> Result<LoadedLifter, ServerErr
         sha256 = %lifter.sha256,
         "server lifter loaded"
     );
-    Ok(lifter)
+    Ok(Some(lifter))
 }
 
 /// Build and warm up the online backends (and the lifter) off the async

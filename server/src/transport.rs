@@ -48,7 +48,7 @@ use tokio_util::sync::CancellationToken;
 use tonic::transport::server::{Connected, TcpConnectInfo};
 
 use crate::activity::Activity;
-use crate::budget::Budget;
+use crate::budget::{Budget, BudgetConnection};
 use crate::frames::FrameMeter;
 use crate::metrics;
 
@@ -92,6 +92,8 @@ pub enum Refusal {
     Total,
     /// `--max-connections-per-peer`.
     PerPeer,
+    /// `--memory-budget`.
+    MemoryBudget,
 }
 
 impl Refusal {
@@ -100,6 +102,7 @@ impl Refusal {
         match self {
             Refusal::Total => "max_connections",
             Refusal::PerPeer => "max_connections_per_peer",
+            Refusal::MemoryBudget => "memory_budget",
         }
     }
 }
@@ -123,6 +126,7 @@ pub struct ConnectionTable {
 pub struct Permit {
     peer: IpAddr,
     counts: Arc<Mutex<Counts>>,
+    _budget: Option<BudgetConnection>,
 }
 
 impl ConnectionTable {
@@ -134,8 +138,27 @@ impl ConnectionTable {
         }
     }
 
+    /// Admit a connection from `peer` that may hold `bytes` of memory
+    /// ([`crate::budget::http2_connection_bytes`]): within `budget` and
+    /// this table's limits, or say which refuses it. The bytes count in the
+    /// budget as long as the permit lives.
+    pub fn admit_within(
+        &self,
+        peer: IpAddr,
+        budget: &Arc<Budget>,
+        bytes: usize,
+    ) -> Result<Permit, Refusal> {
+        let held = budget
+            .connection(bytes)
+            .map_err(|_| Refusal::MemoryBudget)?;
+        let mut permit = self.admit(peer)?;
+        permit._budget = Some(held);
+        Ok(permit)
+    }
+
     /// Admit a connection from `peer`, or say which limit refuses it.
     pub fn admit(&self, peer: IpAddr) -> Result<Permit, Refusal> {
+        let peer = peer.to_canonical();
         let mut counts = lock(&self.counts);
         if counts.total >= self.limits.max_connections {
             return Err(Refusal::Total);
@@ -161,6 +184,7 @@ impl ConnectionTable {
         Ok(Permit {
             peer,
             counts: self.counts.clone(),
+            _budget: None,
         })
     }
 
@@ -376,6 +400,16 @@ impl AsyncWrite for Conn {
     }
 }
 
+/// The memory budget a listener's connections count in, and the bytes
+/// each may hold ([`crate::budget::http2_connection_bytes`]).
+#[derive(Debug, Clone)]
+pub struct ConnectionCost {
+    /// The server's budget.
+    pub budget: Arc<Budget>,
+    /// What one connection counts in it.
+    pub bytes: usize,
+}
+
 /// The stream of handshaken connections on `listener` that tonic serves.
 /// Accepting stops when `shutdown` is cancelled or the stream is dropped
 /// (the listener closes with it, so new connections are refused).
@@ -387,7 +421,7 @@ pub fn incoming(
     tls: Option<TlsAcceptor>,
     shutdown: CancellationToken,
     control_frames_per_second: u32,
-    budget: Arc<Budget>,
+    cost: ConnectionCost,
 ) -> ReceiverStream<io::Result<Conn>> {
     let (tx, rx) = mpsc::channel(64);
     tokio::spawn(accept_loop(
@@ -397,7 +431,7 @@ pub fn incoming(
         shutdown,
         tx,
         control_frames_per_second,
-        budget,
+        cost,
     ));
     ReceiverStream::new(rx)
 }
@@ -409,7 +443,7 @@ async fn accept_loop(
     shutdown: CancellationToken,
     tx: mpsc::Sender<io::Result<Conn>>,
     control_frames_per_second: u32,
-    budget: Arc<Budget>,
+    cost: ConnectionCost,
 ) {
     let deadline = table.limits.handshake_timeout;
     loop {
@@ -429,13 +463,7 @@ async fn accept_loop(
                 continue;
             }
         };
-        if budget.admit(crate::budget::STREAM_BYTES).is_err() {
-            metrics::connection_refused("memory_budget");
-            tracing::warn!(%peer, "connection refused: --memory-budget reached");
-            drop(tcp);
-            continue;
-        }
-        let permit = match table.admit(peer.ip()) {
+        let permit = match table.admit_within(peer.ip(), &cost.budget, cost.bytes) {
             Ok(permit) => permit,
             Err(refusal) => {
                 metrics::connection_refused(refusal.flag());

@@ -150,7 +150,7 @@ async fn transport_events_are_counted() {
             "blapose_errors_total{code=\"INTERNAL\",rpc=\"AdjustSequence\"} 1",
             "blapose_errors_total{code=\"CANCELLED\",rpc=\"Stream\"}",
             "blapose_connections_closed_total{reason=\"handshake_timeout\"} 1",
-            "blapose_limit{limit=\"max_concurrent_streams\"} 1024",
+            "blapose_limit{limit=\"max_concurrent_streams\"} 100",
             "blapose_limit{limit=\"max_connections_per_peer\"} 3",
             "blapose_connections ",
         ],

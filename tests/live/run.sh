@@ -45,7 +45,8 @@ else
     ffmpeg -loglevel error -y -i "$SOURCE" -t 20 -vf "scale=640:480,fps=30" -pix_fmt yuv420p "$OUT/camera.y4m"
 fi
 
-start_server "$OUT/server.log" --web-addr 127.0.0.1:0 --lifter-weights models/lifter_videopose27_causal.safetensors
+# No lifter flag: the page relies on the server's embedded lifter.
+start_server "$OUT/server.log" --web-addr 127.0.0.1:0
 WEB=
 for _ in $(seq 100); do
     WEB=$(sed -n 's#.*browser transport at http://\(127\.0\.0\.1:[0-9]*\)/.*#\1#p' "$OUT/server.log" | head -n 1)

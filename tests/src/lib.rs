@@ -99,6 +99,8 @@ pub fn test_config() -> ServerConfig {
         max_batch: 32,
         max_queue_delay: Duration::from_millis(1),
         shutdown_grace: Duration::from_secs(10),
+        // No server lifter unless a test asks for one (lifter_config).
+        lifter: None,
         ..ServerConfig::default()
     }
 }
@@ -152,7 +154,7 @@ pub fn centred_lifter_weights_file() -> &'static Path {
 /// [`test_config`] with the test lifter as the server lifter.
 pub fn lifter_config() -> ServerConfig {
     ServerConfig {
-        lifter_weights: Some(lifter_weights_file().to_path_buf()),
+        lifter: Some(WeightsSource::File(lifter_weights_file().to_path_buf())),
         ..test_config()
     }
 }

@@ -50,7 +50,7 @@ pub enum InvalidInput {
     #[error("MODEL_OFFLINE_BIGRU needs the whole sequence; use AdjustSequence, or MODEL_ONLINE_GRU for streaming")]
     OfflineModelOnStream,
     /// `server_lifter` on a server started without a lifter.
-    #[error("server_lifter was requested but this server has no lifter (start it with --lifter-weights FILE); otherwise send pose_3d with every frame")]
+    #[error("server_lifter was requested but this server has no lifter (it was started with --no-lifter, or built without the embedded one: drop the flag or give --lifter-weights FILE); otherwise send pose_3d with every frame")]
     NoServerLifter,
     /// A pose in a session whose poses the server lifts.
     #[error("pose_3d has {got} values, but this session's poses come from the server lifter (it was opened with server_lifter): send keypoints_2d only, with pose_3d empty")]

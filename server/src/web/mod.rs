@@ -13,7 +13,8 @@
 //! A browser is an untrusted peer that may stall or vanish, so this
 //! listener keeps the gRPC listener's bounds: connections are admitted
 //! through the same [`ConnectionTable`] (`--max-connections`,
-//! `--max-connections-per-peer` count both listeners together), a
+//! `--max-connections-per-peer` count both listeners together) and memory
+//! budget (a socket counts as a connection and its one stream), a
 //! connection must send its request head within `--handshake-timeout`,
 //! and the socket itself is bounded by [`socket`] (message size, queues,
 //! pings and an idle timeout). The WebSocket framing is tungstenite's
@@ -39,9 +40,10 @@ use tokio_util::task::TaskTracker;
 use tower::Service;
 
 use crate::auth::BearerAuth;
+use crate::budget::{Budget, WEBSOCKET_CONNECTION_BYTES};
 use crate::metrics;
 use crate::state::AppState;
-use crate::transport::{ConnectionTable, Permit};
+use crate::transport::{canonical_peer, ConnectionTable, Permit};
 
 pub use config::{WebArgs, WebConfig};
 
@@ -81,6 +83,7 @@ pub async fn start(
     })?;
     let local_addr = listener.local_addr()?;
     let tracker = TaskTracker::new();
+    let budget = state.budget.clone();
     let app = Router::new()
         .route(STREAM_PATH, get(socket::upgrade))
         .with_state(Arc::new(socket::Endpoint::new(
@@ -98,6 +101,7 @@ pub async fn start(
         listener,
         app,
         connections,
+        budget,
         handshake_timeout,
         shutdown,
         tracker,
@@ -110,6 +114,7 @@ async fn accept(
     listener: TcpListener,
     app: Router,
     connections: ConnectionTable,
+    budget: Arc<Budget>,
     handshake_timeout: Duration,
     shutdown: CancellationToken,
     tracker: TaskTracker,
@@ -128,10 +133,13 @@ async fn accept(
                 }
             },
         };
-        // Answers are small and latency matters more than packets, as on
-        // the gRPC listener.
+        // As on the gRPC listener: `::ffff:a.b.c.d` is a.b.c.d for every
+        // per-address rule, and answers are small and latency matters more
+        // than packets.
+        let peer = canonical_peer(peer);
         let _ = tcp.set_nodelay(true);
-        let permit = match connections.admit(peer.ip()) {
+        let permit = match connections.admit_within(peer.ip(), &budget, WEBSOCKET_CONNECTION_BYTES)
+        {
             Ok(permit) => Arc::new(permit),
             Err(refusal) => {
                 metrics::connection_refused(refusal.flag());

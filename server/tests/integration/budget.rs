@@ -95,9 +95,10 @@ async fn streams_of_one_address_are_capped_across_its_connections() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn past_the_memory_budget_new_sessions_are_refused_until_some_end() {
-    // 256 KB: about ten attached sessions (8 KB per stream, 16 KB per session state).
+    // 512 KB: the connection (64 KB and 100 pending streams of 2 KB), then
+    // about ten attached sessions (8 KB per stream, 16 KB per session state).
     let server = start(Protection {
-        memory_budget: Some(256 << 10),
+        memory_budget: Some(512 << 10),
         ..Protection::default()
     })
     .await;
@@ -124,9 +125,47 @@ async fn past_the_memory_budget_new_sessions_are_refused_until_some_end() {
     // the streams' share of the budget is free again.
     drop(held);
     tokio::time::sleep(Duration::from_millis(300)).await;
-    let mut info = connect(&server).await;
-    info.model_info(pb::ModelInfoRequest {})
+    client
+        .model_info(pb::ModelInfoRequest {})
         .await
         .expect("served");
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn past_the_memory_budget_new_connections_are_closed_at_accept() {
+    // Room for two connections at what each may hold (itself and 100
+    // pending streams), not three.
+    let each = blapose_server::budget::http2_connection_bytes(100);
+    let server = start(Protection {
+        memory_budget: Some(2 * each + each / 2),
+        ..Protection::default()
+    })
+    .await;
+    let mut first = connect(&server).await;
+    let mut second = connect(&server).await;
+    for client in [&mut first, &mut second] {
+        client
+            .model_info(pb::ModelInfoRequest {})
+            .await
+            .expect("served");
+    }
+    let url = format!("http://{}", server.local_addr());
+    let third = match PoseAdjustmentClient::connect(url.clone()).await {
+        Ok(mut client) => client.model_info(pb::ModelInfoRequest {}).await.err(),
+        Err(e) => Some(tonic::Status::unavailable(e.to_string())),
+    };
+    assert!(
+        third.is_some(),
+        "a third connection was served past the budget"
+    );
+    // A closed connection makes room.
+    drop(first);
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let mut again = connect(&server).await;
+    again
+        .model_info(pb::ModelInfoRequest {})
+        .await
+        .expect("served once a connection closed");
     server.shutdown().await.unwrap();
 }

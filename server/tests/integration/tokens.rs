@@ -40,7 +40,9 @@ fn config(key: Option<&str>) -> ServerConfig {
     ServerConfig {
         session_key: key.map(|k| SessionKey::parse(k).unwrap()),
         token_every: EVERY,
-        lifter_weights: Some(models("lifter_videopose27_causal.safetensors")),
+        lifter: Some(WeightsSource::File(models(
+            "lifter_videopose27_causal.safetensors",
+        ))),
         session_ttl: Duration::from_secs(30),
         ..ServerConfig::default()
     }
@@ -888,7 +890,7 @@ async fn no_chain_of_restores_outlives_the_first_tokens_ttl() {
     let ttl = Duration::from_secs(2);
     let replica = || ServerConfig {
         token_ttl: ttl,
-        lifter_weights: None,
+        lifter: None,
         ..config(Some(KEY))
     };
     let (server_a, mut a) = start(replica()).await;
@@ -942,7 +944,7 @@ async fn churn_forgets_ended_sessions_but_never_revives_them() {
     // the first is forgotten, and its token still refused (issued before
     // the floor the forgetting raised).
     let (server, mut a) = start(ServerConfig {
-        lifter_weights: None,
+        lifter: None,
         protection: blapose_server::protect::Protection {
             max_ended_sessions: 1024,
             ..Default::default()

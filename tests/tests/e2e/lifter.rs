@@ -408,7 +408,7 @@ async fn a_lifter_file_that_cannot_be_served_stops_the_server_at_start_up() {
     ];
     for (path, why) in cases {
         let config = blapose_server::ServerConfig {
-            lifter_weights: Some(path.clone()),
+            lifter: Some(blapose_server::config::WeightsSource::File(path.clone())),
             ..test_config()
         };
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
