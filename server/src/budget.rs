@@ -54,6 +54,19 @@ pub fn http2_connection_bytes(max_concurrent_streams: u32) -> usize {
 /// What one WebSocket connection may hold: itself and its one stream.
 pub const WEBSOCKET_CONNECTION_BYTES: usize = CONNECTION_BYTES + STREAM_BYTES;
 
+/// `max_connections`, lowered so that connections of `per_connection`
+/// bytes hold at most half of `budget`. Past the budget every new
+/// connection is refused, whoever sends it; below half of it the
+/// connection table's fair shares decide (an address holds at most
+/// `total / (k + 1)` with k addresses connected), so a few addresses that
+/// open all they may cannot fill the budget and lock out the next client
+/// (measured with `--memory-budget 256M`: 8 addresses x 512 connections
+/// took it all and a new client's connection was refused), and the other
+/// half stays for sessions and frames.
+pub fn connections_within(budget: usize, max_connections: usize, per_connection: usize) -> usize {
+    max_connections.min((budget / 2 / per_connection.max(1)).max(1))
+}
+
 /// The smallest default budget.
 pub const MIN_DEFAULT_BUDGET: usize = 256 << 20;
 
@@ -69,7 +82,7 @@ pub enum BudgetError {
         budget: usize,
     },
     /// The address has its limit of open streams.
-    #[error("this address already has {limit} streams open across its connections (--max-streams-per-peer); finish or cancel some first")]
+    #[error("this address already has {limit} streams open across its connections (--max-streams-per-peer, or its fair share of the streams --memory-budget allows); finish or cancel some first")]
     PeerStreams {
         /// The limit.
         limit: usize,
@@ -88,6 +101,7 @@ impl BudgetError {
 pub struct Budget {
     budget: usize,
     per_peer: usize,
+    stream_capacity: usize,
     exempt: Vec<IpAddr>,
     streams: AtomicUsize,
     connections: AtomicUsize,
@@ -98,11 +112,17 @@ pub struct Budget {
 impl Budget {
     /// A budget of `budget` bytes, with at most `per_peer` open streams
     /// per address but those in `exempt` (the trusted proxies: a balancer
-    /// carries many clients' streams, and has limits of its own).
+    /// carries many clients' streams, and has limits of its own), and no
+    /// more than a fair share ([`crate::quota::admit`]) of the streams a
+    /// quarter of the budget holds: connections may take half of it
+    /// ([`connections_within`]), so a few addresses holding all the streams
+    /// they may still leave a newcomer its share, and the last quarter to
+    /// sessions and frames.
     pub fn new(budget: usize, per_peer: usize, exempt: Vec<IpAddr>) -> Arc<Self> {
         Arc::new(Self {
             budget,
             per_peer: per_peer.max(1),
+            stream_capacity: (budget / 4 / STREAM_BYTES).max(1),
             exempt: exempt.into_iter().map(|ip| ip.to_canonical()).collect(),
             streams: AtomicUsize::new(0),
             connections: AtomicUsize::new(0),
@@ -150,14 +170,15 @@ impl Budget {
         let peer = peer.filter(|ip| !self.exempt.contains(ip));
         if let Some(ip) = peer {
             let mut peers = self.peers.lock().unwrap_or_else(|p| p.into_inner());
-            let n = peers.entry(ip).or_default();
-            if *n >= self.per_peer {
+            let held = peers.get(&ip).copied().unwrap_or(0);
+            let used = self.streams.load(Ordering::Relaxed);
+            let admitted =
+                crate::quota::admit(self.per_peer, self.stream_capacity, used, peers.len(), held);
+            if let Err(limit) = admitted {
                 crate::metrics::limited("streams_per_peer");
-                return Err(BudgetError::PeerStreams {
-                    limit: self.per_peer,
-                });
+                return Err(BudgetError::PeerStreams { limit });
             }
-            *n += 1;
+            *peers.entry(ip).or_default() += 1;
         }
         self.streams.fetch_add(1, Ordering::Relaxed);
         Ok(BudgetStream {
@@ -278,7 +299,7 @@ mod tests {
 
     #[test]
     fn work_past_the_budget_or_the_peer_share_is_refused_and_freed() {
-        let b = Budget::new(10 * STREAM_BYTES, 4, vec!["10.0.0.9".parse().unwrap()]);
+        let b = Budget::new(40 * STREAM_BYTES, 4, vec!["10.0.0.9".parse().unwrap()]);
         let a: IpAddr = "10.0.0.1".parse().unwrap();
         let held: Vec<_> = (0..4).map(|_| b.stream(Some(a)).unwrap()).collect();
         assert!(matches!(
@@ -286,16 +307,48 @@ mod tests {
             Err(BudgetError::PeerStreams { limit: 4 })
         ));
         let proxy: IpAddr = "10.0.0.9".parse().unwrap();
-        let other: Vec<_> = (0..6).map(|_| b.stream(Some(proxy)).unwrap()).collect();
+        let other: Vec<_> = (0..36).map(|_| b.stream(Some(proxy)).unwrap()).collect();
         assert!(matches!(b.stream(None), Err(BudgetError::Memory { .. })));
         drop(other);
-        b.sample(0, 0, 5 * STREAM_BYTES);
+        b.sample(0, 0, 35 * STREAM_BYTES);
         assert!(b.stream(None).is_ok(), "one fits");
         assert!(b.admit(2 * STREAM_BYTES).is_err());
         drop(held);
         assert!(b.stream(Some(a)).is_ok());
         let e = BudgetError::PeerStreams { limit: 4 };
         assert_eq!(e.to_status().code(), tonic::Code::ResourceExhausted);
+    }
+
+    #[test]
+    fn addresses_holding_all_they_may_leave_a_newcomer_streams() {
+        // A quarter of the budget holds 64 streams; each address may hold
+        // 4,096 but gets no more than its fair share.
+        let b = Budget::new(4 * 64 * STREAM_BYTES, 4096, vec![]);
+        let mut held = Vec::new();
+        for a in 1..=3u8 {
+            let ip = IpAddr::from([10, 0, 0, a]);
+            while let Ok(s) = b.stream(Some(ip)) {
+                held.push(s);
+                assert!(held.len() <= 64, "address {a} was never refused");
+            }
+        }
+        assert!(held.len() < 64, "{} streams held", held.len());
+        // The next address is served (the reserve kept for a client that
+        // holds none), and so is one after it.
+        for a in 4..=5u8 {
+            held.push(
+                b.stream(Some(IpAddr::from([10, 0, 0, a])))
+                    .expect("a newcomer's stream"),
+            );
+        }
+    }
+
+    #[test]
+    fn connections_hold_at_most_half_the_budget() {
+        let each = http2_connection_bytes(100);
+        assert_eq!(connections_within(12 << 30, 4096, each), 4096);
+        assert_eq!(connections_within(256 << 20, 4096, each), 496);
+        assert_eq!(connections_within(1 << 10, 4096, each), 1);
     }
 
     #[test]

@@ -27,8 +27,9 @@
 //! * `--memory-budget`: half the memory the process may use (its cgroup's
 //!   limit, else the machine's), at least 256 MB ([`crate::budget`]);
 //!   `--max-streams-per-peer` 4,096: open streams of one address across
-//!   all its connections (4 x `--max-concurrent-streams`; the load test's
-//!   1,024 streams from one client fit), about 32 MB.
+//!   all its connections (the load test's 1,024 streams from one client
+//!   fit), about 32 MB, and no more than a fair share of a quarter of the
+//!   budget's streams.
 //! * `--max-ended-sessions` 100,000 (a sixteenth, at least 1,024, per
 //!   client): ended sessions remembered so that their tokens do not revive
 //!   them, about 100 bytes each (10 MB); past it the oldest go and a floor

@@ -223,11 +223,12 @@ pub async fn spawn_with_provider(
         .map(transport::tls_acceptor)
         .transpose()
         .map_err(ServerError::Tls)?;
-    export_limits(&config);
+    let connection_limits = connection_limits_within(&config, &budget);
+    export_limits(&config, &connection_limits);
     let protection = config.protection;
     protection.export();
     // One table for both listeners: a peer's connections count together.
-    let connections = transport::ConnectionTable::new(config.connection_limits);
+    let connections = transport::ConnectionTable::new(connection_limits);
     let web = match &config.web {
         Some(web_config) => {
             if config.tls.is_some() {
@@ -416,10 +417,32 @@ async fn routes(
     Ok((health, routes))
 }
 
-/// Export the configured transport limits (`blapose_limit{limit}`, the
+/// The connection limits, `--max-connections` lowered where connections
+/// at what each may hold would pass half the memory budget
+/// ([`crate::budget::connections_within`]; logged when it is).
+fn connection_limits_within(
+    config: &ServerConfig,
+    budget: &crate::budget::Budget,
+) -> transport::ConnectionLimits {
+    let mut limits = config.connection_limits;
+    let each = crate::budget::http2_connection_bytes(config.max_concurrent_streams);
+    let within = crate::budget::connections_within(budget.budget(), limits.max_connections, each);
+    if within < limits.max_connections {
+        tracing::warn!(
+            max_connections = within,
+            configured = limits.max_connections,
+            connection_kb = each >> 10,
+            "--max-connections lowered: connections may hold at most half of --memory-budget"
+        );
+        limits.max_connections = within;
+        limits.max_connections_per_peer = limits.max_connections_per_peer.min(within);
+    }
+    limits
+}
+
+/// Export the transport limits in force (`blapose_limit{limit}`, the
 /// gauge the per-client limits share; the handshake timeout in ms).
-fn export_limits(config: &ServerConfig) {
-    let c = &config.connection_limits;
+fn export_limits(config: &ServerConfig, c: &transport::ConnectionLimits) {
     metrics::limit(
         "max_concurrent_streams",
         config.max_concurrent_streams as usize,

@@ -272,6 +272,7 @@ pub(crate) struct Victim {
     header: Option<String>,
     pid: u32,
     baseline: Vec<Duration>,
+    floor: Duration,
     rss_before: u64,
     peak: PeakRss,
 }
@@ -291,15 +292,29 @@ impl Victim {
             header: header.map(str::to_owned),
             pid,
             baseline,
+            floor: P99_FLOOR,
             rss_before,
             peak: PeakRss::start(pid, rss_before),
         })
     }
 
+    /// The same with another least p99 bound than [`P99_FLOOR`].
+    pub(crate) fn with_floor(self, floor: Duration) -> Self {
+        Self { floor, ..self }
+    }
+
     /// The healthy client under the abuse now running: a new connection
     /// and session each time, so a new client must be served.
     pub(crate) async fn during(&self) -> Latency {
-        Latency(check_latency(&self.url, self.header.as_deref(), &self.baseline).await)
+        Latency(
+            check_latency(
+                &self.url,
+                self.header.as_deref(),
+                &self.baseline,
+                self.floor,
+            )
+            .await,
+        )
     }
 
     /// The healthy client's check, then the server's peak memory growth
@@ -374,14 +389,16 @@ pub(crate) const P99_FLOOR: Duration = Duration::from_millis(5);
 pub(crate) const TRIES: usize = 3;
 
 /// The healthy client under abuse, measured until one p99 is within the
-/// bound (at most [`TRIES`] times); the check of the best measurement.
+/// bound, twice the baseline's or `floor` (at most [`TRIES`] times); the
+/// check of the best measurement.
 pub(crate) async fn check_latency(
     url: &str,
     header: Option<&str>,
     baseline: &[Duration],
+    floor: Duration,
 ) -> Result<()> {
     let base = p99(baseline);
-    let bound = (2 * base).max(P99_FLOOR);
+    let bound = (2 * base).max(floor);
     let ms = |d: Duration| d.as_secs_f64() * 1e3;
     let mut seen = Vec::new();
     for _ in 0..TRIES {

@@ -211,6 +211,12 @@ enum Case {
         /// The server's --max-sessions.
         #[arg(long)]
         max_sessions: usize,
+        /// The least p99 bound for the healthy client, ms: the slow
+        /// readers' frames keep the server's one batcher busy, and a new
+        /// client's frame waits for the batch in progress and runs in the
+        /// next (sources::shares).
+        #[arg(long, default_value_t = 5)]
+        p99_floor_ms: u64,
     },
     /// One client opening and closing sessions as fast as it can.
     Churn {
@@ -422,7 +428,11 @@ async fn main() -> Result<()> {
             target: Target { server, server_pid },
             addresses,
             max_sessions,
-        } => sources::shares(server, *server_pid, *addresses, *max_sessions).await?,
+            p99_floor_ms,
+        } => {
+            let floor = Duration::from_millis(*p99_floor_ms);
+            sources::shares(server, *server_pid, *addresses, *max_sessions, floor).await?
+        }
         Case::Churn {
             target: Target { server, server_pid },
             sessions,

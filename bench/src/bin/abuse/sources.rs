@@ -9,8 +9,9 @@
 //! - `shares`: every address opens sessions as fast as it can and holds
 //!   them, then floods frames on them without reading an answer (slow
 //!   readers). The fair shares (`total / (k + 1)` with k clients holding
-//!   some) leave room for a new client, and the per-client frame queue
-//!   keeps the slow readers' frames from delaying it.
+//!   some) leave room for a new client, the per-client frame queue keeps
+//!   the slow readers' frames from filling the queue, and the batcher's
+//!   turns between clients put its frames in the next batch.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -110,11 +111,17 @@ pub(crate) async fn pending(
 /// new client, which must open its session and keep its latency);
 /// `total` is the server's `--max-sessions`: each address must be refused
 /// at some point and all of them together leave room.
-pub(crate) async fn shares(url: &str, pid: u32, addresses: usize, total: usize) -> Result<()> {
+pub(crate) async fn shares(
+    url: &str,
+    pid: u32,
+    addresses: usize,
+    total: usize,
+    p99_floor: Duration,
+) -> Result<()> {
     println!(
         "case shares: {addresses} addresses each hold as many of {total} sessions as they can, then read slowly"
     );
-    let victim = Victim::before(url, None, pid).await?;
+    let victim = Victim::before(url, None, pid).await?.with_floor(p99_floor);
     let frames = Arc::new(frames()?.1);
     let stop = Arc::new(AtomicBool::new(false));
     let mut attackers = Vec::new();
