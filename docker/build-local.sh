@@ -385,6 +385,10 @@ ensure_bases
 
 build_args=(--build-arg "RUST_IMAGE=$rust_image")
 [[ -n $runtime_image ]] && build_args+=(--build-arg "RUNTIME_IMAGE=$runtime_image")
+# The web stage's npm reads the registry this machine's npm uses (none named
+# here: npm's own default where it has none).
+npm_registry=$(npm config get registry 2>/dev/null || true)
+[[ -n $npm_registry ]] && build_args+=(--build-arg "NPM_CONFIG_REGISTRY=$npm_registry")
 engine_args=(--network host -f docker/Dockerfile -t "$tag")
 [[ $no_cache -eq 1 ]] && engine_args+=(--no-cache)
 if [[ $engine == podman ]]; then

@@ -209,9 +209,10 @@ echo "image $image ($image_size_mb MB), engine: $("$engine" --version)"
 # 1. plaintext
 log "plaintext run"
 t0=$(now)
-start "$run_id-plain"
+start "$run_id-plain" -p 127.0.0.1::8080 -e BLAPOSE_WEB_ADDR=0.0.0.0:8080
 c="$run_id-plain"
 grpc_port=$(host_port "$c" 50051)
+web_port=$(host_port "$c" 8080)
 metrics_port=$(host_port "$c" 9090)
 echo "  ports: gRPC 127.0.0.1:$grpc_port, metrics 127.0.0.1:$metrics_port"
 
@@ -236,6 +237,14 @@ metrics_ok=false
 if have curl; then
     curl -fsS "http://127.0.0.1:$metrics_port/metrics" 2>/dev/null | grep -q '^blapose_' && metrics_ok=true
     check "metrics on the published port" $([[ $metrics_ok == true ]]; echo $?)
+fi
+
+web_ok=false
+if have curl; then
+    curl -fsS "http://127.0.0.1:$web_port/" 2>/dev/null | grep -q '<title>blapose live' \
+        && curl -fsS -o /dev/null "http://127.0.0.1:$web_port/vendor/mediapipe/pose_landmarker_lite.task" \
+        && web_ok=true
+    check "the live page on the published port (--web-addr, the image's web/dist)" $([[ $web_ok == true ]]; echo $?)
 fi
 
 stop_ok=false; stop_s=null
@@ -286,7 +295,7 @@ echo
 echo "summary: image ${image_size_mb} MB, healthy after ${health_s}s, replay $replay_ok, uid $uid, TLS $tls_ok, stop ${stop_s}s / ${tls_stop_s}s (TLS)"
 if [[ -n $json_out ]]; then
     cat >"$json_out" <<EOF
-{"image":"$image","engine":"$engine","image_size_mb":$image_size_mb,"health_s":$health_s,"image_healthcheck_ok":$image_hc_ok,"uid_ok":$uid_ok,"replay_ok":$replay_ok,"metrics_ok":$metrics_ok,"stop_s":$stop_s,"stop_ok":$stop_ok,"tls_ok":$tls_ok,"tls_health_s":$tls_health_s,"tls_stop_s":$tls_stop_s,"tls_stop_ok":$tls_stop_ok,"failures":${#failures[@]}}
+{"image":"$image","engine":"$engine","image_size_mb":$image_size_mb,"health_s":$health_s,"image_healthcheck_ok":$image_hc_ok,"uid_ok":$uid_ok,"replay_ok":$replay_ok,"metrics_ok":$metrics_ok,"web_ok":$web_ok,"stop_s":$stop_s,"stop_ok":$stop_ok,"tls_ok":$tls_ok,"tls_health_s":$tls_health_s,"tls_stop_s":$tls_stop_s,"tls_stop_ok":$tls_stop_ok,"failures":${#failures[@]}}
 EOF
     echo "wrote $json_out"
 fi
