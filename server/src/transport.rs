@@ -49,7 +49,7 @@ use tonic::transport::server::{Connected, TcpConnectInfo};
 
 use crate::activity::Activity;
 use crate::budget::{Budget, BudgetConnection};
-use crate::frames::FrameMeter;
+use crate::frames::{FrameMeter, Refusals};
 use crate::metrics;
 
 /// TLS certificate chain and private key, both PEM files.
@@ -292,6 +292,7 @@ pub struct Conn {
     info: TcpConnectInfo,
     activity: Arc<Activity>,
     meter: FrameMeter,
+    refusals: Refusals,
     _permit: Permit,
 }
 
@@ -355,16 +356,31 @@ impl AsyncRead for Conn {
     }
 }
 
+/// Count the streams h2 refused in `written`, the bytes a connection
+/// wrote ([`Refusals`]), as refusals by `--max-concurrent-streams`.
+fn count_refusals<'a>(refusals: &mut Refusals, written: impl Iterator<Item = &'a [u8]>) {
+    for bytes in written {
+        for _ in 0..refusals.observe(bytes) {
+            metrics::limited("max_concurrent_streams");
+        }
+    }
+}
+
 impl AsyncWrite for Conn {
     fn poll_write(
         mut self: Pin<&mut Self>,
         cx: &mut Context<'_>,
         buf: &[u8],
     ) -> Poll<io::Result<usize>> {
-        match &mut self.io {
+        let this = &mut *self;
+        let written = match &mut this.io {
             Io::Plain(s) => Pin::new(s).poll_write(cx, buf),
             Io::Tls(s) => Pin::new(s.as_mut()).poll_write(cx, buf),
+        };
+        if let Poll::Ready(Ok(n)) = written {
+            count_refusals(&mut this.refusals, std::iter::once(&buf[..n]));
         }
+        written
     }
 
     fn poll_write_vectored(
@@ -372,10 +388,20 @@ impl AsyncWrite for Conn {
         cx: &mut Context<'_>,
         bufs: &[io::IoSlice<'_>],
     ) -> Poll<io::Result<usize>> {
-        match &mut self.io {
+        let this = &mut *self;
+        let written = match &mut this.io {
             Io::Plain(s) => Pin::new(s).poll_write_vectored(cx, bufs),
             Io::Tls(s) => Pin::new(s.as_mut()).poll_write_vectored(cx, bufs),
+        };
+        if let Poll::Ready(Ok(mut n)) = written {
+            let slices = bufs.iter().map(|b| {
+                let take = n.min(b.len());
+                n -= take;
+                &b[..take]
+            });
+            count_refusals(&mut this.refusals, slices);
         }
+        written
     }
 
     fn is_write_vectored(&self) -> bool {
@@ -489,6 +515,7 @@ async fn accept_loop(
                         info,
                         activity: Arc::new(Activity::new()),
                         meter: FrameMeter::new(control_frames_per_second),
+                        refusals: Refusals::default(),
                         _permit: permit,
                     };
                     let _ = tx.send(Ok(conn)).await;

@@ -1,8 +1,8 @@
 //! What the Prometheus exporter says about transport-level events: errors
 //! that tonic answers before a handler runs (an undecodable AdjustSequence
 //! request), client cancels (CANCELLED, not FAILED_PRECONDITION),
-//! connections refused by a limit or closed before HTTP/2, and the limits
-//! in force. Its own test binary: the recorder is process-global.
+//! connections refused by a limit or closed before HTTP/2, streams h2
+//! refuses by itself, and the limits in force. Its own test binary: the recorder is process-global.
 
 use blapose_test_support::h2raw;
 
@@ -91,6 +91,25 @@ async fn transport_events_are_counted() {
     let mut cancel = h2raw::frame(h2raw::HEADERS, h2raw::END_HEADERS, 3, &headers);
     cancel.extend(h2raw::frame(h2raw::RST_STREAM, 0, 3, &8u32.to_be_bytes()));
     s.write_all(&cancel).await.unwrap();
+
+    // Streams past --max-concurrent-streams (100) on that connection: h2
+    // refuses the 101st itself (RST_STREAM REFUSED_STREAM), no handler
+    // sees it, and it is counted.
+    let mut flood = Vec::new();
+    for i in 0..101u32 {
+        flood.extend(h2raw::frame(
+            h2raw::HEADERS,
+            h2raw::END_HEADERS,
+            5 + 2 * i,
+            &headers,
+        ));
+    }
+    s.write_all(&flood).await.unwrap();
+    let refused = h2raw::wait_for(&mut s, WAIT, |f| {
+        f.kind == h2raw::RST_STREAM && f.error_code() == Some(7)
+    })
+    .await;
+    assert!(refused.is_some(), "the 101st stream was refused");
     let mut client =
         pb::pose_adjustment_client::PoseAdjustmentClient::connect(format!("http://{addr}"))
             .await
@@ -151,6 +170,7 @@ async fn transport_events_are_counted() {
             "blapose_errors_total{code=\"CANCELLED\",rpc=\"Stream\"}",
             "blapose_connections_closed_total{reason=\"handshake_timeout\"} 1",
             "blapose_limit{limit=\"max_concurrent_streams\"} 100",
+            "blapose_limited_total{limit=\"max_concurrent_streams\"} 1",
             "blapose_limit{limit=\"max_connections_per_peer\"} 3",
             "blapose_connections ",
         ],
