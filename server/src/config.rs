@@ -89,6 +89,8 @@ pub struct ServerConfig {
     pub session_ttl: Duration,
     /// Maximum frames per batched GRU step.
     pub max_batch: usize,
+    /// Maximum frames per step while frames of more than one client wait.
+    pub max_mixed_batch: usize,
     /// Longest time the batcher waits for more sessions' frames before it
     /// runs a partial batch.
     pub max_queue_delay: Duration,
@@ -162,6 +164,7 @@ impl Default for ServerConfig {
             max_sessions: DEFAULT_MAX_SESSIONS,
             session_ttl: Duration::from_secs(DEFAULT_SESSION_TTL_S),
             max_batch: DEFAULT_MAX_BATCH,
+            max_mixed_batch: DEFAULT_MAX_MIXED_BATCH,
             max_queue_delay: Duration::from_micros(DEFAULT_MAX_QUEUE_DELAY_US),
             queue_capacity: DEFAULT_QUEUE_CAPACITY,
             open_timeout: Duration::from_secs(DEFAULT_OPEN_TIMEOUT_S),
@@ -199,6 +202,11 @@ const DEFAULT_MAX_FRAMES_PER_SESSION: usize = 128;
 const DEFAULT_MAX_SESSIONS: usize = 4096;
 const DEFAULT_SESSION_TTL_S: u64 = 60;
 const DEFAULT_MAX_BATCH: usize = 64;
+// A step of 16 frames takes a quarter of one of 64 and the server made the
+// same frames/s with either (bench loadtest, 256 streams, 2-core EPYC: 20.1k
+// at 16, 32 and 64); beside 8 saturating clients a new client's p50 went
+// from 6.4 to 1.7 ms (tests/abuse/README.md, shares8).
+const DEFAULT_MAX_MIXED_BATCH: usize = 16;
 const DEFAULT_MAX_QUEUE_DELAY_US: u64 = 1000;
 const DEFAULT_QUEUE_CAPACITY: usize = 8192;
 const DEFAULT_MAX_INFLIGHT: usize = 64;
@@ -289,6 +297,13 @@ pub struct Cli {
     #[arg(long, env = "BLAPOSE_MAX_BATCH", default_value_t = DEFAULT_MAX_BATCH,
           value_parser = clap::value_parser!(u32).range(1..=4096).map(|v| v as usize))]
     pub max_batch: usize,
+
+    /// Maximum frames per batched step while frames of more than one client are waiting:
+    /// a client's frame then waits for short steps of the others (default 16, at most
+    /// --max-batch).
+    #[arg(long, env = "BLAPOSE_MAX_MIXED_BATCH", default_value_t = DEFAULT_MAX_MIXED_BATCH,
+          value_parser = clap::value_parser!(u32).range(1..=4096).map(|v| v as usize))]
+    pub max_mixed_batch: usize,
 
     /// Longest wait for more sessions' frames before running a partial batch (e.g. 1ms, 500us, 0).
     #[arg(long, env = "BLAPOSE_MAX_QUEUE_DELAY", default_value = "1ms", value_parser = parse_duration)]
@@ -512,6 +527,7 @@ impl Cli {
             max_sessions: self.max_sessions,
             session_ttl: self.session_ttl,
             max_batch: self.max_batch,
+            max_mixed_batch: self.max_mixed_batch,
             max_queue_delay: self.max_queue_delay,
             queue_capacity: self.queue_capacity,
             open_timeout: self.open_timeout,
@@ -601,6 +617,7 @@ mod tests {
         assert_eq!(cfg.max_sessions, def.max_sessions);
         assert_eq!(cfg.session_ttl, def.session_ttl);
         assert_eq!(cfg.max_batch, def.max_batch);
+        assert_eq!(cfg.max_mixed_batch, def.max_mixed_batch);
         assert_eq!(cfg.max_queue_delay, def.max_queue_delay);
         assert_eq!(cfg.queue_capacity, def.queue_capacity);
         assert_eq!(cfg.max_inflight_per_stream, def.max_inflight_per_stream);

@@ -122,6 +122,7 @@ impl Backend for Fake {
 pub(crate) fn config(max_batch: usize, delay_ms: u64, capacity: usize) -> BatcherConfig {
     BatcherConfig {
         max_batch,
+        max_mixed_batch: max_batch,
         max_queue_delay: Duration::from_millis(delay_ms),
         queue_capacity: capacity,
     }

@@ -359,6 +359,7 @@ async fn start_batcher(
 ) -> Result<Batcher, ServerError> {
     let batcher_config = BatcherConfig {
         max_batch: config.max_batch.max(1),
+        max_mixed_batch: config.max_mixed_batch.clamp(1, config.max_batch.max(1)),
         max_queue_delay: config.max_queue_delay,
         queue_capacity: config.queue_capacity.max(1),
     };
