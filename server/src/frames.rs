@@ -107,6 +107,16 @@ impl Refusals {
         });
         refused
     }
+
+    /// Count the streams refused in `written`, the bytes just written, in
+    /// `blapose_limited_total{limit="max_concurrent_streams"}`.
+    pub fn count<'a>(&mut self, written: impl Iterator<Item = &'a [u8]>) {
+        for bytes in written {
+            for _ in 0..self.observe(bytes) {
+                crate::metrics::limited("max_concurrent_streams");
+            }
+        }
+    }
 }
 
 /// Follows one connection's incoming frames and counts its control frames.

@@ -356,16 +356,6 @@ impl AsyncRead for Conn {
     }
 }
 
-/// Count the streams h2 refused in `written`, the bytes a connection
-/// wrote ([`Refusals`]), as refusals by `--max-concurrent-streams`.
-fn count_refusals<'a>(refusals: &mut Refusals, written: impl Iterator<Item = &'a [u8]>) {
-    for bytes in written {
-        for _ in 0..refusals.observe(bytes) {
-            metrics::limited("max_concurrent_streams");
-        }
-    }
-}
-
 impl AsyncWrite for Conn {
     fn poll_write(
         mut self: Pin<&mut Self>,
@@ -378,7 +368,7 @@ impl AsyncWrite for Conn {
             Io::Tls(s) => Pin::new(s.as_mut()).poll_write(cx, buf),
         };
         if let Poll::Ready(Ok(n)) = written {
-            count_refusals(&mut this.refusals, std::iter::once(&buf[..n]));
+            this.refusals.count(std::iter::once(&buf[..n]));
         }
         written
     }
@@ -399,7 +389,7 @@ impl AsyncWrite for Conn {
                 n -= take;
                 &b[..take]
             });
-            count_refusals(&mut this.refusals, slices);
+            this.refusals.count(slices);
         }
         written
     }
