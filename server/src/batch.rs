@@ -546,52 +546,28 @@ mod tests {
             queue_capacity: 100,
         };
         let at = |elapsed: u64| t0 + ms(elapsed);
+        let full = |ready, streams, closed, oldest, now| {
+            gather(&cfg, cfg.max_batch, ready, streams, closed, oldest, now)
+        };
         // A lone stream never waits, however long the delay.
-        assert_eq!(
-            gather(&cfg, cfg.max_batch, 1, 1, false, t0, t0),
-            Gather::Run
-        );
-        assert_eq!(
-            gather(&cfg, cfg.max_batch, 1, 0, false, t0, t0),
-            Gather::Run
-        );
+        assert_eq!(full(1, 1, false, t0, t0), Gather::Run);
+        assert_eq!(full(1, 0, false, t0, t0), Gather::Run);
         // Two streams, one frame: wait for the other up to the delay ...
-        assert_eq!(
-            gather(&cfg, cfg.max_batch, 1, 2, false, t0, t0),
-            Gather::WaitUntil(at(200))
-        );
-        assert_eq!(
-            gather(&cfg, cfg.max_batch, 1, 2, false, t0, at(199)),
-            Gather::WaitUntil(at(200))
-        );
+        assert_eq!(full(1, 2, false, t0, t0), Gather::WaitUntil(at(200)));
+        assert_eq!(full(1, 2, false, t0, at(199)), Gather::WaitUntil(at(200)));
         // ... and no longer.
-        assert_eq!(
-            gather(&cfg, cfg.max_batch, 1, 2, false, t0, at(200)),
-            Gather::Run
-        );
-        assert_eq!(
-            gather(&cfg, cfg.max_batch, 1, 2, false, t0, at(5000)),
-            Gather::Run
-        );
+        assert_eq!(full(1, 2, false, t0, at(200)), Gather::Run);
+        assert_eq!(full(1, 2, false, t0, at(5000)), Gather::Run);
         // Every stream has a frame: go.
-        assert_eq!(
-            gather(&cfg, cfg.max_batch, 2, 2, false, t0, at(1)),
-            Gather::Run
-        );
+        assert_eq!(full(2, 2, false, t0, at(1)), Gather::Run);
         // More streams than a batch holds: a full batch goes.
-        assert_eq!(
-            gather(&cfg, cfg.max_batch, 4, 100, false, t0, at(1)),
-            Gather::Run
-        );
-        assert_eq!(
-            gather(&cfg, cfg.max_batch, 3, 100, false, t0, at(1)),
-            Gather::WaitUntil(at(200))
-        );
+        assert_eq!(full(4, 100, false, t0, at(1)), Gather::Run);
+        assert_eq!(full(3, 100, false, t0, at(1)), Gather::WaitUntil(at(200)));
         // Closing: the queue drains without waiting.
-        assert_eq!(gather(&cfg, cfg.max_batch, 1, 2, true, t0, t0), Gather::Run);
+        assert_eq!(full(1, 2, true, t0, t0), Gather::Run);
         // The deadline counts from the oldest frame, not from now.
         assert_eq!(
-            gather(&cfg, cfg.max_batch, 1, 2, false, at(150), at(300)),
+            full(1, 2, false, at(150), at(300)),
             Gather::WaitUntil(at(350))
         );
     }
