@@ -2,7 +2,8 @@
 // (--use-file-for-fake-video-capture), lets it run, and checks what a person in
 // front of a webcam would see: the person detected, the server answering every
 // frame sent, the bone lengths settled, the skeleton drawn, no page errors and
-// no request leaving the server. Prints window.blapose.stats as JSON.
+// no request leaving the server, and the take downloads as BVH, C3D, TRC and a
+// replay file. Prints window.blapose.stats as JSON.
 //
 //   node check_live.mjs URL VIDEO.y4m SCREENSHOT.png [SECONDS]
 import { chromium } from "playwright-core";
@@ -52,6 +53,20 @@ const inked = await page.evaluate(() => {
   for (let i = 0; i < d.length; i += 4) if (d[i] + d[i + 1] + d[i + 2] < 300) n++;
   return n;
 });
+// The take as files, from the page's own download path (the server's writers).
+const files = await page.evaluate(async () => {
+  const out = {};
+  for (const format of ["bvh", "c3d", "trc", "npz"]) {
+    try {
+      const blob = await window.blapose.exportTake(format);
+      const head = new Uint8Array(await blob.slice(0, 16).arrayBuffer());
+      out[format] = { bytes: blob.size, head: String.fromCharCode(...head), key: head[1] };
+    } catch (e) {
+      out[format] = { error: e.message };
+    }
+  }
+  return out;
+});
 await browser.close();
 
 console.log(JSON.stringify(stats));
@@ -64,6 +79,11 @@ check(stats.latency_p99_ms != null && stats.latency_p99_ms <= maxP99, `capture-t
 check(stats.lengths_std_mm_last_50 != null && stats.lengths_std_mm_last_50 <= 1, `bone lengths' std over the last 50 frames ${stats.lengths_std_mm_last_50} mm (at most 1)`);
 check(Array.isArray(stats.lengths_m) && stats.lengths_m.length === 16, "no bone lengths");
 check(inked > 300, `the 3D view shows no skeleton (${inked} dark pixels)`);
+console.log(JSON.stringify(files));
+check(files.bvh.head?.startsWith("HIERARCHY"), `the take as BVH: ${JSON.stringify(files.bvh)}`);
+check(files.c3d.key === 0x50 && files.c3d.bytes > 512, `the take as C3D: ${JSON.stringify(files.c3d)}`);
+check(files.trc.head?.startsWith("PathFileType"), `the take as TRC: ${JSON.stringify(files.trc)}`);
+check(files.npz.head?.startsWith("PK"), `the take as a replay file: ${JSON.stringify(files.npz)}`);
 check(!foreign.length, `requests leaving the server: ${foreign.join(", ")}`);
 check(!problems.length, problems.join("\n  "));
 if (failures.length) {

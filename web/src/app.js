@@ -34,7 +34,13 @@ const stats = {
   motion: false,
 };
 let paused = false;
-window.blapose = { stats, pause: () => { paused = true; }, resume: () => { paused = false; } };
+window.blapose = {
+  stats,
+  pause: () => { paused = true; },
+  resume: () => { paused = false; },
+  // The take as a file (bvh, c3d, trc or npz), written by the server: a Blob.
+  exportTake: (format) => exportTake(format),
+};
 
 const statusEl = document.getElementById("status");
 const status = (text) => { statusEl.textContent = text; };
@@ -74,6 +80,7 @@ function connect() {
   opened = false;
   sentAt.clear(); sentTime.clear();
   const socket = ws;
+  take.clear();
   ws.onopen = () => socket.send(encode({
     open: {
       input_format: { layout: 3, image_size: { width: W, height: H } }, // COCO-17, pixels
@@ -107,6 +114,56 @@ document.getElementById("person").addEventListener("submit", (ev) => {
   old.close();
 });
 
+// ---- the take: what was sent and answered, for the download --------------------------------
+// The last TAKE_FRAMES answered frames of this session (5 minutes at 30 frames/s, the size the
+// server's export takes): the keypoints sent, the server lifter's poses, the adjusted poses and
+// the last bone lengths. The server writes the file with the CLI's and Python's writers.
+const TAKE_FRAMES = 9000;
+const take = {
+  pending: new Map(), frames: [], lengths: null,
+  clear() { this.pending.clear(); this.frames = []; this.lengths = null; },
+  sent(index, kp, conf) { this.pending.set(index, { kp, conf }); },
+  add(f) {
+    const s = this.pending.get(f.frame_index);
+    this.pending.delete(f.frame_index);
+    if (!s || f.lifted_pose_3d.length !== 51 || f.adjusted_pose_3d.length !== 51) return;
+    this.frames.push({ kp: s.kp, conf: s.conf, lifted: f.lifted_pose_3d, adjusted: f.adjusted_pose_3d });
+    if (this.frames.length > TAKE_FRAMES) this.frames.shift();
+    this.lengths = f.bone_lengths;
+  },
+};
+async function exportTake(format) {
+  if (!take.frames.length) throw new Error("nothing to download yet: no frame answered");
+  const body = JSON.stringify({
+    fps: 30, layout: "coco17", image_size: [W, H],
+    keypoints_2d: take.frames.flatMap((f) => f.kp),
+    confidence: take.frames.flatMap((f) => f.conf),
+    pose_3d: take.frames.flatMap((f) => f.lifted),
+    adjusted: take.frames.flatMap((f) => f.adjusted),
+    bone_lengths: take.lengths,
+  });
+  const token = new URLSearchParams(location.search).get("token");
+  const url = `/v1/export/${format}` + (token ? `?token=${encodeURIComponent(token)}` : "");
+  const res = await fetch(url, { method: "POST", headers: { "content-type": "application/json" }, body });
+  if (!res.ok) throw new Error(`${res.status}: ${await res.text()}`);
+  return res.blob();
+}
+document.getElementById("download").addEventListener("submit", async (ev) => {
+  ev.preventDefault();
+  const format = document.getElementById("format").value;
+  try {
+    const blob = await exportTake(format);
+    const a = document.createElement("a");
+    a.href = URL.createObjectURL(blob);
+    a.download = `blapose-take.${format}`;
+    a.click();
+    setTimeout(() => URL.revokeObjectURL(a.href), 10000);
+    document.getElementById("download-status").textContent = `${take.frames.length} frames, ${blob.size} bytes`;
+  } catch (e) {
+    document.getElementById("download-status").textContent = e.message;
+  }
+});
+
 // ---- answers -------------------------------------------------------------------------------
 const latencies = [], answeredAt = [], lengthHistory = [];
 // Where the time goes: stats.<name>_ms_p50 / _p99 over the last 300 frames.
@@ -138,6 +195,7 @@ function answer(msg) {
   }
   if (!msg.frame) return;
   const f = msg.frame, now = performance.now();
+  take.add(f);
   const t0 = sentAt.get(f.frame_index);
   sentAt.delete(f.frame_index);
   stats.frames_answered++;
@@ -186,6 +244,7 @@ function onPose(lm, captureTime) {
   const index = nextIndex++;
   sentAt.set(index, captureTime);
   sentTime.set(index, performance.now());
+  take.sent(index, kp, conf);
   ws.send(encode({ frame: { frame_index: index, keypoints_2d: kp, confidence: conf } }));
   stats.frames_sent++;
 }

@@ -384,7 +384,27 @@ pub fn write_npz(path: impl AsRef<Path>, npz: &Npz) -> Result<(), NpzError> {
         source,
     };
     let file = File::create(path).map_err(io)?;
-    let mut zip = zip::ZipWriter::new(BufWriter::new(file));
+    let mut inner = write_npz_to(BufWriter::new(file), npz).map_err(|e| match e {
+        NpzError::Io { source, .. } => io(source),
+        NpzError::Zip { source, .. } => zip_err(source),
+        e => e,
+    })?;
+    inner.flush().map_err(io)
+}
+
+/// [`write_npz`] into `out` (e.g. a `Cursor<Vec<u8>>` for bytes in
+/// memory); `out` back once the archive is finished.
+pub fn write_npz_to<W: Write + std::io::Seek>(out: W, npz: &Npz) -> Result<W, NpzError> {
+    let path = Path::new("<memory>");
+    let io = |source| NpzError::Io {
+        path: path.to_owned(),
+        source,
+    };
+    let zip_err = |source| NpzError::Zip {
+        path: path.to_owned(),
+        source,
+    };
+    let mut zip = zip::ZipWriter::new(out);
     let options = zip::write::SimpleFileOptions::default()
         .compression_method(zip::CompressionMethod::Deflated)
         .large_file(
@@ -397,8 +417,7 @@ pub fn write_npz(path: impl AsRef<Path>, npz: &Npz) -> Result<(), NpzError> {
             .map_err(zip_err)?;
         zip.write_all(&npy_bytes(array)).map_err(io)?;
     }
-    let mut inner = zip.finish().map_err(zip_err)?;
-    inner.flush().map_err(io)
+    zip.finish().map_err(zip_err)
 }
 
 #[cfg(test)]

@@ -8,7 +8,8 @@
 //! is served by the same handler ([`crate::stream::run`]), so validation,
 //! the pipeline, the per-client limits, auth, metrics and session tokens
 //! are the gRPC ones by construction, not by copy. [`socket`] adapts a
-//! WebSocket to that handler; [`page`] serves the built page.
+//! WebSocket to that handler; [`page`] serves the built page; [`export`]
+//! turns the page's take into a BVH, C3D, TRC or replay file.
 //!
 //! A browser is an untrusted peer that may stall or vanish, so this
 //! listener keeps the gRPC listener's bounds: connections are admitted
@@ -21,15 +22,18 @@
 //! (through axum); nothing here parses HTTP or WebSocket bytes.
 
 pub mod config;
+pub mod export;
 mod page;
 mod socket;
+pub mod token;
 
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
 use axum::extract::ConnectInfo;
-use axum::routing::get;
+use axum::extract::DefaultBodyLimit;
+use axum::routing::{get, post};
 use axum::Router;
 use hyper::body::Incoming;
 use hyper_util::rt::{TokioIo, TokioTimer};
@@ -49,6 +53,9 @@ pub use config::{WebArgs, WebConfig};
 
 /// Where the WebSocket is served.
 pub const STREAM_PATH: &str = "/v1/stream";
+
+/// Where the page posts a take to get it back as a file ([`export`]).
+pub const EXPORT_PATH: &str = "/v1/export/{format}";
 
 /// The WebSocket subprotocol clients offer (and the server selects).
 pub const PROTOCOL: &str = "blapose.v1";
@@ -84,6 +91,12 @@ pub async fn start(
     let local_addr = listener.local_addr()?;
     let tracker = TaskTracker::new();
     let budget = state.budget.clone();
+    let exports = Router::new()
+        .route(
+            EXPORT_PATH,
+            post(export::export).layer(DefaultBodyLimit::max(export::MAX_TAKE_BYTES)),
+        )
+        .with_state(Arc::new(export::Exports::new(auth.clone())));
     let app = Router::new()
         .route(STREAM_PATH, get(socket::upgrade))
         .with_state(Arc::new(socket::Endpoint::new(
@@ -92,6 +105,7 @@ pub async fn start(
             config,
             tracker.clone(),
         )))
+        .merge(exports)
         .fallback_service(page::service(&config.dir));
     tracing::info!(
         addr = %local_addr,

@@ -42,16 +42,14 @@ use tokio::sync::mpsc;
 use tokio_util::task::TaskTracker;
 use tonic::Status;
 
-use crate::auth::{bearer_token, BearerAuth};
+use crate::auth::BearerAuth;
 use crate::state::AppState;
 use crate::stream::{self, Outbound};
 use crate::transport::Permit;
 
 use super::config::WebConfig;
+use super::token::presented_token;
 use super::PROTOCOL;
-
-/// The subprotocol prefix that carries the bearer token.
-pub const TOKEN_PROTOCOL_PREFIX: &str = "bearer.";
 
 /// What the upgrade handler shares.
 #[derive(Debug)]
@@ -115,26 +113,6 @@ pub async fn upgrade(
             let _held = (token, permit);
             session(&endpoint, client, socket).await;
         })
-}
-
-/// The token a request presents: the authorization header's, the
-/// `bearer.` subprotocol's, or the `token` query parameter.
-fn presented_token(headers: &HeaderMap, query: &HashMap<String, String>) -> Option<Vec<u8>> {
-    if let Some(value) = headers.get(axum::http::header::AUTHORIZATION) {
-        // Another scheme is a wrong token, not a missing one.
-        return Some(bearer_token(value.as_bytes()).unwrap_or(b"").to_vec());
-    }
-    let offered = headers
-        .get_all(axum::http::header::SEC_WEBSOCKET_PROTOCOL)
-        .iter()
-        .filter_map(|v| v.to_str().ok())
-        .flat_map(|v| v.split(','))
-        .map(str::trim)
-        .find_map(|p| p.strip_prefix(TOKEN_PROTOCOL_PREFIX));
-    if let Some(token) = offered {
-        return Some(token.as_bytes().to_vec());
-    }
-    query.get("token").map(|t| t.as_bytes().to_vec())
 }
 
 /// How long a closing socket waits for the client's close frame (the
@@ -312,30 +290,6 @@ pub fn close_frame(code: tonic::Code) -> CloseFrame {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn the_token_comes_from_header_subprotocol_or_query() {
-        let mut headers = HeaderMap::new();
-        let mut query = HashMap::new();
-        assert_eq!(presented_token(&headers, &query), None);
-        query.insert("token".to_string(), "q".to_string());
-        assert_eq!(presented_token(&headers, &query), Some(b"q".to_vec()));
-        headers.insert(
-            axum::http::header::SEC_WEBSOCKET_PROTOCOL,
-            "blapose.v1, bearer.p".parse().unwrap(),
-        );
-        assert_eq!(presented_token(&headers, &query), Some(b"p".to_vec()));
-        headers.insert(
-            axum::http::header::AUTHORIZATION,
-            "Basic h".parse().unwrap(),
-        );
-        assert_eq!(presented_token(&headers, &query), Some(vec![]));
-        headers.insert(
-            axum::http::header::AUTHORIZATION,
-            "Bearer h".parse().unwrap(),
-        );
-        assert_eq!(presented_token(&headers, &query), Some(b"h".to_vec()));
-    }
 
     #[test]
     fn a_status_closes_with_4000_plus_its_code() {

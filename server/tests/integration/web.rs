@@ -388,6 +388,97 @@ async fn the_page_is_served_or_the_server_says_how_to_build_it() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// `POST path` with a JSON `body` over plain HTTP/1.1: the status code,
+/// the response's head and its body.
+async fn post(addr: SocketAddr, path: &str, body: &[u8]) -> (u16, String, Vec<u8>) {
+    let mut tcp = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let head = format!(
+        "POST {path} HTTP/1.1\r\nHost: {addr}\r\nContent-Type: application/json\r\n\
+         Content-Length: {}\r\nConnection: close\r\n\r\n",
+        body.len()
+    );
+    tcp.write_all(head.as_bytes()).await.unwrap();
+    // A refusal may come before the body is read and close the connection.
+    let _ = tcp.write_all(body).await;
+    let mut response = Vec::new();
+    let _ = tcp.read_to_end(&mut response).await;
+    let split = response
+        .windows(4)
+        .position(|w| w == b"\r\n\r\n")
+        .expect("a response head");
+    let head = String::from_utf8_lossy(&response[..split]).to_string();
+    let status = head[9..12].parse().unwrap();
+    (status, head, response[split + 4..].to_vec())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_take_is_downloaded_as_bvh_c3d_trc_or_a_replay_file() {
+    let (server, _) = start(config(|c| c.auth_token = Some("s3cret".into()))).await;
+    let addr = web_addr(&server);
+    let pose: Vec<f32> = (0..17)
+        .flat_map(|j| {
+            [
+                0.05 * j as f32,
+                -0.1 * j as f32,
+                3.0 + 0.02 * (j % 3) as f32,
+            ]
+        })
+        .collect();
+    let mut pose0 = [[0.0f32; 3]; 17];
+    for (j, p) in pose0.iter_mut().enumerate() {
+        *p = [pose[3 * j], pose[3 * j + 1], pose[3 * j + 2]];
+    }
+    let frames = 30;
+    let take = serde_json::json!({
+        "fps": 30.0,
+        "layout": "coco17",
+        "image_size": [640, 480],
+        "keypoints_2d": vec![200.0f32; frames * 34],
+        "confidence": vec![0.8f32; frames * 17],
+        "pose_3d": pose.repeat(frames),
+        "adjusted": pose.repeat(frames),
+        "bone_lengths": blapose_core::bones::bone_lengths(&pose0).to_vec(),
+    });
+    let body = serde_json::to_vec(&take).unwrap();
+    let (status, _, text) = post(addr, "/v1/export/bvh", &body).await;
+    assert_eq!(status, 401, "{}", String::from_utf8_lossy(&text));
+    let (status, head, bvh) = post(addr, "/v1/export/bvh?token=s3cret", &body).await;
+    assert_eq!(status, 200, "{}", String::from_utf8_lossy(&bvh));
+    assert!(head.contains("blapose-take.bvh"), "{head}");
+    let bvh = String::from_utf8(bvh).unwrap();
+    assert!(
+        bvh.starts_with("HIERARCHY") && bvh.contains("Frames: 30"),
+        "{bvh}"
+    );
+    let (status, _, npz) = post(addr, "/v1/export/npz?token=s3cret", &body).await;
+    assert_eq!(status, 200);
+    let back = blapose_data::replay::sequence::Sequence::read_from(
+        std::io::Cursor::new(npz),
+        "take.npz",
+        None,
+        1000,
+    )
+    .expect("the replay file reads back");
+    assert_eq!(back.pose_3d.len(), frames);
+    // Bad takes are named; an oversized one is refused before it is read.
+    let (status, _, text) = post(addr, "/v1/export/bvh?token=s3cret", b"{\"fps\": 30}").await;
+    assert_eq!(status, 400);
+    assert!(String::from_utf8_lossy(&text).contains("not valid JSON"));
+    let (status, _, text) = post(addr, "/v1/export/gif?token=s3cret", &body).await;
+    assert_eq!(status, 400);
+    assert!(String::from_utf8_lossy(&text).contains("unknown export format"));
+    let huge = vec![b' '; blapose_server::web::export::MAX_TAKE_BYTES + 1];
+    assert_eq!(
+        post(addr, "/v1/export/bvh?token=s3cret", &huge).await.0,
+        413
+    );
+    // The server still streams.
+    let mut ws = connect(addr, "?token=s3cret", &[], &[]).await.unwrap();
+    let (answers, _) = exchange_ws(&mut ws, &[open(), frame(0), close()]).await;
+    assert_eq!(support::frames(&answers), 1);
+    server.shutdown().await.unwrap();
+}
+
 /// Read until `n` answers arrived (the socket stays open).
 async fn read_n(ws: &mut Ws, n: usize) -> Vec<Resp> {
     let mut answers = Vec::new();
