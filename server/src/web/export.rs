@@ -10,16 +10,17 @@
 //! `blapose-client replay` and Python's `load_replay` read back).
 //!
 //! The take is untrusted input: the bearer token is checked as for the
-//! socket, the body is at most [`MAX_TAKE_BYTES`] (about five minutes at 30
-//! frames/s), every array's length must agree with the frame count, and at
-//! most [`EXPORTS_AT_ONCE`] are written at a time (more get 503). Errors are
+//! socket, at most [`EXPORTS_AT_ONCE`] are read and written at a time (more
+//! get 503 before their body is read), the body is at most
+//! [`MAX_TAKE_BYTES`] (about five minutes at 30 frames/s; 413), and every
+//! array's length must agree with the frame count. Errors are
 //! a status with one line of text naming what is wrong.
 
 use std::collections::HashMap;
 use std::io::Cursor;
 use std::sync::Arc;
 
-use axum::body::Bytes;
+use axum::body::Body;
 use axum::extract::{Path, Query, State};
 use axum::http::{header, HeaderMap, StatusCode};
 use axum::response::{IntoResponse, Response};
@@ -123,7 +124,7 @@ pub async fn export(
     Path(format): Path<String>,
     Query(query): Query<HashMap<String, String>>,
     headers: HeaderMap,
-    body: Bytes,
+    body: Body,
 ) -> Response {
     if let Err(status) = exports.auth.check(
         presented_token(&headers, &query).as_deref(),
@@ -135,6 +136,18 @@ pub async fn export(
         return (
             StatusCode::SERVICE_UNAVAILABLE,
             format!("{EXPORTS_AT_ONCE} exports are being written; retry in a moment"),
+        )
+            .into_response();
+    };
+    // The body is read only with a slot held: requests beyond the slots
+    // cost no memory.
+    let Ok(body) = axum::body::to_bytes(body, MAX_TAKE_BYTES).await else {
+        return (
+            StatusCode::PAYLOAD_TOO_LARGE,
+            format!(
+                "the take is over {} MB, or its upload failed",
+                MAX_TAKE_BYTES >> 20
+            ),
         )
             .into_response();
     };

@@ -32,7 +32,6 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use axum::extract::ConnectInfo;
-use axum::extract::DefaultBodyLimit;
 use axum::routing::{get, post};
 use axum::Router;
 use hyper::body::Incoming;
@@ -92,10 +91,7 @@ pub async fn start(
     let tracker = TaskTracker::new();
     let budget = state.budget.clone();
     let exports = Router::new()
-        .route(
-            EXPORT_PATH,
-            post(export::export).layer(DefaultBodyLimit::max(export::MAX_TAKE_BYTES)),
-        )
+        .route(EXPORT_PATH, post(export::export))
         .with_state(Arc::new(export::Exports::new(auth.clone())));
     let app = Router::new()
         .route(STREAM_PATH, get(socket::upgrade))

@@ -428,7 +428,8 @@ async fn a_take_is_downloaded_as_bvh_c3d_trc_or_a_replay_file() {
     for (j, p) in pose0.iter_mut().enumerate() {
         *p = [pose[3 * j], pose[3 * j + 1], pose[3 * j + 2]];
     }
-    let frames = 30;
+    // Over 2 MB of JSON (axum's default body limit), under the take's 16 MB.
+    let frames = 3000;
     let take = serde_json::json!({
         "fps": 30.0,
         "layout": "coco17",
@@ -440,6 +441,7 @@ async fn a_take_is_downloaded_as_bvh_c3d_trc_or_a_replay_file() {
         "bone_lengths": blapose_core::bones::bone_lengths(&pose0).to_vec(),
     });
     let body = serde_json::to_vec(&take).unwrap();
+    assert!(body.len() > 2 << 20, "{} bytes", body.len());
     let (status, _, text) = post(addr, "/v1/export/bvh", &body).await;
     assert_eq!(status, 401, "{}", String::from_utf8_lossy(&text));
     let (status, head, bvh) = post(addr, "/v1/export/bvh?token=s3cret", &body).await;
@@ -447,7 +449,7 @@ async fn a_take_is_downloaded_as_bvh_c3d_trc_or_a_replay_file() {
     assert!(head.contains("blapose-take.bvh"), "{head}");
     let bvh = String::from_utf8(bvh).unwrap();
     assert!(
-        bvh.starts_with("HIERARCHY") && bvh.contains("Frames: 30"),
+        bvh.starts_with("HIERARCHY") && bvh.contains("Frames: 3000"),
         "{bvh}"
     );
     let (status, _, npz) = post(addr, "/v1/export/npz?token=s3cret", &body).await;
@@ -456,7 +458,7 @@ async fn a_take_is_downloaded_as_bvh_c3d_trc_or_a_replay_file() {
         std::io::Cursor::new(npz),
         "take.npz",
         None,
-        1000,
+        10_000,
     )
     .expect("the replay file reads back");
     assert_eq!(back.pose_3d.len(), frames);
