@@ -134,13 +134,15 @@ const take = {
 };
 async function exportTake(format) {
   if (!take.frames.length) throw new Error("nothing to download yet: no frame answered");
+  // Rounded (0.01 px, 0.001 confidence, 0.01 mm) so that 5 minutes stay under the server's limit.
+  const round = (scale) => (v) => Math.round(v * scale) / scale;
   const body = JSON.stringify({
     fps: 30, layout: "coco17", image_size: [W, H],
-    keypoints_2d: take.frames.flatMap((f) => f.kp),
-    confidence: take.frames.flatMap((f) => f.conf),
-    pose_3d: take.frames.flatMap((f) => f.lifted),
-    adjusted: take.frames.flatMap((f) => f.adjusted),
-    bone_lengths: take.lengths,
+    keypoints_2d: take.frames.flatMap((f) => f.kp.map(round(1e2))),
+    confidence: take.frames.flatMap((f) => f.conf.map(round(1e3))),
+    pose_3d: take.frames.flatMap((f) => f.lifted.map(round(1e5))),
+    adjusted: take.frames.flatMap((f) => f.adjusted.map(round(1e5))),
+    bone_lengths: take.lengths.map(round(1e5)),
   });
   const token = new URLSearchParams(location.search).get("token");
   const url = `/v1/export/${format}` + (token ? `?token=${encodeURIComponent(token)}` : "");

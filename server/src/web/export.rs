@@ -12,7 +12,7 @@
 //! The take is untrusted input: the bearer token is checked as for the
 //! socket, at most [`EXPORTS_AT_ONCE`] are read and written at a time (more
 //! get 503 before their body is read), the body is at most
-//! [`MAX_TAKE_BYTES`] (about five minutes at 30 frames/s; 413), and every
+//! [`MAX_TAKE_BYTES`] (the page's five minutes at 30 frames/s fit; 413), and every
 //! array's length must agree with the frame count. Errors are
 //! a status with one line of text naming what is wrong.
 
@@ -35,9 +35,9 @@ use crate::auth::BearerAuth;
 
 use super::token::presented_token;
 
-/// The largest take the page may post: 16 MB of JSON, about 5 minutes of
-/// frames at 30 frames/s.
-pub const MAX_TAKE_BYTES: usize = 16 << 20;
+/// The largest take the page may post: 32 MB of JSON. The page keeps 5
+/// minutes at 30 frames/s and rounds its numbers: about 12 MB.
+pub const MAX_TAKE_BYTES: usize = 32 << 20;
 
 /// Exports written at once; more are answered 503.
 pub const EXPORTS_AT_ONCE: usize = 2;

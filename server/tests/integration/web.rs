@@ -428,7 +428,7 @@ async fn a_take_is_downloaded_as_bvh_c3d_trc_or_a_replay_file() {
     for (j, p) in pose0.iter_mut().enumerate() {
         *p = [pose[3 * j], pose[3 * j + 1], pose[3 * j + 2]];
     }
-    // Over 2 MB of JSON (axum's default body limit), under the take's 16 MB.
+    // Over 2 MB of JSON (axum's default body limit), under the take's 32 MB.
     let frames = 3000;
     let take = serde_json::json!({
         "fps": 30.0,
