@@ -379,23 +379,20 @@ pub fn write_npz(path: impl AsRef<Path>, npz: &Npz) -> Result<(), NpzError> {
         path: path.to_owned(),
         source,
     };
-    let zip_err = |source| NpzError::Zip {
-        path: path.to_owned(),
-        source,
-    };
     let file = File::create(path).map_err(io)?;
-    let mut inner = write_npz_to(BufWriter::new(file), npz).map_err(|e| match e {
-        NpzError::Io { source, .. } => io(source),
-        NpzError::Zip { source, .. } => zip_err(source),
-        e => e,
-    })?;
-    inner.flush().map_err(io)
+    write_npz_to(BufWriter::new(file), npz, path)?
+        .flush()
+        .map_err(io)
 }
 
 /// [`write_npz`] into `out` (e.g. a `Cursor<Vec<u8>>` for bytes in
-/// memory); `out` back once the archive is finished.
-pub fn write_npz_to<W: Write + std::io::Seek>(out: W, npz: &Npz) -> Result<W, NpzError> {
-    let path = Path::new("<memory>");
+/// memory), `path` naming it in errors; `out` back once the archive is
+/// finished.
+pub fn write_npz_to<W: Write + std::io::Seek>(
+    out: W,
+    npz: &Npz,
+    path: &Path,
+) -> Result<W, NpzError> {
     let io = |source| NpzError::Io {
         path: path.to_owned(),
         source,

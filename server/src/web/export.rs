@@ -267,12 +267,11 @@ pub fn write(format: &str, take: &[u8]) -> Result<Written, TakeError> {
                 subject: None,
             };
             let npz = sequence.to_npz()?;
-            blapose_data::npz::write_npz_to(Cursor::new(&mut out), &npz).map_err(|error| {
-                blapose_data::replay::SequenceError::Npz {
+            blapose_data::npz::write_npz_to(Cursor::new(&mut out), &npz, "<take>".as_ref())
+                .map_err(|error| blapose_data::replay::SequenceError::Npz {
                     path: "<take>".into(),
                     error,
-                }
-            })?;
+                })?;
             Ok(Written {
                 bytes: out,
                 ext: "npz",
