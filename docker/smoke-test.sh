@@ -247,6 +247,20 @@ if have curl; then
     check "the live page on the published port (--web-addr, the image's web/dist)" $([[ $web_ok == true ]]; echo $?)
 fi
 
+# The page's download: a two-frame take posted to the export route comes back as BVH.
+export_ok=false
+if have curl && have python3; then
+    take=$(python3 -c 'import json
+pose = [v for j in range(17) for v in (0.05 * j, -0.1 * j, 3.0 + 0.02 * (j % 3))]
+print(json.dumps({"fps": 30, "layout": "coco17", "image_size": [640, 480],
+    "keypoints_2d": [200.0] * 68, "pose_3d": pose * 2, "adjusted": pose * 2,
+    "bone_lengths": [0.1] * 16}))')
+    curl -fsS -H 'content-type: application/json' --data "$take" \
+        "http://127.0.0.1:$web_port/v1/export/bvh" 2>/dev/null | head -c 9 | grep -q HIERARCHY \
+        && export_ok=true
+    check "the take as BVH from the page's export route" $([[ $export_ok == true ]]; echo $?)
+fi
+
 stop_ok=false; stop_s=null
 stop_gracefully "$c" && stop_ok=true
 stop_s=$stop_took
@@ -295,7 +309,7 @@ echo
 echo "summary: image ${image_size_mb} MB, healthy after ${health_s}s, replay $replay_ok, uid $uid, TLS $tls_ok, stop ${stop_s}s / ${tls_stop_s}s (TLS)"
 if [[ -n $json_out ]]; then
     cat >"$json_out" <<EOF
-{"image":"$image","engine":"$engine","image_size_mb":$image_size_mb,"health_s":$health_s,"image_healthcheck_ok":$image_hc_ok,"uid_ok":$uid_ok,"replay_ok":$replay_ok,"metrics_ok":$metrics_ok,"web_ok":$web_ok,"stop_s":$stop_s,"stop_ok":$stop_ok,"tls_ok":$tls_ok,"tls_health_s":$tls_health_s,"tls_stop_s":$tls_stop_s,"tls_stop_ok":$tls_stop_ok,"failures":${#failures[@]}}
+{"image":"$image","engine":"$engine","image_size_mb":$image_size_mb,"health_s":$health_s,"image_healthcheck_ok":$image_hc_ok,"uid_ok":$uid_ok,"replay_ok":$replay_ok,"metrics_ok":$metrics_ok,"web_ok":$web_ok,"export_ok":$export_ok,"stop_s":$stop_s,"stop_ok":$stop_ok,"tls_ok":$tls_ok,"tls_health_s":$tls_health_s,"tls_stop_s":$tls_stop_s,"tls_stop_ok":$tls_stop_ok,"failures":${#failures[@]}}
 EOF
     echo "wrote $json_out"
 fi
