@@ -163,6 +163,17 @@ impl Budget {
         Ok(())
     }
 
+    /// Admit a new connection that may hold `bytes` (for example
+    /// [`http2_connection_bytes`]); they count until the guard drops.
+    pub fn connection(self: &Arc<Self>, bytes: usize) -> Result<BudgetConnection, BudgetError> {
+        self.admit(bytes)?;
+        self.connections.fetch_add(bytes, Ordering::Relaxed);
+        Ok(BudgetConnection {
+            budget: self.clone(),
+            bytes,
+        })
+    }
+
     /// Admit a new stream from `peer`: within the budget and the address's
     /// share; it counts until the guard drops.
     pub fn stream(self: &Arc<Self>, peer: Option<IpAddr>) -> Result<BudgetStream, BudgetError> {
@@ -184,19 +195,6 @@ impl Budget {
         Ok(BudgetStream {
             budget: self.clone(),
             peer,
-        })
-    }
-}
-
-impl Budget {
-    /// Admit a new connection that may hold `bytes` (for example
-    /// [`http2_connection_bytes`]); they count until the guard drops.
-    pub fn connection(self: &Arc<Self>, bytes: usize) -> Result<BudgetConnection, BudgetError> {
-        self.admit(bytes)?;
-        self.connections.fetch_add(bytes, Ordering::Relaxed);
-        Ok(BudgetConnection {
-            budget: self.clone(),
-            bytes,
         })
     }
 }

@@ -223,7 +223,9 @@ pub async fn spawn_with_provider(
         .map(transport::tls_acceptor)
         .transpose()
         .map_err(ServerError::Tls)?;
-    let connection_limits = connection_limits_within(&config, &budget);
+    // What one HTTP/2 connection may hold, as the budget counts it.
+    let connection_bytes = crate::budget::http2_connection_bytes(config.max_concurrent_streams);
+    let connection_limits = connection_limits_within(&config, &budget, connection_bytes);
     export_limits(&config, &connection_limits);
     let protection = config.protection;
     protection.export();
@@ -257,7 +259,7 @@ pub async fn spawn_with_provider(
         protection.max_control_frames_per_second,
         transport::ConnectionCost {
             budget: budget.clone(),
-            bytes: crate::budget::http2_connection_bytes(config.max_concurrent_streams),
+            bytes: connection_bytes,
         },
     );
     let settings = Http2Settings {
@@ -359,7 +361,7 @@ async fn start_batcher(
 ) -> Result<Batcher, ServerError> {
     let batcher_config = BatcherConfig {
         max_batch: config.max_batch.max(1),
-        max_mixed_batch: config.max_mixed_batch.clamp(1, config.max_batch.max(1)),
+        max_mixed_batch: config.max_mixed_batch,
         max_queue_delay: config.max_queue_delay,
         queue_capacity: config.queue_capacity.max(1),
     };
@@ -419,14 +421,14 @@ async fn routes(
 }
 
 /// The connection limits, `--max-connections` lowered where connections
-/// at what each may hold would pass half the memory budget
+/// of `each` bytes would pass half the memory budget
 /// ([`crate::budget::connections_within`]; logged when it is).
 fn connection_limits_within(
     config: &ServerConfig,
     budget: &crate::budget::Budget,
+    each: usize,
 ) -> transport::ConnectionLimits {
     let mut limits = config.connection_limits;
-    let each = crate::budget::http2_connection_bytes(config.max_concurrent_streams);
     let within = crate::budget::connections_within(budget.budget(), limits.max_connections, each);
     if within < limits.max_connections {
         tracing::warn!(

@@ -158,7 +158,6 @@ impl ConnectionTable {
 
     /// Admit a connection from `peer`, or say which limit refuses it.
     pub fn admit(&self, peer: IpAddr) -> Result<Permit, Refusal> {
-        let peer = peer.to_canonical();
         let mut counts = lock(&self.counts);
         if counts.total >= self.limits.max_connections {
             return Err(Refusal::Total);

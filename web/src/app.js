@@ -190,7 +190,7 @@ function answer(msg) {
     return;
   }
   if (msg.error) {
-    sentAt.delete(msg.error.frame_index); sentTime.delete(msg.error.frame_index);
+    sentAt.delete(msg.error.frame_index); sentTime.delete(msg.error.frame_index); take.pending.delete(msg.error.frame_index);
     stats.errors++;
     stats.last_error = msg.error.message;
     return;

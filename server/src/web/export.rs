@@ -25,7 +25,8 @@ use axum::extract::{Path, Query, State};
 use axum::http::{header, HeaderMap, StatusCode};
 use axum::response::{IntoResponse, Response};
 use blapose_core::layouts::{InputFormat, KeypointLayout};
-use blapose_core::{BoneLengths, Pose, NUM_BONES, NUM_JOINTS};
+use blapose_core::pose::poses_from_flat;
+use blapose_core::{BoneLengths, NUM_BONES, NUM_JOINTS};
 use blapose_data::replay::sequence::Sequence;
 use blapose_export::{Format, Motion};
 use serde::Deserialize;
@@ -80,6 +81,9 @@ pub enum TakeError {
     /// No frames.
     #[error("the take has no frames")]
     Empty,
+    /// Not one length per bone.
+    #[error("the take's bone_lengths has {0} values, not {NUM_BONES}")]
+    BoneLengths(usize),
     /// Arrays that disagree with the frame count.
     #[error("the take's {name} has {got} values, but {frames} frames need {want}")]
     Length {
@@ -224,34 +228,36 @@ pub fn write(format: &str, take: &[u8]) -> Result<Written, TakeError> {
     }
     check("pose_3d", take.pose_3d.len(), 3 * NUM_JOINTS)?;
     check("adjusted", take.adjusted.len(), 3 * NUM_JOINTS)?;
-    if take.bone_lengths.len() != NUM_BONES {
-        return Err(TakeError::Length {
-            name: "bone_lengths",
-            got: take.bone_lengths.len(),
-            frames: 1,
-            want: NUM_BONES,
-        });
-    }
+    let lengths: BoneLengths = take
+        .bone_lengths
+        .as_slice()
+        .try_into()
+        .map_err(|_| TakeError::BoneLengths(take.bone_lengths.len()))?;
+    // The pose arrays' lengths are checked above: whole poses.
+    let poses = |flat: &[f32]| poses_from_flat(flat).unwrap_or_default();
     let mut out = Vec::new();
     match chosen {
         Some(format) => {
-            let mut lengths: BoneLengths = [0.0; NUM_BONES];
-            lengths.copy_from_slice(&take.bone_lengths);
             let motion = Motion::new(&poses(&take.adjusted), &lengths, take.fps)?;
-            match format {
-                Format::Bvh => blapose_export::write_bvh(&motion, &mut out).map(|_| ())?,
-                Format::C3d => blapose_export::write_c3d(&motion, &mut out)?,
-                Format::Trc => blapose_export::write_trc(&motion, &mut out, "blapose-take.trc")?,
-            }
-            let (ext, kind) = match format {
-                Format::Bvh => ("bvh", "text/plain; charset=utf-8"),
-                Format::C3d => ("c3d", "application/octet-stream"),
-                Format::Trc => ("trc", "text/plain; charset=utf-8"),
+            const TEXT: &str = "text/plain; charset=utf-8";
+            let (ext, content_type) = match format {
+                Format::Bvh => {
+                    blapose_export::write_bvh(&motion, &mut out)?;
+                    ("bvh", TEXT)
+                }
+                Format::C3d => {
+                    blapose_export::write_c3d(&motion, &mut out)?;
+                    ("c3d", "application/octet-stream")
+                }
+                Format::Trc => {
+                    blapose_export::write_trc(&motion, &mut out, "blapose-take.trc")?;
+                    ("trc", TEXT)
+                }
             };
             Ok(Written {
                 bytes: out,
                 ext,
-                content_type: kind,
+                content_type,
             })
         }
         None => {
@@ -281,13 +287,6 @@ pub fn write(format: &str, take: &[u8]) -> Result<Written, TakeError> {
     }
 }
 
-/// `T x 17 x 3` values as poses (the length is checked by the caller).
-fn poses(flat: &[f32]) -> Vec<Pose> {
-    flat.chunks_exact(3 * NUM_JOINTS)
-        .map(|p| std::array::from_fn(|j| [p[3 * j], p[3 * j + 1], p[3 * j + 2]]))
-        .collect()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -305,7 +304,7 @@ mod tests {
                 })
             })
             .collect();
-        let pose0: Pose = std::array::from_fn(|j| {
+        let pose0: blapose_core::Pose = std::array::from_fn(|j| {
             [
                 0.05 * j as f32,
                 -0.1 * j as f32,
